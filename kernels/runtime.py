@@ -1,0 +1,79 @@
+"""The one place that imports Taichi.
+
+Every kernel module does ``from ti_cmax.kernels.runtime import ti`` and every public
+kernel wrapper calls :func:`ensure_init` before launching. This keeps stdout clean
+(Taichi prints a banner on import and the arch line on ``ti.init``), pins the CPU
+backend with the offline cache, and makes a later switch of fork or arch a one-file
+change.
+
+Threads: ``TI_CMAX_THREADS`` (env) or :func:`set_num_threads` before the first kernel.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+
+os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+
+REQUIRED_TAICHI_VERSION = (1, 7, 4)
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr():
+    """Route file descriptor 1 to 2 (Taichi's C++ logger writes to fd 1 directly)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+with _stdout_to_stderr():
+    import taichi as ti  # noqa: E402
+
+if tuple(ti.__version__) != REQUIRED_TAICHI_VERSION:  # pragma: no cover - install-time problem
+    raise ImportError(
+        f"ti_cmax needs taichi=={'.'.join(map(str, REQUIRED_TAICHI_VERSION))}, found {ti.__version__}"
+    )
+
+_state = {"initialized": False, "threads": None}
+
+
+def set_num_threads(n: int | None) -> None:
+    """Choose the CPU thread count; must be called before the first kernel launch."""
+    if _state["initialized"] and n != _state["threads"]:
+        raise RuntimeError("Taichi is already initialized; set the thread count before the first kernel")
+    _state["threads"] = n
+
+
+def num_threads() -> int:
+    if _state["threads"]:
+        return int(_state["threads"])
+    env = os.environ.get("TI_CMAX_THREADS")
+    return int(env) if env else (os.cpu_count() or 1)
+
+
+def ensure_init() -> None:
+    """Initialize Taichi once: CPU arch, offline cache, quiet log, chosen thread count."""
+    if _state["initialized"]:
+        return
+    threads = num_threads()
+    with _stdout_to_stderr():
+        ti.init(
+            arch=ti.cpu,
+            offline_cache=True,
+            cpu_max_num_threads=threads,
+            log_level=ti.WARN,
+            debug=False,
+        )
+    _state["initialized"] = True
+    _state["threads"] = threads
+
+
+__all__ = ["ti", "ensure_init", "set_num_threads", "num_threads"]

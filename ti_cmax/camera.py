@@ -1,0 +1,130 @@
+"""Pinhole camera with radial-tangential (OpenCV plumb_bob) distortion and a per-pixel bearing table.
+
+Bearings are points on the unit-depth plane, X = (x_n, y_n, 1), in the camera frame
+(x right, y down, z forward). The lookup table is built once per camera by iterative
+undistortion, as the reference implementation does.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from .errors import InputError
+
+
+@dataclass(frozen=True)
+class Camera:
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))  # k1 k2 p1 p2 k3
+
+    def __post_init__(self):
+        d = tuple(float(v) for v in self.dist) + (0.0,) * (5 - len(self.dist))
+        if len(d) != 5:
+            raise InputError(f"distortion needs at most 5 coefficients (k1 k2 p1 p2 k3), got {len(self.dist)}")
+        object.__setattr__(self, "dist", d)
+        if self.width <= 0 or self.height <= 0:
+            raise InputError(f"sensor size must be positive, got {self.width}x{self.height}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise InputError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(v != 0.0 for v in self.dist)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return (self.width, self.height)
+
+    # distortion model on normalized coordinates ---------------------------------------------
+    def distort_normalized(self, xn: np.ndarray, yn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        k1, k2, p1, p2, k3 = self.dist
+        r2 = xn * xn + yn * yn
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+        yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+        return xd, yd
+
+    def undistort_normalized(self, xd: np.ndarray, yd: np.ndarray, iterations: int = 20):
+        """Invert the distortion by fixed-point iteration (OpenCV's scheme), float64."""
+        xd = np.asarray(xd, dtype=float)
+        yd = np.asarray(yd, dtype=float)
+        if not self.has_distortion:
+            return xd.copy(), yd.copy()
+        k1, k2, p1, p2, k3 = self.dist
+        xn, yn = xd.copy(), yd.copy()
+        for _ in range(iterations):
+            r2 = xn * xn + yn * yn
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dx = 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+            dy = p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+            xn = (xd - dx) / radial
+            yn = (yd - dy) / radial
+        return xn, yn
+
+    # pixels <-> bearings --------------------------------------------------------------------
+    def unproject(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Distorted pixel coordinates -> bearings on the unit-depth plane, (N, 3) float64."""
+        xd = (np.asarray(x, dtype=float) - self.cx) / self.fx
+        yd = (np.asarray(y, dtype=float) - self.cy) / self.fy
+        xn, yn = self.undistort_normalized(xd, yd)
+        return np.stack([xn, yn, np.ones_like(xn)], axis=-1)
+
+    def project(self, bearings: np.ndarray, distort: bool = True) -> np.ndarray:
+        """Bearings (N, 3) in front of the camera -> pixel coordinates (N, 2)."""
+        b = np.asarray(bearings, dtype=float)
+        xn, yn = b[..., 0] / b[..., 2], b[..., 1] / b[..., 2]
+        if distort and self.has_distortion:
+            xn, yn = self.distort_normalized(xn, yn)
+        return np.stack([self.fx * xn + self.cx, self.fy * yn + self.cy], axis=-1)
+
+    @cached_property
+    def bearing_lut(self) -> np.ndarray:
+        """Per-pixel bearings (height*width, 3) float32, indexed by y*width + x. Built once."""
+        ys, xs = np.mgrid[0 : self.height, 0 : self.width]
+        b = self.unproject(xs.ravel(), ys.ravel())
+        return np.ascontiguousarray(b, dtype=np.float32)
+
+    def bearings(self, x: np.ndarray, y: np.ndarray, dtype=np.float32) -> np.ndarray:
+        """Bearings of event pixels: table lookup for integer pixels, direct undistortion otherwise."""
+        if np.issubdtype(np.asarray(x).dtype, np.integer):
+            idx = np.asarray(y, dtype=np.int64) * self.width + np.asarray(x, dtype=np.int64)
+            return np.ascontiguousarray(self.bearing_lut[idx], dtype=dtype)
+        return np.ascontiguousarray(self.unproject(x, y), dtype=dtype)
+
+    @property
+    def undistorted_K(self) -> np.ndarray:
+        """Intrinsics used to render front-end IWEs of undistorted bearings (the same K: the
+        reference projects with K; we compute bearings and project with the same matrix)."""
+        return self.K
+
+    @classmethod
+    def ideal(cls, width: int, height: int, fov_deg: float = 60.0) -> "Camera":
+        """Distortion-free camera with the given horizontal field of view."""
+        f = 0.5 * width / np.tan(np.radians(fov_deg) / 2)
+        return cls(width, height, f, f, (width - 1) / 2, (height - 1) / 2)
+
+    def to_dict(self) -> dict:
+        return {
+            "width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
+            "cx": self.cx, "cy": self.cy, "dist": list(self.dist),
+        }
+
+
+# Sensors the simulator and the reader know by name.
+SENSORS = {
+    "DAVIS240C": (240, 180),
+    "DVS128": (128, 128),
+    "DAVIS346": (346, 260),
+    "VGA": (640, 480),
+}

@@ -1,0 +1,81 @@
+"""The ``ti-cmax`` command line: one module per subcommand in :mod:`ti_cmax.commands`.
+
+Each command module defines ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``.
+Common options (``--config``, ``--set``, ``--threads``, ``--quiet``) are added here. Bad input
+ends with one line on stderr and exit code 2, never a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from .errors import InputError
+
+# subcommand name -> module in ti_cmax.commands
+COMMANDS = {
+    "simulate": "simulate",
+    "info": "info",
+    "convert": "convert",
+    "frontend": "frontend",
+    "slam": "slam",
+    "refine": "refine",
+    "imu": "imu",
+    "map": "map",
+    "evaluate": "evaluate",
+    "demo": "demo",
+    "benchmark": "benchmark",
+}
+
+
+def _available_commands():
+    for name, module in COMMANDS.items():
+        try:
+            yield name, importlib.import_module(f"ti_cmax.commands.{module}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"ti_cmax.commands.{module}":
+                continue  # not implemented yet
+            raise
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ti-cmax", description="CMax-SLAM: rotational motion estimation for event cameras (Taichi CPU)."
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name, module in _available_commands():
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(p)
+        p.add_argument("--config", metavar="FILE.yaml", help="YAML file of parameters")
+        p.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
+                       help="override one parameter (repeatable), e.g. --set num_events_per_packet=20000")
+        p.add_argument("--threads", type=int, default=None, help="CPU threads for the kernels (default: all)")
+        p.add_argument("--quiet", action="store_true", help="no progress bars")
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from . import progress
+
+    if args.quiet:
+        progress.set_quiet(True)
+    if args.threads:
+        from .kernels import runtime
+
+        runtime.set_num_threads(args.threads)
+    try:
+        return int(args._run(args) or 0)
+    except InputError as exc:
+        print(f"ti-cmax {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"ti-cmax {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,237 @@
+"""Configuration: frozen dataclasses named after the reference implementation's launch parameters.
+
+A config is loaded from YAML (flat, launch-file style, or nested by section) and from
+``--set key=value`` overrides. Flat keys are resolved by their unique field name across sections,
+so ``--set num_events_per_packet=20000`` and ``--set frontend.num_events_per_packet=20000`` both work.
+The config used is written beside the outputs (:func:`save_config`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import typing
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+
+import yaml
+
+from .errors import InputError
+
+
+@dataclass(frozen=True)
+class FrontendConfig:
+    """CMax-omega front-end (Sec. II-B, III-C1)."""
+
+    contrast_measure: str = "variance"  # "variance" or "mean_square"
+    frontend_blur_sigma: float = 1.0
+    frontend_event_sample_rate: int = 1  # keep 1 of Q events
+    num_events_per_packet: int = 10000
+    dt_ang_vel: float = 0.01  # 1/f, packet centre spacing (s)
+    still_span_factor: float = 10.0  # a packet spanning more than factor*dt_ang_vel means a still camera
+    # Fletcher-Reeves CG
+    frontend_cg_init_step: float = 0.1
+    frontend_cg_line_search_tol: float = 0.05
+    frontend_cg_max_iters: int = 50
+    frontend_cg_grad_tol: float = 1e-3
+    frontend_cg_rel_cost_tol: float = 1e-4
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    """Sliding-window CMax bundle adjustment (Sec. III-B, III-C2)."""
+
+    backend_blur_sigma: float = 1.0
+    event_batch_size: int = 100
+    backend_event_sample_rate: int = 1
+    backend_time_window_size: float = 0.2
+    backend_sliding_window_stride: float = 0.1
+    spline_degree: int = 1  # 1 linear, 3 cubic
+    dt_knots: float = 0.05  # control-pose spacing (s)
+    pano_height: int = 512
+    pano_width: int = 0  # 0 means 2 * pano_height
+    backend_min_ev_rate: float = 10000.0  # events/s; below: camera treated as still, no BA
+    freeze_pixels: bool = False
+    max_update_time: float = 10.0  # s a map pixel stays updatable once observed (if freeze_pixels)
+    lambda0: float = 1.0
+    # Fletcher-Reeves CG
+    backend_cg_init_step: float = 0.1
+    backend_cg_line_search_tol: float = 0.1
+    backend_cg_max_iters: int = 50
+    backend_cg_grad_tol: float = 1e-4
+    backend_cg_rel_cost_tol: float = 1e-4
+
+    @property
+    def pano_size(self) -> tuple[int, int]:
+        """(width, height) of the panoramic map."""
+        return (self.pano_width or 2 * self.pano_height, self.pano_height)
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    gamma: float = 0.75
+    trajectory_rate: float = 200.0  # Hz at which continuous trajectories are sampled to TUM
+    num_threads: int = 0  # 0: all cores (or TI_CMAX_THREADS)
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+
+# ------------------------------------------------------------------------------------------
+# generic loading of nested frozen dataclasses
+# ------------------------------------------------------------------------------------------
+
+def _leaf_paths(cls, prefix=()) -> dict[str, tuple[str, ...]]:
+    """Map every leaf field name (and dotted path) to its path in the nested dataclass."""
+    out: dict[str, tuple[str, ...]] = {}
+    hints = typing.get_type_hints(cls)
+    for f in fields(cls):
+        path = prefix + (f.name,)
+        t = hints[f.name]
+        if is_dataclass(t):
+            out.update(_leaf_paths(t, path))
+        else:
+            out[".".join(path)] = path
+            out.setdefault(f.name, path)
+    return out
+
+
+def _convert(value, typ, key: str, source: str):
+    origin = typing.get_origin(typ)
+    try:
+        if typ is bool:
+            if isinstance(value, str):
+                low = value.strip().lower()
+                if low in ("1", "true", "yes", "on"):
+                    return True
+                if low in ("0", "false", "no", "off"):
+                    return False
+                raise ValueError
+            return bool(value)
+        if typ is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError
+            return int(float(value)) if isinstance(value, str) else int(value)
+        if typ is float:
+            return float(value)
+        if typ is str:
+            return str(value)
+        if origin in (tuple, list):
+            if isinstance(value, str):
+                value = yaml.safe_load(value)
+            return tuple(value)
+    except (TypeError, ValueError):
+        name = getattr(typ, "__name__", str(typ))
+        raise InputError(f"field '{key}' expects {name}, got {value!r}", source=source) from None
+    return value
+
+
+def build_config(cls, values: dict, source: str = "config"):
+    """Build a (nested) frozen dataclass from flat or nested key/values; unknown keys are errors."""
+    paths = _leaf_paths(cls)
+    flat: dict[tuple[str, ...], object] = {}
+
+    def walk(d, prefix=()):
+        for k, v in d.items():
+            key = ".".join(prefix + (str(k),))
+            if isinstance(v, dict) and key not in paths:
+                walk(v, prefix + (str(k),))
+                continue
+            if key not in paths and str(k) in paths and not prefix:
+                key = str(k)
+            if key not in paths:
+                raise InputError(f"unknown parameter '{key}'", source=source)
+            flat[paths[key]] = v
+
+    walk(values or {})
+    return _apply(cls, flat, (), source)
+
+
+def _apply(cls, flat, prefix, source):
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in fields(cls):
+        path = prefix + (f.name,)
+        t = hints[f.name]
+        if is_dataclass(t):
+            kwargs[f.name] = _apply(t, flat, path, source)
+        elif path in flat:
+            kwargs[f.name] = _convert(flat[path], t, ".".join(path), source)
+    return cls(**kwargs)
+
+
+def parse_overrides(items: list[str] | None) -> dict:
+    """['a=1', 'b.c=x'] -> {'a': 1, 'b.c': 'x'} (values parsed as YAML scalars)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise InputError(f"--set expects key=value, got {item!r}")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = yaml.safe_load(v)
+        except yaml.YAMLError:
+            out[k.strip()] = v
+    return out
+
+
+def load_config(cls, path: str | os.PathLike | None = None, overrides: list[str] | dict | None = None):
+    """Defaults <- YAML file <- overrides. Errors name the file and the field."""
+    values: dict = {}
+    if path:
+        try:
+            with open(path) as fh:
+                loaded = yaml.safe_load(fh)
+        except FileNotFoundError:
+            raise InputError("config file not found", source=str(path)) from None
+        except yaml.YAMLError as exc:
+            line = getattr(getattr(exc, "problem_mark", None), "line", None)
+            raise InputError("not valid YAML", source=str(path), line=None if line is None else line + 1) from None
+        if loaded is not None and not isinstance(loaded, dict):
+            raise InputError("expected a mapping of parameter: value", source=str(path))
+        values = _flatten(loaded or {})
+    ov = overrides if isinstance(overrides, dict) else parse_overrides(overrides)
+    cfg = build_config(cls, values, source=str(path) if path else "config")
+    if ov:
+        cfg = update_config(cfg, ov, source="--set")
+    return cfg
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def update_config(cfg, values: dict, source: str = "config"):
+    """Return a copy of cfg with flat or dotted keys replaced."""
+    base = config_to_dict(cfg)
+    merged = _flatten(base)
+    paths = _leaf_paths(type(cfg))
+    for k, v in values.items():
+        if k not in paths:
+            raise InputError(f"unknown parameter '{k}'", source=source)
+        merged[".".join(paths[k])] = v
+    return build_config(type(cfg), merged, source=source)
+
+
+def config_to_dict(cfg) -> dict:
+    return dataclasses.asdict(cfg)
+
+
+def save_config(cfg, path: str | os.PathLike) -> None:
+    """Write the config used beside the outputs (nested YAML, reloadable with --config)."""
+    with open(path, "w") as fh:
+        yaml.safe_dump(config_to_dict(cfg), fh, sort_keys=False)
+
+
+__all__ = [
+    "FrontendConfig", "BackendConfig", "OutputConfig", "SlamConfig",
+    "load_config", "update_config", "build_config", "save_config", "config_to_dict", "parse_overrides", "replace",
+]

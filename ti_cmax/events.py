@@ -1,0 +1,127 @@
+"""The `Events` type: a struct of contiguous arrays.
+
+t: float64 seconds (absolute, as in the file); x, y: pixel column/row (uint16, or float32 for
+datasets that ship undistorted sub-pixel coordinates); p: polarity as int8 in {-1, +1}.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+
+def _as(a, dtype) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
+@dataclass(frozen=True, eq=False)
+class Events:
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    p: np.ndarray
+
+    def __post_init__(self):
+        n = len(self.t)
+        if not (len(self.x) == len(self.y) == len(self.p) == n):
+            raise InputError("events arrays t, x, y, p must have the same length")
+        object.__setattr__(self, "t", _as(self.t, np.float64))
+        xy_dtype = np.float32 if np.issubdtype(np.asarray(self.x).dtype, np.floating) else np.uint16
+        object.__setattr__(self, "x", _as(self.x, xy_dtype))
+        object.__setattr__(self, "y", _as(self.y, xy_dtype))
+        p = np.asarray(self.p)
+        if p.dtype != np.int8:
+            p = np.where(p > 0, 1, -1).astype(np.int8)
+        object.__setattr__(self, "p", _as(p, np.int8))
+
+    # construction -------------------------------------------------------------------------
+    @classmethod
+    def empty(cls) -> "Events":
+        return cls(np.zeros(0), np.zeros(0, np.uint16), np.zeros(0, np.uint16), np.zeros(0, np.int8))
+
+    @classmethod
+    def concatenate(cls, parts: list["Events"]) -> "Events":
+        parts = [e for e in parts if len(e)]
+        if not parts:
+            return cls.empty()
+        if len(parts) == 1:
+            return parts[0]
+        return cls(*(np.concatenate([getattr(e, f) for e in parts]) for f in ("t", "x", "y", "p")))
+
+    # basic properties ---------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def has_subpixel_coordinates(self) -> bool:
+        return self.x.dtype == np.float32
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1] - self.t[0]) if len(self) > 1 else 0.0
+
+    @property
+    def nbytes(self) -> int:
+        return sum(getattr(self, f).nbytes for f in ("t", "x", "y", "p"))
+
+    # slicing ------------------------------------------------------------------------------
+    def __getitem__(self, index) -> "Events":
+        if isinstance(index, (int, np.integer)):
+            index = slice(index, index + 1 if index != -1 else None)
+        return Events(self.t[index], self.x[index], self.y[index], self.p[index])
+
+    def index_at(self, t: float | np.ndarray, side: str = "left"):
+        """Index of the first event with timestamp >= t (side='left') or > t (side='right')."""
+        return np.searchsorted(self.t, t, side=side)
+
+    def slice_time(self, t_start: float, t_end: float) -> "Events":
+        """Events with t_start <= t < t_end (views, no copy)."""
+        i0, i1 = self.index_at(t_start), self.index_at(t_end)
+        return self[int(i0):int(i1)]
+
+    def downsample(self, keep_one_of: int) -> "Events":
+        """Keep one event out of Q (systematic, as the paper's event sampling rate)."""
+        q = int(keep_one_of)
+        if q < 1:
+            raise InputError(f"event sample rate must be an integer >= 1, got {keep_one_of}")
+        return self if q == 1 else self[::q]
+
+    # validation ---------------------------------------------------------------------------
+    def validate(self, width: int | None = None, height: int | None = None, source: str = "events") -> "Events":
+        """Raise InputError on NaN/inf timestamps, decreasing timestamps or pixels outside the sensor."""
+        if len(self) == 0:
+            return self
+        bad = ~np.isfinite(self.t)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(f"event {i} has a non-finite timestamp ({self.t[i]})", source=source)
+        dec = np.diff(self.t) < 0
+        if dec.any():
+            i = int(np.argmax(dec)) + 1
+            raise InputError(
+                f"timestamps are not sorted: event {i} at t={self.t[i]!r} comes after t={self.t[i - 1]!r}",
+                source=source,
+            )
+        if self.has_subpixel_coordinates:
+            finite = np.isfinite(self.x) & np.isfinite(self.y)
+            if not finite.all():
+                i = int(np.argmin(finite))
+                raise InputError(f"event {i} has a non-finite coordinate", source=source)
+        for name, arr, limit in (("x", self.x, width), ("y", self.y, height)):
+            if limit is None:
+                continue
+            out = (arr < 0) | (arr >= limit) if self.has_subpixel_coordinates else arr >= limit
+            if out.any():
+                i = int(np.argmax(out))
+                raise InputError(
+                    f"event {i} has {name}={arr[i]}, outside the sensor (expected 0 <= {name} < {limit})",
+                    source=source,
+                )
+        return self
+
+    def __repr__(self) -> str:
+        if len(self) == 0:
+            return "Events(n=0)"
+        return f"Events(n={len(self)}, t=[{self.t[0]:.6f}, {self.t[-1]:.6f}] s)"

@@ -1,0 +1,60 @@
+"""Writing outputs without leaving partial files behind.
+
+``atomic_path`` yields a temporary path beside the target and renames it into place only when
+the block succeeds. ``OutputDir`` creates ``--out DIR`` and, if the command fails, removes what the
+command wrote there (and the directory itself if it created it).
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None):
+    """Yield a temp file path in the target's folder; on success move it onto ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+class OutputDir:
+    """Context manager for a command's output folder: all-or-nothing on failure."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self._created = False
+        self._before: set[str] = set()
+
+    def __enter__(self) -> Path:
+        if self.path.exists() and not self.path.is_dir():
+            from .errors import InputError
+
+            raise InputError("output path exists and is not a folder", source=str(self.path))
+        if not self.path.exists():
+            self.path.mkdir(parents=True)
+            self._created = True
+        self._before = set(os.listdir(self.path))
+        return self.path
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            return False
+        if self._created:
+            shutil.rmtree(self.path, ignore_errors=True)
+        else:
+            for name in set(os.listdir(self.path)) - self._before:
+                p = self.path / name
+                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+        return False
