@@ -77,3 +77,16 @@ def test_config_yaml_and_overrides(tmp_path):
         load_config(SlamConfig, None, ["nonsense=1"])
     with pytest.raises(InputError, match="expects int"):
         load_config(SlamConfig, None, ["num_events_per_packet=abc"])
+
+
+def test_trajectory_interpolation_and_alignment():
+    from ti_cmax.trajectory import Trajectory
+
+    t = np.linspace(0, 1, 11)
+    traj = Trajectory(t, so3.exp(np.outer(t, [0.0, 1.0, 0.0])))
+    mid = traj.at([0.05, 0.55])
+    assert np.allclose(mid, so3.exp(np.outer([0.05, 0.55], [0, 1.0, 0])), atol=1e-12)
+    shifted = traj.left_multiplied(so3.exp(np.array([0.3, 0, 0])))
+    assert np.allclose(shifted.aligned_to(traj, 0.5).R, traj.R, atol=1e-12)
+    with pytest.raises(InputError, match="increase strictly"):
+        Trajectory(np.array([0.0, 0.0]), np.stack([np.eye(3)] * 2))

@@ -1,0 +1,77 @@
+"""A sampled rotation trajectory R_world_from_camera(t), queryable at any time.
+
+Used for ground truth, front-end output (integrated omega), IMU dead reckoning and spline
+samples. Between samples the rotation is interpolated by Slerp; outside, it is held constant.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from .errors import InputError
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    t: np.ndarray  # (N,) seconds, strictly increasing
+    R: np.ndarray  # (N, 3, 3) R_world_from_camera
+
+    def __post_init__(self):
+        t = np.ascontiguousarray(self.t, dtype=np.float64).reshape(-1)
+        r = np.ascontiguousarray(self.R, dtype=np.float64).reshape(-1, 3, 3)
+        if len(t) != len(r):
+            raise InputError(f"trajectory has {len(t)} timestamps but {len(r)} rotations")
+        if len(t) == 0:
+            raise InputError("trajectory is empty")
+        if len(t) > 1 and np.any(np.diff(t) <= 0):
+            i = int(np.argmax(np.diff(t) <= 0)) + 1
+            raise InputError(f"trajectory timestamps must increase strictly (sample {i}, t={t[i]!r})")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "R", r)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def rotations(self) -> Rotation:
+        return Rotation.from_matrix(self.R)
+
+    @property
+    def t_start(self) -> float:
+        return float(self.t[0])
+
+    @property
+    def t_end(self) -> float:
+        return float(self.t[-1])
+
+    def at(self, times: np.ndarray | float) -> np.ndarray:
+        """Rotation matrices at arbitrary times, (M, 3, 3) (Slerp; clamped at the ends)."""
+        times = np.atleast_1d(np.asarray(times, dtype=np.float64))
+        if len(self.t) == 1:
+            return np.broadcast_to(self.R[0], (len(times), 3, 3)).copy()
+        clamped = np.clip(times, self.t[0], self.t[-1])
+        return Slerp(self.t, self.rotations)(clamped).as_matrix()
+
+    def resampled(self, times: np.ndarray) -> "Trajectory":
+        return Trajectory(np.asarray(times, dtype=float), self.at(times))
+
+    def slice_time(self, t_start: float, t_end: float) -> "Trajectory":
+        keep = (self.t >= t_start) & (self.t <= t_end)
+        return Trajectory(self.t[keep], self.R[keep])
+
+    def aligned_to(self, reference: "Trajectory", t0: float) -> "Trajectory":
+        """Align at one time (CONVENTIONS.md): R_aligned(t) = R_ref(t0) R(t0)^T R(t)."""
+        offset = reference.at(t0)[0] @ self.at(t0)[0].T
+        return Trajectory(self.t, offset @ self.R)
+
+    def left_multiplied(self, r: np.ndarray) -> "Trajectory":
+        return Trajectory(self.t, np.asarray(r) @ self.R)
+
+    def quaternions_xyzw(self) -> np.ndarray:
+        return self.rotations.as_quat()
+
+    @classmethod
+    def from_quaternions(cls, t: np.ndarray, q_xyzw: np.ndarray) -> "Trajectory":
+        return cls(t, Rotation.from_quat(np.asarray(q_xyzw, dtype=float)).as_matrix())
