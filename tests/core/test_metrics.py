@@ -1,0 +1,201 @@
+"""Metrics of Sec. IV-B on hand-made trajectories with known errors, EA/GM by hand, evo agreement, CLI."""
+import json
+
+import numpy as np
+import pytest
+
+from ti_cmax import so3
+from ti_cmax.errors import InputError
+from ti_cmax.metrics import (
+    EvaluationConfig, default_t0, evaluate_rotations, evaluate_with_config, event_area_percent,
+    gradient_magnitude, relative_pair_starts, rotation_angle_deg, smooth_trajectory, star_tracking_errors,
+)
+from ti_cmax.trajectory import Trajectory
+
+AXIS = np.array([1.0, 2.0, -2.0]) / 3.0  # unit axis
+
+
+def _gt(rate=100.0, duration=4.0, t_start=0.0):
+    """A rotating ground truth (more than 180 deg of yaw over 4 s) sampled at ``rate``."""
+    t = t_start + np.arange(int(round(duration * rate)) + 1) / rate
+    phi = np.stack([0.3 * np.sin(1.1 * t), 0.5 * np.sin(0.7 * t + 0.3), 0.9 * t], axis=1)
+    return Trajectory(t, so3.exp(phi))
+
+
+def test_rotation_angle_matches_eq23():
+    r = so3.exp(np.array([[0.0, 0.0, 0.0], [0.1, -0.2, 0.3], [0.0, 3.0, 0.0]]))
+    acos = np.degrees(np.arccos(np.clip((np.trace(r, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    np.testing.assert_allclose(rotation_angle_deg(r), acos, atol=1e-6)
+    np.testing.assert_allclose(rotation_angle_deg(r)[1], np.degrees(np.linalg.norm([0.1, -0.2, 0.3])))
+
+
+def test_constant_offset_vanishes_after_alignment():
+    gt = _gt()
+    offset = so3.exp(np.radians(7.0) * AXIS)
+    est = gt.left_multiplied(offset)
+    res = evaluate_rotations(gt, est)
+    assert res.t0 == pytest.approx(0.1)
+    assert res.num_abs == len(gt) and res.abs_max_deg < 1e-6
+    assert res.num_rel == 31 and res.rel_max_deg_per_s < 1e-6  # starts 0, 0.1, ..., 3.0
+    raw = evaluate_rotations(gt, est, align=False)
+    np.testing.assert_allclose(raw.abs_errors_deg, 7.0, atol=1e-9)
+    assert raw.abs_rmse_deg == pytest.approx(7.0) and raw.rel_rmse_deg_per_s < 1e-6
+
+
+def test_linear_drift_gives_k_deg_per_s():
+    """est(t) = exp(k t a) gt(t): aligned abs error is exactly k |t - t0|, every relative error exactly k."""
+    gt = _gt()
+    k = np.radians(2.0)  # 2 deg/s
+    est = Trajectory(gt.t, so3.exp(np.outer(k * gt.t, AXIS)) @ gt.R)
+    res = evaluate_rotations(gt, est, t0=1.0)
+    np.testing.assert_allclose(res.abs_errors_deg, 2.0 * np.abs(gt.t - 1.0), atol=1e-8)
+    assert res.abs_rmse_deg == pytest.approx(np.sqrt(np.mean((2.0 * (gt.t - 1.0)) ** 2)))
+    np.testing.assert_allclose(res.rel_errors_deg_per_s, 2.0, atol=1e-7)
+    assert res.rel_rmse_deg_per_s == pytest.approx(2.0)
+    # a 0.5 s delta still measures the rate (angle / delta)
+    half = evaluate_rotations(gt, est, rel_delta=0.5)
+    np.testing.assert_allclose(half.rel_errors_deg_per_s, 2.0, atol=1e-7)
+    assert half.num_rel == 36
+
+
+def test_white_noise_rmse_is_sigma_sqrt3():
+    """Isotropic rotation-vector noise N(0, s^2 I3): E[angle^2] = 3 s^2; relative pairs: 6 s^2 / delta^2."""
+    gt = _gt(rate=200.0, duration=20.0)
+    sigma = 0.01
+    noise = np.random.default_rng(0).normal(0.0, sigma, (len(gt), 3))
+    est = Trajectory(gt.t, gt.R @ so3.exp(noise))
+    res = evaluate_rotations(gt, est, align=False, rel_step=0.005)
+    assert res.abs_rmse_deg == pytest.approx(np.degrees(sigma * np.sqrt(3.0)), rel=0.03)
+    assert res.rel_rmse_deg_per_s == pytest.approx(np.degrees(sigma * np.sqrt(6.0)) / 1.0, rel=0.05)
+    assert res.num_rel == len(gt) - 200
+
+
+def test_t0_policy_overlap_and_rate():
+    gt = _gt(duration=4.0)
+    est = Trajectory(gt.t[50:300] + 0.001, gt.R[50:300])  # 0.501 .. 2.991 s
+    assert default_t0(gt, est) == pytest.approx(0.601)
+    assert default_t0(gt, est, offset=1.0) == pytest.approx(1.501)
+    res = evaluate_rotations(gt, est, sample_rate=50.0)
+    assert res.t_start == pytest.approx(0.501) and res.t_end == pytest.approx(2.991)
+    np.testing.assert_allclose(np.diff(res.abs_times), 0.02)
+    assert res.num_abs == 125 and res.abs_times[-1] <= res.t_end + 1e-9
+    cfg = EvaluationConfig(t0_offset=1.0, sample_rate=50.0)
+    assert evaluate_with_config(gt, est, cfg).t0 == pytest.approx(1.501)
+    with pytest.raises(InputError, match="outside"):
+        evaluate_rotations(gt, est, t0=0.2)
+    with pytest.raises(InputError, match="do not overlap"):
+        evaluate_rotations(gt, Trajectory(gt.t + 10.0, gt.R))
+    short = evaluate_rotations(gt, Trajectory(gt.t[:50], gt.R[:50]))
+    assert short.num_rel == 0 and short.to_dict()["rel_rmse_deg_per_s"] is None
+    np.testing.assert_allclose(relative_pair_starts(0.0, 1.35, 1.0, 0.1), [0.0, 0.1, 0.2, 0.3])
+
+
+def test_gt_filter_keeps_constant_rate_and_removes_noise():
+    rng = np.random.default_rng(1)
+    t = np.sort(np.concatenate([np.arange(0, 2.0, 0.005) + rng.uniform(0, 0.002, 400)]))
+    w = np.array([0.4, -0.3, 1.5])
+    steady = Trajectory(t, so3.exp(np.array([0.2, 0.1, 0.0])) @ so3.exp(np.outer(t, w)))
+    smoothed = smooth_trajectory(steady, 0.05)
+    assert np.max(rotation_angle_deg(np.swapaxes(smoothed.R, 1, 2) @ steady.R)) < 1e-6  # ends included
+
+    clean = _gt(rate=200.0, duration=3.0)
+    noisy = Trajectory(clean.t, clean.R @ so3.exp(rng.normal(0.0, 0.005, (len(clean), 3))))
+    before = evaluate_rotations(clean, noisy, align=False).abs_rmse_deg
+    after = evaluate_rotations(clean, smooth_trajectory(noisy, 0.05), align=False).abs_rmse_deg
+    assert after < 0.5 * before
+    # the same filter used through evaluate_rotations on the ground truth
+    via = evaluate_rotations(noisy, clean, align=False, gt_filter_span=0.05).abs_rmse_deg
+    assert via == pytest.approx(after, rel=1e-9)
+
+
+def test_star_tracking_metric_on_drift():
+    gt = _gt(duration=4.0)
+    k = np.radians(0.5)
+    est = Trajectory(gt.t, so3.exp(np.radians(30) * AXIS) @ so3.exp(np.outer(k * gt.t, AXIS)) @ gt.R)
+    res = star_tracking_errors(gt, est)
+    assert res.count == 10  # back-to-back 400 ms intervals in 4 s
+    np.testing.assert_allclose(res.errors_deg, 0.5 * 0.4, atol=1e-8)
+    assert res.rmse_deg == pytest.approx(0.2) and res.std_deg == pytest.approx(0.0, abs=1e-8)
+    assert star_tracking_errors(gt, est, step=0.1).count == 37
+
+
+def test_event_area_by_hand():
+    h = np.array([[0.0, 1.0], [2.0, 0.0]])
+    assert event_area_percent(h) == pytest.approx(100 * ((1 - np.exp(-1)) + (1 - np.exp(-2))) / 4)
+    assert event_area_percent(h, lambda0=2.0) == pytest.approx(100 * ((1 - np.exp(-0.5)) + (1 - np.exp(-1))) / 4)
+    assert event_area_percent(np.zeros((3, 4))) == 0.0
+
+
+def test_gradient_magnitude_by_hand():
+    ramp = np.tile(np.arange(3.0), (3, 1))  # I = x; borders replicated: |Ix| = 0.5, 1, 0.5 per row
+    assert gradient_magnitude(ramp) == pytest.approx(np.sqrt(0.5))
+    impulse = np.zeros((5, 5))
+    impulse[2, 2] = 1.0  # Sobel taps 1,2,1 on each side, /8: sum of Ix^2 = sum of Iy^2 = 12/64
+    assert gradient_magnitude(impulse) == pytest.approx(np.sqrt(24 / 64 / 25))
+    assert gradient_magnitude(np.full((4, 6), 3.0)) == 0.0
+
+
+def _evo_traj(traj):
+    from evo.core.trajectory import PoseTrajectory3D
+
+    q = np.roll(traj.quaternions_xyzw(), 1, axis=1)  # wxyz
+    return PoseTrajectory3D(positions_xyz=np.zeros((len(traj), 3)), orientations_quat_wxyz=q,
+                            timestamps=traj.t.copy())
+
+
+def test_agrees_with_evo():
+    pytest.importorskip("evo")
+    from evo.core import metrics as evo_metrics
+
+    gt = _gt(rate=100.0, duration=5.0)
+    rng = np.random.default_rng(2)
+    est = Trajectory(gt.t, so3.exp(np.outer(np.radians(1.5) * gt.t, AXIS)) @ gt.R
+                     @ so3.exp(rng.normal(0.0, 0.01, (len(gt), 3))))
+    res = evaluate_rotations(gt, est, rel_step=0.01)  # one pair per frame, as evo's all_pairs
+    aligned = est.aligned_to(gt, res.t0)  # evo cannot align rotation-only trajectories itself
+
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.rotation_angle_deg)
+    ape.process_data((_evo_traj(gt), _evo_traj(aligned)))
+    np.testing.assert_allclose(res.abs_errors_deg, ape.error, atol=1e-6)
+
+    rpe = evo_metrics.RPE(evo_metrics.PoseRelation.rotation_angle_deg, delta=100,
+                          delta_unit=evo_metrics.Unit.frames, all_pairs=True)
+    rpe.process_data((_evo_traj(gt), _evo_traj(aligned)))
+    np.testing.assert_allclose(res.rel_errors_deg_per_s * res.rel_delta, rpe.error, atol=1e-6)
+
+
+def test_evaluate_cli(tmp_path, capsys):
+    from ti_cmax.cli import main
+    from ti_cmax.io import write_tum
+
+    gt = _gt(rate=100.0, duration=3.0)
+    est = Trajectory(gt.t, so3.exp(np.outer(np.radians(2.0) * gt.t, AXIS)) @ gt.R)
+    write_tum(tmp_path / "gt.txt", gt)
+    write_tum(tmp_path / "est.txt", est)
+    args = ["evaluate", "--groundtruth", str(tmp_path / "gt.txt"), "--estimate", str(tmp_path / "est.txt")]
+
+    assert main(args) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    out = json.loads(last)
+    expected = evaluate_rotations(gt, est)
+    assert out["abs_rmse_deg"] == pytest.approx(expected.abs_rmse_deg, rel=1e-6)
+    assert out["rel_rmse_deg_per_s"] == pytest.approx(2.0, rel=1e-6)
+    assert out["t0"] == pytest.approx(0.1)
+
+    assert main(args + ["--t0", "1.0", "--out", str(tmp_path / "res.json")]) == 0
+    saved = json.loads((tmp_path / "res.json").read_text())
+    assert saved["t0"] == 1.0 and saved["abs_rmse_deg"] == pytest.approx(
+        evaluate_rotations(gt, est, t0=1.0).abs_rmse_deg, rel=1e-6)
+    capsys.readouterr()
+    assert main(args + ["--set", "rel_delta=0.5", "--set", "rel_step=0.25"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["num_rel"] == 11 and out["rel_rmse_deg_per_s"] == pytest.approx(2.0, rel=1e-6)
+    assert main(args + ["--set", "no_such_key=1"]) == 2
+    capsys.readouterr()
+
+    (tmp_path / "bad.txt").write_text("0.0 0 0 0 0 0 0 1\n0.1 0 0 zero 0 0 0 1\n")
+    assert main(["evaluate", "--groundtruth", str(tmp_path / "bad.txt"),
+                 "--estimate", str(tmp_path / "est.txt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.txt" in err[0]
+    assert main(args + ["--t0", "50"]) == 2

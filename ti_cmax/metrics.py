@@ -1,0 +1,310 @@
+"""Accuracy and map-quality metrics of the paper's Sec. IV-B (Eq. 21-24) and the star-tracking metric.
+
+Pure numpy/scipy on :class:`~ti_cmax.trajectory.Trajectory`, no I/O (the ``evaluate`` command and the
+benchmarks read files and call these).
+
+* Absolute error (Eq. 21): angle of R_gt(t)^T R_est(t) at the estimate's timestamps, or on a fixed-rate grid
+  (50 Hz for continuous trajectories), ground truth interpolated by Slerp, both restricted to the time range
+  the two trajectories share; the estimate is first aligned at t0: R_est(t) <- R_gt(t0) R_est(t0)^T R_est(t).
+* Relative error (Eq. 22): angle of (R_gt(t)^T R_gt(t+d))^T (R_est(t)^T R_est(t+d)) for pairs t, t + d
+  (d = 1 s) whose start t steps every 0.1 s from the start of the overlap, divided by d (deg/s).
+* Angles (Eq. 23) are geodesic, computed as |log(B)| (same value as arccos((tr B - 1)/2), stable near 0).
+* Optional Gaussian low-pass filter of the ground truth on SO(3) (paper: 50 ms, for noisy mocap).
+* Event area EA% (lambda0 = 1) and gradient magnitude GM (Eq. 24) of an image of warped events.
+* Star tracking (Chin et al.): angle between estimated and true relative rotations over 400 ms, RMSE and std.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from . import so3
+from .errors import InputError
+from .trajectory import Trajectory
+
+CONTINUOUS_RATE_HZ = 50.0  # rate at which continuous (spline) trajectories are evaluated
+T0_OFFSET_SYNTHETIC = 0.1  # alignment time after the start of the overlap, synthetic sequences (s)
+T0_OFFSET_REAL = 1.0  # same for real recordings (s)
+GT_FILTER_SPAN = 0.05  # time span of the Gaussian low-pass filter applied to mocap ground truth (s)
+STAR_WINDOW = 0.4  # interval of the star-tracking relative-rotation metric (s)
+_EPS_T = 1e-9
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """Parameters of :func:`evaluate_rotations` (also the ``--config``/``--set`` keys of ``ti-cmax evaluate``)."""
+
+    t0_offset: float = T0_OFFSET_SYNTHETIC  # t0 = start of the overlap + t0_offset, unless t0 is given
+    align: bool = True  # align the estimate to the ground truth at t0
+    sample_rate: float = 0.0  # Hz of the absolute-error grid; 0: the estimate's own timestamps
+    rel_delta: float = 1.0  # time span of the relative-error pairs (s)
+    rel_step: float = 0.1  # spacing of the relative-error pair starts (s)
+    gt_filter_span: float = 0.0  # Gaussian low-pass span on the ground truth (s); 0: off
+
+
+@dataclass(frozen=True, eq=False)
+class RotationErrors:
+    """Absolute (deg) and relative (deg/s) rotation errors of one estimate, summaries plus per-sample arrays."""
+
+    abs_rmse_deg: float
+    abs_mean_deg: float
+    abs_median_deg: float
+    abs_max_deg: float
+    rel_rmse_deg_per_s: float
+    rel_mean_deg_per_s: float
+    rel_median_deg_per_s: float
+    rel_max_deg_per_s: float
+    num_abs: int
+    num_rel: int
+    t0: float
+    aligned: bool
+    rel_delta: float
+    t_start: float  # overlap of the two trajectories
+    t_end: float
+    abs_times: np.ndarray
+    abs_errors_deg: np.ndarray
+    rel_times: np.ndarray  # start time of each pair
+    rel_errors_deg_per_s: np.ndarray
+
+    def to_dict(self) -> dict:
+        """JSON-ready scalars (NaN, e.g. no relative pair fits in a short overlap, becomes None)."""
+        out = {}
+        for name in ("abs_rmse_deg", "rel_rmse_deg_per_s", "abs_mean_deg", "abs_median_deg", "abs_max_deg",
+                     "rel_mean_deg_per_s", "rel_median_deg_per_s", "rel_max_deg_per_s", "num_abs", "num_rel",
+                     "t0", "aligned", "rel_delta", "t_start", "t_end"):
+            v = getattr(self, name)
+            if isinstance(v, float) and not np.isfinite(v):
+                v = None
+            out[name] = v
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class RelativeRotationErrors:
+    """Star-tracking metric: angle (deg) between estimated and true relative rotations over ``window`` s."""
+
+    rmse_deg: float
+    std_deg: float
+    mean_deg: float
+    count: int
+    window: float
+    times: np.ndarray  # start time of each interval
+    errors_deg: np.ndarray
+
+    def to_dict(self) -> dict:
+        out = {"rmse_deg": self.rmse_deg, "std_deg": self.std_deg, "mean_deg": self.mean_deg,
+               "count": self.count, "window": self.window}
+        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in out.items()}
+
+
+# ------------------------------------------------------------------------------------------
+# building blocks
+# ------------------------------------------------------------------------------------------
+
+def rotation_angle_deg(r: np.ndarray) -> np.ndarray:
+    """Geodesic angle (Eq. 23) of rotation matrices (..., 3, 3), in degrees."""
+    return np.degrees(np.linalg.norm(so3.log(r), axis=-1))
+
+
+def time_overlap(a: Trajectory, b: Trajectory) -> tuple[float, float]:
+    """Time range covered by both trajectories; InputError if they share none."""
+    lo, hi = max(a.t_start, b.t_start), min(a.t_end, b.t_end)
+    if hi < lo:
+        raise InputError(
+            f"trajectories do not overlap in time ([{a.t_start:.6f}, {a.t_end:.6f}] s vs "
+            f"[{b.t_start:.6f}, {b.t_end:.6f}] s)")
+    return lo, hi
+
+
+def default_t0(groundtruth: Trajectory, estimate: Trajectory, offset: float = T0_OFFSET_SYNTHETIC) -> float:
+    """Alignment time: start of the overlap + ``offset`` (0.1 s synthetic, 1.0 s real), kept inside it."""
+    lo, hi = time_overlap(groundtruth, estimate)
+    return float(min(lo + offset, hi))
+
+
+def absolute_errors_deg(groundtruth: Trajectory, estimate: Trajectory, times: np.ndarray) -> np.ndarray:
+    """Eq. 21/23: angle of R_gt(t)^T R_est(t) at ``times`` (deg); no alignment here."""
+    times = np.asarray(times, dtype=float)
+    return rotation_angle_deg(np.swapaxes(groundtruth.at(times), -1, -2) @ estimate.at(times))
+
+
+def relative_pair_starts(t_start: float, t_end: float, delta: float = 1.0, step: float = 0.1) -> np.ndarray:
+    """Starts t_k = t_start + k * step of all pairs (t_k, t_k + delta) inside [t_start, t_end]."""
+    if delta <= 0 or step <= 0:
+        raise InputError(f"relative-error delta and step must be positive (got {delta}, {step})")
+    span = t_end - t_start - delta
+    if span < -_EPS_T:
+        return np.zeros(0)
+    n = int(np.floor(max(span, 0.0) / step + 1e-6)) + 1
+    return t_start + step * np.arange(n)
+
+
+def relative_errors_deg(groundtruth: Trajectory, estimate: Trajectory, starts: np.ndarray,
+                        delta: float) -> np.ndarray:
+    """Eq. 22/23: angle of (G_k^T G_k+d)^T (E_k^T E_k+d) for each start (deg, not divided by delta)."""
+    starts = np.asarray(starts, dtype=float)
+    if len(starts) == 0:
+        return np.zeros(0)
+    gt_rel = np.swapaxes(groundtruth.at(starts), -1, -2) @ groundtruth.at(starts + delta)
+    est_rel = np.swapaxes(estimate.at(starts), -1, -2) @ estimate.at(starts + delta)
+    return rotation_angle_deg(np.swapaxes(gt_rel, -1, -2) @ est_rel)
+
+
+def smooth_trajectory(traj: Trajectory, span: float = GT_FILTER_SPAN) -> Trajectory:
+    """Gaussian low-pass filter on SO(3) with a kernel covering ``span`` seconds (sigma = span / 4, cut at 2 sigma).
+
+    For each sample i the neighbours are lifted to the tangent space at R_i, phi_j = log(R_i^T R_j), a
+    Gaussian-weighted local-linear fit phi(tau) = a + b tau is made in the time offset tau = t_j - t_i, and
+    R_i exp(a) is returned. Inside the trajectory (uniform sampling) a is the plain Gaussian-weighted mean;
+    the linear term removes the lag a one-sided window would add at the two ends. Constant-rate rotations
+    pass unchanged. Non-uniform timestamps are handled (weights use times, not indices).
+    """
+    if span <= 0 or len(traj) < 3:
+        return traj
+    t, r = traj.t, traj.R
+    n = len(t)
+    sigma = span / 4.0
+    half = 2.0 * sigma
+    idx = np.arange(n)
+    lo = np.searchsorted(t, t - half - _EPS_T, side="left")
+    hi = np.searchsorted(t, t + half + _EPS_T, side="right")  # neighbours are [lo, hi)
+    k_max = int(max(np.max(idx - lo), np.max(hi - 1 - idx)))
+    s0 = np.zeros(n)
+    s1 = np.zeros(n)
+    s2 = np.zeros(n)
+    s_phi = np.zeros((n, 3))
+    s_tphi = np.zeros((n, 3))
+    r_t = np.swapaxes(r, -1, -2)
+    for k in range(-k_max, k_max + 1):
+        j = idx + k
+        valid = (j >= lo) & (j < hi)
+        jj = np.clip(j, 0, n - 1)
+        tau = t[jj] - t
+        w = np.where(valid, np.exp(-0.5 * (tau / sigma) ** 2), 0.0)
+        phi = so3.log(r_t @ r[jj]) if k != 0 else np.zeros((n, 3))
+        s0 += w
+        s1 += w * tau
+        s2 += w * tau * tau
+        s_phi += w[:, None] * phi
+        s_tphi += (w * tau)[:, None] * phi
+    det = s0 * s2 - s1 * s1
+    ok = det > 1e-9 * np.maximum(s0 * s2, 1e-300)
+    safe = np.where(ok, det, 1.0)
+    a = np.where(ok[:, None], (s2[:, None] * s_phi - s1[:, None] * s_tphi) / safe[:, None],
+                 s_phi / s0[:, None])
+    return Trajectory(t, r @ so3.exp(a))
+
+
+def _summary(x: np.ndarray) -> tuple[float, float, float, float]:
+    if len(x) == 0:
+        return (float("nan"),) * 4
+    return (float(np.sqrt(np.mean(x * x))), float(np.mean(x)), float(np.median(x)), float(np.max(x)))
+
+
+# ------------------------------------------------------------------------------------------
+# the evaluations
+# ------------------------------------------------------------------------------------------
+
+def evaluate_rotations(groundtruth: Trajectory, estimate: Trajectory, *, t0: float | None = None,
+                       t0_offset: float = T0_OFFSET_SYNTHETIC, align: bool = True,
+                       sample_rate: float | None = None, rel_delta: float = 1.0, rel_step: float = 0.1,
+                       gt_filter_span: float | None = None) -> RotationErrors:
+    """Absolute and relative rotation errors of ``estimate`` against ``groundtruth`` (Sec. IV-B).
+
+    ``t0``: alignment time (default: start of the overlap + ``t0_offset``). ``sample_rate``: None/0 evaluates
+    the absolute error at the estimate's timestamps, a rate (e.g. CONTINUOUS_RATE_HZ) on a grid from the
+    start of the overlap. ``gt_filter_span``: smooth the ground truth first (:func:`smooth_trajectory`).
+    """
+    if gt_filter_span:
+        groundtruth = smooth_trajectory(groundtruth, gt_filter_span)
+    lo, hi = time_overlap(groundtruth, estimate)
+    if t0 is None:
+        t0 = default_t0(groundtruth, estimate, t0_offset)
+    elif not (lo - _EPS_T <= t0 <= hi + _EPS_T):
+        raise InputError(f"t0 = {t0} s lies outside the time range both trajectories cover [{lo:.6f}, {hi:.6f}] s")
+    t0 = float(t0)
+    est = estimate.aligned_to(groundtruth, t0) if align else estimate
+
+    if sample_rate:
+        times = lo + np.arange(int(np.floor((hi - lo) * sample_rate + 1e-6)) + 1) / sample_rate
+    else:
+        times = est.t[(est.t >= lo - _EPS_T) & (est.t <= hi + _EPS_T)]
+    if len(times) == 0:
+        raise InputError("the estimate has no timestamp inside the ground truth's time range")
+    abs_err = absolute_errors_deg(groundtruth, est, times)
+
+    starts = relative_pair_starts(lo, hi, rel_delta, rel_step)
+    rel_err = relative_errors_deg(groundtruth, est, starts, rel_delta) / rel_delta
+
+    a, r = _summary(abs_err), _summary(rel_err)
+    return RotationErrors(
+        abs_rmse_deg=a[0], abs_mean_deg=a[1], abs_median_deg=a[2], abs_max_deg=a[3],
+        rel_rmse_deg_per_s=r[0], rel_mean_deg_per_s=r[1], rel_median_deg_per_s=r[2], rel_max_deg_per_s=r[3],
+        num_abs=int(len(abs_err)), num_rel=int(len(rel_err)), t0=t0, aligned=bool(align),
+        rel_delta=float(rel_delta), t_start=float(lo), t_end=float(hi),
+        abs_times=np.asarray(times, dtype=float), abs_errors_deg=abs_err,
+        rel_times=starts, rel_errors_deg_per_s=rel_err,
+    )
+
+
+def evaluate_with_config(groundtruth: Trajectory, estimate: Trajectory, cfg: EvaluationConfig,
+                         t0: float | None = None) -> RotationErrors:
+    """:func:`evaluate_rotations` with parameters from an :class:`EvaluationConfig`."""
+    return evaluate_rotations(groundtruth, estimate, t0=t0, t0_offset=cfg.t0_offset, align=cfg.align,
+                              sample_rate=cfg.sample_rate or None, rel_delta=cfg.rel_delta,
+                              rel_step=cfg.rel_step, gt_filter_span=cfg.gt_filter_span or None)
+
+
+def star_tracking_errors(groundtruth: Trajectory, estimate: Trajectory, window: float = STAR_WINDOW,
+                         step: float | None = None) -> RelativeRotationErrors:
+    """Angle between R_est(t)^T R_est(t+window) and the same for the ground truth (deg), RMSE and std.
+
+    Pairs start every ``step`` s (default: ``window``, i.e. back-to-back intervals) over the overlap. No
+    alignment is needed: relative rotations do not change when a trajectory is left-multiplied.
+    """
+    lo, hi = time_overlap(groundtruth, estimate)
+    starts = relative_pair_starts(lo, hi, window, step or window)
+    err = relative_errors_deg(groundtruth, estimate, starts, window)
+    if len(err):
+        rmse, std, mean = float(np.sqrt(np.mean(err * err))), float(np.std(err)), float(np.mean(err))
+    else:
+        rmse = std = mean = float("nan")
+    return RelativeRotationErrors(rmse_deg=rmse, std_deg=std, mean_deg=mean, count=int(len(err)),
+                                  window=float(window), times=starts, errors_deg=err)
+
+
+# ------------------------------------------------------------------------------------------
+# map quality (Sec. IV-B3)
+# ------------------------------------------------------------------------------------------
+
+def event_area_percent(image: np.ndarray, lambda0: float = 1.0) -> float:
+    """EA% = 100 * sum(1 - exp(-H(x) / lambda0)) / number of pixels, for an image of warped events H >= 0."""
+    h = np.asarray(image, dtype=np.float64)
+    if h.size == 0:
+        raise InputError("event area of an empty image")
+    return float(100.0 * np.mean(-np.expm1(-h / lambda0)))
+
+
+def image_gradient(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(I_x, I_y) by Sobel, divided by 8 so that a ramp of slope 1 per pixel gives 1; borders replicated."""
+    img = np.asarray(image, dtype=np.float64)
+    return ndimage.sobel(img, axis=1) / 8.0, ndimage.sobel(img, axis=0) / 8.0
+
+
+def gradient_magnitude(image: np.ndarray) -> float:
+    """GM (Eq. 24) = sqrt(mean over pixels of |grad I|^2), gradient from :func:`image_gradient`."""
+    gx, gy = image_gradient(image)
+    if gx.size == 0:
+        raise InputError("gradient magnitude of an empty image")
+    return float(np.sqrt(np.mean(gx * gx + gy * gy)))
+
+
+__all__ = [
+    "CONTINUOUS_RATE_HZ", "T0_OFFSET_SYNTHETIC", "T0_OFFSET_REAL", "GT_FILTER_SPAN", "STAR_WINDOW",
+    "EvaluationConfig", "RotationErrors", "RelativeRotationErrors",
+    "rotation_angle_deg", "time_overlap", "default_t0", "absolute_errors_deg", "relative_pair_starts",
+    "relative_errors_deg", "smooth_trajectory", "evaluate_rotations", "evaluate_with_config",
+    "star_tracking_errors", "event_area_percent", "image_gradient", "gradient_magnitude",
+]

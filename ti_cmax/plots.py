@@ -1,0 +1,153 @@
+"""PNG figures of the evaluation (matplotlib, Agg, no pyplot state): trajectories per axis (paper Fig. 6/8/12),
+error distributions per method (violins, Fig. 7/9/13) and panoramic maps side by side (Fig. 5/10).
+
+Each function takes data, writes one PNG (atomically) and returns nothing.
+"""
+from __future__ import annotations
+
+import os
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from .metrics import event_area_percent, gradient_magnitude
+from .outputs import atomic_path
+from .trajectory import Trajectory
+
+_GT_STYLE = dict(color="k", linestyle="--", linewidth=1.2, label="ground truth")
+
+
+def _figure(width: float, height: float):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width, height), dpi=100, layout="constrained")
+
+
+def _save(fig, path) -> None:
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png")
+
+
+def _angles_deg(traj: Trajectory, representation: str) -> tuple[np.ndarray, list[str]]:
+    """Per-axis angles (N, 3) in degrees, unwrapped over time so that no jump of 360 deg is drawn."""
+    rot = traj.rotations
+    if representation == "euler":
+        ang = np.unwrap(rot.as_euler("xyz"), axis=0)
+        labels = ["roll (x) [deg]", "pitch (y) [deg]", "yaw (z) [deg]"]
+    elif representation == "rotvec":
+        ang = rot.as_rotvec()
+        labels = ["rotvec x [deg]", "rotvec y [deg]", "rotvec z [deg]"]
+    else:
+        raise ValueError(f"representation must be 'euler' or 'rotvec', got {representation!r}")
+    return np.degrees(ang), labels
+
+
+def plot_trajectories(path: str | os.PathLike, estimates: Mapping[str, Trajectory],
+                      groundtruth: Trajectory | None = None, *, representation: str = "euler",
+                      title: str | None = None) -> None:
+    """Three stacked panels (one per axis) of angle vs time: each method as a solid line, GT dashed.
+
+    Trajectories are drawn as given: align them first (Trajectory.aligned_to) to compare with the GT.
+    Euler angles: scipy's extrinsic 'xyz' (roll about x, pitch about y, yaw about z) of R_world_from_camera.
+    """
+    fig = _figure(9, 7)
+    axes = fig.subplots(3, 1, sharex=True)
+    labels = None
+    for name, traj in estimates.items():
+        ang, labels = _angles_deg(traj, representation)
+        for i, ax in enumerate(axes):
+            ax.plot(traj.t, ang[:, i], linewidth=1.0, label=name)
+    if groundtruth is not None:
+        ang, labels = _angles_deg(groundtruth, representation)
+        for i, ax in enumerate(axes):
+            ax.plot(groundtruth.t, ang[:, i], **_GT_STYLE)
+    for i, ax in enumerate(axes):
+        if labels:
+            ax.set_ylabel(labels[i])
+        ax.grid(True, alpha=0.3)
+    axes[-1].set_xlabel("time [s]")
+    if estimates or groundtruth is not None:
+        axes[0].legend(loc="best", fontsize="small", ncol=min(4, len(estimates) + 1))
+    if title:
+        fig.suptitle(title)
+    _save(fig, path)
+
+
+def _violins(ax, data: Mapping[str, np.ndarray], ylabel: str) -> None:
+    """One violin per method; a method with fewer than 2 distinct values is drawn as points."""
+    names = list(data)
+    for i, name in enumerate(names, start=1):
+        x = np.asarray(data[name], dtype=float)
+        x = x[np.isfinite(x)]
+        if len(x) >= 2 and np.ptp(x) > 1e-9 * max(1.0, float(np.max(np.abs(x)))):
+            parts = ax.violinplot([x], positions=[i], showmedians=True, showextrema=True, widths=0.8)
+            for body in parts["bodies"]:
+                body.set_alpha(0.6)
+        elif len(x):
+            ax.plot(np.full(len(x), i), x, "o", markersize=4)
+        else:
+            ax.text(i, 0.5, "no data", ha="center", va="center", transform=ax.get_xaxis_transform())
+    ax.set_xticks(range(1, len(names) + 1))
+    ax.set_xticklabels(names, rotation=30 if len(names) > 4 else 0, ha="right" if len(names) > 4 else "center")
+    ax.set_xlim(0.4, len(names) + 0.6)
+    ax.set_ylabel(ylabel)
+    ax.set_ylim(bottom=0)
+    ax.grid(True, axis="y", alpha=0.3)
+
+
+def plot_error_distributions(path: str | os.PathLike, abs_errors_deg: Mapping[str, np.ndarray],
+                             rel_errors_deg_per_s: Mapping[str, np.ndarray] | None = None, *,
+                             title: str | None = None) -> None:
+    """Violins of absolute errors [deg] (and relative errors [deg/s] in a second panel) per method."""
+    panels = 2 if rel_errors_deg_per_s is not None else 1
+    fig = _figure(4 + 2.2 * panels + 0.6 * len(abs_errors_deg), 4)
+    axes = np.atleast_1d(fig.subplots(1, panels))
+    _violins(axes[0], abs_errors_deg, "absolute error [deg]")
+    axes[0].set_title("absolute")
+    if rel_errors_deg_per_s is not None:
+        _violins(axes[1], rel_errors_deg_per_s, "relative error [deg/s]")
+        axes[1].set_title("relative")
+    if title:
+        fig.suptitle(title)
+    _save(fig, path)
+
+
+def map_display(image: np.ndarray, gamma: float = 0.75) -> np.ndarray:
+    """IWE -> [0, 1] for display: gamma-corrected (I / max)^gamma, inverted so events are dark on white."""
+    h = np.clip(np.asarray(image, dtype=np.float64), 0, None)
+    peak = h.max() if h.size else 0.0
+    norm = (h / peak) ** gamma if peak > 0 else np.zeros_like(h)
+    return 1.0 - norm
+
+
+def plot_maps(path: str | os.PathLike, maps: Mapping[str, np.ndarray] | Sequence[tuple[str, np.ndarray]], *,
+              gamma: float = 0.75, lambda0: float = 1.0, show_metrics: bool = True, ncols: int | None = None,
+              title: str | None = None) -> None:
+    """Images of warped events side by side, each titled with its name and (optionally) EA% and GM."""
+    items = list(maps.items()) if isinstance(maps, Mapping) else list(maps)
+    if not items:
+        raise ValueError("plot_maps needs at least one image")
+    n = len(items)
+    ncols = ncols or min(n, 3)
+    nrows = -(-n // ncols)
+    h0, w0 = np.asarray(items[0][1]).shape[:2]
+    panel_w = 4.5
+    fig = _figure(panel_w * ncols, nrows * (panel_w * h0 / max(w0, 1) + 0.6))
+    axes = np.atleast_1d(fig.subplots(nrows, ncols)).reshape(-1)
+    for ax, (name, img) in zip(axes, items):
+        img = np.asarray(img, dtype=np.float64)
+        ax.imshow(map_display(img, gamma), cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+        label = name
+        if show_metrics:
+            label += f"\nEA {event_area_percent(img, lambda0):.2f}%  GM {gradient_magnitude(img):.3f}"
+        ax.set_title(label, fontsize="small")
+        ax.set_xticks([])
+        ax.set_yticks([])
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    if title:
+        fig.suptitle(title)
+    _save(fig, path)
+
+
+__all__ = ["plot_trajectories", "plot_error_distributions", "plot_maps", "map_display"]
