@@ -1,0 +1,145 @@
+"""Pieces shared by the event readers: per-block validation with file positions, re-chunking, time cuts.
+
+Readers yield raw blocks of any size as ``Block(events, lines, first_index)``; ``lines`` holds the 1-based line
+number of each event for text files (None for indexed formats). ``validated_chunks`` checks every block against
+the sensor size and the previous block's last timestamp (so unsorted data across block borders is caught), cuts
+the requested time range and re-slices into chunks of exactly ``chunk_size`` events (the last may be shorter).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from ..errors import InputError
+from ..events import Events
+
+
+@dataclass
+class Block:
+    events: Events
+    lines: np.ndarray | None  # 1-based line number of each event (text files with comments) or None
+    first_index: int  # index of the first event of the block in the file
+    line0: int | None = None  # text files without comments: event i is on line line0 + i
+    nlines: int = 0  # text files: newlines in the block
+
+
+def _where(block: Block, i: int) -> dict:
+    if block.lines is not None:
+        return {"line": int(block.lines[i])}
+    if block.line0 is not None:
+        return {"line": block.line0 + i}
+    return {"index": block.first_index + i}
+
+
+def _raise(source: str, block: Block, i: int, message: str):
+    w = _where(block, i)
+    if "line" in w:
+        raise InputError(message, source=source, line=w["line"])
+    raise InputError(f"event {w['index']}: {message}", source=source)
+
+
+def validate_block(block: Block, source: str, width: int | None, height: int | None, prev_t: float | None):
+    """Raise InputError (naming file and line or event index) on NaN, unsorted time, pixels off the sensor."""
+    ev = block.events
+    if len(ev) == 0:
+        return
+    t = ev.t
+    bad = ~np.isfinite(t)
+    if bad.any():
+        i = int(np.argmax(bad))
+        _raise(source, block, i, f"timestamp is not a finite number ({float(t[i])})")
+    if prev_t is not None and t[0] < prev_t:
+        _raise(source, block, 0, f"timestamps are not sorted: t={float(t[0])!r} comes after t={float(prev_t)!r}")
+    dec = t[1:] < t[:-1]
+    if dec.any():
+        i = int(np.argmax(dec)) + 1
+        _raise(source, block, i, f"timestamps are not sorted: t={float(t[i])!r} comes after t={float(t[i - 1])!r}")
+    for name, arr, limit in (("x", ev.x, width), ("y", ev.y, height)):
+        if ev.has_subpixel_coordinates:
+            nf = ~np.isfinite(arr)
+            if nf.any():
+                i = int(np.argmax(nf))
+                _raise(source, block, i, f"{name} is not a finite number")
+        if limit is None:
+            continue
+        out = (arr < 0) | (arr >= limit) if ev.has_subpixel_coordinates else arr >= limit
+        if out.any():
+            i = int(np.argmax(out))
+            _raise(source, block, i, f"{name}={arr[i]} is outside the sensor (expected 0 <= {name} < {limit})")
+
+
+def validated_chunks(
+    blocks: Iterable[Block],
+    source: str,
+    width: int | None,
+    height: int | None,
+    chunk_size: int,
+    t_start: float | None = None,
+    t_end: float | None = None,
+) -> Iterator[Events]:
+    """Validate raw blocks, keep t_start <= t < t_end, and re-slice into chunks of ``chunk_size`` events."""
+    if chunk_size < 1:
+        raise InputError(f"chunk_size must be >= 1, got {chunk_size}")
+    pending: list[Events] = []
+    n_pending = 0
+    prev_t = None
+    for block in blocks:
+        validate_block(block, source, width, height, prev_t)
+        ev = block.events
+        if len(ev) == 0:
+            continue
+        prev_t = float(ev.t[-1])
+        if t_start is not None and ev.t[-1] < t_start:
+            continue
+        done = t_end is not None and ev.t[-1] >= t_end
+        if t_start is not None or t_end is not None:
+            i0 = int(np.searchsorted(ev.t, t_start, "left")) if t_start is not None else 0
+            i1 = int(np.searchsorted(ev.t, t_end, "left")) if t_end is not None else len(ev)
+            ev = ev[i0:i1]
+        pending.append(ev)
+        n_pending += len(ev)
+        while n_pending >= chunk_size:
+            allev = Events.concatenate(pending)
+            yield allev[:chunk_size]
+            rest = allev[chunk_size:]
+            pending, n_pending = [rest], len(rest)
+        if done:
+            break
+    if n_pending:
+        yield Events.concatenate(pending)
+
+
+def infer_sensor_size(max_x: float, max_y: float, source: str,
+                      principal_point: tuple[float, float] | None = None) -> tuple[int, int]:
+    """Smallest sensor of ``ti_cmax.camera.SENSORS`` (by pixel count) containing pixel (max_x, max_y) and,
+    when a calibration gives it, whose central half holds the principal point (cx, cy): so a DAVIS240C
+    recording whose first events happen to stay below x, y < 128 is not taken for a DVS128."""
+    from ..camera import SENSORS
+
+    def centred(w, h):
+        if principal_point is None:
+            return True
+        cx, cy = principal_point
+        return abs(cx - w / 2) <= w / 4 and abs(cy - h / 2) <= h / 4
+
+    fits = [(w * h, w, h) for (w, h) in SENSORS.values() if max_x < w and max_y < h and centred(w, h)]
+    if not fits:
+        raise InputError(
+            f"cannot infer the sensor size (largest pixel x={max_x}, y={max_y}"
+            + (f", principal point {principal_point}" if principal_point else "")
+            + f" fits no known sensor "
+            f"{sorted(SENSORS)}); give width and height (--set width=W --set height=H or a camera_info YAML)",
+            source=source,
+        )
+    _, w, h = min(fits)
+    return int(w), int(h)
+
+
+def polarity_from_values(p: np.ndarray, source: str) -> np.ndarray:
+    """Map stored polarities (0/1, -1/+1 or bool) to int8 {-1, +1}."""
+    p = np.asarray(p)
+    if p.dtype == np.bool_:
+        return np.where(p, 1, -1).astype(np.int8)
+    return np.where(p > 0, 1, -1).astype(np.int8)

@@ -1,0 +1,110 @@
+"""AEDAT4 (iniVation DV) files via the ``aedat`` package: events (t us, x, y, on) and IMU samples.
+
+AEDAT4 holds no intrinsics and no index, so time range and count need one pass over the file (cached).
+IMU units as DV stores them are converted: accelerometer g -> m/s^2, gyroscope deg/s -> rad/s.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ..errors import InputError
+from ..events import Events
+from ._common import Block
+from .text import ImuData
+
+G = 9.80665
+
+
+def _decoder(path: Path):
+    try:
+        import aedat
+    except ImportError:  # pragma: no cover
+        raise InputError("reading AEDAT4 needs the 'aedat' package (pip install ti-cmax[aedat])",
+                         source=str(path)) from None
+    try:
+        return aedat.Decoder(str(path))
+    except Exception as exc:  # aedat raises plain RuntimeError/OSError on bad files
+        raise InputError(f"cannot open AEDAT4 file: {exc}", source=str(path)) from None
+
+
+class Aedat4Source:
+    kind = "AEDAT4"
+
+    def __init__(self, path: Path, block: int = 1 << 20):
+        self.path = Path(path)
+        self.source = str(self.path)
+        self.block = block
+        streams = _decoder(self.path).id_to_stream()
+        ev = [(sid, s) for sid, s in streams.items() if s.get("type") == "events"]
+        if not ev:
+            raise InputError("no event stream in the AEDAT4 file", source=self.source)
+        self.stream_id, s = ev[0]
+        self.sensor_size = (int(s["width"]), int(s["height"])) if "width" in s else None
+        self._summary = None
+
+    def _packets(self):
+        try:
+            yield from _decoder(self.path)
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(f"cannot decode AEDAT4 data (truncated or corrupt?): {exc}", source=self.source) from None
+
+    def iter_blocks(self, t_start=None) -> Iterator[Block]:
+        parts, n, first = [], 0, 0
+        for pk in self._packets():
+            if pk.get("stream_id") != self.stream_id or "events" not in pk:
+                continue
+            parts.append(pk["events"])
+            n += len(pk["events"])
+            if n >= self.block:
+                yield self._block(parts, first)
+                first += n
+                parts, n = [], 0
+        if parts:
+            yield self._block(parts, first)
+
+    @staticmethod
+    def _block(parts, first) -> Block:
+        a = np.concatenate(parts)
+        return Block(Events(a["t"].astype(np.float64) * 1e-6, a["x"], a["y"], np.where(a["on"], 1, -1).astype(np.int8)),
+                     None, first)
+
+    def _scan(self):
+        if self._summary is None:
+            n, t0, t1 = 0, None, None
+            for pk in self._packets():
+                if pk.get("stream_id") == self.stream_id and "events" in pk and len(pk["events"]):
+                    a = pk["events"]
+                    t0 = a["t"][0] if t0 is None else t0
+                    t1 = a["t"][-1]
+                    n += len(a)
+            self._summary = (n, t0, t1)
+        return self._summary
+
+    def time_range(self):
+        n, t0, t1 = self._scan()
+        if n == 0:
+            raise InputError("the file holds no events", source=self.source)
+        return float(t0) * 1e-6, float(t1) * 1e-6
+
+    def num_events(self) -> int:
+        return self._scan()[0]
+
+    def camera(self):
+        return None
+
+    def groundtruth(self):
+        return None
+
+    def imu(self) -> ImuData | None:
+        parts = [pk["imus"] for pk in self._packets() if "imus" in pk and len(pk["imus"])]
+        if not parts:
+            return None
+        a = np.concatenate(parts)
+        acc = np.column_stack([a[f"accelerometer_{c}"] for c in "xyz"]).astype(np.float64) * G
+        gyro = np.radians(np.column_stack([a[f"gyroscope_{c}"] for c in "xyz"]).astype(np.float64))
+        return ImuData(a["t"].astype(np.float64) * 1e-6, acc, gyro)

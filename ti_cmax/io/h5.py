@@ -1,0 +1,269 @@
+"""Events in HDF5: our layout (writer + reader) and the common layouts of other tools (reader).
+
+Layouts read (first match wins):
+- ``events/{t,x,y,p}`` (ours; also DSEC / TUM-VIE): t float seconds, or integer with an attribute
+  ``units`` / ``unit`` in {s, ms, us, ns} (integer without it: microseconds). A root dataset or attribute
+  ``t_offset`` (microseconds, DSEC) is added. ``ms_to_idx`` (DSEC) speeds up seeking.
+- ``events/{ts,xs,ys,ps}`` (E2VID-era): same time rules; root attribute ``sensor_resolution`` = (height, width).
+- ``t,x,y,p`` at the root.
+Sensor size comes from attributes ``width``/``height`` (root or ``events`` group) or ``sensor_resolution``.
+Intrinsics (``fx fy cx cy dist``), when our writer stored them, become the dataset's camera.
+Data is always read in slices; ``import hdf5plugin`` is attempted so Blosc/ZSTD-compressed files open.
+"""
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import InputError
+from ..events import Events
+from ._common import Block, polarity_from_values
+
+try:  # registers compression filters (Blosc, ZSTD, ...) with HDF5 when installed
+    import hdf5plugin  # noqa: F401
+except ImportError:  # pragma: no cover
+    hdf5plugin = None
+
+import h5py
+
+BLOCK_EVENTS = 1 << 20  # events per slice read
+_UNITS = {"s": 1.0, "sec": 1.0, "seconds": 1.0, "ms": 1e-3, "us": 1e-6, "microseconds": 1e-6, "ns": 1e-9}
+_LAYOUTS = (("events", ("t", "x", "y", "p")), ("events", ("ts", "xs", "ys", "ps")), ("", ("t", "x", "y", "p")))
+
+
+def _open(path) -> h5py.File:
+    try:
+        return h5py.File(path, "r")
+    except FileNotFoundError:
+        raise InputError("file not found", source=str(path)) from None
+    except OSError as exc:
+        raise InputError(f"cannot open as HDF5 (truncated or not an HDF5 file): {exc}", source=str(path)) from None
+
+
+def _attr(obj, *names):
+    for n in names:
+        if n in obj.attrs:
+            v = obj.attrs[n]
+            return v.decode() if isinstance(v, bytes) else v
+    return None
+
+
+class H5Events:
+    """Read-only view of an events HDF5 file; opened per operation so no handle stays open."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self.source = str(self.path)
+        with _open(self.path) as f:
+            try:
+                self._detect(f)
+            except (KeyError, OSError, ValueError) as exc:  # h5py's errors for damaged object headers
+                raise InputError(f"cannot read the HDF5 structure (truncated or corrupt file): {exc}",
+                                 source=self.source) from None
+
+    def _detect(self, f: h5py.File):
+        for group, names in _LAYOUTS:
+            if group and not isinstance(f.get(group), h5py.Group):
+                continue
+            g = f[group] if group else f
+            if all(n in g and isinstance(g[n], h5py.Dataset) for n in names):
+                self._names = [f"{group}/{n}" if group else n for n in names]
+                break
+        else:
+            raise InputError("no events found: expected datasets events/{t,x,y,p}, events/{ts,xs,ys,ps} "
+                             "or t,x,y,p at the root", source=self.source)
+        dsets = [f[n] for n in self._names]
+        lengths = {d.shape[0] if d.shape else -1 for d in dsets}
+        if len(lengths) != 1 or any(len(d.shape) != 1 for d in dsets):
+            raise InputError(f"event datasets {self._names} must be 1-D and of the same length", source=self.source)
+        self.n = lengths.pop()
+        tds = dsets[0]
+        if np.issubdtype(tds.dtype, np.floating):
+            unit = _attr(tds, "units", "unit")
+            self.t_scale = _UNITS.get(str(unit).lower(), 1.0) if unit is not None else 1.0
+        elif np.issubdtype(tds.dtype, np.integer):
+            unit = _attr(tds, "units", "unit")
+            if unit is not None and str(unit).lower() not in _UNITS:
+                raise InputError(f"unknown time unit {unit!r} on {self._names[0]}", source=self.source)
+            self.t_scale = _UNITS[str(unit).lower()] if unit is not None else 1e-6
+        else:
+            raise InputError(f"{self._names[0]} has dtype {tds.dtype}, expected numbers", source=self.source)
+        off = 0
+        if "t_offset" in f and isinstance(f["t_offset"], h5py.Dataset):
+            off = int(np.asarray(f["t_offset"][()]).reshape(-1)[0])
+        elif "t_offset" in f.attrs:
+            off = int(np.asarray(f.attrs["t_offset"]).reshape(-1)[0])
+        self.t_offset_raw = off  # same unit as the stored t
+        self.has_ms_to_idx = "ms_to_idx" in f
+        groups = [f] + ([f["events"]] if "events" in f and isinstance(f["events"], h5py.Group) else [])
+        w = h = None
+        for g in groups:
+            if w is None and "width" in g.attrs and "height" in g.attrs:
+                w, h = int(g.attrs["width"]), int(g.attrs["height"])
+            if w is None and "sensor_resolution" in g.attrs:
+                res = np.asarray(g.attrs["sensor_resolution"]).reshape(-1)
+                h, w = int(res[0]), int(res[1])
+        self.sensor_size = (w, h) if w is not None else None
+        self.intrinsics = None
+        for g in groups:
+            if all(k in g.attrs for k in ("fx", "fy", "cx", "cy")):
+                dist = tuple(np.asarray(g.attrs["dist"], dtype=float).ravel()) if "dist" in g.attrs else ()
+                self.intrinsics = tuple(float(g.attrs[k]) for k in ("fx", "fy", "cx", "cy")) + (dist,)
+                break
+        self.integer_xy = all(np.issubdtype(f[n].dtype, np.integer) for n in self._names[1:3])
+
+    # ------------------------------------------------------------------------------------------
+    def _times(self, raw: np.ndarray) -> np.ndarray:
+        if np.issubdtype(raw.dtype, np.integer):
+            return (raw.astype(np.int64) + self.t_offset_raw) * self.t_scale
+        return (raw.astype(np.float64) + self.t_offset_raw) * self.t_scale
+
+    def camera(self) -> Camera | None:
+        if self.intrinsics is None or self.sensor_size is None:
+            return None
+        fx, fy, cx, cy, dist = self.intrinsics
+        return Camera(self.sensor_size[0], self.sensor_size[1], fx, fy, cx, cy, dist)
+
+    def num_events(self) -> int:
+        return self.n
+
+    def time_range(self) -> tuple[float, float]:
+        if self.n == 0:
+            raise InputError("the file holds no events", source=self.source)
+        with _open(self.path) as f, self._read_errors():
+            ds = f[self._names[0]]
+            return float(self._times(ds[0:1])[0]), float(self._times(ds[self.n - 1:self.n])[0])
+
+    @contextlib.contextmanager
+    def _read_errors(self):
+        try:
+            yield
+        except OSError as exc:
+            raise InputError(f"cannot read events (truncated or corrupt HDF5, or a compression filter is "
+                             f"missing: pip install hdf5plugin): {exc}", source=self.source) from None
+
+    def _index_of_time(self, f, t: float) -> int:
+        """First index with time >= t: binary search on single-element reads (data is sorted)."""
+        ds = f[self._names[0]]
+        lo, hi = 0, self.n
+        if self.has_ms_to_idx and self.t_scale == 1e-6:
+            ms = np.asarray(f["ms_to_idx"][()])
+            k = int(np.floor((t / 1e-6 - self.t_offset_raw) / 1000.0))
+            if 0 <= k < len(ms):
+                lo = int(ms[k])
+            if 0 <= k + 1 < len(ms):
+                hi = int(ms[k + 1])
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if self._times(ds[mid:mid + 1])[0] < t:
+                lo = mid + 1
+            else:
+                hi = mid
+        return lo
+
+    def iter_blocks(self, block: int | None = None, t_start: float | None = None) -> Iterator[Block]:
+        block = block or BLOCK_EVENTS
+        with _open(self.path) as f, self._read_errors():
+            dt, dx, dy, dp = (f[n] for n in self._names)
+            i = self._index_of_time(f, t_start) if t_start is not None else 0
+            # start at a small margin before the cut so order across the border is still checked
+            i = max(0, i - 1)
+            while i < self.n:
+                j = min(i + block, self.n)
+                t = self._times(dt[i:j])
+                x, y = dx[i:j], dy[i:j]
+                if self.integer_xy:
+                    if (x.size and (x.min() < 0 or x.max() > 65535)) or (y.size and (y.min() < 0 or y.max() > 65535)):
+                        raise InputError(f"events {i}..{j}: pixel coordinates outside 0..65535", source=self.source)
+                    x, y = x.astype(np.uint16), y.astype(np.uint16)
+                else:
+                    x, y = x.astype(np.float32), y.astype(np.float32)
+                yield Block(Events(t, x, y, polarity_from_values(dp[i:j], self.source)), None, i)
+                i = j
+
+
+# ------------------------------------------------------------------------------------------------
+class EventsH5Writer:
+    """Stream events into ``events/{t,x,y,p}`` (t float64 s, x/y uint16, p uint8 0/1), chunked and resizable.
+
+    ``with EventsH5Writer(path, camera) as w: w.append(events)``; memory use is one appended batch.
+    ``subpixel`` None: float32 x/y if the first batch has sub-pixel coordinates, else uint16.
+    Sensor size (and intrinsics, when a camera is given) are stored as root attributes.
+    """
+
+    def __init__(self, path, camera: Camera | None = None, width: int | None = None, height: int | None = None,
+                 chunk_events: int = 1 << 16, compression: str | None = None, subpixel: bool | None = None):
+        self.path = Path(path)
+        self.camera = camera
+        self.width = camera.width if camera is not None else width
+        self.height = camera.height if camera is not None else height
+        self.chunk = int(chunk_events)
+        self.compression = compression
+        self.subpixel = subpixel
+        self._f = None
+        self.count = 0
+
+    def __enter__(self):
+        f = self._f = h5py.File(self.path, "w")
+        if self.width is not None and self.height is not None:
+            f.attrs["width"] = int(self.width)
+            f.attrs["height"] = int(self.height)
+        if self.camera is not None:
+            for k in ("fx", "fy", "cx", "cy"):
+                f.attrs[k] = float(getattr(self.camera, k))
+            f.attrs["dist"] = np.asarray(self.camera.dist, dtype=float)
+        return self
+
+    def _create(self, subpixel: bool):
+        """Datasets are made at the first append, so x/y get uint16 or (sub-pixel data) float32."""
+        self.subpixel = bool(subpixel)
+        g = self._f.create_group("events")
+        xy = np.float32 if self.subpixel else np.uint16
+        kw = dict(shape=(0,), maxshape=(None,), chunks=(self.chunk,), compression=self.compression)
+        g.create_dataset("t", dtype=np.float64, **kw).attrs["units"] = "s"
+        g.create_dataset("x", dtype=xy, **kw)
+        g.create_dataset("y", dtype=xy, **kw)
+        g.create_dataset("p", dtype=np.uint8, **kw)
+
+    def append(self, events: Events):
+        if self._f is None:
+            raise RuntimeError("EventsH5Writer must be used as a context manager")
+        n = len(events)
+        if n == 0:
+            return
+        if "events" not in self._f:
+            self._create(events.has_subpixel_coordinates if self.subpixel is None else self.subpixel)
+        if events.has_subpixel_coordinates and not self.subpixel:
+            raise InputError("sub-pixel events after integer ones: use EventsH5Writer(..., subpixel=True)")
+        g = self._f["events"]
+        i, j = self.count, self.count + n
+        cols = {"t": events.t, "x": events.x, "y": events.y, "p": (events.p > 0).astype(np.uint8)}
+        for k, v in cols.items():
+            g[k].resize((j,))
+            g[k][i:j] = v
+        self.count = j
+
+    def close(self):
+        if self._f is not None:
+            if "events" not in self._f:
+                self._create(bool(self.subpixel))
+            self._f.attrs["num_events"] = self.count
+            self._f.close()
+            self._f = None
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+def write_events_h5(path, events: Events, camera: Camera | None = None, width: int | None = None,
+                    height: int | None = None, compression: str | None = None) -> Path:
+    """Write all events to an HDF5 file in our layout (see EventsH5Writer)."""
+    with EventsH5Writer(path, camera, width, height, compression=compression,
+                        subpixel=events.has_subpixel_coordinates) as w:
+        w.append(events)
+    return Path(path)
