@@ -66,6 +66,17 @@ class BackendConfig:
 
 
 @dataclass(frozen=True)
+class DatasetConfig:
+    """How to open a DATASET (``--set width=346 --set height=260 --set allow_default_calibration=true``)."""
+
+    width: int = 0  # 0: from the calibration YAML, the events file, or inferred
+    height: int = 0
+    allow_default_calibration: bool = False  # no intrinsics found: use Camera.ideal (60 deg) instead of failing
+    topic: str = ""  # ROS bag event topic ("": the only dvs_msgs/EventArray topic)
+    chunk_size: int = 1_000_000  # events per streamed chunk
+
+
+@dataclass(frozen=True)
 class OutputConfig:
     gamma: float = 0.75
     trajectory_rate: float = 200.0  # Hz at which continuous trajectories are sampled to TUM
@@ -74,6 +85,7 @@ class OutputConfig:
 
 @dataclass(frozen=True)
 class SlamConfig:
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
@@ -232,6 +244,6 @@ def save_config(cfg, path: str | os.PathLike) -> None:
 
 
 __all__ = [
-    "FrontendConfig", "BackendConfig", "OutputConfig", "SlamConfig",
+    "DatasetConfig", "FrontendConfig", "BackendConfig", "OutputConfig", "SlamConfig",
     "load_config", "update_config", "build_config", "save_config", "config_to_dict", "parse_overrides", "replace",
 ]

@@ -27,23 +27,13 @@ from typing import Iterator
 
 
 from ..camera import Camera
+from ..config import DatasetConfig
 from ..errors import InputError
 from ..events import Events
 from ..trajectory import Trajectory
 from ._common import infer_sensor_size, validated_chunks
 from .calib import read_calib_txt_params, read_camera_info_yaml
 from .text import ImuData, read_imu_txt, read_tum
-
-@dataclass(frozen=True)
-class DatasetConfig:
-    """How to open a DATASET (``--set width=346 --set height=260 --set allow_default_calibration=true``)."""
-
-    width: int = 0  # 0: from the calibration YAML, the events file, or inferred
-    height: int = 0
-    allow_default_calibration: bool = False  # no intrinsics found: use Camera.ideal (60 deg) instead of failing
-    topic: str = ""  # ROS bag event topic ("": the only dvs_msgs/EventArray topic)
-    chunk_size: int = 1_000_000  # events per streamed chunk
-
 
 def open_dataset_from_config(path, cfg: DatasetConfig) -> "Dataset":
     return open_dataset(path, cfg.width or None, cfg.height or None,
