@@ -1,0 +1,134 @@
+"""ESIM-like event generation in time chunks (rendering and emission in Taichi, see kernels/render.py).
+
+Render times. A pure rotation moves every image point by at most ``k_px * |omega|`` pixels per
+second, where ``k_px`` (pixels per radian) is the largest norm of the projection's Jacobian with
+respect to a rotation, over all pixels (distortion included). Renders are spaced so that no pixel
+moves more than ``max_pixel_step`` (0.2 px by default) between two renders, using the local maximum
+of |omega|, and never more than ``max_render_dt`` apart. The panorama is blurred to about half a
+sensor pixel (scenes.antialias), so within one step the log intensity is close to linear in time and
+the linear interpolation of crossing times is accurate to a small fraction of the step. Measured against
+0.02-px steps (DVS128, 0.2 s, up to 3 rad/s): 0.2-px steps change the event count by 0.2 % and the
+timestamps by 0.8 us (median) / 13 us (90th percentile), i.e. < 0.01 px of motion, with 10x fewer renders.
+A strict "at most a fraction of C per step" rule would need ~10x more renders on sharp edges (a blurred
+edge of 3-4 log units changes by ~0.35 per 0.2 px) for no visible gain.
+
+Memory: renders are processed in chunks whose buffer (pixels x renders float32) stays below
+``chunk_megabytes``; events are yielded per chunk, sorted by time, so long sequences stream to disk.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+from scipy.ndimage import maximum_filter1d
+
+from ..camera import SENSORS, Camera
+from ..errors import InputError
+from ..events import Events
+from .trajectories import RotationalMotion
+
+# Intrinsics per sensor: DAVIS240C as in the Event Camera Dataset (radial-tangential distortion);
+# the others are plausible lenses (about 60-75 degrees horizontal field of view).
+_INTRINSICS = {
+    "DAVIS240C": (199.1, 198.9, 132.2, 110.7, (-0.368, 0.150, -3e-4, -2e-4, 0.0)),
+    "DVS128": (110.0, 110.0, 63.5, 63.5, (0.0, 0.0, 0.0, 0.0, 0.0)),
+    "DAVIS346": (255.0, 255.0, 172.5, 129.5, (-0.08, 0.02, 0.0, 0.0, 0.0)),
+    "VGA": (440.0, 440.0, 319.5, 239.5, (0.0, 0.0, 0.0, 0.0, 0.0)),
+}
+
+
+def sensor_camera(name: str) -> Camera:
+    """The simulated camera of a sensor named in ``ti_cmax.camera.SENSORS``."""
+    if name not in SENSORS:
+        raise InputError(f"unknown sensor {name!r} (expected one of {', '.join(SENSORS)})")
+    w, h = SENSORS[name]
+    fx, fy, cx, cy, dist = _INTRINSICS[name]
+    return Camera(w, h, fx, fy, cx, cy, dist)
+
+
+def pixel_speed_factor(camera: Camera) -> float:
+    """Largest image speed (px/s) per rad/s of rotation, over all pixels of the sensor."""
+    b = camera.bearing_lut.astype(np.float64)
+    p0 = camera.project(b)
+    eps = 1e-5
+    cols = []
+    for axis in np.eye(3):
+        cols.append((camera.project(b + eps * np.cross(axis, b)) - p0) / eps)
+    jac = np.stack(cols, axis=2)  # (N, 2, 3)
+    return float(np.linalg.norm(jac, ord=2, axis=(1, 2)).max())
+
+
+def render_times(motion: RotationalMotion, camera: Camera, max_pixel_step: float, max_dt: float) -> np.ndarray:
+    """Adaptive render times in [0, duration] (see module docstring)."""
+    k_px = pixel_speed_factor(camera)
+    h = min(1e-4, max_dt / 4)
+    n = max(int(np.ceil(motion.duration / h)), 1)
+    grid = np.linspace(0.0, motion.duration, n + 1)
+    speed = maximum_filter1d(np.linalg.norm(motion.omega(grid), axis=1), size=5)
+    rate = np.maximum(k_px * speed / max_pixel_step, 1.0 / max_dt)  # renders per second
+    phase = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(grid))])
+    count = max(int(np.ceil(phase[-1])), 1)
+    times = np.interp(np.linspace(0.0, phase[-1], count + 1), phase, grid)
+    times[0], times[-1] = 0.0, motion.duration
+    return times
+
+
+@dataclass
+class GeneratorState:
+    """Per-pixel state carried across chunks."""
+
+    ref: np.ndarray  # reference log intensity (float32)
+    cpos: np.ndarray  # ON threshold (float32)
+    cneg: np.ndarray  # OFF threshold (float32)
+    last_t: np.ndarray  # time of the last emitted event (float64)
+
+
+def sample_thresholds(n: int, c: float, sigma: float, c_min: float, rng: np.random.Generator):
+    """Per-pixel ON/OFF thresholds ~ N(c, sigma), clipped below at c_min."""
+    cpos = np.maximum(rng.normal(c, sigma, n), c_min).astype(np.float32)
+    cneg = np.maximum(rng.normal(c, sigma, n), c_min).astype(np.float32)
+    return cpos, cneg
+
+
+def generate_events(motion: RotationalMotion, camera: Camera, log_pano: np.ndarray, config,
+                    times: np.ndarray | None = None, on_chunk=None) -> Iterator[Events]:
+    """Yield time-sorted Events chunk by chunk for the whole motion.
+
+    ``config`` is a SimulatorConfig (thresholds, noise, refractory period, chunk size, seed).
+    ``on_chunk(t_end)`` is called after each chunk (progress).
+    """
+    from ..kernels import render as rk
+
+    rng = np.random.default_rng([config.seed, 31])
+    bear = np.ascontiguousarray(camera.bearing_lut, dtype=np.float32)
+    pano = np.ascontiguousarray(log_pano, dtype=np.float32)
+    n = len(bear)
+    if times is None:
+        times = render_times(motion, camera, config.max_pixel_step, config.max_render_dt)
+    cpos, cneg = sample_thresholds(n, config.contrast_threshold, config.threshold_sigma, config.threshold_min, rng)
+    state = GeneratorState(rk.render(pano, bear, motion.rotation(times[0])[0]), cpos, cneg,
+                           np.full(n, -np.inf))
+    k_chunk = max(int(config.chunk_megabytes * 2**20 / (4 * n)) - 1, 4)
+    noise_rng = np.random.default_rng([config.seed, 37])
+    for k0 in range(0, len(times) - 1, k_chunk):
+        tc = times[k0: k0 + k_chunk + 1]
+        rots = motion.rotation(tc).astype(np.float32)
+        lbuf, counts = rk.render_and_count(pano, bear, rots, tc, state.ref, state.cpos, state.cneg,
+                                           state.last_t, config.refractory_period)
+        t, x, y, p = rk.write_events(lbuf, tc, state.ref, state.cpos, state.cneg, state.last_t,
+                                     config.refractory_period, counts, camera.width)
+        del lbuf
+        if config.noise_rate > 0:
+            m = noise_rng.poisson(config.noise_rate * n * (tc[-1] - tc[0]))
+            pix = noise_rng.integers(0, n, m)
+            t = np.concatenate([t, noise_rng.uniform(tc[0], tc[-1], m)])
+            x = np.concatenate([x, (pix % camera.width).astype(np.uint16)])
+            y = np.concatenate([y, (pix // camera.width).astype(np.uint16)])
+            p = np.concatenate([p, noise_rng.choice(np.array([-1, 1], np.int8), m)])
+        if config.time_resolution > 0:
+            t = np.round(t / config.time_resolution) * config.time_resolution
+        order = np.argsort(t, kind="stable")
+        if on_chunk is not None:
+            on_chunk(float(tc[-1]))
+        yield Events(t[order], x[order], y[order], p[order])
