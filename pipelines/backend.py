@@ -1,0 +1,277 @@
+"""Sliding-window CMax bundle adjustment (paper Sec. III-B, III-C2): the back-end of CMax-SLAM.
+
+The back-end owns the continuous trajectory (an SO(3) spline with control poses every ``dt_knots``) and the
+global panoramic map I_G. It is fed two streams in time order:
+
+* events (times and undistorted bearings), and
+* *source poses*: any trajectory to initialize new spline segments from (the front-end's integrated angular
+  velocity online; a given trajectory for offline refinement; IMU dead reckoning). Only relative rotations
+  of the source are used: each new segment starts from the last optimized pose (Sec. III-C2, Initialization).
+
+For every window [T, T + backend_time_window_size] (T advancing by backend_sliding_window_stride):
+1. initialize the control poses that the window adds by lift-solve-retract on the re-anchored source poses;
+2. if the event rate is at least backend_min_ev_rate, maximize Var(B(I_L) + alpha B(I_G)) (Eq. 18) over the
+   control poses with knot time >= T (earlier ones are fixed), with alpha = rho(I_L) / rho(I_G) (Eq. 16-17)
+   computed once from the initial I_L, by Fletcher-Reeves CG on left increments R_k <- exp(x_k) R_k^0;
+3. settle the events of [T, T + stride) into I_G with the refined poses (optionally freezing map pixels that
+   have been observed for max_update_time seconds).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ti_cmax import so3
+from ti_cmax.config import BackendConfig
+from ti_cmax.kernels.pano import PanoIWE, batch_mid_times, event_density, vote_map
+from ti_cmax.spline import SO3Spline
+from ti_cmax.trajectory import Trajectory
+
+from .optim import fletcher_reeves
+
+_TIME_EPS = 1e-9
+
+
+@dataclass
+class WindowReport:
+    """What happened in one window (kept for the report and for tests)."""
+
+    t_start: float
+    t_end: float
+    num_events: int
+    optimized: bool
+    alpha: float
+    iterations: int = 0
+    evaluations: int = 0
+    variance_before: float = 0.0
+    variance_after: float = 0.0
+    seconds: float = 0.0
+
+
+@dataclass
+class _Buffer:
+    """Growing column buffer (times + bearings) that drops its settled head cheaply."""
+
+    t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+
+    def push(self, t: np.ndarray, b: np.ndarray) -> None:
+        if len(t):
+            self.t = np.concatenate([self.t, t])
+            self.b = np.concatenate([self.b, b])
+
+    def drop_before(self, t: float) -> None:
+        i = int(np.searchsorted(self.t, t, side="left"))
+        if i:
+            self.t, self.b = self.t[i:], self.b[i:]
+
+    def range(self, t0: float, t1: float, include_end: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        i0 = int(np.searchsorted(self.t, t0, side="left"))
+        i1 = int(np.searchsorted(self.t, t1, side="right" if include_end else "left"))
+        return self.t[i0:i1], self.b[i0:i1]
+
+
+class SlidingWindowBackend:
+    """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""
+
+    def __init__(self, config: BackendConfig, t_start: float, r_start: np.ndarray | None = None):
+        self.cfg = config
+        self.width, self.height = config.pano_size
+        self.t_start = float(t_start)
+        self.r_start = np.eye(3) if r_start is None else np.asarray(r_start, dtype=float)
+        self.global_map = np.zeros((self.height, self.width), np.float32)
+        self.first_seen = np.full((self.height, self.width), np.inf, np.float32) if config.freeze_pixels else None
+        self.spline: SO3Spline | None = None
+        self.window_start = self.t_start
+        self.events = _Buffer()
+        self.events_until = -np.inf  # all events with t < events_until have been pushed
+        self._src_t = np.zeros(0)
+        self._src_R = np.zeros((0, 3, 3))
+        self._anchor: tuple[float, np.ndarray, np.ndarray] | None = None  # (t, R_src(t), R_spline(t))
+        self.windows: list[WindowReport] = []
+        self.events_settled = 0
+        self.events_optimized = 0  # event-window pairs that went through BA
+
+    # ---- input streams -------------------------------------------------------------------------------------------
+    def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
+        """Append events (time-sorted, after the back-end's downsampling) with their unit-depth bearings."""
+        self.events.push(np.asarray(t, dtype=float), np.asarray(bearings, dtype=np.float32))
+        if complete_until is not None:
+            self.events_until = max(self.events_until, float(complete_until))
+        elif len(t):
+            self.events_until = max(self.events_until, float(t[-1]))
+
+    def push_source_poses(self, times: np.ndarray, rotations: np.ndarray) -> None:
+        """Append samples of the initializing trajectory (only relative rotations are used)."""
+        times = np.asarray(times, dtype=float).reshape(-1)
+        rotations = np.asarray(rotations, dtype=float).reshape(-1, 3, 3)
+        keep = times > (self._src_t[-1] if len(self._src_t) else -np.inf)
+        self._src_t = np.concatenate([self._src_t, times[keep]])
+        self._src_R = np.concatenate([self._src_R, rotations[keep]])
+
+    # ---- stepping --------------------------------------------------------------------------------------------------
+    @property
+    def window_end(self) -> float:
+        return self.window_start + self.cfg.backend_time_window_size
+
+    def ready(self) -> bool:
+        """A full window of events and source poses is available."""
+        src_end = self._src_t[-1] if len(self._src_t) else -np.inf
+        return src_end >= self.window_end - _TIME_EPS and self.events_until >= self.window_end
+
+    def step(self, final: bool = False) -> WindowReport:
+        """Initialize, refine and settle one window. ``final`` settles every remaining event."""
+        import time
+
+        tic = time.perf_counter()
+        cfg = self.cfg
+        t0, t1 = self.window_start, self.window_end
+        if final:
+            last = max(self.events.t[-1] if len(self.events.t) else t0, self._src_t[-1] if len(self._src_t) else t0)
+            t1 = max(t0 + 1e-6, min(t1, last))
+        self._initialize_until(t1)
+        ev_t, ev_b = self.events.range(t0, t1, include_end=True)
+        ev_t, ev_b = ev_t[:: cfg.backend_event_sample_rate], ev_b[:: cfg.backend_event_sample_rate]
+        n = len(ev_t)
+        rate = n / max(t1 - t0, 1e-9)
+        report = WindowReport(t0, t1, n, optimized=False, alpha=0.0)
+        if n >= 2 * cfg.event_batch_size and rate >= cfg.backend_min_ev_rate:
+            self._refine(ev_t, ev_b, t0, report)
+        settle_end = t1 + 1.0 if final else t0 + cfg.backend_sliding_window_stride
+        self._settle(t0, settle_end, still=not report.optimized)
+        self.window_start = t0 + cfg.backend_sliding_window_stride
+        report.seconds = time.perf_counter() - tic
+        self.windows.append(report)
+        return report
+
+    def finish(self) -> None:
+        """Process the windows left once both streams have ended."""
+        end = max(self.events.t[-1] if len(self.events.t) else self.window_start,
+                  self._src_t[-1] if len(self._src_t) else self.window_start)
+        while self.window_end < end - _TIME_EPS:
+            self.step()
+        if self.window_start <= end:
+            self.step(final=True)
+
+    # ---- results ---------------------------------------------------------------------------------------------------
+    def trajectory(self, rate: float) -> Trajectory:
+        """The refined continuous trajectory sampled at ``rate`` Hz over its valid range."""
+        if self.spline is None:
+            return Trajectory(np.array([self.t_start]), self.r_start[None])
+        start, end = self.spline.valid_time_range()
+        return self.spline.to_trajectory(rate, max(start, self.t_start), end)
+
+    # ---- internals -------------------------------------------------------------------------------------------------
+    def _source_segment(self, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:
+        """Source poses in (t_from, t_to] plus the first one beyond, re-anchored to the spline at the anchor."""
+        i0 = int(np.searchsorted(self._src_t, t_from, side="right"))
+        i1 = min(int(np.searchsorted(self._src_t, t_to - _TIME_EPS, side="left")) + 1, len(self._src_t))
+        times, rots = self._src_t[i0:i1], self._src_R[i0:i1]
+        t_a, r_src_a, r_spl_a = self._anchor
+        return times, r_spl_a @ r_src_a.T @ rots
+
+    def _source_at(self, t: float) -> np.ndarray:
+        return Trajectory(self._src_t, self._src_R).at(t)[0] if len(self._src_t) > 1 else self._src_R[0]
+
+    def _initialize_until(self, t_end: float) -> None:
+        """Fit control poses for (anchor, t_end] to the re-anchored source (lift-solve-retract)."""
+        cfg = self.cfg
+        if self.spline is None:
+            r_src0 = self._source_at(self.t_start)
+            self._anchor = (self.t_start, r_src0, self.r_start)
+            times, rots = self._source_segment(self.t_start, t_end)
+            times = np.concatenate([[self.t_start], times])
+            rots = np.concatenate([self.r_start[None], rots])
+            if len(times) < 2:
+                times, rots = np.array([self.t_start, t_end]), np.stack([self.r_start, self.r_start])
+            lead = (cfg.spline_degree - 1) // 2
+            self.spline = SO3Spline(cfg.spline_degree, self.t_start - lead * cfg.dt_knots, cfg.dt_knots,
+                                    np.broadcast_to(self.r_start, (cfg.spline_degree + 1, 3, 3)).copy())
+            self.spline.fit_new_segment(times, rots, first_free=0, refine_iters=1)
+            self._anchor_at(float(times[-1]))
+            return
+        t_a = self._anchor[0]
+        if t_end <= t_a + _TIME_EPS and self.spline.valid_time_range()[1] >= t_end - _TIME_EPS:
+            return
+        times, rots = self._source_segment(t_a, t_end)
+        # knots after the anchor were only extrapolated so far: refit them together with the new ones
+        first_free = int(np.searchsorted(self.spline.knot_times(), t_a + _TIME_EPS, side="right"))
+        if len(times) == 0:  # no new source samples: hold the last pose
+            times, rots = np.array([max(t_end, t_a + 1e-6)]), self._anchor[2][None]
+        # include the anchor itself so the new segment starts where the optimized trajectory is
+        times = np.concatenate([[t_a], times])
+        rots = np.concatenate([self._anchor[2][None], rots])
+        self.spline.fit_new_segment(times, rots, first_free=first_free, refine_iters=1)
+        self._anchor_at(float(times[-1]))
+
+    def _anchor_at(self, t: float) -> None:
+        self._anchor = (t, self._source_at(t), self.spline.evaluate(t)[0])
+
+    def _refine(self, ev_t, ev_b, t0, report: WindowReport) -> None:
+        cfg = self.cfg
+        spline = self.spline
+        knots = spline.knot_times()
+        first_free = int(np.searchsorted(knots, t0 - _TIME_EPS, side="left"))
+        first_free = max(first_free, 1)  # the very first pose anchors the gauge (world frame)
+        mids = batch_mid_times(ev_t, cfg.event_batch_size)
+        s, u = spline.support(mids)
+        # alpha from the event densities of the initial local map and the global map (Eq. 16-17)
+        rho_g = event_density(self.global_map, cfg.lambda0)
+        if rho_g > 0:
+            local = vote_map(ev_b, spline.evaluate_at(s, u), self.width, self.height, batch_size=cfg.event_batch_size)
+            report.alpha = event_density(local, cfg.lambda0) / rho_g
+        problem = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=cfg.backend_blur_sigma,
+                          global_map=self.global_map if rho_g > 0 else None, alpha=report.alpha,
+                          batch_size=cfg.event_batch_size)
+        base = spline.control_R.copy()
+        n_free = len(base) - first_free
+        if n_free <= 0:
+            return
+
+        var0 = problem.cost(base)
+        scale = 1.0 / var0 if var0 > 0 else 1.0  # tolerances act on the relative variance: scale-free
+
+        def objective(x: np.ndarray):
+            delta = x.reshape(-1, 3)
+            ctrl = base.copy()
+            ctrl[first_free:] = so3.exp(delta) @ base[first_free:]
+            var, grad = problem.cost_and_grad(ctrl)
+            # chain the left-perturbation gradient through exp: d/dx exp(x) R = Jl(x)
+            g = np.einsum("nji,nj->ni", so3.left_jacobian(delta), grad[first_free:])
+            return var * scale, g.reshape(-1) * scale
+
+        result = fletcher_reeves(
+            objective, np.zeros(3 * n_free), maximize=True, init_step=cfg.backend_cg_init_step,
+            line_search_tol=cfg.backend_cg_line_search_tol, max_iter=cfg.backend_cg_max_iters,
+            grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
+        )
+        spline.control_R[first_free:] = so3.exp(result.x.reshape(-1, 3)) @ base[first_free:]
+        report.variance_before = var0
+        report.variance_after = result.fun / scale
+        report.optimized = True
+        report.iterations = result.iterations
+        report.evaluations = result.evaluations
+        self.events_optimized += len(ev_t)
+        self._anchor_at(self._anchor[0])
+
+    def _settle(self, t0: float, t1: float, still: bool) -> None:
+        """Vote the events of [t0, t1) into the global map with the refined poses; drop them from the buffer."""
+        cfg = self.cfg
+        ev_t, ev_b = self.events.range(t0, t1)
+        ev_t, ev_b = ev_t[:: cfg.backend_event_sample_rate], ev_b[:: cfg.backend_event_sample_rate]
+        if len(ev_t):
+            start, end = self.spline.valid_time_range()
+            mids = np.clip(batch_mid_times(ev_t, cfg.event_batch_size), start, end)
+            rots = self.spline.evaluate(mids)
+            if self.first_seen is None:
+                vote_map(ev_b, rots, self.width, self.height, batch_size=cfg.event_batch_size, out=self.global_map)
+            else:
+                votes = vote_map(ev_b, rots, self.width, self.height, batch_size=cfg.event_batch_size)
+                hit = votes > 0
+                if not still:
+                    np.minimum(self.first_seen, np.where(hit, np.float32(t0), np.float32(np.inf)), out=self.first_seen)
+                open_px = (t0 - self.first_seen) < cfg.max_update_time
+                self.global_map += np.where(open_px | ~np.isfinite(self.first_seen), votes, 0)
+            self.events_settled += len(ev_t)
+        self.events.drop_before(t1)
