@@ -27,6 +27,11 @@ class FrontendConfig:
     num_events_per_packet: int = 10000
     dt_ang_vel: float = 0.01  # 1/f, packet centre spacing (s)
     still_span_factor: float = 10.0  # a packet spanning more than factor*dt_ang_vel means a still camera
+    # "bounded" (default): a packet spanning more than W = still_span_factor*dt_ang_vel is shrunk to the
+    # events within t_ref +- W/2, and omega = 0 only if fewer than frontend_min_event_rate*W remain.
+    # "paper": the reference rule (omega = 0 as soon as the N events span more than W).
+    frontend_slicing: str = "bounded"
+    frontend_min_event_rate: float = 10000.0  # events/s floor of the "bounded" rule
     # Fletcher-Reeves CG
     frontend_cg_init_step: float = 0.1
     frontend_cg_line_search_tol: float = 0.05

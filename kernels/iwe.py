@@ -1,0 +1,438 @@
+"""Front-end image of warped events (IWE) for a constant angular velocity: contrast and its gradient.
+
+One packet: bearings b_k on the unit-depth plane (undistorted, from ``Camera.bearings``) and relative
+times dt_k = t_k - t_ref. Each bearing is rotated to t_ref by the exact rotation exp([omega]x dt_k)
+(Rodrigues, not the first-order form), projected with K (pinhole, no distortion: the IWE lives on the
+undistorted image plane) and voted bilinearly into a sensor-sized image I. Only in-bounds neighbours
+receive votes, so an event leaving the image fades out continuously.
+
+Contrast of the blurred image J = G * I, with G the Gaussian blur (sigma = frontend_blur_sigma) taken
+over the whole plane (J keeps the mass that spills over the border), Np = width * height:
+
+    mean_square:  C = ||J||^2 / Np
+    variance:     C = ||J||^2 / Np - mu^2,   mu = sum(I) / Np
+
+Because G is self-adjoint, ||J||^2 = <I, G2 I> with G2 = G^T G the blur by the self-convolved taps
+g * g (zero padding on the sensor is then exact), and
+
+    dC/domega = (2/Np) sum_k sum_{n in nbrs(k)} (H_n - mu) dw_kn/dpix . dpix_k/domega,  H = G2 I
+
+(mu = 0 for the mean square). So one evaluation = one Taichi launch with three passes:
+  1. events: warp, bilinear vote into I (atomics), sum of weights (-> mu);
+  2. rows:   T = horizontal G2 blur of I (and I is cleared row by row for the next evaluation);
+  3. events: warp again, H at the four neighbours by the vertical G2 taps gathered from T, then the
+             cost term w.H and the gradient 3-vector, reduced per block of events (no gradient image).
+The vertical blur is never materialised: gathering it per event beats a full image pass with stores,
+which Taichi's CPU backend does not vectorise (measured; see the front-end issue note).
+
+d(exp(phi) b)/dphi = -[exp(phi) b]x Jl(phi) with phi = omega dt, so an event contributes
+dt * Jl(phi)^T (x' x a), x' the rotated bearing and a = (dpix/dx')^T (dC/dpix).
+
+Kernels are generated per dtype (f32 for speed, f64 for finite-difference checks), blur taps and sensor
+size (compile-time constants); images and the packet buffer are fields allocated once per workspace.
+:func:`contrast_numpy` is the float64 numpy twin (test oracle).
+"""
+import functools
+
+import numpy as np
+
+from ti_cmax.kernels.runtime import ensure_init, ti
+
+MEASURES = {"variance": 0, "mean_square": 1}
+_DTYPES = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
+_BLOCK = 256  # events per reduction block
+
+
+def gaussian_taps(sigma: float, truncate: float = 4.0) -> np.ndarray:
+    """Normalised 1-D Gaussian taps g[-R..R], R = int(truncate*sigma + 0.5) (scipy's rule); sigma 0 -> [1]."""
+    if sigma <= 0:
+        return np.ones(1)
+    radius = int(truncate * float(sigma) + 0.5)
+    r = np.arange(-radius, radius + 1, dtype=float)
+    g = np.exp(-0.5 * (r / sigma) ** 2)
+    return g / g.sum()
+
+
+def gram_taps(sigma: float, truncate: float = 4.0) -> np.ndarray:
+    """Taps of G^T G = g * g (length 4R+1)."""
+    g = gaussian_taps(sigma, truncate)
+    return np.convolve(g, g)
+
+
+def measure_id(measure: str) -> int:
+    try:
+        return MEASURES[measure]
+    except KeyError:
+        raise ValueError(f"unknown contrast measure {measure!r}; choose one of {sorted(MEASURES)}") from None
+
+
+@functools.cache
+def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int):
+    """Fields and kernels for one float type, blur, sensor size and packet capacity (compiled once)."""
+    f = ti.f32 if dtype_name == "f32" else ti.f64
+    r2 = (len(taps2) - 1) // 2  # radius of the G2 taps
+    pady = r2 + 1  # T rows padded so the vertical gather needs no bounds checks (y0 may be -1)
+    h, w = height, width
+    wi = w + 2 * r2  # I is padded by r2 zero columns each side
+    ev = ti.Vector.field(4, f, shape=capacity)  # bx, by, bz, dt
+    img = ti.field(f, shape=(h, wi))
+    tmp = ti.field(f, shape=(h + 2 * pady, w + 2))
+    out = ti.field(ti.f64, shape=8)
+    nblocks_max = (capacity + _BLOCK - 1) // _BLOCK
+
+    @ti.func
+    def coeffs(th2):
+        """A = sin t / t, B = (1 - cos t)/t^2, C = (t - sin t)/t^3 (series for t < 0.1)."""
+        a = f(1.0)
+        b = f(0.5)
+        c = f(1.0 / 6.0)
+        if th2 < f(0.01):  # 4-term series, truncation error < 1e-16
+            a = f(1.0) - th2 / f(6.0) * (f(1.0) - th2 / f(20.0) * (f(1.0) - th2 / f(42.0)))
+            b = f(0.5) - th2 / f(24.0) * (f(1.0) - th2 / f(30.0) * (f(1.0) - th2 / f(56.0)))
+            c = f(1.0 / 6.0) - th2 / f(120.0) * (f(1.0) - th2 / f(42.0) * (f(1.0) - th2 / f(72.0)))
+        else:
+            th = ti.sqrt(th2)
+            s = ti.sin(th)
+            hs = ti.sin(f(0.5) * th)
+            a = s / th
+            b = f(2.0) * hs * hs / th2
+            c = (th - s) / (th2 * th)
+        return a, b, c
+
+    @ti.func
+    def warp(k, wx, wy, wz):
+        """Rotated bearing exp([w]x dt_k) b_k, phi = w dt_k, dt_k, B, C."""
+        e = ev[k]
+        bk = ti.Vector([e[0], e[1], e[2]])
+        dk = e[3]
+        phi = ti.Vector([wx * dk, wy * dk, wz * dk])
+        a, b, c = coeffs(phi.dot(phi))
+        pb = phi.cross(bk)
+        xr = bk + a * pb + b * phi.cross(pb)
+        return xr, phi, dk, b, c
+
+    @ti.kernel
+    def load(src: ti.types.ndarray(dtype=f, ndim=2), n: ti.i32):
+        for k in range(n):
+            ev[k] = ti.Vector([src[k, 0], src[k, 1], src[k, 2], src[k, 3]])
+
+    @ti.kernel
+    def evaluate(n: ti.i32, wx: f, wy: f, wz: f, fx: f, fy: f, cx: f, cy: f, measure: ti.i32,
+                 with_grad: ti.i32) -> ti.types.vector(6, ti.f64):
+        for q in range(8):
+            out[q] = 0.0
+        nblocks = (n + _BLOCK - 1) // _BLOCK
+        # pass 1: warp and vote (in-bounds neighbours only)
+        for blk in range(nblocks):
+            sw = ti.f64(0.0)
+            cnt = ti.f64(0.0)
+            for k in range(blk * _BLOCK, ti.min(n, (blk + 1) * _BLOCK)):
+                xr, _phi, _dk, _b, _c = warp(k, wx, wy, wz)
+                if xr[2] > f(1e-6):
+                    u = fx * xr[0] / xr[2] + cx
+                    v = fy * xr[1] / xr[2] + cy
+                    if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
+                        x0 = ti.cast(ti.floor(u), ti.i32)
+                        y0 = ti.cast(ti.floor(v), ti.i32)
+                        ax = u - f(x0)
+                        ay = v - f(y0)
+                        mx0 = f(x0 >= 0)
+                        mx1 = f(x0 + 1 < w)
+                        my0 = f(y0 >= 0)
+                        my1 = f(y0 + 1 < h)
+                        xi = x0 + r2  # padded column: always within [r2-1, r2+w]
+                        if y0 >= 0:
+                            ti.atomic_add(img[y0, xi], mx0 * (f(1.0) - ax) * (f(1.0) - ay))
+                            ti.atomic_add(img[y0, xi + 1], mx1 * ax * (f(1.0) - ay))
+                        if y0 + 1 < h:
+                            ti.atomic_add(img[y0 + 1, xi], mx0 * (f(1.0) - ax) * ay)
+                            ti.atomic_add(img[y0 + 1, xi + 1], mx1 * ax * ay)
+                        sw += ti.cast(my0 * (f(1.0) - ay) * (mx0 * (f(1.0) - ax) + mx1 * ax)
+                                      + my1 * ay * (mx0 * (f(1.0) - ax) + mx1 * ax), ti.f64)
+                        cnt += 1.0
+            out[0] += sw
+            out[5] += cnt
+        # pass 2: horizontal G2 blur of each row into T, then clear the row of I
+        for i in range(h):
+            for j in range(w):
+                s = f(0.0)
+                for c in ti.static(range(2 * r2 + 1)):
+                    s += f(taps2[c]) * img[i, j + c]
+                tmp[i + pady, j + 1] = s
+            for j in range(wi):
+                img[i, j] = f(0.0)
+        # pass 3: cost and gradient, gathering the vertical G2 taps from T per event
+        npix = f(float(h * w))
+        mu = f(0.0)
+        if measure == 0:
+            mu = ti.cast(out[0], f) / npix
+        for blk in range(nblocks):
+            acc = ti.Vector([0.0, 0.0, 0.0, 0.0], dt=ti.f64)
+            for k in range(blk * _BLOCK, ti.min(n, (blk + 1) * _BLOCK)):
+                xr, phi, dk, b, c = warp(k, wx, wy, wz)
+                if xr[2] > f(1e-6):
+                    iz = f(1.0) / xr[2]
+                    u = fx * xr[0] * iz + cx
+                    v = fy * xr[1] * iz + cy
+                    if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
+                        x0 = ti.cast(ti.floor(u), ti.i32)
+                        y0 = ti.cast(ti.floor(v), ti.i32)
+                        ax = u - f(x0)
+                        ay = v - f(y0)
+                        mx0 = f(x0 >= 0)
+                        mx1 = f(x0 + 1 < w)
+                        my0 = f(y0 >= 0)
+                        my1 = f(y0 + 1 < h)
+                        # H at (y0, x0), (y0, x0+1), (y0+1, x0), (y0+1, x0+1); T row of y is y + pady
+                        h00 = f(0.0)
+                        h01 = f(0.0)
+                        h10 = f(0.0)
+                        h11 = f(0.0)
+                        base = y0 + pady - r2
+                        for rr in ti.static(range(2 * r2 + 2)):
+                            t0 = tmp[base + rr, x0 + 1]
+                            t1 = tmp[base + rr, x0 + 2]
+                            if ti.static(rr <= 2 * r2):
+                                h00 += f(taps2[rr]) * t0
+                                h01 += f(taps2[rr]) * t1
+                            if ti.static(rr >= 1):
+                                h10 += f(taps2[rr - 1]) * t0
+                                h11 += f(taps2[rr - 1]) * t1
+                        h00 = my0 * mx0 * (h00 - mu)
+                        h01 = my0 * mx1 * (h01 - mu)
+                        h10 = my1 * mx0 * (h10 - mu)
+                        h11 = my1 * mx1 * (h11 - mu)
+                        # cost term sum_n w_n (H_n - mu'): sums to <I, G2 I> - mu' sum(I) = C * Np
+                        wsum = ((f(1.0) - ay) * ((f(1.0) - ax) * h00 + ax * h01)
+                                + ay * ((f(1.0) - ax) * h10 + ax * h11))
+                        acc[3] += ti.cast(wsum, ti.f64)
+                        if with_grad != 0:
+                            gu = (f(1.0) - ay) * (h01 - h00) + ay * (h11 - h10)
+                            gv = (f(1.0) - ax) * (h10 - h00) + ax * (h11 - h01)
+                            av = ti.Vector([fx * gu * iz, fy * gv * iz,
+                                            -(fx * gu * xr[0] + fy * gv * xr[1]) * iz * iz])
+                            cc = xr.cross(av)
+                            pc = phi.cross(cc)
+                            gk = dk * (cc - b * pc + c * phi.cross(pc))
+                            acc[0] += ti.cast(gk[0], ti.f64)
+                            acc[1] += ti.cast(gk[1], ti.f64)
+                            acc[2] += ti.cast(gk[2], ti.f64)
+            out[2] += acc[0]
+            out[3] += acc[1]
+            out[4] += acc[2]
+            out[1] += acc[3]
+        return ti.Vector([out[0], out[1], out[2], out[3], out[4], out[5]])
+
+    @ti.kernel
+    def render(n: ti.i32, wx: f, wy: f, wz: f, fx: f, fy: f, cx: f, cy: f, dst: ti.types.ndarray(dtype=f, ndim=2)):
+        """Unblurred IWE I into dst (h, w) (zeroed here), for display and tests."""
+        for i, j in ti.ndrange(h, w):
+            dst[i, j] = f(0.0)
+        for k in range(n):
+            xr, _phi, _dk, _b, _c = warp(k, wx, wy, wz)
+            if xr[2] > f(1e-6):
+                u = fx * xr[0] / xr[2] + cx
+                v = fy * xr[1] / xr[2] + cy
+                if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
+                    x0 = ti.cast(ti.floor(u), ti.i32)
+                    y0 = ti.cast(ti.floor(v), ti.i32)
+                    ax = u - f(x0)
+                    ay = v - f(y0)
+                    for dy, dx in ti.static(ti.ndrange(2, 2)):
+                        yy = y0 + dy
+                        xx = x0 + dx
+                        if 0 <= yy < h and 0 <= xx < w:
+                            wgt = (ax if dx == 1 else f(1.0) - ax) * (ay if dy == 1 else f(1.0) - ay)
+                            ti.atomic_add(dst[yy, xx], wgt)
+
+    assert nblocks_max >= 1
+    return load, evaluate, render
+
+
+class IWEWorkspace:
+    """Compiled kernels and buffers for one sensor size, dtype, blur and packet capacity.
+
+    Usage: ``ws.set_packet(bearings, dts)`` once per packet, then ``ws.evaluate(omega, K)`` per
+    optimizer step. A packet larger than the capacity rebuilds the kernels with a doubled capacity
+    (a compile, so size the workspace for the largest packet up front).
+    """
+
+    def __init__(self, width: int, height: int, dtype=np.float32, blur_sigma: float = 1.0,
+                 capacity: int = 1 << 14, truncate: float = 4.0):
+        self.width, self.height = int(width), int(height)
+        self.dtype = np.dtype(dtype)
+        if self.dtype not in _DTYPES:
+            raise ValueError(f"dtype must be float32 or float64, got {self.dtype}")
+        self.taps2 = tuple(float(v) for v in gram_taps(blur_sigma, truncate))
+        self.blur_sigma = float(blur_sigma)
+        self.truncate = float(truncate)
+        self.capacity = 1 << max(10, int(np.ceil(np.log2(max(int(capacity), 1)))))
+        self._kernels = None
+        self.n = 0
+
+    def _ensure(self):
+        if self._kernels is None:
+            ensure_init()
+            self._kernels = _build(_DTYPES[self.dtype], self.taps2, self.height, self.width, self.capacity)
+        return self._kernels
+
+    def compile(self) -> None:
+        """Build (or fetch from the offline cache) all kernels now, e.g. to time compilation apart."""
+        load, evaluate, render = self._ensure()
+        self.set_packet(np.zeros((1, 3)) + [0, 0, 1], np.zeros(1))
+        evaluate(1, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0, 1)
+        render(1, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, np.zeros((self.height, self.width), self.dtype))
+
+    def set_packet(self, bearings: np.ndarray, dts: np.ndarray) -> None:
+        """Upload one packet: bearings (N, 3) and relative times dt_k = t_k - t_ref (N,)."""
+        n = len(dts)
+        if n > self.capacity:
+            self.capacity = 1 << int(np.ceil(np.log2(n)))
+            self._kernels = None
+        load = self._ensure()[0]
+        packed = np.empty((max(n, 1), 4), self.dtype)
+        if n:
+            packed[:n, :3] = bearings
+            packed[:n, 3] = dts
+        load(packed, n)
+        self.n = n
+
+    def evaluate(self, omega, K, measure: str = "variance", with_grad: bool = True):
+        """(contrast, gradient (3,), number of events landing in the image) at omega; raw contrast as in
+        the module docstring (normalise in the caller). The gradient is zero when with_grad is False."""
+        evaluate = self._ensure()[1]
+        mid = measure_id(measure)
+        o = evaluate(self.n, float(omega[0]), float(omega[1]), float(omega[2]),
+                     float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), mid, int(bool(with_grad)))
+        o = np.asarray(o, dtype=np.float64)
+        npix = float(self.width * self.height)
+        # pass 3 summed w (H - mu') = <I, G2 I> - mu' sum(I), mu' = mu (variance) or 0: that is C * Np
+        cost = o[1] / npix
+        return cost, (2.0 / npix) * o[2:5], int(o[5])
+
+    def iwe(self, omega, K, blurred: bool = True) -> np.ndarray:
+        """Image of warped events of the current packet at omega, (height, width) float64;
+        blurred with G (zero padding) unless ``blurred`` is False."""
+        render = self._ensure()[2]
+        dst = np.zeros((self.height, self.width), self.dtype)
+        render(self.n, float(omega[0]), float(omega[1]), float(omega[2]),
+               float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), dst)
+        img = dst.astype(np.float64)
+        return _blur_np(img, gaussian_taps(self.blur_sigma, self.truncate)) if blurred else img
+
+
+def contrast_and_gradient(bearings, dts, omega, K, width, height, measure="variance", blur_sigma=1.0,
+                          dtype=np.float32, with_grad: bool = True):
+    """One-shot convenience wrapper around :class:`IWEWorkspace` (compiles on first use per size/dtype)."""
+    ws = IWEWorkspace(width, height, dtype, blur_sigma, capacity=len(dts))
+    ws.set_packet(bearings, dts)
+    c, g, _ = ws.evaluate(omega, K, measure, with_grad)
+    return c, g
+
+
+# ----------------------------------------------------------------------------------------------
+# numpy twin (float64): the same math, used as the test oracle
+# ----------------------------------------------------------------------------------------------
+
+def _coeffs_np(th2):
+    th = np.sqrt(th2)
+    small = th2 < 0.01
+    ts = np.where(small, 1.0, th)
+    a = np.where(small, 1 - th2 / 6 * (1 - th2 / 20 * (1 - th2 / 42)), np.sin(ts) / ts)
+    b = np.where(small, 0.5 - th2 / 24 * (1 - th2 / 30 * (1 - th2 / 56)), 2 * np.sin(0.5 * ts) ** 2 / ts**2)
+    c = np.where(small, 1 / 6 - th2 / 120 * (1 - th2 / 42 * (1 - th2 / 72)), (ts - np.sin(ts)) / ts**3)
+    return a, b, c
+
+
+def warp_numpy(bearings, dts, omega):
+    """Rotated bearings exp([omega]x dt_k) b_k (N,3), with phi (N,3) and the B, C coefficients."""
+    b = np.asarray(bearings, float).reshape(-1, 3)
+    phi = np.asarray(omega, float)[None, :] * np.asarray(dts, float).reshape(-1)[:, None]
+    a, bb, c = _coeffs_np(np.einsum("ij,ij->i", phi, phi))
+    pb = np.cross(phi, b)
+    xr = b + a[:, None] * pb + bb[:, None] * np.cross(phi, pb)
+    return xr, phi, bb, c
+
+
+def _blur_np(img, taps):
+    from scipy.ndimage import correlate1d
+
+    out = correlate1d(img, taps, axis=1, mode="constant", cval=0.0)
+    return correlate1d(out, taps, axis=0, mode="constant", cval=0.0)
+
+
+def _project_np(xr, K, width, height):
+    z = xr[:, 2]
+    front = z > 1e-6
+    zs = np.where(front, z, 1.0)
+    u = K[0, 0] * xr[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * xr[:, 1] / zs + K[1, 2]
+    valid = front & (u > -1) & (v > -1) & (u < width) & (v < height)
+    return u, v, zs, valid
+
+
+def _neighbours(u, v, width, height):
+    """Per neighbour: column, row, in-bounds mask, weight, d weight/du, d weight/dv."""
+    x0 = np.floor(u).astype(np.int64)
+    y0 = np.floor(v).astype(np.int64)
+    ax, ay = u - x0, v - y0
+    nb = []
+    for dx, dy, w, dwdu, dwdv in (
+        (0, 0, (1 - ax) * (1 - ay), -(1 - ay), -(1 - ax)),
+        (1, 0, ax * (1 - ay), (1 - ay), -ax),
+        (0, 1, (1 - ax) * ay, -ay, (1 - ax)),
+        (1, 1, ax * ay, ay, ax),
+    ):
+        xx, yy = x0 + dx, y0 + dy
+        ok = (xx >= 0) & (xx < width) & (yy >= 0) & (yy < height)
+        nb.append((xx, yy, ok, w, dwdu, dwdv))
+    return nb
+
+
+def vote_numpy(bearings, dts, omega, K, width, height) -> np.ndarray:
+    """Unblurred IWE I (height, width) float64 (bilinear votes of in-bounds neighbours)."""
+    xr, *_ = warp_numpy(bearings, dts, omega)
+    u, v, _, valid = _project_np(xr, K, width, height)
+    img = np.zeros((height, width))
+    for xx, yy, ok, w, _, _ in _neighbours(u[valid], v[valid], width, height):
+        np.add.at(img, (yy[ok], xx[ok]), w[ok])
+    return img
+
+
+def contrast_numpy(bearings, dts, omega, K, width, height, measure="variance", blur_sigma=1.0, truncate=4.0):
+    """Float64 twin of the kernel: (contrast, gradient (3,))."""
+    mid = measure_id(measure)
+    xr, phi, bb, c = warp_numpy(bearings, dts, omega)
+    dts = np.asarray(dts, float).reshape(-1)
+    fx, fy = K[0, 0], K[1, 1]
+    u, v, zs, valid = _project_np(xr, K, width, height)
+    nbs = _neighbours(u, v, width, height)
+    img = np.zeros((height, width))
+    for xx, yy, ok, w, _, _ in nbs:
+        m = ok & valid
+        np.add.at(img, (yy[m], xx[m]), w[m])
+    npix = width * height
+    himg = _blur_np(img, gram_taps(blur_sigma, truncate))  # G2 I
+    mu = img.sum() / npix if mid == 0 else 0.0
+    cost = np.sum(img * himg) / npix - mu * mu
+    gu = np.zeros(len(u))
+    gv = np.zeros(len(u))
+    for xx, yy, ok, _, dwdu, dwdv in nbs:
+        m = ok & valid
+        hv = np.zeros(len(u))
+        hv[m] = himg[yy[m], xx[m]] - mu
+        gu += dwdu * hv
+        gv += dwdv * hv
+    iz = 1.0 / zs
+    a = np.stack([fx * gu * iz, fy * gv * iz, -(fx * gu * xr[:, 0] + fy * gv * xr[:, 1]) * iz * iz], axis=1)
+    cc = np.cross(xr, a)
+    pc = np.cross(phi, cc)
+    gk = dts[:, None] * (cc - bb[:, None] * pc + c[:, None] * np.cross(phi, pc))
+    gk[~valid] = 0.0
+    return cost, 2.0 / npix * gk.sum(axis=0)
+
+
+__all__ = [
+    "MEASURES", "IWEWorkspace", "gaussian_taps", "gram_taps", "measure_id", "contrast_and_gradient",
+    "warp_numpy", "vote_numpy", "contrast_numpy",
+]

@@ -1,0 +1,325 @@
+"""CMax-omega front-end (paper Sec. II-B, III-C1): angular velocity at equispaced times by contrast maximisation.
+
+Data flow: a stream of ``Events`` chunks -> rolling buffer -> one packet per timestamp
+t_j = t_first + dt/2 + j dt (dt = ``dt_ang_vel``) -> omega_j maximising the IWE contrast (Fletcher-Reeves
+CG, warm-started from omega_{j-1}) -> integrated to a rotation trajectory (R(t_0) = I).
+
+Slicing (``frontend_slicing``):
+- ``"paper"``: the N = ``num_events_per_packet`` events centred on t_j; if they span more than
+  W = ``still_span_factor * dt_ang_vel`` seconds the camera is declared still (omega = 0). With a
+  fixed N this fails when the event rate swings (slow phases give omega = 0 and the trajectory drifts).
+- ``"bounded"`` (default): the same N-event packet, but when it spans more than W it is shrunk to the
+  events inside the window [t_j - W/2, t_j + W/2]. Still (omega = 0) only when that window holds fewer
+  than ``frontend_min_event_rate * W`` events (an event-rate floor: 1000 events per 0.1 s by default)
+  or none at all. No per-sequence tuning of N is needed: slow phases keep a 100 ms window of events.
+Both rules clip packets at the ends of the stream. ``frontend_event_sample_rate`` Q keeps 1 event of Q
+(systematic, over the whole stream) before slicing.
+
+Scaling (so that the reference's tolerances mean the same across packet sizes and resolutions): the
+optimiser sees x = omega * s with s = f * max_k |dt_k| (f: mean focal length), i.e. x is roughly the
+displacement in pixels of the packet's farthest-in-time event, and the cost C / mu0^2 with
+mu0 = n / (width * height), the mean IWE value of a packet of n events: the variance becomes the squared
+coefficient of variation of the IWE, dimensionless and independent of n and of the sensor size.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from ti_cmax import so3
+from ti_cmax.camera import Camera
+from ti_cmax.config import FrontendConfig, config_to_dict
+from ti_cmax.errors import InputError
+from ti_cmax.events import Events
+from ti_cmax.kernels.iwe import IWEWorkspace, measure_id
+from ti_cmax.trajectory import Trajectory
+
+from .optim import fletcher_reeves
+
+SLICING_RULES = ("bounded", "paper")
+
+
+@dataclass(frozen=True, eq=False)
+class FrontendResult:
+    """Angular velocity per packet and what happened in each packet."""
+
+    t: np.ndarray  # (M,) packet timestamps t_j (s)
+    omega: np.ndarray  # (M, 3) rad/s, camera frame
+    num_events: np.ndarray  # (M,) events in the packet (0 when still/empty)
+    span: np.ndarray  # (M,) time span of the selected packet (s)
+    iterations: np.ndarray  # (M,) CG line searches
+    evaluations: np.ndarray  # (M,) contrast+gradient evaluations
+    still: np.ndarray  # (M,) bool, omega set to 0 by the still-camera rule
+    cost: np.ndarray  # (M,) normalised contrast at the solution (nan when still)
+    timing: dict = field(default_factory=dict)  # compile_seconds, wall_seconds, us_per_event, ...
+    config: FrontendConfig = field(default_factory=FrontendConfig)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def trajectory(self) -> Trajectory:
+        """Integrate omega (midpoint rule on SO(3)) to R_world_from_camera at the packet times, R(t_0) = I."""
+        if len(self.t) == 0:
+            raise InputError("the front-end produced no angular velocity (no events?)")
+        return Trajectory(self.t, so3.integrate_angular_velocity(self.t, self.omega))
+
+    def summary(self) -> dict:
+        """JSON-friendly summary (for report.json)."""
+        return {
+            "packets": int(len(self.t)),
+            "still_packets": int(np.count_nonzero(self.still)),
+            "mean_iterations": float(np.mean(self.iterations)) if len(self.t) else 0.0,
+            "mean_evaluations": float(np.mean(self.evaluations)) if len(self.t) else 0.0,
+            "mean_packet_events": float(np.mean(self.num_events[~self.still])) if np.any(~self.still) else 0.0,
+            **{k: (float(v) if isinstance(v, (int, float, np.floating, np.integer)) else v)
+               for k, v in self.timing.items()},
+        }
+
+
+def check_config(config: FrontendConfig) -> None:
+    """Raise InputError on parameter values the front-end cannot run with."""
+    if config.frontend_slicing not in SLICING_RULES:
+        raise InputError(f"frontend_slicing must be one of {', '.join(SLICING_RULES)}, got {config.frontend_slicing!r}")
+    try:
+        measure_id(config.contrast_measure)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if config.num_events_per_packet < 2:
+        raise InputError(f"num_events_per_packet must be >= 2, got {config.num_events_per_packet}")
+    if not config.dt_ang_vel > 0:
+        raise InputError(f"dt_ang_vel must be > 0, got {config.dt_ang_vel}")
+    if config.frontend_event_sample_rate < 1:
+        raise InputError(f"frontend_event_sample_rate must be >= 1, got {config.frontend_event_sample_rate}")
+    if not config.still_span_factor > 0:
+        raise InputError(f"still_span_factor must be > 0, got {config.still_span_factor}")
+    if config.frontend_blur_sigma < 0:
+        raise InputError(f"frontend_blur_sigma must be >= 0, got {config.frontend_blur_sigma}")
+
+
+# ------------------------------------------------------------------------------------------------
+# streaming and slicing
+# ------------------------------------------------------------------------------------------------
+
+def _as_chunks(events_or_chunks) -> Iterator[Events]:
+    if isinstance(events_or_chunks, Events):
+        yield events_or_chunks
+        return
+    if hasattr(events_or_chunks, "iter_events"):
+        events_or_chunks = events_or_chunks.iter_events()
+    for chunk in events_or_chunks:
+        if not isinstance(chunk, Events):
+            raise InputError(f"expected Events chunks, got {type(chunk).__name__}")
+        yield chunk
+
+
+def _downsampled(chunks: Iterable[Events], q: int) -> Iterator[Events]:
+    """Keep events whose global index is a multiple of q (same as Events.downsample on the whole stream)."""
+    offset = 0
+    for chunk in chunks:
+        n = len(chunk)
+        if q > 1:
+            first = (-offset) % q
+            chunk = chunk[first::q]
+        offset += n
+        if len(chunk):
+            yield chunk
+
+
+@dataclass(frozen=True)
+class Packet:
+    t_ref: float
+    events: Events  # the selected events (empty when still)
+    span: float
+    still: bool
+
+
+class PacketSlicer:
+    """Rolling-buffer slicer: yields one :class:`Packet` per equispaced timestamp (see module docstring).
+
+    Memory: the buffer holds the events from the current packet's start to at most N/2 events or W/2
+    seconds past its centre, plus the chunk being read.
+    """
+
+    def __init__(self, config: FrontendConfig):
+        self.n = int(config.num_events_per_packet)
+        self.dt = float(config.dt_ang_vel)
+        self.window = float(config.still_span_factor) * self.dt
+        self.rule = config.frontend_slicing
+        self.min_events = max(1, int(np.ceil(config.frontend_min_event_rate * self.window)))
+
+    def __call__(self, chunks: Iterable[Events]) -> Iterator[Packet]:
+        it = iter(chunks)
+        buf = Events.empty()
+        exhausted = False
+        t_last = -np.inf
+
+        def pull() -> bool:
+            nonlocal buf, exhausted, t_last
+            for chunk in it:
+                if len(chunk) == 0:
+                    continue
+                if chunk.t[0] < t_last:
+                    raise InputError(f"event chunks are not in time order (t={chunk.t[0]!r} after {t_last!r})")
+                t_last = float(chunk.t[-1])
+                buf = Events.concatenate([buf, chunk])
+                return True
+            exhausted = True
+            return False
+
+        while len(buf) == 0 and not exhausted:
+            pull()
+        if len(buf) == 0:
+            return
+        t_ref = float(buf.t[0]) + 0.5 * self.dt
+        half = self.n // 2
+        while True:
+            # read until the packet around t_ref is known: N - N/2 events from the centre on, or events
+            # later than t_ref + W (then the full packet would span more than W anyway)
+            while not exhausted:
+                c = int(buf.index_at(t_ref))
+                if len(buf) - c >= self.n - half or buf.t[-1] > t_ref + self.window:
+                    break
+                pull()
+            if t_ref > buf.t[-1]:
+                return  # past the last event
+            c = int(buf.index_at(t_ref))
+            i0, i1 = max(0, c - half), min(len(buf), c + self.n - half)
+            packet = buf[i0:i1]
+            span = packet.duration
+            still = False
+            if span > self.window:
+                if self.rule == "paper":
+                    still = True
+                else:
+                    j0 = max(i0, int(buf.index_at(t_ref - 0.5 * self.window)))
+                    j1 = min(i1, int(buf.index_at(t_ref + 0.5 * self.window, side="right")))
+                    packet = buf[j0:j1]
+                    span = packet.duration
+                    still = len(packet) < self.min_events
+            if len(packet) < 2 or packet.duration <= 0:
+                still = True
+            yield Packet(t_ref, Events.empty() if still else packet, span, still)
+            # drop what no later packet can use: the next packet starts at or after index c_next - N/2
+            t_ref += self.dt
+            drop = max(0, int(buf.index_at(t_ref)) - half)
+            if drop > 0:
+                buf = buf[drop:]
+
+
+# ------------------------------------------------------------------------------------------------
+# per-packet estimation
+# ------------------------------------------------------------------------------------------------
+
+class AngularVelocityEstimator:
+    """Estimates omega for one packet at a time (keeps the compiled workspace and the warm start)."""
+
+    def __init__(self, camera: Camera, config: FrontendConfig = FrontendConfig(), dtype=np.float32):
+        check_config(config)
+        self.camera, self.config = camera, config
+        self.K = camera.K
+        self.focal = 0.5 * (camera.fx + camera.fy)
+        self.ws = IWEWorkspace(camera.width, camera.height, dtype, config.frontend_blur_sigma,
+                               capacity=config.num_events_per_packet)
+        self.omega = np.zeros(3)
+
+    def compile(self) -> float:
+        """Compile (or load from the offline cache) the kernels; returns seconds spent."""
+        t0 = time.perf_counter()
+        self.ws.compile()
+        return time.perf_counter() - t0
+
+    def estimate(self, events: Events, t_ref: float, omega0=None):
+        """Maximise the normalised contrast for one packet; returns (omega, CGResult, normalised cost)."""
+        cfg = self.config
+        b = self.camera.bearings(events.x, events.y, dtype=self.ws.dtype)
+        dts = events.t - t_ref
+        self.ws.set_packet(b, dts.astype(self.ws.dtype))
+        n = len(events)
+        s = self.focal * float(np.max(np.abs(dts)))
+        if not s > 0:
+            raise InputError("packet has no time extent")
+        mu0 = n / float(self.camera.width * self.camera.height)
+        scale = 1.0 / (mu0 * mu0)
+        measure = cfg.contrast_measure
+
+        def fun(x):
+            c, g, _ = self.ws.evaluate(x / s, self.K, measure)
+            return c * scale, g * (scale / s)
+
+        w0 = self.omega if omega0 is None else np.asarray(omega0, float)
+        res = fletcher_reeves(
+            fun, w0 * s, maximize=True, init_step=cfg.frontend_cg_init_step,
+            line_search_tol=cfg.frontend_cg_line_search_tol, max_iter=cfg.frontend_cg_max_iters,
+            grad_tol=cfg.frontend_cg_grad_tol, rel_cost_tol=cfg.frontend_cg_rel_cost_tol,
+        )
+        self.omega = res.x / s
+        return self.omega.copy(), res, res.fun
+
+
+def estimate_angular_velocity(events_or_chunks, camera: Camera, config: FrontendConfig = FrontendConfig(),
+                              *, dtype=np.float32, progress_total: float | None = None) -> FrontendResult:
+    """Front-end on an ``Events`` object, an iterable of ``Events`` chunks (time-ordered) or a dataset with
+    ``iter_events()``. Memory stays bounded by the rolling buffer. See the module docstring for the rules."""
+    from ti_cmax.progress import progress
+
+    check_config(config)
+    est = AngularVelocityEstimator(camera, config, dtype)
+    compile_s = est.compile()
+    slicer = PacketSlicer(config)
+    chunks = _downsampled(_as_chunks(events_or_chunks), int(config.frontend_event_sample_rate))
+
+    rows = []
+    processed = 0
+    t_start = time.perf_counter()
+    bar = progress(total=progress_total, desc="front-end", unit="s")
+    t_prev = None
+    try:
+        for pk in slicer(chunks):
+            if pk.still:
+                est.omega = np.zeros(3)
+                rows.append((pk.t_ref, 0.0, 0.0, 0.0, 0, pk.span, 0, 0, True, np.nan))
+            else:
+                omega, res, cost = est.estimate(pk.events, pk.t_ref)
+                processed += len(pk.events)
+                rows.append((pk.t_ref, *omega, len(pk.events), pk.span, res.iterations, res.evaluations,
+                             False, cost))
+            if t_prev is not None:
+                bar.update(pk.t_ref - t_prev)
+            t_prev = pk.t_ref
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t_start
+    arr = list(zip(*rows)) if rows else [()] * 10
+    evals = np.asarray(arr[7], dtype=int)
+    timing = {
+        "compile_seconds": compile_s,
+        "wall_seconds": wall,
+        "events_processed": int(processed),
+        "us_per_event": wall * 1e6 / processed if processed else 0.0,
+        "evaluations": int(evals.sum()),
+        "us_per_event_per_evaluation": (wall * 1e6 / max(1, sum(
+            n * e for n, e in zip(arr[4], arr[7])))) if processed else 0.0,
+    }
+    return FrontendResult(
+        t=np.asarray(arr[0], float),
+        omega=np.asarray(list(zip(arr[1], arr[2], arr[3])), float).reshape(-1, 3),
+        num_events=np.asarray(arr[4], int),
+        span=np.asarray(arr[5], float),
+        iterations=np.asarray(arr[6], int),
+        evaluations=evals,
+        still=np.asarray(arr[8], bool),
+        cost=np.asarray(arr[9], float),
+        timing=timing,
+        config=config,
+    )
+
+
+def report_parameters(config: FrontendConfig) -> dict:
+    return config_to_dict(config)
+
+
+__all__ = ["FrontendResult", "PacketSlicer", "Packet", "AngularVelocityEstimator", "estimate_angular_velocity",
+           "check_config", "SLICING_RULES"]

@@ -1,0 +1,158 @@
+"""CMax-omega front-end: synthetic recovery, real ECD slices, slicing rules, streaming, CLI."""
+import json
+
+import numpy as np
+import pytest
+
+from ti_cmax import Camera, Events, FrontendConfig, so3
+from ti_cmax.config import replace
+from ti_cmax.pipelines.frontend import AngularVelocityEstimator, PacketSlicer, estimate_angular_velocity
+
+CAM = Camera(240, 180, 200.0, 200.0, 119.5, 89.5)
+
+
+def _scene(rng, n_points=400, seg=12):
+    """Scene directions: short edge segments on the sphere around the optical axis."""
+    centres = np.column_stack([rng.uniform(-0.9, 0.9, n_points), rng.uniform(-0.7, 0.7, n_points),
+                               np.ones(n_points)])
+    dirs = rng.normal(size=(n_points, 3)) * [1, 1, 0]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    s = np.linspace(-0.02, 0.02, seg)
+    pts = (centres[:, None, :] + s[None, :, None] * dirs[:, None, :]).reshape(-1, 3)
+    return pts / np.linalg.norm(pts, axis=1, keepdims=True)
+
+
+def _synthetic_events(omega, t0, t1, n, seed=0, t_mid=None):
+    """Each event: a scene point X seen at a random time t, pixel = project(R(t)^T X), R(t) = exp([w]x (t - t_mid))."""
+    rng = np.random.default_rng(seed)
+    pts = _scene(rng)
+    t_mid = 0.5 * (t0 + t1) if t_mid is None else t_mid
+    t = np.sort(rng.uniform(t0, t1, 3 * n))
+    x = pts[rng.integers(0, len(pts), len(t))]
+    r = so3.exp(np.asarray(omega)[None] * (t - t_mid)[:, None])
+    cam_dirs = np.einsum("kji,kj->ki", r, x)  # R^T X
+    pix = CAM.project(cam_dirs)
+    ok = (cam_dirs[:, 2] > 0) & (pix[:, 0] >= 0) & (pix[:, 0] <= CAM.width - 1) & (pix[:, 1] >= 0) \
+        & (pix[:, 1] <= CAM.height - 1)
+    idx = np.sort(rng.choice(np.flatnonzero(ok), n, replace=False))
+    return Events(t[idx], pix[idx, 0].astype(np.float32), pix[idx, 1].astype(np.float32), np.ones(len(idx)))
+
+
+def test_synthetic_packet_recovers_omega(ti_runtime):
+    omega = np.array([1.2, -2.0, 0.7])
+    ev = _synthetic_events(omega, 0.0, 0.01, 10000, seed=1)
+    est = AngularVelocityEstimator(CAM, FrontendConfig())
+    w, res, cost = est.estimate(ev, 0.005)
+    assert np.linalg.norm(w - omega) < 0.02 * np.linalg.norm(omega), (w, res)
+    # sharper than without motion compensation
+    est.ws.set_packet(CAM.bearings(ev.x, ev.y), ev.t - 0.005)
+    assert est.ws.evaluate(w, CAM.K)[0] > 1.1 * est.ws.evaluate(np.zeros(3), CAM.K)[0]
+
+
+def _ecd_slice(root, name):
+    d = root / "ecd_slices" / name
+    ev = np.loadtxt(d / "events.txt")
+    c = np.loadtxt(d / "calib.txt")
+    cam = Camera(240, 180, *c[:4], dist=tuple(c[4:]))
+    return Events(ev[:, 0], ev[:, 1].astype(np.uint16), ev[:, 2].astype(np.uint16), ev[:, 3]), cam
+
+
+@pytest.mark.parametrize("name", ["boxes_rotation", "dynamic_rotation", "shapes_rotation", "poster_rotation"])
+def test_real_slices(real_data, ti_runtime, name):
+    events, cam = _ecd_slice(real_data, name)
+    cfg = FrontendConfig(num_events_per_packet=30000)
+    est = AngularVelocityEstimator(cam, cfg)
+    t_ref = 0.5 * (events.t[0] + events.t[-1])
+    w, res, cost = est.estimate(events, t_ref)
+    est.ws.set_packet(cam.bearings(events.x, events.y), events.t - t_ref)
+    assert est.ws.evaluate(w, cam.K)[0] > 1.2 * est.ws.evaluate(np.zeros(3), cam.K)[0]
+    ref_file = real_data / "ecd_slices" / "stppp_output" / f"{name}_output.txt"
+    if ref_file.exists():
+        ref = np.loadtxt(ref_file).reshape(-1)[4:7]
+        assert np.linalg.norm(w - ref) < 0.1 * np.linalg.norm(ref), (w, ref)
+
+
+def _stream(rate_fn, t_end, seed=0):
+    """Events with a time-varying rate (piecewise), random pixels (content does not matter for slicing)."""
+    rng = np.random.default_rng(seed)
+    ts = []
+    t = 0.0
+    while t < t_end:
+        t += rng.exponential(1.0 / rate_fn(t))
+        ts.append(t)
+    ts = np.array(ts[:-1])
+    return Events(ts, rng.integers(0, 240, len(ts)), rng.integers(0, 180, len(ts)), np.ones(len(ts)))
+
+
+def test_slicing_rules_on_a_rate_swing():
+    # 200 kev/s for 0.3 s, then 20 kev/s for 0.5 s: N = 10000 events span 0.5 s in the slow phase
+    ev = _stream(lambda t: 2e5 if t < 0.3 else 2e4, 0.8)
+    cfg = FrontendConfig()
+    paper = list(PacketSlicer(replace(cfg, frontend_slicing="paper"))([ev]))
+    bounded = list(PacketSlicer(cfg)([ev]))
+    assert len(paper) == len(bounded) == 80
+    slow = [p for p in bounded if p.t_ref > 0.45]
+    assert not any(p.still for p in slow)  # bounded: still estimated from a 0.1 s window
+    assert all(p.span <= 0.1 and len(p.events) >= 1000 for p in slow)
+    assert all(p.still for p in paper if p.t_ref > 0.45)  # the reference rule gives omega = 0
+    fast = [p for p in bounded if 0.1 < p.t_ref < 0.2]
+    assert all(len(p.events) == 10000 and abs(np.median(p.events.t) - p.t_ref) < 2e-3 for p in fast)
+
+
+def test_still_camera_too_few_events_and_empty_stream():
+    cfg = FrontendConfig()
+    # 5 kev/s: a 0.1 s window holds about 500 < 1000 events -> still under both rules
+    ev = _stream(lambda t: 5e3, 0.5, seed=3)
+    for rule in ("bounded", "paper"):
+        packets = list(PacketSlicer(replace(cfg, frontend_slicing=rule))([ev]))
+        assert packets and all(p.still and len(p.events) == 0 for p in packets)
+    # 20 events over 40 ms: still packets; timestamps stop at the last event; no events: no packets
+    few = ev[:20]
+    packets = list(PacketSlicer(cfg)([few]))
+    assert len(packets) == int((few.t[-1] - few.t[0]) / 0.01 + 0.5) and all(p.still for p in packets)
+    assert list(PacketSlicer(cfg)([ev[:1]])) == []
+    assert list(PacketSlicer(cfg)([Events.empty()])) == []
+    res = estimate_angular_velocity(ev, CAM, cfg)
+    assert res.still.all() and not res.omega.any() and res.timing["events_processed"] == 0
+
+
+def test_streaming_chunks_downsampling_and_trajectory(ti_runtime):
+    omega = np.array([0.0, 1.5, 0.0])
+    ev = _synthetic_events(omega, 0.0, 0.06, 60000, seed=5, t_mid=0.0)
+    cfg = FrontendConfig(num_events_per_packet=4000, frontend_event_sample_rate=2)
+    whole = estimate_angular_velocity(ev, CAM, cfg)
+    chunks = [ev[i:i + 7001] for i in range(0, len(ev), 7001)]
+    streamed = estimate_angular_velocity(iter(chunks), CAM, cfg)
+    np.testing.assert_allclose(streamed.omega, whole.omega, atol=1e-6)
+    assert np.all(whole.num_events[~whole.still] <= 2000 * 2)
+    assert len(whole) == 6 and not whole.still.any()
+    np.testing.assert_allclose(whole.omega, np.tile(omega, (len(whole), 1)), atol=0.1 * 1.5)  # 2000-event packets
+    traj = whole.trajectory()
+    np.testing.assert_allclose(traj.R[0], np.eye(3))
+    expected = so3.exp(omega * (whole.t[-1] - whole.t[0]))
+    assert so3.geodesic_angle(traj.R[-1], expected) < np.radians(0.5)
+    assert whole.timing["us_per_event"] > 0 and whole.timing["compile_seconds"] >= 0
+
+
+def test_cli_writes_outputs(tmp_path, ti_runtime):
+    from ti_cmax.cli import main
+
+    omega = np.array([0.5, 0.0, -1.0])
+    ev = _synthetic_events(omega, 0.0, 0.03, 20000, seed=7)
+    data = tmp_path / "seq"
+    data.mkdir()
+    np.savetxt(data / "events.txt", np.column_stack([ev.t, np.round(ev.x), np.round(ev.y), np.ones(len(ev))]),
+               fmt=["%.9f", "%d", "%d", "%d"])
+    (data / "calib.txt").write_text(f"{CAM.fx} {CAM.fy} {CAM.cx} {CAM.cy}\n")
+    out = tmp_path / "out"
+    assert main(["frontend", str(data), "--out", str(out), "--quiet", "--set", "num_events_per_packet=5000"]) == 0
+    for name in ("angular_velocity.txt", "trajectory.txt", "report.json", "config.yaml"):
+        assert (out / name).is_file()
+    av = np.loadtxt(out / "angular_velocity.txt")
+    assert av.shape == (3, 4)
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "ok" and report["events_processed"] > 0
+    assert report["parameters"]["num_events_per_packet"] == 5000
+    assert main(["frontend", str(data), "--out", str(tmp_path / "bad"), "--quiet",
+                 "--set", "frontend_slicing=nope"]) == 2
+    assert not (tmp_path / "bad").exists()

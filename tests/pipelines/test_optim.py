@@ -1,0 +1,45 @@
+"""Fletcher-Reeves nonlinear CG with strong-Wolfe line search."""
+import numpy as np
+import pytest
+from scipy.optimize import rosen, rosen_der
+
+from ti_cmax.pipelines.optim import fletcher_reeves
+
+
+def test_quadratic_is_solved():
+    a = np.diag([1.0, 10.0, 100.0]) + 0.5
+    b = np.array([1.0, -2.0, 3.0])
+    res = fletcher_reeves(lambda x: (0.5 * x @ a @ x - b @ x, a @ x - b), np.zeros(3), grad_tol=1e-9,
+                          rel_cost_tol=0.0)
+    assert res.converged and res.message == "gradient tolerance reached"
+    np.testing.assert_allclose(res.x, np.linalg.solve(a, b), atol=1e-8)
+    assert res.evaluations < 60
+
+
+def test_rosenbrock_converges():
+    res = fletcher_reeves(lambda x: (rosen(x), rosen_der(x)), [-1.2, 1.0], max_iter=500, grad_tol=1e-6,
+                          rel_cost_tol=0.0, line_search_tol=0.1)
+    assert res.converged
+    np.testing.assert_allclose(res.x, [1.0, 1.0], atol=1e-4)
+
+
+def test_maximize_returns_the_objective_as_given():
+    c = np.array([2.0, -1.0, 0.5])
+    res = fletcher_reeves(lambda x: (-np.sum((x - c) ** 2) + 3.0, -2 * (x - c)), np.zeros(3), maximize=True,
+                          grad_tol=1e-8, rel_cost_tol=0.0)
+    np.testing.assert_allclose(res.x, c, atol=1e-7)
+    assert res.fun == pytest.approx(3.0)
+
+
+def test_relative_cost_tolerance_stops_early_and_never_returns_a_worse_point():
+    calls = []
+
+    def f(x):
+        calls.append(x.copy())
+        return 5.0 + float(np.sum(np.abs(x) ** 1.5)), 1.5 * np.sign(x) * np.abs(x) ** 0.5
+
+    x0 = np.array([1.0, -2.0])
+    res = fletcher_reeves(f, x0, rel_cost_tol=1e-2, grad_tol=1e-12)
+    assert res.converged and "relative" in res.message
+    assert res.fun <= f(x0)[0]
+    assert res.evaluations == len(calls) - 1
