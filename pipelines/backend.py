@@ -95,7 +95,10 @@ class SlidingWindowBackend:
 
     # ---- input streams -------------------------------------------------------------------------------------------
     def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
-        """Append events (time-sorted, after the back-end's downsampling) with their unit-depth bearings."""
+        """Append events (time-sorted, already downsampled by backend_event_sample_rate) with their bearings.
+
+        ``complete_until``: every event before this time has now been pushed (the end of the chunk read).
+        """
         self.events.push(np.asarray(t, dtype=float), np.asarray(bearings, dtype=np.float32))
         if complete_until is not None:
             self.events_until = max(self.events_until, float(complete_until))
@@ -132,7 +135,6 @@ class SlidingWindowBackend:
             t1 = max(t0 + 1e-6, min(t1, last))
         self._initialize_until(t1)
         ev_t, ev_b = self.events.range(t0, t1, include_end=True)
-        ev_t, ev_b = ev_t[:: cfg.backend_event_sample_rate], ev_b[:: cfg.backend_event_sample_rate]
         n = len(ev_t)
         rate = n / max(t1 - t0, 1e-9)
         report = WindowReport(t0, t1, n, optimized=False, alpha=0.0)
@@ -259,7 +261,6 @@ class SlidingWindowBackend:
         """Vote the events of [t0, t1) into the global map with the refined poses; drop them from the buffer."""
         cfg = self.cfg
         ev_t, ev_b = self.events.range(t0, t1)
-        ev_t, ev_b = ev_t[:: cfg.backend_event_sample_rate], ev_b[:: cfg.backend_event_sample_rate]
         if len(ev_t):
             start, end = self.spline.valid_time_range()
             mids = np.clip(batch_mid_times(ev_t, cfg.event_batch_size), start, end)

@@ -103,7 +103,7 @@ def check_config(config: FrontendConfig) -> None:
 # streaming and slicing
 # ------------------------------------------------------------------------------------------------
 
-def _as_chunks(events_or_chunks) -> Iterator[Events]:
+def as_chunks(events_or_chunks) -> Iterator[Events]:
     if isinstance(events_or_chunks, Events):
         yield events_or_chunks
         return
@@ -115,7 +115,7 @@ def _as_chunks(events_or_chunks) -> Iterator[Events]:
         yield chunk
 
 
-def _downsampled(chunks: Iterable[Events], q: int) -> Iterator[Events]:
+def downsampled(chunks: Iterable[Events], q: int) -> Iterator[Events]:
     """Keep events whose global index is a multiple of q (same as Events.downsample on the whole stream)."""
     offset = 0
     for chunk in chunks:
@@ -149,6 +149,8 @@ class PacketSlicer:
         self.window = float(config.still_span_factor) * self.dt
         self.rule = config.frontend_slicing
         self.min_events = max(1, int(np.ceil(config.frontend_min_event_rate * self.window)))
+        self.min_span = float(config.frontend_min_packet_span)
+        self.events_read = 0
 
     def __call__(self, chunks: Iterable[Events]) -> Iterator[Packet]:
         it = iter(chunks)
@@ -164,6 +166,7 @@ class PacketSlicer:
                 if chunk.t[0] < t_last:
                     raise InputError(f"event chunks are not in time order (t={chunk.t[0]!r} after {t_last!r})")
                 t_last = float(chunk.t[-1])
+                self.events_read += len(chunk)
                 buf = Events.concatenate([buf, chunk])
                 return True
             exhausted = True
@@ -180,13 +183,17 @@ class PacketSlicer:
             # later than t_ref + W (then the full packet would span more than W anyway)
             while not exhausted:
                 c = int(buf.index_at(t_ref))
-                if len(buf) - c >= self.n - half or buf.t[-1] > t_ref + self.window:
+                enough = len(buf) - c >= self.n - half and buf.t[-1] >= t_ref + 0.5 * self.min_span
+                if enough or buf.t[-1] > t_ref + self.window:
                     break
                 pull()
             if t_ref > buf.t[-1]:
                 return  # past the last event
             c = int(buf.index_at(t_ref))
             i0, i1 = max(0, c - half), min(len(buf), c + self.n - half)
+            if self.min_span > 0:  # high event rates: take every event of the minimum span
+                i0 = min(i0, int(buf.index_at(t_ref - 0.5 * self.min_span)))
+                i1 = max(i1, int(buf.index_at(t_ref + 0.5 * self.min_span)))
             packet = buf[i0:i1]
             span = packet.duration
             still = False
@@ -204,7 +211,7 @@ class PacketSlicer:
             yield Packet(t_ref, Events.empty() if still else packet, span, still)
             # drop what no later packet can use: the next packet starts at or after index c_next - N/2
             t_ref += self.dt
-            drop = max(0, int(buf.index_at(t_ref)) - half)
+            drop = max(0, min(int(buf.index_at(t_ref)) - half, int(buf.index_at(t_ref - 0.5 * self.min_span))))
             if drop > 0:
                 buf = buf[drop:]
 
@@ -259,62 +266,94 @@ class AngularVelocityEstimator:
         return self.omega.copy(), res, res.fun
 
 
+class FrontendRunner:
+    """Runs the front-end packet by packet and collects its rows; shared by the front-end alone and SLAM.
+
+    ``slicer(chunks)`` yields packets, ``process(packet)`` returns omega (0 when still) and records the row,
+    ``result()`` assembles the :class:`FrontendResult` with timing (compile time apart from steady state).
+    """
+
+    def __init__(self, camera: Camera, config: FrontendConfig = FrontendConfig(), dtype=np.float32):
+        check_config(config)
+        self.config = config
+        self.estimator = AngularVelocityEstimator(camera, config, dtype)
+        self.slicer = PacketSlicer(config)
+        self.rows: list[tuple] = []
+        self.events_processed = 0  # events in non-still packets (each counted once per packet)
+        self.compile_seconds = 0.0
+        self.seconds = 0.0  # steady-state time spent in process()
+
+    @property
+    def events_read(self) -> int:
+        return self.slicer.events_read
+
+    def compile(self) -> float:
+        self.compile_seconds = self.estimator.compile()
+        return self.compile_seconds
+
+    def process(self, packet: Packet) -> np.ndarray:
+        tic = time.perf_counter()
+        if packet.still:
+            self.estimator.omega = np.zeros(3)
+            self.rows.append((packet.t_ref, 0.0, 0.0, 0.0, 0, packet.span, 0, 0, True, np.nan))
+            omega = np.zeros(3)
+        else:
+            omega, res, cost = self.estimator.estimate(packet.events, packet.t_ref)
+            self.events_processed += len(packet.events)
+            self.rows.append((packet.t_ref, *omega, len(packet.events), packet.span, res.iterations,
+                              res.evaluations, False, cost))
+        self.seconds += time.perf_counter() - tic
+        return omega
+
+    def result(self) -> FrontendResult:
+        arr = list(zip(*self.rows)) if self.rows else [()] * 10
+        evals = np.asarray(arr[7], dtype=int)
+        processed = self.events_processed
+        evaluated = sum(n * e for n, e in zip(arr[4], arr[7]))
+        timing = {
+            "compile_seconds": self.compile_seconds,
+            "wall_seconds": self.seconds,
+            "events_read": int(self.events_read),
+            "events_processed": int(processed),
+            "us_per_event": self.seconds * 1e6 / processed if processed else 0.0,
+            "us_per_input_event": self.seconds * 1e6 / self.events_read if self.events_read else 0.0,
+            "evaluations": int(evals.sum()),
+            "us_per_event_per_evaluation": self.seconds * 1e6 / evaluated if evaluated else 0.0,
+        }
+        return FrontendResult(
+            t=np.asarray(arr[0], float),
+            omega=np.asarray(list(zip(arr[1], arr[2], arr[3])), float).reshape(-1, 3),
+            num_events=np.asarray(arr[4], int),
+            span=np.asarray(arr[5], float),
+            iterations=np.asarray(arr[6], int),
+            evaluations=evals,
+            still=np.asarray(arr[8], bool),
+            cost=np.asarray(arr[9], float),
+            timing=timing,
+            config=self.config,
+        )
+
+
 def estimate_angular_velocity(events_or_chunks, camera: Camera, config: FrontendConfig = FrontendConfig(),
                               *, dtype=np.float32, progress_total: float | None = None) -> FrontendResult:
     """Front-end on an ``Events`` object, an iterable of ``Events`` chunks (time-ordered) or a dataset with
     ``iter_events()``. Memory stays bounded by the rolling buffer. See the module docstring for the rules."""
     from ti_cmax.progress import progress
 
-    check_config(config)
-    est = AngularVelocityEstimator(camera, config, dtype)
-    compile_s = est.compile()
-    slicer = PacketSlicer(config)
-    chunks = _downsampled(_as_chunks(events_or_chunks), int(config.frontend_event_sample_rate))
-
-    rows = []
-    processed = 0
-    t_start = time.perf_counter()
+    runner = FrontendRunner(camera, config, dtype)
+    runner.compile()
+    chunks = downsampled(as_chunks(events_or_chunks), int(config.frontend_event_sample_rate))
     bar = progress(total=progress_total, desc="front-end", unit="s")
     t_prev = None
     try:
-        for pk in slicer(chunks):
-            if pk.still:
-                est.omega = np.zeros(3)
-                rows.append((pk.t_ref, 0.0, 0.0, 0.0, 0, pk.span, 0, 0, True, np.nan))
-            else:
-                omega, res, cost = est.estimate(pk.events, pk.t_ref)
-                processed += len(pk.events)
-                rows.append((pk.t_ref, *omega, len(pk.events), pk.span, res.iterations, res.evaluations,
-                             False, cost))
+        for packet in runner.slicer(chunks):
+            runner.process(packet)
             if t_prev is not None:
-                bar.update(pk.t_ref - t_prev)
-            t_prev = pk.t_ref
+                bar.update(packet.t_ref - t_prev)
+            t_prev = packet.t_ref
     finally:
         bar.close()
-    wall = time.perf_counter() - t_start
-    arr = list(zip(*rows)) if rows else [()] * 10
-    evals = np.asarray(arr[7], dtype=int)
-    timing = {
-        "compile_seconds": compile_s,
-        "wall_seconds": wall,
-        "events_processed": int(processed),
-        "us_per_event": wall * 1e6 / processed if processed else 0.0,
-        "evaluations": int(evals.sum()),
-        "us_per_event_per_evaluation": (wall * 1e6 / max(1, sum(
-            n * e for n, e in zip(arr[4], arr[7])))) if processed else 0.0,
-    }
-    return FrontendResult(
-        t=np.asarray(arr[0], float),
-        omega=np.asarray(list(zip(arr[1], arr[2], arr[3])), float).reshape(-1, 3),
-        num_events=np.asarray(arr[4], int),
-        span=np.asarray(arr[5], float),
-        iterations=np.asarray(arr[6], int),
-        evaluations=evals,
-        still=np.asarray(arr[8], bool),
-        cost=np.asarray(arr[9], float),
-        timing=timing,
-        config=config,
-    )
+    return runner.result()
 
 
 def report_parameters(config: FrontendConfig) -> dict:
@@ -322,4 +361,4 @@ def report_parameters(config: FrontendConfig) -> dict:
 
 
 __all__ = ["FrontendResult", "PacketSlicer", "Packet", "AngularVelocityEstimator", "estimate_angular_velocity",
-           "check_config", "SLICING_RULES"]
+           "check_config", "SLICING_RULES", "FrontendRunner", "as_chunks", "downsampled"]

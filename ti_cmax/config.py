@@ -32,6 +32,9 @@ class FrontendConfig:
     # "paper": the reference rule (omega = 0 as soon as the N events span more than W).
     frontend_slicing: str = "bounded"
     frontend_min_event_rate: float = 10000.0  # events/s floor of the "bounded" rule
+    # packets take at least every event within t_ref +- span/2 (high event rates: N events would cover too
+    # little motion to measure); 0 disables (the reference's fixed N)
+    frontend_min_packet_span: float = 0.02
     # Fletcher-Reeves CG
     frontend_cg_init_step: float = 0.1
     frontend_cg_line_search_tol: float = 0.05

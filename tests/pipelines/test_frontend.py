@@ -119,7 +119,7 @@ def test_still_camera_too_few_events_and_empty_stream():
 def test_streaming_chunks_downsampling_and_trajectory(ti_runtime):
     omega = np.array([0.0, 1.5, 0.0])
     ev = _synthetic_events(omega, 0.0, 0.06, 60000, seed=5, t_mid=0.0)
-    cfg = FrontendConfig(num_events_per_packet=4000, frontend_event_sample_rate=2)
+    cfg = FrontendConfig(num_events_per_packet=4000, frontend_event_sample_rate=2, frontend_min_packet_span=0.0)
     whole = estimate_angular_velocity(ev, CAM, cfg)
     chunks = [ev[i:i + 7001] for i in range(0, len(ev), 7001)]
     streamed = estimate_angular_velocity(iter(chunks), CAM, cfg)
@@ -156,3 +156,17 @@ def test_cli_writes_outputs(tmp_path, ti_runtime):
     assert main(["frontend", str(data), "--out", str(tmp_path / "bad"), "--quiet",
                  "--set", "frontend_slicing=nope"]) == 2
     assert not (tmp_path / "bad").exists()
+
+
+def test_min_packet_span_takes_every_event_at_high_rates():
+    """At high event rates the packet grows to every event within t_ref +- span/2 (not just N)."""
+    ev = _stream(lambda t: 1e6, 0.1, seed=7)
+    cfg = FrontendConfig(num_events_per_packet=2000, frontend_min_packet_span=0.02)
+    packets = list(PacketSlicer(cfg)([ev]))
+    inner = [p for p in packets if p.t_ref - 0.01 >= ev.t[0] and p.t_ref + 0.01 <= ev.t[-1]]
+    assert inner
+    for p in inner:
+        expected = np.count_nonzero((ev.t >= p.t_ref - 0.01) & (ev.t < p.t_ref + 0.01))
+        assert abs(len(p.events) - expected) <= 1 and len(p.events) > 2000
+    fixed = list(PacketSlicer(replace(cfg, frontend_min_packet_span=0.0))([ev]))
+    assert all(len(p.events) == 2000 for p in fixed[1:-1])

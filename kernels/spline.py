@@ -1,0 +1,117 @@
+"""SO(3) B-spline pose and control-pose Jacobians as Taichi funcs (one time per call).
+
+The math is ``ti_cmax.spline`` (module docstring there) line by line: cumulative form
+R = R_s prod_{j=1..n} exp(B~_j Omega_{s+j}), LEFT perturbations R_k <- exp(delta_k) R_k and
+R(t) <- exp(sum_j J_j delta_{s+j}) R(t), with J_s = I - M_1, J_{s+j} = M_j - M_{j+1}, J_{s+n} = M_n and
+M_j = B~_j P_{j-1} Jl(B~_j Omega_{s+j}) Jr^-1(Omega_{s+j}) R_{s+j}^T  (O(degree), Sommer et al. CVPR 2020).
+The numpy class is the test oracle of these funcs.
+
+``spline_funcs(dtype, degree)`` returns ``pose(ctrl, s, u)`` and ``pose_jacobians(ctrl, s, u) -> (R, [J_0..J_n])``
+where ``ctrl`` is an ndarray of 3x3 matrices and (s, u) come from ``SO3Spline.support`` (computed in float64 on
+the host, so no float32 timestamps ever enter a kernel).
+"""
+
+import functools
+from types import SimpleNamespace
+
+import numpy as np
+
+from .runtime import ensure_init, ti
+from .so3 import so3_funcs
+
+
+def _dtype_of(np_dtype) -> object:
+    return ti.f64 if np.dtype(np_dtype) == np.float64 else ti.f32
+
+
+@functools.cache
+def spline_funcs(dtype, degree: int) -> SimpleNamespace:
+    """ti.funcs for one float dtype and spline degree (1 linear, 3 cubic)."""
+    if degree not in (1, 3):
+        raise ValueError(f"spline degree must be 1 or 3, got {degree}")
+    g = so3_funcs(dtype)
+    n = degree
+
+    @ti.func
+    def c(x):
+        return ti.cast(x, dtype)
+
+    @ti.func
+    def basis(u):
+        """Cumulative basis B~_j(u), j = 0..n (Eq. 12 for cubic; (1, u) for linear)."""
+        b = ti.Vector([c(1.0)] * (n + 1), dt=dtype)
+        if ti.static(n == 1):
+            b[1] = u
+        else:
+            u2 = u * u
+            u3 = u2 * u
+            b[1] = (c(5.0) + c(3.0) * u - c(3.0) * u2 + u3) / c(6.0)
+            b[2] = (c(1.0) + c(3.0) * u + c(3.0) * u2 - c(2.0) * u3) / c(6.0)
+            b[3] = u3 / c(6.0)
+        return b
+
+    @ti.func
+    def pose(ctrl: ti.template(), s, u):
+        b = basis(u)
+        r = ctrl[s]
+        for j in ti.static(range(1, n + 1)):
+            om = g.log(ctrl[s + j - 1].transpose() @ ctrl[s + j])
+            r = r @ g.exp(b[j] * om)
+        return r
+
+    @ti.func
+    def m_term(p, r_prev, r_next, bj):
+        """(M_j, P_j) from P_{j-1}, R_{s+j-1}, R_{s+j} and B~_j."""
+        om = g.log(r_prev.transpose() @ r_next)
+        a_j, jl_j = g.exp_jl(bj * om)
+        return bj * (p @ jl_j @ g.jr_inv(om) @ r_next.transpose()), p @ a_j
+
+    @ti.func
+    def pose_jacobians(ctrl: ti.template(), s, u):
+        b = basis(u)
+        eye = ti.Matrix.identity(dtype, 3)
+        m1, p1 = m_term(ctrl[s], ctrl[s], ctrl[s + 1], b[1])
+        if ti.static(n == 1):
+            return p1, [eye - m1, m1]
+        else:
+            m2, p2 = m_term(p1, ctrl[s + 1], ctrl[s + 2], b[2])
+            m3, p3 = m_term(p2, ctrl[s + 2], ctrl[s + 3], b[3])
+            return p3, [eye - m1, m1 - m2, m2 - m3, m3]
+
+    return SimpleNamespace(basis=basis, pose=pose, pose_jacobians=pose_jacobians)
+
+
+@functools.cache
+def _eval_kernel(dtype, degree: int):
+    f = spline_funcs(dtype, degree)
+    mat3 = ti.types.matrix(3, 3, dtype)
+
+    @ti.kernel
+    def k(
+        ctrl: ti.types.ndarray(dtype=mat3, ndim=1),
+        s: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        u: ti.types.ndarray(dtype=dtype, ndim=1),
+        out_r: ti.types.ndarray(dtype=mat3, ndim=1),
+        out_j: ti.types.ndarray(dtype=mat3, ndim=2),
+    ):
+        for i in range(s.shape[0]):
+            r, jac = f.pose_jacobians(ctrl, s[i], u[i])
+            out_r[i] = r
+            for j in ti.static(range(degree + 1)):
+                out_j[i, j] = jac[j]
+
+    return k
+
+
+def spline_pose_jacobians(degree: int, control_R: np.ndarray, s: np.ndarray, u: np.ndarray, dtype=np.float32):
+    """Evaluate pose (N,3,3) and Jacobians (N, degree+1, 3, 3) in a Taichi kernel (for tests and batch poses)."""
+    ensure_init()
+    dtype = np.dtype(dtype)
+    ctrl = np.ascontiguousarray(control_R, dtype=dtype).reshape(-1, 3, 3)
+    s = np.ascontiguousarray(s, dtype=np.int32).reshape(-1)
+    u = np.ascontiguousarray(u, dtype=dtype).reshape(-1)
+    out_r = np.zeros((len(s), 3, 3), dtype=dtype)
+    out_j = np.zeros((len(s), degree + 1, 3, 3), dtype=dtype)
+    if len(s):
+        _eval_kernel(_dtype_of(dtype), degree)(ctrl, s, u, out_r, out_j)
+    return out_r, out_j

@@ -1,0 +1,142 @@
+"""SO(3) B-splines (ti_cmax.spline): evaluation, smoothness, Jacobians, lift-solve-retract fit."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation, Slerp
+
+from ti_cmax import so3
+from ti_cmax.spline import SO3Spline, blending_basis, cumulative_basis
+
+
+def random_spline(degree, m=8, t0=0.3, dt=0.05, step=0.3, seed=0):
+    rng = np.random.default_rng(seed)
+    rotvecs = np.cumsum(rng.normal(size=(m, 3)) * step, axis=0)
+    return SO3Spline(degree, t0, dt, Rotation.from_rotvec(rotvecs).as_matrix())
+
+
+def test_linear_spline_is_slerp_between_knots():
+    spline = random_spline(1)
+    start, end = spline.valid_time_range()
+    assert (start, end) == pytest.approx((spline.t0, spline.t0 + 7 * spline.dt))
+    times = np.linspace(start, end, 97)
+    slerp = Slerp(spline.knot_times(), Rotation.from_matrix(spline.control_R))
+    np.testing.assert_allclose(spline.evaluate(times), slerp(times).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(spline.evaluate(spline.knot_times()), spline.control_R, atol=1e-12)
+
+
+def test_cubic_basis_and_valid_range():
+    u = np.linspace(0, 1, 11)
+    b, db = cumulative_basis(3, u)
+    np.testing.assert_allclose(b[:, 0], 1.0)
+    np.testing.assert_allclose(b[0], [1, 5 / 6, 1 / 6, 0])  # Eq. 12 at u = 0
+    np.testing.assert_allclose(blending_basis(3, u).sum(axis=1), 1.0)
+    spline = random_spline(3, m=6)
+    start, end = spline.valid_time_range()
+    assert (start, end) == pytest.approx((spline.t0 + spline.dt, spline.t0 + 4 * spline.dt))
+    s, uu = spline.support([start, end, start + 1.5 * spline.dt])
+    np.testing.assert_array_equal(s, [0, 2, 1])
+    np.testing.assert_allclose(uu, [0, 1, 0.5])
+    with pytest.raises(ValueError):
+        spline.evaluate(start - 0.01)
+    with pytest.raises(ValueError):
+        spline.evaluate(end + 0.01)
+
+
+def _fd_angular_velocity(spline, t, h):
+    ra = spline.evaluate(t - h)
+    rb = spline.evaluate(t + h)
+    return so3.log(np.swapaxes(ra, -1, -2) @ rb) / (2 * h)
+
+
+def test_angular_velocity_matches_finite_differences():
+    for degree in (1, 3):
+        spline = random_spline(degree, seed=1)
+        start, end = spline.valid_time_range()
+        t = start + spline.dt * (np.arange(1, 9) * 0.37 % 1 + np.arange(8) % 3)  # between knots
+        t = t[t < end]
+        np.testing.assert_allclose(spline.angular_velocity(t), _fd_angular_velocity(spline, t, 1e-6), atol=1e-6)
+
+
+def test_cubic_is_c2_across_knots_and_linear_is_not_c1():
+    cubic = random_spline(3, seed=2)
+    knots = cubic.knot_times()[2:-2]  # interior knots of the valid range
+    eps = 1e-9 * cubic.dt
+    h = 1e-3 * cubic.dt
+
+    def accel(t):  # derivative of the analytic angular velocity, one-sided stencils that do not straddle a knot
+        return (cubic.angular_velocity(t + h) - cubic.angular_velocity(t - h)) / (2 * h)
+
+    w_minus, w_plus = cubic.angular_velocity(knots - eps), cubic.angular_velocity(knots + eps)
+    np.testing.assert_allclose(w_minus, w_plus, atol=1e-6)
+    a_minus, a_plus = accel(knots - 2 * h), accel(knots + 2 * h)
+    scale = np.abs(a_plus).max()
+    assert np.abs(a_minus - a_plus).max() < 1e-2 * scale
+    # the same test detects a kink: the linear spline's angular velocity jumps at knots
+    linear = random_spline(1, seed=2)
+    jump = linear.angular_velocity(knots - eps) - linear.angular_velocity(knots + eps)
+    assert np.abs(jump).max() > 1.0
+
+
+@pytest.mark.parametrize("degree", [1, 3])
+def test_jacobians_match_central_differences(degree):
+    spline = random_spline(degree, m=7, step=0.4, seed=3)
+    start, end = spline.valid_time_range()
+    times = np.concatenate([np.linspace(start, end, 9), start + spline.dt * np.array([0.25, 1.6])])
+    first, r_t, jac = spline.jacobians(times)
+    np.testing.assert_allclose(r_t, spline.evaluate(times), atol=1e-14)
+    np.testing.assert_allclose(jac.sum(axis=1), np.broadcast_to(np.eye(3), (len(times), 3, 3)), atol=1e-12)
+    h = 1e-6
+    for j in range(degree + 1):
+        for d in range(3):
+            numeric = np.empty((len(times), 3))
+            for n, t in enumerate(times):
+                delta = np.zeros((1, 3))
+                delta[0, d] = h
+                plus = spline.copy().retract(delta, first[n] + j).evaluate(t)[0]
+                minus = spline.copy().retract(-delta, first[n] + j).evaluate(t)[0]
+                numeric[n] = so3.log(plus @ minus.T) / (2 * h)  # left (world-frame) convention
+            np.testing.assert_allclose(jac[:, j, :, d], numeric, atol=1e-8)
+    # control poses outside the support have no influence
+    other = (first[0] + degree + 1) % spline.num_control
+    moved = spline.copy().retract(np.full((1, 3), 0.1), other)
+    np.testing.assert_allclose(moved.evaluate(times[0]), spline.evaluate(times[0]), atol=1e-14)
+
+
+@pytest.mark.parametrize("degree", [1, 3])
+def test_fit_reproduces_spline_from_its_samples(degree):
+    truth = random_spline(degree, m=9, step=0.08, seed=4)
+    start, end = truth.valid_time_range()
+    times = np.linspace(start, end, 150)
+    samples = truth.evaluate(times)
+    plain = SO3Spline.fit(degree, truth.dt, times, samples, refine_iters=0)  # lift-solve-retract only
+    assert plain.t0 == pytest.approx(truth.t0) and plain.num_control == truth.num_control
+    assert so3.geodesic_angle(plain.control_R, truth.control_R).max() < 2e-3
+    refined = SO3Spline.fit(degree, truth.dt, times, samples, refine_iters=2)
+    assert so3.geodesic_angle(refined.control_R, truth.control_R).max() < 1e-9
+
+
+@pytest.mark.parametrize("degree", [1, 3])
+def test_fit_new_segment_keeps_earlier_poses_fixed(degree):
+    truth = random_spline(degree, m=10, step=0.08, seed=5)
+    keep = 4
+    partial = SO3Spline(degree, truth.t0, truth.dt, truth.control_R[:keep])
+    _, end = truth.valid_time_range()
+    seg_start = truth.knot_times()[keep - 1 - (degree - 1) // 2]
+    times = np.linspace(seg_start, end, 80)
+    partial.fit_new_segment(times, truth.evaluate(times), first_free=keep, refine_iters=2)
+    assert partial.num_control == truth.num_control
+    np.testing.assert_array_equal(partial.control_R[:keep], truth.control_R[:keep])
+    assert so3.geodesic_angle(partial.control_R, truth.control_R).max() < 1e-8
+
+
+def test_append_retract_and_to_trajectory():
+    spline = random_spline(3, m=5)
+    spline.append(spline.control_R[-1])
+    assert spline.num_control == 6
+    traj = spline.to_trajectory(200.0)
+    start, end = spline.valid_time_range()
+    assert traj.t[0] == pytest.approx(start) and traj.t[-1] == pytest.approx(end)
+    assert np.allclose(np.diff(traj.t)[:-1], 1 / 200.0)
+    np.testing.assert_allclose(traj.R, spline.evaluate(traj.t), atol=1e-12)
+    before = spline.control_R[2].copy()
+    spline.retract(np.array([[0.0, 0.0, 0.1]]), first=2)
+    np.testing.assert_allclose(spline.control_R[2], so3.exp(np.array([0.0, 0.0, 0.1])) @ before)

@@ -1,0 +1,147 @@
+"""Panoramic IWE kernels (kernels/pano.py) vs their numpy twins, gradient vs central differences, seam wrap."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from ti_cmax.camera import Camera
+from ti_cmax.spline import SO3Spline
+
+W, H = 128, 64
+
+
+def window_case(degree, yaw0=0.0, yaw_rate=1.0, n_events=2050, seed=0, return_times=False):
+    """Random events of a 120x90 camera over the spline's valid range; trajectory yawing from yaw0."""
+    from ti_cmax.kernels import pano
+
+    rng = np.random.default_rng(seed)
+    dt = 0.05
+    m = 6
+    kt = dt * np.arange(m)
+    rotvec = np.stack([0.2 * np.sin(7 * kt), yaw0 + yaw_rate * kt, 0.1 * kt], axis=1)
+    rotvec += rng.normal(size=(m, 3)) * 0.02
+    spline = SO3Spline(degree, 0.0, dt, Rotation.from_rotvec(rotvec).as_matrix())
+    start, end = spline.valid_time_range()
+    t = np.sort(rng.uniform(start, end, n_events))
+    cam = Camera.ideal(120, 90, 70.0)
+    bearings = cam.bearings(rng.uniform(0, 119, n_events), rng.uniform(0, 89, n_events), dtype=np.float64)
+    s, u = spline.support(pano.batch_mid_times(t, 100))
+    global_map = pano.vote_map_numpy(bearings[::2], spline.evaluate(t[::2]) @ so3_small(0.03), W, H)
+    return (spline, bearings, s, u, global_map) + ((t,) if return_times else ())
+
+
+def so3_small(angle):
+    return Rotation.from_rotvec([0.0, angle, angle]).as_matrix()
+
+
+def test_equirect_center_and_seam_votes(ti_runtime):
+    from ti_cmax.kernels import pano
+
+    eye = np.eye(3)[None]
+    # looking along +z: the centre pixel gets the whole vote
+    img = pano.vote_map(np.array([[0.0, 0.0, 1.0]]), eye, W, H, dtype=np.float64)
+    assert img[H // 2, W // 2] == pytest.approx(1.0) and img.sum() == pytest.approx(1.0)
+    # lon just below +pi: u = w - 0.3 votes 0.3 into column w-1 and 0.7 into column 0 (u wraps)
+    lon = np.pi - 0.3 * 2 * np.pi / W
+    r_back = Rotation.from_rotvec([0.0, np.pi, 0.0]).as_matrix()  # camera looking along -z
+    direction = np.array([np.sin(lon), 0.0, np.cos(lon)])
+    b = r_back.T @ direction
+    b = (b / b[2])[None]
+    for dtype, tol in ((np.float32, 1e-4), (np.float64, 1e-9)):
+        img = pano.vote_map(b, r_back[None], W, H, dtype=dtype)
+        row = img[H // 2]
+        assert row[W - 1] == pytest.approx(0.3, abs=tol) and row[0] == pytest.approx(0.7, abs=tol)
+        assert img.sum() == pytest.approx(1.0, abs=tol)
+        np.testing.assert_allclose(img, pano.vote_map_numpy(b, r_back[None], W, H), atol=tol)
+
+
+def test_vote_map_matches_numpy_twin(ti_runtime):
+    from ti_cmax.kernels import pano
+
+    spline, bearings, s, u, _, t = window_case(1, yaw0=2.9, return_times=True)
+    r_batch = spline.evaluate_at(s, u)
+    twin = pano.vote_map_numpy(bearings, r_batch, W, H, batch_size=100)
+    out = pano.vote_map(bearings, r_batch, W, H, batch_size=100, dtype=np.float64)
+    np.testing.assert_allclose(out, twin, atol=1e-9)
+    acc = pano.vote_map(bearings, r_batch, W, H, batch_size=100, out=out.copy(), dtype=np.float64)
+    np.testing.assert_allclose(acc, 2 * twin, atol=1e-9)
+    rendered = pano.render_map(bearings, t, spline.evaluate, W, H, batch_size=100, dtype=np.float64)
+    np.testing.assert_allclose(rendered, twin, atol=1e-9)
+    f32 = pano.vote_map(bearings, r_batch, W, H, batch_size=100)
+    assert f32.dtype == np.float32
+    np.testing.assert_allclose(f32, twin, atol=2e-3)
+    assert f32.sum() == pytest.approx(len(bearings), rel=1e-5)
+
+
+def test_event_area_and_density():
+    from ti_cmax.kernels import pano
+
+    img = np.zeros((4, 4))
+    assert pano.event_area(img) == 0.0 and pano.event_density(img) == 0.0
+    img[0, 0], img[1, 1] = 1.0, 3.0
+    area = (1 - np.exp(-1.0)) + (1 - np.exp(-3.0))
+    assert pano.event_area(img) == pytest.approx(area)
+    assert pano.event_density(img) == pytest.approx(4.0 / area)
+    assert pano.event_area(img, lambda0=2.0) == pytest.approx((1 - np.exp(-0.5)) + (1 - np.exp(-1.5)))
+
+
+@pytest.mark.parametrize("degree", [1, 3])
+@pytest.mark.parametrize(
+    "yaw0, yaw_rate, expect",
+    [(0.0, 1.0, "inside"), (2.9, 1.0, "crosses seam"), (0.0, 40.0, "full width")],
+)
+def test_kernel_matches_numpy_twin(ti_runtime, degree, yaw0, yaw_rate, expect):
+    from ti_cmax.kernels import pano
+
+    spline, bearings, s, u, gmap = window_case(degree, yaw0, yaw_rate)
+    ref_var, ref_grad, ref_img = pano.pano_iwe_numpy(
+        bearings, s, u, spline.control_R, degree, W, H, 1.0, pano.blur_map(gmap, 1.0), 0.6, 100
+    )
+    for dtype, rtol in ((np.float64, 1e-10), (np.float32, 1e-4)):
+        obj = pano.PanoIWE(bearings, s, u, degree, W, H, 1.0, gmap, 0.6, 100, dtype=dtype)
+        var, grad = obj.cost_and_grad(spline.control_R)
+        assert var == pytest.approx(ref_var, rel=rtol)
+        np.testing.assert_allclose(grad, ref_grad, atol=rtol * np.abs(ref_grad).max())
+        assert obj.cost(spline.control_R) == var  # no float atomics: bit-reproducible
+    r0, c0, bh, bw, wrap = obj.last_window
+    if expect == "inside":
+        assert not wrap and c0 + bw <= W
+    elif expect == "crosses seam":
+        assert not wrap and c0 + bw > W
+    else:
+        assert wrap and bw == W
+    # local map: B(I_L) of the window (without alpha G)
+    local = pano.PanoIWE(bearings, s, u, degree, W, H, 1.0, None, 0.0, 100, dtype=np.float64)
+    np.testing.assert_allclose(local.local_map(spline.control_R), ref_img - 0.6 * pano.blur_map(gmap, 1.0),
+                               atol=1e-10)
+
+
+@pytest.mark.parametrize("degree", [1, 3])
+def test_gradient_matches_central_differences(ti_runtime, degree):
+    from ti_cmax.kernels import pano
+
+    spline, bearings, s, u, gmap = window_case(degree, yaw0=2.9, seed=1)
+    obj = pano.PanoIWE(bearings, s, u, degree, W, H, 1.0, gmap, 0.5, 100, dtype=np.float64)
+    _, grad = obj.cost_and_grad(spline.control_R)
+    h = 1e-7  # small: the bilinear-voting cost has kinks where events cross pixel borders
+    numeric = np.zeros_like(grad)
+    for k in range(spline.num_control):
+        for d in range(3):
+            delta = np.zeros((1, 3))
+            delta[0, d] = h
+            plus = spline.copy().retract(delta, k).control_R
+            minus = spline.copy().retract(-delta, k).control_R
+            numeric[k, d] = (obj.cost(plus) - obj.cost(minus)) / (2 * h)
+    assert np.abs(grad).max() > 0
+    np.testing.assert_allclose(grad, numeric, atol=1e-5 * np.abs(grad).max())
+
+
+def test_no_events_gives_constant_variance(ti_runtime):
+    from ti_cmax.kernels import pano
+
+    gmap = np.zeros((H, W))
+    gmap[10, 20] = 4.0
+    obj = pano.PanoIWE(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0), 1, W, H, 1.0, gmap, 1.0, 100)
+    var, grad = obj.cost_and_grad(np.broadcast_to(np.eye(3), (3, 3, 3)))
+    g = pano.blur_map(gmap, 1.0)
+    assert var == pytest.approx(g.var(), rel=1e-9)
+    assert not grad.any()
