@@ -162,7 +162,8 @@ class SlidingWindowBackend:
         if self.spline is None:
             return Trajectory(np.array([self.t_start]), self.r_start[None])
         start, end = self.spline.valid_time_range()
-        return self.spline.to_trajectory(rate, max(start, self.t_start), end)
+        last = self.events_until if np.isfinite(self.events_until) else end
+        return self.spline.to_trajectory(rate, max(start, self.t_start), min(end, last))
 
     # ---- internals -------------------------------------------------------------------------------------------------
     def _source_segment(self, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:
@@ -201,11 +202,23 @@ class SlidingWindowBackend:
         first_free = int(np.searchsorted(self.spline.knot_times(), t_a + _TIME_EPS, side="right"))
         if len(times) == 0:  # no new source samples: hold the last pose
             times, rots = np.array([max(t_end, t_a + 1e-6)]), self._anchor[2][None]
+        elif times[-1] < t_end:  # the source ends before the events do: extrapolate its last velocity
+            times, rots = np.append(times, t_end), np.concatenate([rots, self._extrapolate(t_end)[None]])
         # include the anchor itself so the new segment starts where the optimized trajectory is
         times = np.concatenate([[t_a], times])
         rots = np.concatenate([self._anchor[2][None], rots])
         self.spline.fit_new_segment(times, rots, first_free=first_free, refine_iters=1)
         self._anchor_at(float(times[-1]))
+
+    def _extrapolate(self, t: float) -> np.ndarray:
+        """Re-anchored source pose at t beyond its last sample, at the last sampled angular velocity."""
+        t_a, r_src_a, r_spl_a = self._anchor
+        r_last = self._src_R[-1]
+        if len(self._src_t) > 1:
+            dt = self._src_t[-1] - self._src_t[-2]
+            w = so3.log(self._src_R[-2].T @ r_last) / dt
+            r_last = r_last @ so3.exp(w * (t - self._src_t[-1]))
+        return r_spl_a @ r_src_a.T @ r_last
 
     def _anchor_at(self, t: float) -> None:
         self._anchor = (t, self._source_at(t), self.spline.evaluate(t)[0])

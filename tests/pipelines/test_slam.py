@@ -1,0 +1,124 @@
+"""CMax-SLAM and offline BA on a short simulated sequence; back-end initialization; CLI commands."""
+import json
+
+import numpy as np
+import pytest
+
+from ti_cmax import so3
+from ti_cmax.cli import main
+from ti_cmax.config import BackendConfig, SlamConfig, load_config
+from ti_cmax.metrics import evaluate_rotations
+from ti_cmax.pipelines.backend import SlidingWindowBackend
+from ti_cmax.pipelines.imu import dead_reckoning
+from ti_cmax.pipelines.panorama import render_panorama
+from ti_cmax.pipelines.slam import refine, run_slam
+from ti_cmax.metrics import event_area_percent
+
+
+@pytest.fixture(scope="module")
+def slam_result(short_sequence):
+    return run_slam(short_sequence.events, short_sequence.camera, SlamConfig())
+
+
+def test_slam_beats_frontend_alone(short_sequence, slam_result):
+    gt = short_sequence.groundtruth
+    front = evaluate_rotations(gt, slam_result.frontend.trajectory())
+    slam = evaluate_rotations(gt, slam_result.trajectory)
+    assert slam.abs_rmse_deg < front.abs_rmse_deg
+    assert slam.abs_rmse_deg < 0.5
+    # the trajectory covers the events and no more; the spline is queryable anywhere inside
+    assert slam_result.trajectory.t_end <= short_sequence.events.t[-1] + 1e-9
+    t_mid = 0.5 * (slam_result.trajectory.t_start + slam_result.trajectory.t_end)
+    r = slam_result.rotation_at([t_mid])[0]
+    assert so3.geodesic_angle(r, slam_result.trajectory.at(t_mid)[0]) < 1e-3
+    rep = slam_result.report
+    assert rep["status"] == "ok" and rep["events_processed"] == len(short_sequence.events)
+    assert rep["us_per_event"]["frontend"] > 0 and rep["us_per_event"]["backend"] > 0
+    assert rep["backend"]["windows_optimized"] >= 8
+    # the global map holds every settled event (bilinear votes sum to one per event, minus the polar rows)
+    assert abs(slam_result.map.sum() - len(short_sequence.events)) < 0.01 * len(short_sequence.events)
+
+
+def test_refine_imu_dead_reckoning_cuts_error_and_sharpens_map(short_sequence):
+    seq = short_sequence
+    gt = seq.groundtruth
+    imu = dead_reckoning(seq.imu.t, seq.imu.gyro, r0=gt.at(seq.imu.t[0])[0])
+    before = evaluate_rotations(gt, imu)
+    result = refine(seq.events, seq.camera, imu, SlamConfig())
+    after = evaluate_rotations(gt, result.trajectory)
+    assert before.abs_rmse_deg > 0.5  # the gyro bias makes dead reckoning drift
+    assert after.abs_rmse_deg < 0.5 * before.abs_rmse_deg
+    w, h = SlamConfig().backend.pano_size
+    ea_before = event_area_percent(render_panorama([seq.events], seq.camera, imu, w, h).image)
+    ea_after = event_area_percent(result.map)
+    assert ea_after < ea_before
+
+
+def test_backend_initialization_follows_the_source_without_refinement(short_sequence):
+    """With BA disabled the spline must reproduce the (re-anchored) source across windows (no drift)."""
+    seq = short_sequence
+    gt = seq.groundtruth
+    cfg = BackendConfig(backend_min_ev_rate=1e12)  # never refine
+    t0 = float(seq.events.t[0])
+    be = SlidingWindowBackend(cfg, t0, gt.at(t0)[0])
+    tt = np.arange(gt.t_start, gt.t_end, 0.01)
+    be.push_source_poses(tt, gt.at(tt))
+    be.push_events(seq.events.t, seq.camera.bearings(seq.events.x, seq.events.y), complete_until=seq.events.t[-1])
+    while be.ready():
+        be.step()
+    be.finish()
+    assert not any(w.optimized for w in be.windows) and len(be.windows) >= 10
+    est = be.trajectory(200)
+    err = evaluate_rotations(gt, est, align=False)
+    assert err.abs_max_deg < 0.3  # linear spline at 20 Hz vs the smooth ground truth
+
+
+def test_cubic_spline_slam_runs(short_sequence):
+    seq = short_sequence
+    ev = seq.events.slice_time(seq.events.t[0], seq.events.t[0] + 0.6)
+    cfg = load_config(SlamConfig, None, ["spline_degree=3"])
+    res = run_slam(ev, seq.camera, cfg)
+    err = evaluate_rotations(seq.groundtruth, res.trajectory)
+    assert res.report["backend"]["spline_degree"] == 3 and err.abs_rmse_deg < 1.0
+
+
+def test_cli_slam_refine_imu_map_evaluate(short_dataset, tmp_path, capsys):
+    out = tmp_path / "slam"
+    assert main(["slam", str(short_dataset), "--out", str(out), "--quiet", "--set", "pano_height=256"]) == 0
+    for name in ("trajectory.txt", "angular_velocity.txt", "map.png", "map.npy", "report.json", "config.yaml"):
+        assert (out / name).is_file(), name
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "ok" and report["parameters"]["backend"]["pano_height"] == 256
+    assert np.load(out / "map.npy").shape == (256, 512)
+
+    imu_out = tmp_path / "imu"
+    assert main(["imu", str(short_dataset), "--out", str(imu_out), "--quiet"]) == 0
+    ref_out = tmp_path / "refined"
+    assert main(["refine", str(short_dataset), "--trajectory", str(imu_out / "trajectory.txt"), "--out", str(ref_out),
+                 "--quiet", "--set", "pano_height=256"]) == 0
+    assert (ref_out / "trajectory.txt").is_file() and (ref_out / "map.png").is_file()
+
+    png = tmp_path / "maps" / "m.png"
+    assert main(["map", str(short_dataset), "--trajectory", str(out / "trajectory.txt"), "--out", str(png),
+                 "--size", "512x256", "--quiet"]) == 0
+    figures = json.loads(png.with_suffix(".json").read_text())
+    assert set(figures) >= {"event_area_percent", "gradient_magnitude", "variance"}
+    capsys.readouterr()
+    assert main(["evaluate", "--groundtruth", str(short_dataset / "groundtruth.txt"),
+                 "--estimate", str(out / "trajectory.txt")]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert last["abs_rmse_deg"] < 1.0
+
+
+def test_cli_bad_input_leaves_no_output(short_dataset, tmp_path, capsys):
+    out = tmp_path / "nope"
+    assert main(["slam", str(tmp_path / "missing"), "--out", str(out), "--quiet"]) == 2
+    assert not out.exists()
+    assert main(["slam", str(short_dataset), "--out", str(out), "--set", "spline_degree=banana", "--quiet"]) == 2
+    assert not out.exists()
+    bad = tmp_path / "bad.txt"
+    bad.write_text("0.0 0 0 0 0 0 1\nnot a number\n")
+    assert main(["refine", str(short_dataset), "--trajectory", str(bad), "--out", str(out), "--quiet"]) == 2
+    assert not out.exists()
+    err = capsys.readouterr().err
+    assert "error" in err and "Traceback" not in err
