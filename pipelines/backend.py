@@ -92,6 +92,7 @@ class SlidingWindowBackend:
         self.windows: list[WindowReport] = []
         self.events_settled = 0
         self.events_optimized = 0  # event-window pairs that went through BA
+        self._last_correction: float | None = None  # |x| of the last window's CG solution
 
     # ---- input streams -------------------------------------------------------------------------------------------
     def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
@@ -257,11 +258,12 @@ class SlidingWindowBackend:
             return var * scale, g.reshape(-1) * scale
 
         result = fletcher_reeves(
-            objective, np.zeros(3 * n_free), maximize=True, init_step=cfg.backend_cg_init_step,
+            objective, np.zeros(3 * n_free), maximize=True, init_step=self._init_step(),
             line_search_tol=cfg.backend_cg_line_search_tol, max_iter=cfg.backend_cg_max_iters,
             grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
         )
         spline.control_R[first_free:] = so3.exp(result.x.reshape(-1, 3)) @ base[first_free:]
+        self._last_correction = float(np.linalg.norm(result.x))
         report.variance_before = var0
         report.variance_after = result.fun / scale
         report.optimized = True
@@ -269,6 +271,15 @@ class SlidingWindowBackend:
         report.evaluations = result.evaluations
         self.events_optimized += len(ev_t)
         self._anchor_at(self._anchor[0])
+
+    def _init_step(self) -> float:
+        """First CG trial step: the size of the previous window's correction (windows overlap, so corrections
+        are of similar size), capped by backend_cg_init_step. A 0.1 rad first step when the optimum is 1e-3
+        away costs many line-search bisections."""
+        cap = self.cfg.backend_cg_init_step
+        if self._last_correction is None:
+            return cap
+        return float(np.clip(2.0 * self._last_correction, 1e-2 * cap, cap))
 
     def _settle(self, t0: float, t1: float, still: bool) -> None:
         """Vote the events of [t0, t1) into the global map with the refined poses; drop them from the buffer."""

@@ -1,15 +1,42 @@
 """ti_cmax: CMax-SLAM (Guo & Gallego, T-RO 2024) on Taichi CPU kernels.
 
-Public API: the `Events` type, `Camera`, configs, readers (`ti_cmax.io`), and the pipelines
-(`estimate_angular_velocity`, `run_slam`, `refine`) once imported from `ti_cmax.pipelines`.
+Core types are imported eagerly; the pipelines are exposed lazily (importing them compiles nothing, but
+loads Taichi), so ``import ti_cmax`` stays light:
+
+    import ti_cmax
+    ds = ti_cmax.open_dataset("seq")
+    result = ti_cmax.run_slam(ds.iter_events(), ds.camera, ti_cmax.SlamConfig())
 """
+from . import so3
 from .camera import Camera
-from .config import BackendConfig, FrontendConfig, OutputConfig, SlamConfig, load_config
+from .config import BackendConfig, DatasetConfig, FrontendConfig, OutputConfig, SlamConfig, load_config
 from .errors import InputError
 from .events import Events
-from . import so3
+from .trajectory import Trajectory
 
 __version__ = "0.1.0"
 
-__all__ = ["Camera", "Events", "InputError", "FrontendConfig", "BackendConfig", "OutputConfig", "SlamConfig",
-           "load_config", "__version__"]
+_LAZY = {
+    "open_dataset": ("ti_cmax.io", "open_dataset"),
+    "estimate_angular_velocity": ("ti_cmax.pipelines.frontend", "estimate_angular_velocity"),
+    "run_slam": ("ti_cmax.pipelines.slam", "run_slam"),
+    "refine": ("ti_cmax.pipelines.slam", "refine"),
+    "dead_reckoning": ("ti_cmax.pipelines.imu", "dead_reckoning"),
+    "render_panorama": ("ti_cmax.pipelines.panorama", "render_panorama"),
+    "evaluate_rotations": ("ti_cmax.metrics", "evaluate_rotations"),
+    "simulate_sequence": ("ti_cmax.simulate", "simulate_sequence"),
+    "SimulatorConfig": ("ti_cmax.simulate", "SimulatorConfig"),
+}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        return getattr(importlib.import_module(module), attr)
+    raise AttributeError(f"module 'ti_cmax' has no attribute {name!r}")
+
+
+__all__ = ["Camera", "Events", "Trajectory", "InputError", "DatasetConfig", "FrontendConfig", "BackendConfig",
+           "OutputConfig", "SlamConfig", "load_config", "so3", "__version__", *_LAZY]
