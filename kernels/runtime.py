@@ -7,6 +7,7 @@ backend with the offline cache, and makes a later switch of fork or arch a one-f
 change.
 
 Threads: ``TI_CMAX_THREADS`` (env) or :func:`set_num_threads` before the first kernel.
+Profiling: ``TI_CMAX_KERNEL_PROFILER=1`` turns on Taichi's kernel profiler (see examples/profile_cpu.py).
 """
 from __future__ import annotations
 
@@ -71,6 +72,7 @@ def ensure_init() -> None:
             cpu_max_num_threads=threads,
             log_level=ti.WARN,
             debug=False,
+            kernel_profiler=os.environ.get("TI_CMAX_KERNEL_PROFILER", "") not in ("", "0"),
         )
     _state["initialized"] = True
     _state["threads"] = threads

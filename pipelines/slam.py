@@ -49,21 +49,27 @@ class SlamResult:
         return self.spline.evaluate(np.clip(times, start, end))
 
 
-def _bearing_chunks(chunks: Iterable[Events], camera: Camera, backend_holder: list, config: SlamConfig,
-                    r_start_of) -> Iterator[Events]:
-    """Pass chunks through unchanged while feeding them (downsampled for the back-end) to the back-end."""
-    q = int(config.backend.backend_event_sample_rate)
-    offset = 0
-    for chunk in chunks:
-        if len(chunk) == 0:
-            continue
-        if not backend_holder:
-            t0 = float(chunk.t[0])
-            backend_holder.append(SlidingWindowBackend(config.backend, t0, r_start_of(t0)))
-        sub = chunk[(-offset) % q::q] if q > 1 else chunk
-        offset += len(chunk)
-        backend_holder[0].push_events(sub.t, camera.bearings(sub.x, sub.y), complete_until=float(chunk.t[-1]))
-        yield chunk
+class _BackendFeed:
+    """Passes event chunks through unchanged while feeding them (downsampled by backend_event_sample_rate, with
+    bearings) to the back-end, which it creates at the first event. Counts the events read."""
+
+    def __init__(self, camera: Camera, config: SlamConfig, r_start_of):
+        self.camera, self.config, self.r_start_of = camera, config, r_start_of
+        self.backend: SlidingWindowBackend | None = None
+        self.events_read = 0
+
+    def __call__(self, chunks: Iterable[Events]) -> Iterator[Events]:
+        q = int(self.config.backend.backend_event_sample_rate)
+        for chunk in chunks:
+            if len(chunk) == 0:
+                continue
+            if self.backend is None:
+                t0 = float(chunk.t[0])
+                self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0))
+            sub = chunk[(-self.events_read) % q::q] if q > 1 else chunk
+            self.events_read += len(chunk)
+            self.backend.push_events(sub.t, self.camera.bearings(sub.x, sub.y), complete_until=float(chunk.t[-1]))
+            yield chunk
 
 
 def _backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
@@ -107,8 +113,8 @@ def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig()
     wall0 = time.perf_counter()
     runner = FrontendRunner(camera, config.frontend)
     compile_s = runner.compile() + _compile_backend(config)
-    holder: list[SlidingWindowBackend] = []
-    chunks = _bearing_chunks(as_chunks(events_or_chunks), camera, holder, config, lambda t0: np.eye(3))
+    feed = _BackendFeed(camera, config, lambda t0: np.eye(3))
+    chunks = feed(as_chunks(events_or_chunks))
     r_src = np.eye(3)
     t_prev, w_prev = None, None
     backend_seconds = 0.0
@@ -120,36 +126,34 @@ def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig()
                 r_src = r_src @ so3.exp(0.5 * (w_prev + omega) * (packet.t_ref - t_prev))
                 bar.update(packet.t_ref - t_prev)
             t_prev, w_prev = packet.t_ref, omega
-            backend = holder[0]
-            backend.push_source_poses([packet.t_ref], r_src[None])
+            feed.backend.push_source_poses([packet.t_ref], r_src[None])
             tic = time.perf_counter()
-            while backend.ready():
-                backend.step()
+            while feed.backend.ready():
+                feed.backend.step()
             backend_seconds += time.perf_counter() - tic
-        if not holder:
+        if feed.backend is None:
             raise InputError("no events to process")
         tic = time.perf_counter()
-        holder[0].finish()
+        feed.backend.finish()
         backend_seconds += time.perf_counter() - tic
     finally:
         bar.close()
-    backend = holder[0]
+    backend = feed.backend
     frontend = runner.result()
-    trajectory = backend.trajectory(config.output.trajectory_rate)
+    n = max(feed.events_read, 1)
     report = {
         "status": "ok",
         "method": "cmax-slam",
-        "events_processed": int(runner.events_read),
+        "events_processed": int(feed.events_read),
         "wall_seconds": time.perf_counter() - wall0,
         "compile_seconds": compile_s,
         "frontend": frontend.summary(),
         "backend": _backend_report(backend, backend_seconds),
-        "us_per_event": {
-            "frontend": frontend.timing.get("us_per_event", 0.0),
-            "backend": backend_seconds * 1e6 / max(backend.events_settled, 1),
-        },
+        # per event of the input stream, steady state (compilation apart)
+        "us_per_event": {"frontend": runner.seconds * 1e6 / n, "backend": backend_seconds * 1e6 / n},
         "parameters": config_to_dict(config),
     }
+    trajectory = backend.trajectory(config.output.trajectory_rate)
     return SlamResult(backend.spline, trajectory, backend.global_map, report, frontend, backend.windows)
 
 
@@ -162,33 +166,30 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
     """
     wall0 = time.perf_counter()
     compile_s = _compile_backend(config)
-    holder: list[SlidingWindowBackend] = []
+    feed = _BackendFeed(camera, config, lambda t0: trajectory.at(t0)[0])
     inside = (ev.slice_time(trajectory.t_start, np.nextafter(trajectory.t_end, np.inf))
               for ev in as_chunks(events_or_chunks))
-    chunks = _bearing_chunks(inside, camera, holder, config, lambda t0: trajectory.at(t0)[0])
     tic = time.perf_counter()
     bar = progress(total=progress_total, desc="refine", unit="s")
     last = None
-    events_read = 0
     try:
-        for chunk in chunks:
-            events_read += len(chunk)
-            backend = holder[0]
+        for chunk in feed(inside):
             if last is None:
-                backend.push_source_poses(trajectory.t, trajectory.R)
-            while backend.ready():
-                backend.step()
+                feed.backend.push_source_poses(trajectory.t, trajectory.R)
+            while feed.backend.ready():
+                feed.backend.step()
             if last is not None:
                 bar.update(float(chunk.t[-1]) - last)
             last = float(chunk.t[-1])
-        if not holder:
+        if feed.backend is None:
             raise InputError("no events within the trajectory's time range "
                              f"[{trajectory.t_start:.6f}, {trajectory.t_end:.6f}] s")
-        holder[0].finish()
+        feed.backend.finish()
     finally:
         bar.close()
-    backend = holder[0]
+    backend = feed.backend
     backend_seconds = time.perf_counter() - tic
+    events_read = feed.events_read
     report = {
         "status": "ok",
         "method": "cmax-ba",
@@ -196,7 +197,7 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
         "wall_seconds": time.perf_counter() - wall0,
         "compile_seconds": compile_s,
         "backend": _backend_report(backend, backend_seconds),
-        "us_per_event": {"backend": backend_seconds * 1e6 / max(backend.events_settled, 1)},
+        "us_per_event": {"backend": backend_seconds * 1e6 / max(events_read, 1)},
         "parameters": config_to_dict(config),
     }
     return SlamResult(backend.spline, backend.trajectory(config.output.trajectory_rate), backend.global_map,
