@@ -10,6 +10,7 @@ import numpy as np
 
 import ti_cmax
 from ti_cmax.config import FrontendConfig
+from ti_cmax.metrics import event_area_percent
 from ti_cmax.pipelines.frontend import AngularVelocityEstimator
 
 
@@ -36,7 +37,7 @@ def main():
     w = res.frontend.omega
     print(f"shapes_rotation start: {len(res.frontend)} omegas, mean |omega| {np.linalg.norm(w, axis=1).mean():.2f} "
           f"rad/s, back-end {res.report['backend']['windows_optimized']} windows refined, "
-          f"map event area {ti_cmax.pipelines.panorama.PanoramaResult(res.map, 0).figures()['event_area_percent']:.2f} %")
+          f"map event area {event_area_percent(res.map):.2f} %")
 
 
 if __name__ == "__main__":

@@ -36,11 +36,12 @@ import functools
 
 import numpy as np
 
-from ti_cmax.kernels.runtime import ensure_init, ti
+from ti_cmax.kernels.runtime import ensure_init, num_threads, ti
 
 MEASURES = {"variance": 0, "mean_square": 1}
 _DTYPES = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
 _BLOCK = 256  # events per reduction block
+_LANES = 8  # outputs per step of the horizontal blur
 
 
 def gaussian_taps(sigma: float, truncate: float = 4.0) -> np.ndarray:
@@ -67,16 +68,18 @@ def measure_id(measure: str) -> int:
 
 
 @functools.cache
-def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int):
+def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int, parts: int):
     """Fields and kernels for one float type, blur, sensor size and packet capacity (compiled once)."""
     f = ti.f32 if dtype_name == "f32" else ti.f64
     r2 = (len(taps2) - 1) // 2  # radius of the G2 taps
     pady = r2 + 1  # T rows padded so the vertical gather needs no bounds checks (y0 may be -1)
     h, w = height, width
-    wi = w + 2 * r2  # I is padded by r2 zero columns each side
+    w4 = -(-w // _LANES) * _LANES  # row length rounded up to whole groups of _LANES outputs
+    wi = w4 + 2 * r2  # I is padded by r2 zero columns each side (and up to the next group on the right)
     ev = ti.Vector.field(4, f, shape=capacity)  # bx, by, bz, dt
-    img = ti.field(f, shape=(h, wi))
-    tmp = ti.field(f, shape=(h + 2 * pady, w + 2))
+    wp = ti.Vector.field(8, f, shape=capacity)  # pass 1 -> pass 3: u, v, x'(3), B, C, 1/z (u = -2: not in the image)
+    img = ti.field(f, shape=(parts, h, wi))
+    tmp = ti.field(f, shape=(h + 2 * pady, w4 + 2))
     out = ti.field(ti.f64, shape=8)
     nblocks_max = (capacity + _BLOCK - 1) // _BLOCK
 
@@ -122,16 +125,21 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
         for q in range(8):
             out[q] = 0.0
         nblocks = (n + _BLOCK - 1) // _BLOCK
-        # pass 1: warp and vote (in-bounds neighbours only)
-        for blk in range(nblocks):
+        # pass 1: warp and vote (in-bounds neighbours only); part p votes events [p*chunk, (p+1)*chunk) into its
+        # own copy of I with plain load/add/store (no atomics: float atomics are compare-and-swap loops on CPU)
+        chunk = (n + parts - 1) // parts
+        for part in range(parts):
             sw = ti.f64(0.0)
             cnt = ti.f64(0.0)
-            for k in range(blk * _BLOCK, ti.min(n, (blk + 1) * _BLOCK)):
-                xr, _phi, _dk, _b, _c = warp(k, wx, wy, wz)
+            for k in range(part * chunk, ti.min(n, (part + 1) * chunk)):
+                xr, _phi, _dk, bb, cc = warp(k, wx, wy, wz)
+                wp[k][0] = f(-2.0)
                 if xr[2] > f(1e-6):
-                    u = fx * xr[0] / xr[2] + cx
-                    v = fy * xr[1] / xr[2] + cy
+                    iz = f(1.0) / xr[2]
+                    u = fx * xr[0] * iz + cx
+                    v = fy * xr[1] * iz + cy
                     if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
+                        wp[k] = ti.Vector([u, v, xr[0], xr[1], xr[2], bb, cc, iz])
                         x0 = ti.cast(ti.floor(u), ti.i32)
                         y0 = ti.cast(ti.floor(v), ti.i32)
                         ax = u - f(x0)
@@ -142,25 +150,30 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                         my1 = f(y0 + 1 < h)
                         xi = x0 + r2  # padded column: always within [r2-1, r2+w]
                         if y0 >= 0:
-                            ti.atomic_add(img[y0, xi], mx0 * (f(1.0) - ax) * (f(1.0) - ay))
-                            ti.atomic_add(img[y0, xi + 1], mx1 * ax * (f(1.0) - ay))
+                            img[part, y0, xi] = img[part, y0, xi] + mx0 * (f(1.0) - ax) * (f(1.0) - ay)
+                            img[part, y0, xi + 1] = img[part, y0, xi + 1] + mx1 * ax * (f(1.0) - ay)
                         if y0 + 1 < h:
-                            ti.atomic_add(img[y0 + 1, xi], mx0 * (f(1.0) - ax) * ay)
-                            ti.atomic_add(img[y0 + 1, xi + 1], mx1 * ax * ay)
+                            img[part, y0 + 1, xi] = img[part, y0 + 1, xi] + mx0 * (f(1.0) - ax) * ay
+                            img[part, y0 + 1, xi + 1] = img[part, y0 + 1, xi + 1] + mx1 * ax * ay
                         sw += ti.cast(my0 * (f(1.0) - ay) * (mx0 * (f(1.0) - ax) + mx1 * ax)
                                       + my1 * ay * (mx0 * (f(1.0) - ax) + mx1 * ax), ti.f64)
                         cnt += 1.0
             out[0] += sw
             out[5] += cnt
-        # pass 2: horizontal G2 blur of each row into T, then clear the row of I
+        # pass 2: horizontal G2 blur of each row of sum_p I_p into T, then clear the row of every copy
         for i in range(h):
-            for j in range(w):
-                s = f(0.0)
+            for jg in range(w4 // _LANES):  # _LANES independent outputs per step (lets LLVM use SIMD)
+                j = jg * _LANES
+                s = ti.Vector([f(0.0)] * _LANES)
                 for c in ti.static(range(2 * r2 + 1)):
-                    s += f(taps2[c]) * img[i, j + c]
-                tmp[i + pady, j + 1] = s
+                    for q in ti.static(range(_LANES)):
+                        for p in ti.static(range(parts)):
+                            s[q] += f(taps2[c]) * img[p, i, j + c + q]
+                for q in ti.static(range(_LANES)):
+                    tmp[i + pady, j + q + 1] = s[q]
             for j in range(wi):
-                img[i, j] = f(0.0)
+                for p in ti.static(range(parts)):
+                    img[p, i, j] = f(0.0)
         # pass 3: cost and gradient, gathering the vertical G2 taps from T per event
         npix = f(float(h * w))
         mu = f(0.0)
@@ -169,12 +182,11 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
         for blk in range(nblocks):
             acc = ti.Vector([0.0, 0.0, 0.0, 0.0], dt=ti.f64)
             for k in range(blk * _BLOCK, ti.min(n, (blk + 1) * _BLOCK)):
-                xr, phi, dk, b, c = warp(k, wx, wy, wz)
-                if xr[2] > f(1e-6):
-                    iz = f(1.0) / xr[2]
-                    u = fx * xr[0] * iz + cx
-                    v = fy * xr[1] * iz + cy
-                    if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
+                q = wp[k]
+                u = q[0]
+                v = q[1]
+                if True:
+                    if u > f(-1.0):  # stored by pass 1 (no second warp)
                         x0 = ti.cast(ti.floor(u), ti.i32)
                         y0 = ti.cast(ti.floor(v), ti.i32)
                         ax = u - f(x0)
@@ -207,6 +219,12 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                                 + ay * ((f(1.0) - ax) * h10 + ax * h11))
                         acc[3] += ti.cast(wsum, ti.f64)
                         if with_grad != 0:
+                            xr = ti.Vector([q[2], q[3], q[4]])
+                            b = q[5]
+                            c = q[6]
+                            iz = q[7]
+                            dk = ev[k][3]
+                            phi = ti.Vector([wx * dk, wy * dk, wz * dk])
                             gu = (f(1.0) - ay) * (h01 - h00) + ay * (h11 - h10)
                             gv = (f(1.0) - ax) * (h10 - h00) + ax * (h11 - h01)
                             av = ti.Vector([fx * gu * iz, fy * gv * iz,
@@ -273,7 +291,8 @@ class IWEWorkspace:
     def _ensure(self):
         if self._kernels is None:
             ensure_init()
-            self._kernels = _build(_DTYPES[self.dtype], self.taps2, self.height, self.width, self.capacity)
+            self._kernels = _build(_DTYPES[self.dtype], self.taps2, self.height, self.width, self.capacity,
+                                   max(1, min(8, num_threads())))
         return self._kernels
 
     def compile(self) -> None:

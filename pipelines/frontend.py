@@ -40,6 +40,8 @@ from ti_cmax.trajectory import Trajectory
 from .optim import fletcher_reeves
 
 SLICING_RULES = ("bounded", "paper")
+WARM_STARTS = ("previous", "linear")
+STEP_GUESSES = ("decrease", "secant")
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +99,16 @@ def check_config(config: FrontendConfig) -> None:
         raise InputError(f"still_span_factor must be > 0, got {config.still_span_factor}")
     if config.frontend_blur_sigma < 0:
         raise InputError(f"frontend_blur_sigma must be >= 0, got {config.frontend_blur_sigma}")
+    if config.frontend_max_packet_events < 0 or 0 < config.frontend_max_packet_events < 2:
+        raise InputError(f"frontend_max_packet_events must be 0 (off) or >= 2, got {config.frontend_max_packet_events}")
+    if config.frontend_cg_step_guess not in STEP_GUESSES:
+        raise InputError(f"frontend_cg_step_guess must be one of {', '.join(STEP_GUESSES)}, got "
+                         f"{config.frontend_cg_step_guess!r}")
+    if config.frontend_cg_max_line_evals < 1:
+        raise InputError(f"frontend_cg_max_line_evals must be >= 1, got {config.frontend_cg_max_line_evals}")
+    if config.frontend_warm_start not in WARM_STARTS:
+        raise InputError(f"frontend_warm_start must be one of {', '.join(WARM_STARTS)}, got "
+                         f"{config.frontend_warm_start!r}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -228,9 +240,35 @@ class AngularVelocityEstimator:
         self.camera, self.config = camera, config
         self.K = camera.K
         self.focal = 0.5 * (camera.fx + camera.fy)
+        cap = config.num_events_per_packet
+        if config.frontend_max_packet_events > 0:
+            cap = max(cap, config.frontend_max_packet_events)
         self.ws = IWEWorkspace(camera.width, camera.height, dtype, config.frontend_blur_sigma,
-                               capacity=config.num_events_per_packet)
+                               capacity=cap)
         self.omega = np.zeros(3)
+        self.omega_prev = None  # omega of the packet before the last one (linear warm start)
+        self.events_evaluated = 0  # events actually used in the optimisation (after thinning)
+        self.event_evaluations = 0  # sum over packets of events used x evaluations (for the cost per event-evaluation)
+
+    def reset(self) -> None:
+        """Forget the warm start (after a still packet)."""
+        self.omega = np.zeros(3)
+        self.omega_prev = None
+
+    def thin(self, events: Events) -> Events:
+        """Keep 1 of k events (k = ceil(n / frontend_max_packet_events)) so a packet holds at most that many;
+        uniform in the event index, so the span and the event density pattern are kept."""
+        cap = int(self.config.frontend_max_packet_events)
+        n = len(events)
+        if cap <= 0 or n <= cap:
+            return events
+        k = -(-n // cap)
+        return events[(k // 2)::k]
+
+    def warm_start(self) -> np.ndarray:
+        if self.config.frontend_warm_start == "linear" and self.omega_prev is not None:
+            return 2.0 * self.omega - self.omega_prev
+        return self.omega
 
     def compile(self) -> float:
         """Compile (or load from the offline cache) the kernels; returns seconds spent."""
@@ -241,6 +279,8 @@ class AngularVelocityEstimator:
     def estimate(self, events: Events, t_ref: float, omega0=None):
         """Maximise the normalised contrast for one packet; returns (omega, CGResult, normalised cost)."""
         cfg = self.config
+        events = self.thin(events)
+        self.events_evaluated += len(events)
         b = self.camera.bearings(events.x, events.y, dtype=self.ws.dtype)
         dts = events.t - t_ref
         self.ws.set_packet(b, dts.astype(self.ws.dtype))
@@ -256,13 +296,15 @@ class AngularVelocityEstimator:
             c, g, _ = self.ws.evaluate(x / s, self.K, measure)
             return c * scale, g * (scale / s)
 
-        w0 = self.omega if omega0 is None else np.asarray(omega0, float)
+        w0 = self.warm_start() if omega0 is None else np.asarray(omega0, float)
         res = fletcher_reeves(
             fun, w0 * s, maximize=True, init_step=cfg.frontend_cg_init_step,
             line_search_tol=cfg.frontend_cg_line_search_tol, max_iter=cfg.frontend_cg_max_iters,
             grad_tol=cfg.frontend_cg_grad_tol, rel_cost_tol=cfg.frontend_cg_rel_cost_tol,
+            max_line_evals=cfg.frontend_cg_max_line_evals, step_guess=cfg.frontend_cg_step_guess,
         )
-        self.omega = res.x / s
+        self.omega_prev, self.omega = self.omega, res.x / s
+        self.event_evaluations += n * res.evaluations
         return self.omega.copy(), res, res.fun
 
 
@@ -294,7 +336,7 @@ class FrontendRunner:
     def process(self, packet: Packet) -> np.ndarray:
         tic = time.perf_counter()
         if packet.still:
-            self.estimator.omega = np.zeros(3)
+            self.estimator.reset()
             self.rows.append((packet.t_ref, 0.0, 0.0, 0.0, 0, packet.span, 0, 0, True, np.nan))
             omega = np.zeros(3)
         else:
@@ -309,7 +351,7 @@ class FrontendRunner:
         arr = list(zip(*self.rows)) if self.rows else [()] * 10
         evals = np.asarray(arr[7], dtype=int)
         processed = self.events_processed
-        evaluated = sum(n * e for n, e in zip(arr[4], arr[7]))
+        evaluated = self.estimator.event_evaluations
         timing = {
             "compile_seconds": self.compile_seconds,
             "wall_seconds": self.seconds,
@@ -317,6 +359,7 @@ class FrontendRunner:
             "events_processed": int(processed),
             "us_per_event": self.seconds * 1e6 / processed if processed else 0.0,
             "us_per_input_event": self.seconds * 1e6 / self.events_read if self.events_read else 0.0,
+            "events_evaluated": int(self.estimator.events_evaluated),
             "evaluations": int(evals.sum()),
             "us_per_event_per_evaluation": self.seconds * 1e6 / evaluated if evaluated else 0.0,
         }

@@ -127,8 +127,18 @@ def fletcher_reeves(
     grad_tol: float = 1e-3,
     rel_cost_tol: float = 1e-4,
     max_line_evals: int = 20,
+    step_guess: str = "decrease",
 ) -> CGResult:
-    """Minimise (or maximise) fun with Fletcher-Reeves nonlinear CG; see the module docstring."""
+    """Minimise (or maximise) fun with Fletcher-Reeves nonlinear CG; see the module docstring.
+
+    ``step_guess`` chooses the first trial step of every line search after the first: ``"decrease"`` (default)
+    predicts the same first-order decrease as the last step (Nocedal & Wright eq. 3.60); ``"secant"`` puts it at
+    the minimum of the quadratic model along the new direction whose curvature is the secant one of the last
+    step, (s.y)/(s.s) (s: step, y: change of gradient), so on a near-quadratic cost the first trial is usually
+    accepted (falls back to "decrease" when s.y <= 0).
+    """
+    if step_guess not in ("decrease", "secant"):
+        raise ValueError(f"step_guess must be 'decrease' or 'secant', got {step_guess!r}")
     sign = -1.0 if maximize else 1.0
     fc = _Counted(fun, sign)
     x = np.array(x0, dtype=float)
@@ -157,7 +167,7 @@ def fletcher_reeves(
         x = x + a * p
         f_old, f = f, f_new
         g_old_p = float(g @ p)
-        g = g_new
+        g_prev, g = g, g_new
         if abs(f - f_old) <= rel_cost_tol * max(abs(f_old), 1e-300):
             converged, message = True, "relative cost tolerance reached"
             break
@@ -174,6 +184,11 @@ def fletcher_reeves(
         # next trial step: same predicted decrease as the last one (Nocedal & Wright, eq. 3.60)
         d_new = float(g @ p_new)
         alpha = a * g_old_p / d_new if d_new < 0 else init_step / np.linalg.norm(p_new)
+        if step_guess == "secant" and d_new < 0:
+            step = a * p
+            sy = float(step @ (g - g_prev))
+            if sy > 0:
+                alpha = -d_new * float(step @ step) / (sy * float(p_new @ p_new))
         if not np.isfinite(alpha) or alpha <= 0:
             alpha = init_step / np.linalg.norm(p_new)
         p, gg = p_new, gg_new
