@@ -25,6 +25,10 @@ COMMANDS = {
     "evaluate": "evaluate",
     "demo": "demo",
     "benchmark": "benchmark",
+    "sweep": "sweep",
+    "grayscale": "grayscale",
+    "star-tracking": "star_tracking",
+    "super-resolution": "super_resolution",
 }
 
 
