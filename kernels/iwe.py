@@ -18,10 +18,14 @@ g * g (zero padding on the sensor is then exact), and
     dC/domega = (2/Np) sum_k sum_{n in nbrs(k)} (H_n - mu) dw_kn/dpix . dpix_k/domega,  H = G2 I
 
 (mu = 0 for the mean square). So one evaluation = one Taichi launch with three passes:
-  1. events: warp, bilinear vote into I (atomics), sum of weights (-> mu);
-  2. rows:   T = horizontal G2 blur of I (and I is cleared row by row for the next evaluation);
-  3. events: warp again, H at the four neighbours by the vertical G2 taps gathered from T, then the
-             cost term w.H and the gradient 3-vector, reduced per block of events (no gradient image).
+  1. events: warp, bilinear vote into I, sum of weights (-> mu); the events are split into P parts
+             (P = thread count), each voting into its own copy of I with plain load/add/store: no float
+             atomics (compare-and-swap loops on CPU) and a deterministic sum. The projection (u, v), the
+             rotated bearing and the Rodrigues coefficients are kept per event for pass 3;
+  2. rows:   T = horizontal G2 blur of sum_p I_p, 8 outputs per step so LLVM can use SIMD (the copies
+             are cleared row by row for the next evaluation);
+  3. events: H at the four neighbours by the vertical G2 taps gathered from T, then the cost term w.H
+             and the gradient 3-vector from the stored warp, reduced per block of events (no gradient image).
 The vertical blur is never materialised: gathering it per event beats a full image pass with stores,
 which Taichi's CPU backend does not vectorise (measured; see the front-end issue note).
 
@@ -69,7 +73,8 @@ def measure_id(measure: str) -> int:
 
 @functools.cache
 def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int, parts: int):
-    """Fields and kernels for one float type, blur, sensor size and packet capacity (compiled once)."""
+    """Fields and kernels for one float type, blur, sensor size, packet capacity and number of vote parts
+    (compiled once)."""
     f = ti.f32 if dtype_name == "f32" else ti.f64
     r2 = (len(taps2) - 1) // 2  # radius of the G2 taps
     pady = r2 + 1  # T rows padded so the vertical gather needs no bounds checks (y0 may be -1)
@@ -185,56 +190,55 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                 q = wp[k]
                 u = q[0]
                 v = q[1]
-                if True:
-                    if u > f(-1.0):  # stored by pass 1 (no second warp)
-                        x0 = ti.cast(ti.floor(u), ti.i32)
-                        y0 = ti.cast(ti.floor(v), ti.i32)
-                        ax = u - f(x0)
-                        ay = v - f(y0)
-                        mx0 = f(x0 >= 0)
-                        mx1 = f(x0 + 1 < w)
-                        my0 = f(y0 >= 0)
-                        my1 = f(y0 + 1 < h)
-                        # H at (y0, x0), (y0, x0+1), (y0+1, x0), (y0+1, x0+1); T row of y is y + pady
-                        h00 = f(0.0)
-                        h01 = f(0.0)
-                        h10 = f(0.0)
-                        h11 = f(0.0)
-                        base = y0 + pady - r2
-                        for rr in ti.static(range(2 * r2 + 2)):
-                            t0 = tmp[base + rr, x0 + 1]
-                            t1 = tmp[base + rr, x0 + 2]
-                            if ti.static(rr <= 2 * r2):
-                                h00 += f(taps2[rr]) * t0
-                                h01 += f(taps2[rr]) * t1
-                            if ti.static(rr >= 1):
-                                h10 += f(taps2[rr - 1]) * t0
-                                h11 += f(taps2[rr - 1]) * t1
-                        h00 = my0 * mx0 * (h00 - mu)
-                        h01 = my0 * mx1 * (h01 - mu)
-                        h10 = my1 * mx0 * (h10 - mu)
-                        h11 = my1 * mx1 * (h11 - mu)
-                        # cost term sum_n w_n (H_n - mu'): sums to <I, G2 I> - mu' sum(I) = C * Np
-                        wsum = ((f(1.0) - ay) * ((f(1.0) - ax) * h00 + ax * h01)
-                                + ay * ((f(1.0) - ax) * h10 + ax * h11))
-                        acc[3] += ti.cast(wsum, ti.f64)
-                        if with_grad != 0:
-                            xr = ti.Vector([q[2], q[3], q[4]])
-                            b = q[5]
-                            c = q[6]
-                            iz = q[7]
-                            dk = ev[k][3]
-                            phi = ti.Vector([wx * dk, wy * dk, wz * dk])
-                            gu = (f(1.0) - ay) * (h01 - h00) + ay * (h11 - h10)
-                            gv = (f(1.0) - ax) * (h10 - h00) + ax * (h11 - h01)
-                            av = ti.Vector([fx * gu * iz, fy * gv * iz,
-                                            -(fx * gu * xr[0] + fy * gv * xr[1]) * iz * iz])
-                            cc = xr.cross(av)
-                            pc = phi.cross(cc)
-                            gk = dk * (cc - b * pc + c * phi.cross(pc))
-                            acc[0] += ti.cast(gk[0], ti.f64)
-                            acc[1] += ti.cast(gk[1], ti.f64)
-                            acc[2] += ti.cast(gk[2], ti.f64)
+                if u > f(-1.0):  # stored by pass 1 (no second warp)
+                    x0 = ti.cast(ti.floor(u), ti.i32)
+                    y0 = ti.cast(ti.floor(v), ti.i32)
+                    ax = u - f(x0)
+                    ay = v - f(y0)
+                    mx0 = f(x0 >= 0)
+                    mx1 = f(x0 + 1 < w)
+                    my0 = f(y0 >= 0)
+                    my1 = f(y0 + 1 < h)
+                    # H at (y0, x0), (y0, x0+1), (y0+1, x0), (y0+1, x0+1); T row of y is y + pady
+                    h00 = f(0.0)
+                    h01 = f(0.0)
+                    h10 = f(0.0)
+                    h11 = f(0.0)
+                    base = y0 + pady - r2
+                    for rr in ti.static(range(2 * r2 + 2)):
+                        t0 = tmp[base + rr, x0 + 1]
+                        t1 = tmp[base + rr, x0 + 2]
+                        if ti.static(rr <= 2 * r2):
+                            h00 += f(taps2[rr]) * t0
+                            h01 += f(taps2[rr]) * t1
+                        if ti.static(rr >= 1):
+                            h10 += f(taps2[rr - 1]) * t0
+                            h11 += f(taps2[rr - 1]) * t1
+                    h00 = my0 * mx0 * (h00 - mu)
+                    h01 = my0 * mx1 * (h01 - mu)
+                    h10 = my1 * mx0 * (h10 - mu)
+                    h11 = my1 * mx1 * (h11 - mu)
+                    # cost term sum_n w_n (H_n - mu'): sums to <I, G2 I> - mu' sum(I) = C * Np
+                    wsum = ((f(1.0) - ay) * ((f(1.0) - ax) * h00 + ax * h01)
+                            + ay * ((f(1.0) - ax) * h10 + ax * h11))
+                    acc[3] += ti.cast(wsum, ti.f64)
+                    if with_grad != 0:
+                        xr = ti.Vector([q[2], q[3], q[4]])
+                        b = q[5]
+                        c = q[6]
+                        iz = q[7]
+                        dk = ev[k][3]
+                        phi = ti.Vector([wx * dk, wy * dk, wz * dk])
+                        gu = (f(1.0) - ay) * (h01 - h00) + ay * (h11 - h10)
+                        gv = (f(1.0) - ax) * (h10 - h00) + ax * (h11 - h01)
+                        av = ti.Vector([fx * gu * iz, fy * gv * iz,
+                                        -(fx * gu * xr[0] + fy * gv * xr[1]) * iz * iz])
+                        cc = xr.cross(av)
+                        pc = phi.cross(cc)
+                        gk = dk * (cc - b * pc + c * phi.cross(pc))
+                        acc[0] += ti.cast(gk[0], ti.f64)
+                        acc[1] += ti.cast(gk[1], ti.f64)
+                        acc[2] += ti.cast(gk[2], ti.f64)
             out[2] += acc[0]
             out[3] += acc[1]
             out[4] += acc[2]
@@ -276,7 +280,7 @@ class IWEWorkspace:
     """
 
     def __init__(self, width: int, height: int, dtype=np.float32, blur_sigma: float = 1.0,
-                 capacity: int = 1 << 14, truncate: float = 4.0):
+                 capacity: int = 1 << 14, truncate: float = 4.0, parts: int | None = None):
         self.width, self.height = int(width), int(height)
         self.dtype = np.dtype(dtype)
         if self.dtype not in _DTYPES:
@@ -285,6 +289,8 @@ class IWEWorkspace:
         self.blur_sigma = float(blur_sigma)
         self.truncate = float(truncate)
         self.capacity = 1 << max(10, int(np.ceil(np.log2(max(int(capacity), 1)))))
+        # copies of I voted into without atomics by one parallel part each (default: the Taichi thread count)
+        self.parts = int(parts) if parts else None
         self._kernels = None
         self.n = 0
 
@@ -292,7 +298,7 @@ class IWEWorkspace:
         if self._kernels is None:
             ensure_init()
             self._kernels = _build(_DTYPES[self.dtype], self.taps2, self.height, self.width, self.capacity,
-                                   max(1, min(8, num_threads())))
+                                   self.parts or max(1, min(8, num_threads())))
         return self._kernels
 
     def compile(self) -> None:

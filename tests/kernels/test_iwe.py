@@ -91,3 +91,20 @@ def test_exact_rotation_and_rendering(ti_runtime):
 def test_unknown_measure_is_rejected():
     with pytest.raises(ValueError, match="unknown contrast measure"):
         iwe.measure_id("entropy")
+
+
+@pytest.mark.parametrize("parts", [1, 3])
+def test_vote_parts_and_ragged_width_match_twin(ti_runtime, parts):
+    """Votes split over several image copies, and a width that is not a multiple of the blur's SIMD group."""
+    cam = Camera(61, 37, 40.0, 41.0, 30.2, 18.4)
+    rng = np.random.default_rng(5)
+    n = 1500
+    b = cam.unproject(rng.uniform(-2, 62, n), rng.uniform(-2, 38, n))
+    dts = rng.uniform(-0.005, 0.005, n)
+    ws = iwe.IWEWorkspace(cam.width, cam.height, np.float64, capacity=n, parts=parts)
+    ws.set_packet(b, dts)
+    for om in OMEGAS:
+        c, g, _ = ws.evaluate(om, cam.K)
+        c_ref, g_ref = iwe.contrast_numpy(b, dts, om, cam.K, cam.width, cam.height)
+        assert c == pytest.approx(c_ref, rel=1e-9)
+        np.testing.assert_allclose(g, g_ref, rtol=1e-9, atol=1e-9 * np.abs(g_ref).max())

@@ -170,3 +170,40 @@ def test_min_packet_span_takes_every_event_at_high_rates():
         assert abs(len(p.events) - expected) <= 1 and len(p.events) > 2000
     fixed = list(PacketSlicer(replace(cfg, frontend_min_packet_span=0.0))([ev]))
     assert all(len(p.events) == 2000 for p in fixed[1:-1])
+
+
+def test_thinning_keeps_the_span_and_the_accuracy(ti_runtime):
+    """A packet above frontend_max_packet_events is thinned 1 of k over its whole span; omega still within 2 %."""
+    omega = np.array([-0.8, 1.6, 1.1])
+    ev = _synthetic_events(omega, 0.0, 0.01, 24000, seed=11)
+    est = AngularVelocityEstimator(CAM, FrontendConfig(frontend_max_packet_events=5000))
+    thin = est.thin(ev)
+    assert len(thin) <= 5000 and len(thin) >= 4000 and thin.duration > 0.99 * ev.duration
+    w, res, _ = est.estimate(ev, 0.005)
+    assert est.events_evaluated == len(thin)
+    assert np.linalg.norm(w - omega) < 0.02 * np.linalg.norm(omega), (w, res)
+    off = AngularVelocityEstimator(CAM, FrontendConfig(frontend_max_packet_events=0))
+    assert off.thin(ev) is ev
+
+
+def test_linear_warm_start_and_reset():
+    est = AngularVelocityEstimator(CAM, FrontendConfig(frontend_warm_start="linear"))
+    est.omega_prev, est.omega = np.array([1.0, 0.0, 0.0]), np.array([1.5, -1.0, 0.0])
+    np.testing.assert_allclose(est.warm_start(), [2.0, -2.0, 0.0])
+    est.reset()
+    assert est.omega_prev is None and not est.warm_start().any()
+    est.omega = np.array([1.5, -1.0, 0.0])  # only one previous packet: use it
+    np.testing.assert_allclose(est.warm_start(), est.omega)
+    prev = AngularVelocityEstimator(CAM, FrontendConfig(frontend_warm_start="previous"))
+    prev.omega_prev, prev.omega = np.array([1.0, 0.0, 0.0]), np.array([1.5, -1.0, 0.0])
+    np.testing.assert_allclose(prev.warm_start(), prev.omega)
+
+
+@pytest.mark.parametrize("key, value", [("frontend_warm_start", "quadratic"), ("frontend_cg_step_guess", "newton"),
+                                        ("frontend_max_packet_events", 1), ("frontend_cg_max_line_evals", 0)])
+def test_bad_speed_parameters_are_rejected(key, value):
+    from ti_cmax.errors import InputError
+    from ti_cmax.pipelines.frontend import check_config
+
+    with pytest.raises(InputError, match=key):
+        check_config(replace(FrontendConfig(), **{key: value}))

@@ -43,3 +43,19 @@ def test_relative_cost_tolerance_stops_early_and_never_returns_a_worse_point():
     assert res.converged and "relative" in res.message
     assert res.fun <= f(x0)[0]
     assert res.evaluations == len(calls) - 1
+
+
+def test_secant_step_guess_converges():
+    """The secant first trial step (used by the front-end) reaches the same solutions."""
+    a = np.array([[3.0, 0.5, 0.2], [0.5, 2.0, 0.1], [0.2, 0.1, 1.0]])
+    b = np.array([1.0, -2.0, 0.5])
+    res = fletcher_reeves(lambda x: (0.5 * x @ a @ x - b @ x, a @ x - b), np.zeros(3), grad_tol=1e-8,
+                          rel_cost_tol=0.0, line_search_tol=0.5, max_line_evals=4, step_guess="secant")
+    assert res.converged
+    np.testing.assert_allclose(res.x, np.linalg.solve(a, b), atol=1e-6)
+    res = fletcher_reeves(lambda x: (rosen(x), rosen_der(x)), [-1.2, 1.0], max_iter=500, grad_tol=1e-6,
+                          rel_cost_tol=0.0, line_search_tol=0.1, step_guess="secant")
+    assert res.converged
+    np.testing.assert_allclose(res.x, [1.0, 1.0], atol=1e-4)
+    with pytest.raises(ValueError, match="step_guess"):
+        fletcher_reeves(lambda x: (rosen(x), rosen_der(x)), np.zeros(2), step_guess="newton")
