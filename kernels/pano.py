@@ -502,6 +502,9 @@ def _vote_kernel(dtype):
         su: dtype,
         sv: dtype,
         out: ti.types.ndarray(dtype=dtype, ndim=2),
+        track: ti.i32,
+        occ_col: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        occ_row: ti.types.ndarray(dtype=ti.i32, ndim=1),
     ):
         height, width = out.shape[0], out.shape[1]
         one = ti.cast(1.0, dtype)
@@ -522,16 +525,22 @@ def _vote_kernel(dtype):
             if j0 + 1 >= 0 and j0 + 1 < height:
                 out[j0 + 1, ia] += (one - fu) * fv
                 out[j0 + 1, ib] += fu * fv
+            if track:  # mark the touched columns and rows (all writers store 1: benign races)
+                occ_col[ia] = 1
+                occ_col[ib] = 1
+                occ_row[ti.min(ti.max(j0, 0), height - 1)] = 1
+                occ_row[ti.min(ti.max(j0 + 1, 0), height - 1)] = 1
 
     return k
 
 
 def vote_map(bearings, rotations, width: int, height: int, batch_size: int | None = None, out=None,
-             dtype=np.float32) -> np.ndarray:
+             dtype=np.float32, occupancy: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Accumulate bilinear votes of R b into a panorama (h, w) (polarity ignored).
 
     ``rotations`` is per event (N, 3, 3) or, with ``batch_size``, per batch of that many consecutive events.
     ``out`` (C-contiguous, of ``dtype``) is accumulated into when given (used to grow the global map I_G).
+    ``occupancy`` = (cols (w,) int32, rows (h,) int32) arrays get 1 where a vote landed (see touched_region).
     """
     ensure_init()
     dtype = np.dtype(dtype)
@@ -544,9 +553,65 @@ def vote_map(bearings, rotations, width: int, height: int, batch_size: int | Non
         out = np.zeros((height, width), dtype=dtype)
     elif out.dtype != dtype or not out.flags.c_contiguous or out.shape != (height, width):
         raise ValueError(f"out must be a C-contiguous {dtype} array of shape {(height, width)}")
+    if occupancy is None:
+        track, occ_col, occ_row = 0, np.zeros(1, np.int32), np.zeros(1, np.int32)
+    else:
+        track, (occ_col, occ_row) = 1, occupancy
+        if occ_col.shape != (width,) or occ_row.shape != (height,) or occ_col.dtype != np.int32:
+            raise ValueError("occupancy must be int32 arrays of shapes (width,) and (height,)")
     if len(b):
-        _vote_kernel(_ti_dtype(dtype))(b, rot, bs, width / (2 * math.pi), height / math.pi, out)
+        _vote_kernel(_ti_dtype(dtype))(b, rot, bs, width / (2 * math.pi), height / math.pi, out, track,
+                                       occ_col, occ_row)
     return out
+
+
+def touched_region(occ_col: np.ndarray, occ_row: np.ndarray, margin: int):
+    """Smallest cyclic column interval and row range holding every marked column/row, grown by ``margin``.
+
+    Returns (rows slice, column indices (modulo the width)) or None when nothing is marked. The column interval
+    is the complement of the largest cyclic gap, so a region straddling the longitude seam stays small.
+    """
+    cols = np.flatnonzero(occ_col)
+    rows = np.flatnonzero(occ_row)
+    if len(cols) == 0 or len(rows) == 0:
+        return None
+    w, h = len(occ_col), len(occ_row)
+    gaps = np.diff(np.append(cols, cols[0] + w)) - 1
+    k = int(np.argmax(gaps))
+    span = w - int(gaps[k])
+    first = int(cols[(k + 1) % len(cols)])
+    if span + 2 * margin >= w:
+        col_idx = np.arange(w)
+    else:
+        col_idx = (first - margin + np.arange(span + 2 * margin)) % w
+    return slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)), col_idx
+
+
+def blur_region(raw: np.ndarray, blurred: np.ndarray, rows: slice, cols: np.ndarray, sigma: float) -> np.ndarray:
+    """Recompute ``blurred`` = blur_map(raw) on rows x cols only (in place); returns the old values there.
+
+    The input is read with a margin of the blur radius (wrapping in longitude, zeros beyond the top and bottom),
+    so the result equals the full-map blur on the region.
+    """
+    h, w = raw.shape
+    r = blur_radius(sigma)
+    old = blurred[rows][:, cols].copy()
+    if sigma <= 0:
+        blurred[rows.start:rows.stop, cols] = raw[rows][:, cols]
+        return old
+    full_width = len(cols) == w
+    in_cols = np.arange(w) if full_width else (cols[0] - r + np.arange(len(cols) + 2 * r)) % w
+    r0, r1 = rows.start - r, rows.stop + r
+    src = np.zeros((r1 - r0, len(in_cols)), np.float64)
+    lo, hi = max(r0, 0), min(r1, h)
+    src[lo - r0 : hi - r0] = raw[lo:hi][:, in_cols]
+    out = gaussian_filter1d(src, sigma, axis=1, mode="wrap" if full_width else "constant", truncate=TRUNCATE)
+    out = gaussian_filter1d(out, sigma, axis=0, mode="constant", cval=0.0, truncate=TRUNCATE)
+    out = out[r : r + (rows.stop - rows.start)]
+    if not full_width:
+        out = out[:, r : r + len(cols)]
+    blurred[rows.start:rows.stop, cols] = out
+    return old
 
 
 def render_map(bearings, times, pose_fn, width: int, height: int, batch_size: int = 100, out=None,
@@ -567,11 +632,14 @@ class PanoIWE:
     ``cost_and_grad(control_R)`` is called by the optimizer. ``batch_s``/``batch_u`` are the spline supports of the
     batches' mid-times (``SO3Spline.support(batch_mid_times(t, batch_size))``); ``global_map`` is the RAW I_G
     (blurred here once) or None. The gradient is (M, 3) float64 w.r.t. left perturbations of all M control poses
-    passed (poses the window keeps fixed are the caller's to ignore).
+    passed (poses the window keeps fixed are the caller's to ignore). Instead of ``global_map``, a caller that keeps
+    B(I_G) up to date passes ``global_blurred`` (h, w) with ``global_sums`` = (sum, sum of squares) of it: no
+    per-window work over the whole map then (large maps). ``alpha`` may be changed after construction.
     """
 
     def __init__(self, bearings, batch_s, batch_u, degree: int, width: int, height: int, sigma: float = 1.0,
-                 global_map=None, alpha: float = 1.0, batch_size: int = 100, dtype=np.float32):
+                 global_map=None, alpha: float = 1.0, batch_size: int = 100, dtype=np.float32,
+                 global_blurred=None, global_sums: tuple[float, float] | None = None):
         ensure_init()
         self.dtype = np.dtype(dtype)
         self.degree, self.width, self.height = int(degree), int(width), int(height)
@@ -587,7 +655,12 @@ class PanoIWE:
         self.radius = (len(self.taps) - 1) // 2
         self.n_px = self.width * self.height
         self.su, self.sv = self.width / (2 * math.pi), self.height / math.pi
-        if global_map is not None and alpha != 0:
+        if global_blurred is not None:
+            # the caller maintains B(I_G) and its sums incrementally (see pipelines/backend.GlobalMap)
+            self.alpha = float(alpha)
+            self.g_sum, self.g_sq = (float(v) for v in global_sums)
+            self.gmap = np.ascontiguousarray(global_blurred, dtype=self.dtype)
+        elif global_map is not None and alpha != 0:
             g = blur_map(global_map, self.sigma)
             self.alpha = float(alpha)
             self.g_sum = float(g.sum())

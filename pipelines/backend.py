@@ -24,7 +24,7 @@ import numpy as np
 
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
-from ti_cmax.kernels.pano import PanoIWE, batch_mid_times, event_density, vote_map
+from ti_cmax.kernels.pano import PanoIWE, batch_mid_times, blur_radius, blur_region, touched_region, vote_map
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
@@ -72,6 +72,77 @@ class _Buffer:
         return self.t[i0:i1], self.b[i0:i1]
 
 
+class GlobalMap:
+    """The global panoramic map I_G, its blur B(I_G) and the sums Eq. (16)-(18) need, kept up to date region by
+    region: settling a stride of events costs in proportion to the events and the area they touch, never to the
+    whole map (which matters for large maps: 8192x4096 is 33 M pixels).
+
+    Optional pixel freezing (Sec. III-C2): a pixel stops accumulating ``max_update_time`` seconds after it was
+    first observed (observation time only counts while the camera moves).
+    """
+
+    def __init__(self, width: int, height: int, sigma: float, lambda0: float, max_update_time: float | None = None):
+        self.width, self.height, self.sigma, self.lambda0 = width, height, sigma, lambda0
+        self.raw = np.zeros((height, width), np.float32)
+        self.blurred = np.zeros((height, width), np.float32)
+        self.g_sum = self.g_sq = 0.0  # sums of B(I_G) and B(I_G)^2
+        self.n_events = self.area = 0.0  # sum of I_G and its event area sum(1 - exp(-I_G / lambda0))
+        self.max_update_time = max_update_time
+        self.first_seen = None if max_update_time is None else np.full((height, width), np.inf, np.float32)
+        self._scratch = np.zeros((height, width), np.float32)  # stays zero between calls
+        self._occ = (np.zeros(width, np.int32), np.zeros(height, np.int32))
+
+    @property
+    def density(self) -> float:
+        """rho(I_G) = N_e / area (Eq. 16); 0 while empty."""
+        return self.n_events / self.area if self.area > 0 else 0.0
+
+    def _area(self, values: np.ndarray) -> float:
+        return float(np.sum(-np.expm1(-values.astype(np.float64) / self.lambda0)))
+
+    def _vote_scratch(self, bearings, rotations, batch_size, margin):
+        for occ in self._occ:
+            occ[:] = 0
+        vote_map(bearings, rotations, self.width, self.height, batch_size=batch_size, out=self._scratch,
+                 occupancy=self._occ)
+        return touched_region(*self._occ, margin)
+
+    def density_of(self, bearings, rotations, batch_size) -> float:
+        """rho of the map the given events alone would make (the local map I_L for alpha, Eq. 17)."""
+        region = self._vote_scratch(bearings, rotations, batch_size, 0)
+        if region is None:
+            return 0.0
+        rows, cols = region
+        votes = self._scratch[rows][:, cols]
+        self._scratch[rows.start:rows.stop, cols] = 0
+        area = self._area(votes)
+        return float(votes.sum(dtype=np.float64)) / area if area > 0 else 0.0
+
+    def add(self, bearings, rotations, batch_size: int, t_now: float, moving: bool = True) -> None:
+        """Vote events (per-batch rotations) into I_G and update B(I_G), the sums and the density."""
+        region = self._vote_scratch(bearings, rotations, batch_size, blur_radius(self.sigma))
+        if region is None:
+            return
+        rows, cols = region
+        votes = self._scratch[rows][:, cols]
+        self._scratch[rows.start:rows.stop, cols] = 0
+        if self.first_seen is not None:
+            seen = self.first_seen[rows][:, cols]
+            if moving:
+                seen = np.minimum(seen, np.where(votes > 0, np.float32(t_now), np.float32(np.inf)))
+                self.first_seen[rows.start:rows.stop, cols] = seen
+            votes = np.where((t_now - seen) < self.max_update_time, votes, 0).astype(np.float32)
+        old_raw = self.raw[rows][:, cols]
+        new_raw = old_raw + votes
+        self.raw[rows.start:rows.stop, cols] = new_raw
+        self.n_events += float(votes.sum(dtype=np.float64))
+        self.area += self._area(new_raw) - self._area(old_raw)
+        old_blur = blur_region(self.raw, self.blurred, rows, cols, self.sigma).astype(np.float64)
+        new_blur = self.blurred[rows][:, cols].astype(np.float64)
+        self.g_sum += float(new_blur.sum() - old_blur.sum())
+        self.g_sq += float(np.sum(new_blur * new_blur) - np.sum(old_blur * old_blur))
+
+
 class SlidingWindowBackend:
     """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""
 
@@ -80,8 +151,8 @@ class SlidingWindowBackend:
         self.width, self.height = config.pano_size
         self.t_start = float(t_start)
         self.r_start = np.eye(3) if r_start is None else np.asarray(r_start, dtype=float)
-        self.global_map = np.zeros((self.height, self.width), np.float32)
-        self.first_seen = np.full((self.height, self.width), np.inf, np.float32) if config.freeze_pixels else None
+        self.map = GlobalMap(self.width, self.height, config.backend_blur_sigma, config.lambda0,
+                             config.max_update_time if config.freeze_pixels else None)
         self.spline: SO3Spline | None = None
         self.window_start = self.t_start
         self.events = _Buffer()
@@ -233,13 +304,12 @@ class SlidingWindowBackend:
         mids = batch_mid_times(ev_t, cfg.event_batch_size)
         s, u = spline.support(mids)
         # alpha from the event densities of the initial local map and the global map (Eq. 16-17)
-        rho_g = event_density(self.global_map, cfg.lambda0)
+        rho_g = self.map.density
         if rho_g > 0:
-            local = vote_map(ev_b, spline.evaluate_at(s, u), self.width, self.height, batch_size=cfg.event_batch_size)
-            report.alpha = event_density(local, cfg.lambda0) / rho_g
+            report.alpha = self.map.density_of(ev_b, spline.evaluate_at(s, u), cfg.event_batch_size) / rho_g
         problem = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=cfg.backend_blur_sigma,
-                          global_map=self.global_map if rho_g > 0 else None, alpha=report.alpha,
-                          batch_size=cfg.event_batch_size)
+                          alpha=report.alpha, batch_size=cfg.event_batch_size,
+                          global_blurred=self.map.blurred, global_sums=(self.map.g_sum, self.map.g_sq))
         base = spline.control_R.copy()
         n_free = len(base) - first_free
         if n_free <= 0:
@@ -288,15 +358,6 @@ class SlidingWindowBackend:
         if len(ev_t):
             start, end = self.spline.valid_time_range()
             mids = np.clip(batch_mid_times(ev_t, cfg.event_batch_size), start, end)
-            rots = self.spline.evaluate(mids)
-            if self.first_seen is None:
-                vote_map(ev_b, rots, self.width, self.height, batch_size=cfg.event_batch_size, out=self.global_map)
-            else:
-                votes = vote_map(ev_b, rots, self.width, self.height, batch_size=cfg.event_batch_size)
-                hit = votes > 0
-                if not still:
-                    np.minimum(self.first_seen, np.where(hit, np.float32(t0), np.float32(np.inf)), out=self.first_seen)
-                open_px = (t0 - self.first_seen) < cfg.max_update_time
-                self.global_map += np.where(open_px | ~np.isfinite(self.first_seen), votes, 0)
+            self.map.add(ev_b, self.spline.evaluate(mids), cfg.event_batch_size, t0, moving=not still)
             self.events_settled += len(ev_t)
         self.events.drop_before(t1)

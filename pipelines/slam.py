@@ -100,7 +100,7 @@ def _compile_backend(config: SlamConfig) -> float:
                       sigma=config.backend.backend_blur_sigma, batch_size=4,
                       global_map=np.ones((h, w), np.float32), alpha=1.0)
     problem.cost_and_grad(ctrl)
-    vote_map(b, np.eye(3)[None], w, h, batch_size=4)
+    vote_map(b, np.eye(3)[None], w, h, batch_size=4, occupancy=(np.zeros(w, np.int32), np.zeros(h, np.int32)))
     return time.perf_counter() - tic
 
 
@@ -154,7 +154,7 @@ def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig()
         "parameters": config_to_dict(config),
     }
     trajectory = backend.trajectory(config.output.trajectory_rate)
-    return SlamResult(backend.spline, trajectory, backend.global_map, report, frontend, backend.windows)
+    return SlamResult(backend.spline, trajectory, backend.map.raw, report, frontend, backend.windows)
 
 
 def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: SlamConfig = SlamConfig(), *,
@@ -200,5 +200,5 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
         "us_per_event": {"backend": backend_seconds * 1e6 / max(events_read, 1)},
         "parameters": config_to_dict(config),
     }
-    return SlamResult(backend.spline, backend.trajectory(config.output.trajectory_rate), backend.global_map,
+    return SlamResult(backend.spline, backend.trajectory(config.output.trajectory_rate), backend.map.raw,
                       report, None, backend.windows)

@@ -145,3 +145,4 @@ def test_no_events_gives_constant_variance(ti_runtime):
     g = pano.blur_map(gmap, 1.0)
     assert var == pytest.approx(g.var(), rel=1e-9)
     assert not grad.any()
+

@@ -16,27 +16,31 @@ from ti_cmax.metrics import event_area_percent
 
 
 @pytest.fixture(scope="module")
-def slam_result(short_sequence):
-    return run_slam(short_sequence.events, short_sequence.camera, SlamConfig())
+def fast_sequence(ti_runtime):
+    """1.5 s with the simulator's default motion (up to 5 rad/s): long enough for the front-end to drift."""
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
+
+    return simulate_sequence(SimulatorConfig(scene="bay", duration=1.5, seed=11))
 
 
-def test_slam_beats_frontend_alone(short_sequence, slam_result):
-    gt = short_sequence.groundtruth
-    front = evaluate_rotations(gt, slam_result.frontend.trajectory())
-    slam = evaluate_rotations(gt, slam_result.trajectory)
-    assert slam.abs_rmse_deg < front.abs_rmse_deg
-    assert slam.abs_rmse_deg < 0.5
+def test_slam_beats_frontend_alone(fast_sequence):
+    seq = fast_sequence
+    result = run_slam(seq.events, seq.camera, SlamConfig())
+    front = evaluate_rotations(seq.groundtruth, result.frontend.trajectory())
+    slam = evaluate_rotations(seq.groundtruth, result.trajectory)
+    assert slam.abs_rmse_deg < 0.5 * front.abs_rmse_deg  # measured: 0.10 vs 0.76 deg
+    assert slam.abs_rmse_deg < 0.3 and slam.rel_rmse_deg_per_s < 0.3  # the issue's targets
     # the trajectory covers the events and no more; the spline is queryable anywhere inside
-    assert slam_result.trajectory.t_end <= short_sequence.events.t[-1] + 1e-9
-    t_mid = 0.5 * (slam_result.trajectory.t_start + slam_result.trajectory.t_end)
-    r = slam_result.rotation_at([t_mid])[0]
-    assert so3.geodesic_angle(r, slam_result.trajectory.at(t_mid)[0]) < 1e-3
-    rep = slam_result.report
-    assert rep["status"] == "ok" and rep["events_processed"] == len(short_sequence.events)
+    assert result.trajectory.t_end <= seq.events.t[-1] + 1e-9
+    t_mid = 0.5 * (result.trajectory.t_start + result.trajectory.t_end)
+    r = result.rotation_at([t_mid])[0]
+    assert so3.geodesic_angle(r, result.trajectory.at(t_mid)[0]) < 1e-3
+    rep = result.report
+    assert rep["status"] == "ok" and rep["events_processed"] == len(seq.events)
     assert rep["us_per_event"]["frontend"] > 0 and rep["us_per_event"]["backend"] > 0
-    assert rep["backend"]["windows_optimized"] >= 8
+    assert rep["backend"]["windows_optimized"] >= 10
     # the global map holds every settled event (bilinear votes sum to one per event, minus the polar rows)
-    assert abs(slam_result.map.sum() - len(short_sequence.events)) < 0.01 * len(short_sequence.events)
+    assert abs(result.map.sum() - len(seq.events)) < 0.01 * len(seq.events)
 
 
 def test_refine_imu_dead_reckoning_cuts_error_and_sharpens_map(short_sequence):
