@@ -46,6 +46,8 @@ class WindowReport:
     evaluations: int = 0
     variance_before: float = 0.0
     variance_after: float = 0.0
+    max_correction: float = 0.0  # largest control-pose correction (rad)
+    rejected: bool = False  # the correction exceeded backend_max_correction and was not applied
     seconds: float = 0.0
 
 
@@ -332,6 +334,12 @@ class SlidingWindowBackend:
             line_search_tol=cfg.backend_cg_line_search_tol, max_iter=cfg.backend_cg_max_iters,
             grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
         )
+        correction = np.linalg.norm(result.x.reshape(-1, 3), axis=1)
+        report.max_correction = float(correction.max())
+        if report.max_correction > cfg.backend_max_correction:
+            # a false maximum (e.g. a map too coarse for the sensor): keep the initialization for this window
+            report.rejected = True
+            return
         spline.control_R[first_free:] = so3.exp(result.x.reshape(-1, 3)) @ base[first_free:]
         self._last_correction = float(np.linalg.norm(result.x))
         report.variance_before = var0

@@ -123,9 +123,15 @@ def check_config(config: FrontendConfig) -> None:
 # streaming and slicing
 # ------------------------------------------------------------------------------------------------
 
-def as_chunks(events_or_chunks) -> Iterator[Events]:
+CHUNK_EVENTS = 1_000_000
+
+
+def as_chunks(events_or_chunks, chunk_size: int = CHUNK_EVENTS) -> Iterator[Events]:
+    """Time-ordered ``Events`` chunks from an ``Events`` object (split into views of ``chunk_size`` events, so
+    per-chunk work such as bearings stays bounded), an iterable of chunks, or a dataset with ``iter_events()``."""
     if isinstance(events_or_chunks, Events):
-        yield events_or_chunks
+        for i in range(0, len(events_or_chunks), chunk_size):
+            yield events_or_chunks[i:i + chunk_size]
         return
     if hasattr(events_or_chunks, "iter_events"):
         events_or_chunks = events_or_chunks.iter_events()

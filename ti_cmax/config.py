@@ -71,6 +71,9 @@ class BackendConfig:
     freeze_pixels: bool = False
     max_update_time: float = 10.0  # s a map pixel stays updatable once observed (if freeze_pixels)
     lambda0: float = 1.0
+    # a window whose optimum moves a control pose by more than this (rad) is a false maximum (e.g. a map too
+    # coarse for the sensor, or a textureless window): the initialization is kept for that window
+    backend_max_correction: float = 0.1
     # Fletcher-Reeves CG
     backend_cg_init_step: float = 0.1
     backend_cg_line_search_tol: float = 0.1
