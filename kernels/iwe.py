@@ -40,22 +40,13 @@ import functools
 
 import numpy as np
 
+from ti_cmax.kernels.blur import gaussian_taps
 from ti_cmax.kernels.runtime import ensure_init, num_threads, ti
 
 MEASURES = {"variance": 0, "mean_square": 1}
 _DTYPES = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
 _BLOCK = 256  # events per reduction block
 _LANES = 8  # outputs per step of the horizontal blur
-
-
-def gaussian_taps(sigma: float, truncate: float = 4.0) -> np.ndarray:
-    """Normalised 1-D Gaussian taps g[-R..R], R = int(truncate*sigma + 0.5) (scipy's rule); sigma 0 -> [1]."""
-    if sigma <= 0:
-        return np.ones(1)
-    radius = int(truncate * float(sigma) + 0.5)
-    r = np.arange(-radius, radius + 1, dtype=float)
-    g = np.exp(-0.5 * (r / sigma) ** 2)
-    return g / g.sum()
 
 
 def gram_taps(sigma: float, truncate: float = 4.0) -> np.ndarray:

@@ -31,29 +31,17 @@ import math
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
+from ti_cmax.metrics import event_area_percent
+
+from .blur import TRUNCATE, blur_radius, gaussian_taps
 from .runtime import ensure_init, ti
 from .spline import spline_funcs
 
-TRUNCATE = 4.0  # blur radius = int(TRUNCATE * sigma + 0.5), as scipy.ndimage
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # host-side helpers and numpy twins
 # ----------------------------------------------------------------------------------------------------------------
-def blur_radius(sigma: float) -> int:
-    return int(TRUNCATE * float(sigma) + 0.5)
-
-
-def gaussian_taps(sigma: float) -> np.ndarray:
-    """Normalized 1D Gaussian taps of length 2 r + 1 (scipy's truncated kernel)."""
-    r = blur_radius(sigma)
-    if sigma <= 0:
-        return np.ones(1)
-    x = np.arange(-r, r + 1, dtype=np.float64)
-    k = np.exp(-0.5 * (x / sigma) ** 2)
-    return k / k.sum()
-
-
 def blur_map(img: np.ndarray, sigma: float) -> np.ndarray:
     """Panoramic Gaussian blur (wrap along u = columns, zeros beyond the top and bottom rows), float64."""
     img = np.asarray(img, dtype=np.float64)
@@ -64,8 +52,9 @@ def blur_map(img: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def event_area(img: np.ndarray, lambda0: float = 1.0) -> float:
-    """Event area of an IWE, sum_px (1 - exp(-H / lambda0)) (paper Eq. 16, [26])."""
-    return float(np.sum(-np.expm1(-np.asarray(img, dtype=np.float64) / lambda0)))
+    """Event area of an IWE, sum_px (1 - exp(-H / lambda0)) (paper Eq. 16, [26]), in pixels."""
+    img = np.asarray(img)
+    return event_area_percent(img, lambda0) * img.size / 100.0
 
 
 def event_density(img: np.ndarray, lambda0: float = 1.0) -> float:

@@ -24,7 +24,9 @@ import numpy as np
 
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
-from ti_cmax.kernels.pano import PanoIWE, batch_mid_times, blur_radius, blur_region, touched_region, vote_map
+from ti_cmax.kernels.pano import (
+    PanoIWE, batch_mid_times, blur_radius, blur_region, event_area, touched_region, vote_map,
+)
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
@@ -100,7 +102,7 @@ class GlobalMap:
         return self.n_events / self.area if self.area > 0 else 0.0
 
     def _area(self, values: np.ndarray) -> float:
-        return float(np.sum(-np.expm1(-values.astype(np.float64) / self.lambda0)))
+        return event_area(values, self.lambda0)
 
     def _vote_scratch(self, bearings, rotations, batch_size, margin):
         for occ in self._occ:
