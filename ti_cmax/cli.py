@@ -26,6 +26,7 @@ COMMANDS = {
     "demo": "demo",
     "benchmark": "benchmark",
     "sweep": "sweep",
+    "baseline": "baseline",
     "grayscale": "grayscale",
     "star-tracking": "star_tracking",
     "super-resolution": "super_resolution",

@@ -1,0 +1,108 @@
+"""Baseline rotational trackers of the paper's benchmark (Sec. II), dispatched by name through ``BASELINES``.
+
+Each entry maps a method name to a function ``(events, camera, config: BaselineConfig, imu) -> BaselineResult``;
+adding a method is one line in ``BASELINES``. ``run_baseline(name, ...)`` is the public entry point.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ti_cmax.config import BackendConfig, DatasetConfig, OutputConfig, SlamConfig
+from ti_cmax.errors import InputError
+from ti_cmax.events import Events
+from ti_cmax.trajectory import Trajectory
+
+from .cmax_gae import GAEConfig, run_cmax_gae
+from .rtpt import RTPTConfig, run_rtpt
+
+
+@dataclass(frozen=True)
+class BaselineConfig:
+    """All parameters of ``ti-cmax baseline``: the methods' own sections plus what the offline BA (--refine) and
+    the IMU map need (backend, output)."""
+
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    rtpt: RTPTConfig = field(default_factory=RTPTConfig)
+    gae: GAEConfig = field(default_factory=GAEConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+    def slam_config(self) -> SlamConfig:
+        """The SlamConfig of the offline BA run on a baseline's trajectory."""
+        return SlamConfig(dataset=self.dataset, backend=self.backend, output=self.output)
+
+
+@dataclass
+class AngularVelocity:
+    """Angular velocity estimates of a method that has them (written as angular_velocity.txt)."""
+
+    t: np.ndarray  # (M,) s
+    omega: np.ndarray  # (M, 3) rad/s, camera frame
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+@dataclass
+class BaselineResult:
+    """A baseline's trajectory, its own map (h, w) and report (status "ok" or "lost" with lost_at)."""
+
+    trajectory: Trajectory
+    map: np.ndarray
+    report: dict
+    frontend: AngularVelocity | None = None  # name kept from SlamResult: the slam writer reads it
+
+
+def collect_events(events_or_chunks) -> Events:
+    """One ``Events`` from an Events object, an iterable of chunks, or a dataset (``iter_events``)."""
+    from ti_cmax.pipelines.frontend import as_chunks
+
+    if isinstance(events_or_chunks, Events):
+        return events_or_chunks
+    ev = Events.concatenate(list(as_chunks(events_or_chunks)))
+    if len(ev) == 0:
+        raise InputError("no events to process")
+    return ev
+
+
+def run_imu(events_or_chunks, camera, config: BaselineConfig = BaselineConfig(), imu=None) -> BaselineResult:
+    """IMU dead reckoning (gyro integration from the identity) and the panoramic IWE of the events along it."""
+    from ti_cmax.pipelines.imu import dead_reckoning
+    from ti_cmax.pipelines.panorama import render_panorama
+
+    if imu is None:
+        raise InputError("the imu baseline needs IMU data (imu.txt in the dataset folder)")
+    tic = time.perf_counter()
+    traj = dead_reckoning(imu.t, imu.gyro)
+    ev = collect_events(events_or_chunks)
+    w, h = config.backend.pano_size
+    pano = render_panorama([ev], camera, traj, w, h)
+    wall = time.perf_counter() - tic
+    report = {"status": "ok", "method": "imu", "events_processed": int(len(ev)), "imu_samples": int(len(imu.t)),
+              "wall_seconds": wall, "us_per_event": {"frontend": 0.0},
+              "parameters": {"map_size": [int(w), int(h)]}}
+    return BaselineResult(traj, pano.image, report)
+
+
+BASELINES: dict[str, Callable[..., BaselineResult]] = {
+    "rtpt": run_rtpt,
+    "cmax-gae": run_cmax_gae,
+    "imu": run_imu,
+}
+
+
+def run_baseline(name: str, events, camera, config: BaselineConfig = BaselineConfig(), imu=None) -> BaselineResult:
+    """Run the baseline ``name`` (a key of ``BASELINES``) on events (Events, chunks or a dataset)."""
+    try:
+        fn = BASELINES[name]
+    except KeyError:
+        raise InputError(f"unknown baseline {name!r} (expected one of {', '.join(BASELINES)})") from None
+    return fn(events, camera, config, imu)
+
+
+__all__ = ["BASELINES", "BaselineConfig", "BaselineResult", "AngularVelocity", "RTPTConfig", "GAEConfig",
+           "run_baseline", "run_rtpt", "run_cmax_gae", "run_imu", "collect_events"]

@@ -1,0 +1,119 @@
+"""Baselines RTPT, CMax-GAE and IMU dead reckoning: tracking accuracy, RTPT's loss at the map border, bounded
+memory of CMax-GAE, the registry and the ``baseline`` command."""
+import json
+
+import numpy as np
+import pytest
+
+from ti_cmax import cli
+from ti_cmax.errors import InputError
+from ti_cmax.metrics import evaluate_rotations
+from ti_cmax.pipelines.baselines import BASELINES, BaselineConfig, GAEConfig, run_baseline
+from ti_cmax.pipelines.baselines.cmax_gae import SphereMap
+
+
+@pytest.fixture(scope="module")
+def slow_sequence(ti_runtime):
+    """1.2 s DAVIS240C, slow small-amplitude random motion that stays near the map centre."""
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
+
+    return simulate_sequence(SimulatorConfig(scene="city", duration=1.2, max_angular_velocity=1.0, seed=1))
+
+
+def test_rtpt_tracks_near_map_centre(slow_sequence):
+    seq = slow_sequence
+    result = run_baseline("rtpt", seq.events, seq.camera)
+    rep = result.report
+    assert rep["status"] == "ok" and "lost_at" not in rep
+    assert rep["events_processed"] == len(seq.events) and rep["us_per_event"]["frontend"] > 0
+    assert rep["parameters"]["rtpt_packet_size"] == 1500 and rep["map_updates"] > 0.9 * rep["packets"]
+    err = evaluate_rotations(seq.groundtruth, result.trajectory)
+    assert err.abs_rmse_deg < 3.0
+    assert result.map.shape == (512, 1024) and 0 <= result.map.min() and result.map.max() <= 1
+
+
+def test_rtpt_loses_track_at_the_map_border(ti_runtime):
+    """A constant pan about the vertical axis: tracking is lost when the view reaches lon = +-180 deg."""
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
+
+    seq = simulate_sequence(SimulatorConfig(scene="bay", sensor="DVS128", duration=1.2, trajectory="constant",
+                                            constant_rate_deg=170.0, rotation_axis=(0.0, 1.0, 0.0), seed=1))
+    result = run_baseline("rtpt", seq.events, seq.camera)
+    rep = result.report
+    assert rep["status"] == "lost"
+    r_gt = seq.groundtruth.at([rep["lost_at"]])[0]
+    assert abs(np.degrees(np.arctan2(r_gt[0, 2], r_gt[2, 2]))) > 150  # near the border, not earlier
+    assert result.trajectory.t_end < rep["lost_at"]
+    assert evaluate_rotations(seq.groundtruth, result.trajectory).abs_rmse_deg < 3.0  # fine until then
+
+
+def test_cmax_gae_tracks_slow_sequence_with_bounded_memory(slow_sequence):
+    seq = slow_sequence
+    cfg = BaselineConfig(gae=GAEConfig(gae_sphere_height=512))
+    result = run_baseline("cmax-gae", seq.events, seq.camera, cfg)
+    rep = result.report
+    assert rep["status"] == "ok" and rep["events_used"] == (len(seq.events) + 3) // 4
+    err = evaluate_rotations(seq.groundtruth, result.trajectory)
+    assert err.abs_rmse_deg < 5.0
+    assert np.allclose(np.diff(result.trajectory.t), 0.025)  # 40 Hz poses
+    # the past-event memory has the configured fixed size, whatever the number of intervals
+    assert rep["intervals"] > 30 and rep["sphere_bytes"] == 512 * 1024 * 4
+    half = run_baseline("cmax-gae", seq.events[: len(seq.events) // 3], seq.camera,
+                        BaselineConfig(gae=GAEConfig(gae_sphere_height=512, gae_iterations=2)))
+    assert half.report["sphere_bytes"] == rep["sphere_bytes"] and result.map.shape == half.map.shape
+
+
+def test_sphere_map_size_is_fixed(ti_runtime):
+    rng = np.random.default_rng(0)
+    sphere = SphereMap(64)
+    size = sphere.nbytes
+    for _ in range(50):  # many intervals
+        b = rng.normal(size=(20000, 3)).astype(np.float32)
+        sphere.add(b, np.eye(3)[None].repeat(len(b), 0))
+    assert sphere.nbytes == size and sphere.hist.shape == (64, 128)
+    assert sphere.events == 10**6 and sphere.hist.sum() == pytest.approx(10**6, rel=0.05)
+
+
+def test_registry_and_unknown_name(slow_sequence):
+    assert {"rtpt", "cmax-gae", "imu"} <= set(BASELINES)
+    with pytest.raises(InputError, match="unknown baseline 'nope'.*rtpt"):
+        run_baseline("nope", slow_sequence.events, slow_sequence.camera)
+    with pytest.raises(InputError, match="IMU"):
+        run_baseline("imu", slow_sequence.events, slow_sequence.camera)
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(ti_runtime, tmp_path_factory):
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence, write_sequence
+
+    seq = simulate_sequence(SimulatorConfig(scene="bay", sensor="DVS128", duration=0.6, max_angular_velocity=1.5,
+                                            seed=4))
+    out = tmp_path_factory.mktemp("bl") / "tiny"
+    write_sequence(seq, out)
+    return out
+
+
+def test_baseline_command(tiny_dataset, tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(cli.COMMANDS, "baseline", "baseline")  # registered by the lead in cli.py
+    out = tmp_path / "rtpt"
+    assert cli.main(["baseline", "rtpt", str(tiny_dataset), "--out", str(out), "--quiet", "--refine",
+                     "--set", "rtpt_pano_height=256", "--set", "pano_height=256"]) == 0
+    for name in ("trajectory.txt", "map.png", "map.npy", "report.json", "config.yaml",
+                 "refined/trajectory.txt", "refined/map.png", "refined/report.json"):
+        assert (out / name).is_file(), name
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["status"] == "ok" and rep["method"] == "rtpt" and rep["parameters"]["rtpt_pano_height"] == 256
+    assert json.loads((out / "refined" / "report.json").read_text())["method"] == "cmax-ba"
+    out = tmp_path / "gae"
+    assert cli.main(["baseline", "cmax-gae", str(tiny_dataset), "--out", str(out), "--quiet"]) == 0
+    assert np.loadtxt(out / "angular_velocity.txt").shape[1] == 4 and (out / "map.png").is_file()
+    out = tmp_path / "imu"
+    assert cli.main(["baseline", "imu", str(tiny_dataset), "--out", str(out), "--quiet"]) == 0
+    assert json.loads((out / "report.json").read_text())["status"] == "ok"
+    assert len(np.loadtxt(out / "trajectory.txt")) > 100
+    capsys.readouterr()
+    bad = tmp_path / "bad"
+    assert cli.main(["baseline", "smt-nope", str(tiny_dataset), "--out", str(bad), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown baseline 'smt-nope'" in err[0]
+    assert not bad.exists()
