@@ -18,6 +18,7 @@ from ti_cmax.trajectory import Trajectory
 
 from .cmax_gae import GAEConfig, run_cmax_gae
 from .rtpt import RTPTConfig, run_rtpt
+from .smt import SmtConfig, smt_ekf_baseline, smt_pf_baseline
 
 
 @dataclass(frozen=True)
@@ -28,6 +29,7 @@ class BaselineConfig:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     rtpt: RTPTConfig = field(default_factory=RTPTConfig)
     gae: GAEConfig = field(default_factory=GAEConfig)
+    smt: SmtConfig = field(default_factory=SmtConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
@@ -92,17 +94,23 @@ BASELINES: dict[str, Callable[..., BaselineResult]] = {
     "rtpt": run_rtpt,
     "cmax-gae": run_cmax_gae,
     "imu": run_imu,
+    "smt-ekf": smt_ekf_baseline,
+    "smt-pf": smt_pf_baseline,
 }
 
 
-def run_baseline(name: str, events, camera, config: BaselineConfig = BaselineConfig(), imu=None) -> BaselineResult:
-    """Run the baseline ``name`` (a key of ``BASELINES``) on events (Events, chunks or a dataset)."""
+def run_baseline(name: str, events, camera, config: BaselineConfig = BaselineConfig(), imu=None,
+                 **extra) -> BaselineResult:
+    """Run the baseline ``name`` (a key of ``BASELINES``) on events (Events, chunks or a dataset).
+
+    ``extra`` goes to methods that take more inputs (SMT: ``groundtruth`` to bootstrap without IMU,
+    ``contrast_threshold``)."""
     try:
         fn = BASELINES[name]
     except KeyError:
         raise InputError(f"unknown baseline {name!r} (expected one of {', '.join(BASELINES)})") from None
-    return fn(events, camera, config, imu)
+    return fn(events, camera, config, imu, **extra)
 
 
 __all__ = ["BASELINES", "BaselineConfig", "BaselineResult", "AngularVelocity", "RTPTConfig", "GAEConfig",
-           "run_baseline", "run_rtpt", "run_cmax_gae", "run_imu", "collect_events"]
+           "SmtConfig", "run_baseline", "run_rtpt", "run_cmax_gae", "run_imu", "collect_events"]

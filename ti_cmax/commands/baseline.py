@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "run a baseline method (rtpt, cmax-gae, imu, ...): trajectory.txt, map.png, report.json [--refine]"
+HELP = "run a baseline method (smt-ekf, smt-pf, rtpt, cmax-gae, imu): trajectory.txt, map.png, report.json [--refine]"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,7 +32,12 @@ def run(args) -> int:
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     camera = dataset.camera
     imu = dataset.imu  # the imu baseline needs it; others may use it (e.g. bootstrapping)
-    result = run_baseline(args.name, dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, imu=imu)
+    extra = {}
+    if args.name.startswith("smt"):  # SMT bootstraps from IMU, or ground truth where no IMU exists (playroom)
+        from ..pipelines.baselines.smt import smt_contrast
+
+        extra = {"groundtruth": dataset.groundtruth, "contrast_threshold": smt_contrast(cfg.smt, args.dataset)}
+    result = run_baseline(args.name, dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, imu=imu, **extra)
     refined = None
     if args.refine:
         from ..pipelines.slam import refine

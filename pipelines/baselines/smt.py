@@ -1,0 +1,522 @@
+"""SMT baseline (Kim et al. BMVC 2014, as re-implemented by the paper, Sec. II-A, App. B): simultaneous mosaicing
+and tracking with a particle-filter (PF-SMT) or an error-state EKF (EKF-SMT) tracker.
+
+Mapping: :class:`~ti_cmax.pipelines.mapping.GrayscaleMapper` (per-pixel EKF on the log-intensity gradient,
+outliers beyond 10 map px, 5 visits cap; Poisson M only for the output map). Tracking: events in batches of
+``batch_size`` sharing one pose R (world_from_camera). Each event's brightness increment since the previous event at
+its sensor pixel is predicted from the GRADIENT map, z_hat = g(p_mid) . dp (kernels/smt.py), and compared with
+p_k C. Why the gradient map and not a periodically refreshed Poisson M: it is what the mapping EKFs estimate (the
+same linearized model, Eq. 38, so tracker and mapper agree on the sign and scale of g), it is current after every
+map update (no Poisson solve, no refresh lag, no smoothing-in of unmapped areas), and it carries a covariance, so
+measurements on unmapped or unconverged pixels weigh little by themselves (S = sigma^2 + dp^T P_g dp). The cost
+is the linearization over |dp| <= 10 px, which the mapper assumes anyway.
+
+* EKF-SMT: state R, error d with R = exp(d) R_hat; random-walk prediction P += (sigma_w dt)^2 I; update with
+  Huber-weighted normal equations of the batch (iterated ``ekf_iterations`` times).
+* PF-SMT: ``num_particles`` poses, random walk exp(n) R with n ~ N(0, (sigma_w dt)^2 I), weights times
+  prod_k (N(r_k; 0, S_k) + floor), systematic resampling when the effective sample size drops below
+  ``pf_resample_ess`` N; estimate = weighted mean on SO(3); numpy Generator seeded by ``seed``.
+
+Map gain: at the end of the bootstrap (known poses) the ratio k of the observed increments p C to the predicted
+g . dp is measured and C, sigma are divided by it (see :func:`_calibrate_gain`; k ~ 1.2 on DAVIS240C data at
+1024 x 512). Without it EKF-SMT drifts several times faster on the simulated sequences.
+
+The tracker keeps its own per-sensor-pixel memory (index of the batch pose of the previous event), so the mapper
+can be updated in chunks of ``map_update_events`` events, lagging the tracker (as in a parallel tracking-and-mapping
+system). Bootstrapping: for the first ``bootstrap_seconds`` the poses come from IMU dead reckoning (started at the
+ground-truth pose when it is known) or from ground truth when there is no IMU.
+
+Tracking loss, judged over a sliding window of ``loss_window`` s once tracking started: too few measurements land
+on mapped pixels (map support), the predicted increments agree in sign with the polarities barely more often than
+chance (likelihood collapse), or the estimate diverges (pose std, angular speed, non-finite values). The result
+then has status "lost", ``lost_at`` (start of the window that failed) and a trajectory that ends there.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Iterable
+
+import numpy as np
+
+from ti_cmax import so3
+from ti_cmax.camera import Camera
+from ti_cmax.errors import InputError
+from ti_cmax.events import Events
+from ti_cmax.kernels import mapping as km
+from ti_cmax.kernels import smt as ks
+from ti_cmax.kernels.pano import batch_mid_times
+from ti_cmax.trajectory import Trajectory
+
+from ..imu import dead_reckoning
+from ..mapping import GrayscaleConfig, GrayscaleMapper, GrayscaleResult, resolve_contrast
+
+TRACKERS = ("ekf", "pf")
+
+
+@dataclass(frozen=True)
+class SmtConfig:
+    """Parameters of SMT (load with ``load_config(SmtConfig, ...)``; mapping keys as ``mapping.<name>``)."""
+
+    tracker: str = "ekf"  # "ekf" (EKF-SMT) or "pf" (PF-SMT)
+    batch_size: int = 100  # events sharing one tracker pose (EKF-SMT)
+    pf_batch_size: int = 200  # same for PF-SMT (its cost per batch is ~num_particles times the EKF's)
+    bootstrap_seconds: float = 0.5  # poses from IMU dead reckoning (or ground truth) at the start
+    measurement_sigma: float = 0.1  # std of z = p C around the predicted increment (log intensity)
+    min_displacement_px: float = 0.05  # map displacement below which an event says nothing about the pose
+    angular_velocity_std: float = 4.0  # rad/s: random-walk step std per batch = this * batch duration
+    min_step_std: float = 2e-4  # rad, floor of that step std
+    initial_std_deg: float = 0.3  # std of the pose at the end of the bootstrap
+    ekf_iterations: int = 2  # Gauss-Newton iterations of the EKF update per batch
+    huber: float = 2.0  # EKF: Huber threshold on normalized residuals
+    num_particles: int = 100
+    pf_outlier_density: float = 0.05  # PF: floor added to each event's Gaussian likelihood (robustness)
+    pf_resample_ess: float = 0.5  # resample when ESS < this * num_particles
+    seed: int = 0
+    gain_calibration_seconds: float = 0.1  # end of the bootstrap used to calibrate the map gain (0: gain 1)
+    map_update_events: int = 5000  # tracked events buffered before the mapping EKFs take them
+    loss_window: float = 0.1  # s, sliding window of the loss checks
+    loss_min_measurements: int = 200  # measurements in the window needed to judge support and agreement
+    loss_min_support: float = 0.1  # fraction of measurements on mapped pixels
+    loss_min_agreement: float = 0.55  # fraction of supported measurements whose predicted sign matches p
+    loss_max_std_deg: float = 5.0  # pose std (EKF covariance / particle spread)
+    loss_max_angular_velocity: float = 50.0  # rad/s over the window
+    mapping: GrayscaleConfig = field(default_factory=lambda: GrayscaleConfig(
+        outlier_distance_px=10.0, max_updates_per_pixel=5, pano_height=512))
+
+    def __post_init__(self):
+        if self.tracker not in TRACKERS:
+            raise InputError(f"unknown SMT tracker {self.tracker!r} (expected one of {', '.join(TRACKERS)})")
+        positive = ("batch_size", "pf_batch_size", "measurement_sigma", "angular_velocity_std", "min_step_std",
+                    "initial_std_deg",
+                    "ekf_iterations", "huber", "num_particles", "pf_outlier_density", "map_update_events",
+                    "loss_window", "loss_max_std_deg", "loss_max_angular_velocity")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise InputError(f"{name} must be positive, got {getattr(self, name)}")
+        for name in ("bootstrap_seconds", "min_displacement_px", "loss_min_measurements", "gain_calibration_seconds"):
+            if getattr(self, name) < 0:
+                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("pf_resample_ess", "loss_min_support", "loss_min_agreement"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise InputError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+
+
+@dataclass
+class SmtResult:
+    trajectory: Trajectory  # poses at the batch mid-times, up to lost_at when tracking was lost
+    map: GrayscaleResult  # .log_intensity, .to_uint8() for the PNG
+    report: dict  # status ("ok" | "lost"), lost_at, lost_reason, events_processed, wall_seconds, us_per_event, ...
+
+    @property
+    def status(self) -> str:
+        return self.report["status"]
+
+
+def smt_contrast(config: SmtConfig, dataset_path=None) -> float:
+    """C: mapping.contrast_threshold if set, else the simulator's (0.2) next to a simulated dataset, else 0.22."""
+    return resolve_contrast(config.mapping, dataset_path)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# small SO(3) helpers (3x3, hot path)
+# ------------------------------------------------------------------------------------------------------------
+def _exp1(phi: np.ndarray) -> np.ndarray:
+    th = math.sqrt(float(phi @ phi))
+    k = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if th < 1e-8:
+        return np.eye(3) + k
+    return np.eye(3) + (math.sin(th) / th) * k + ((1 - math.cos(th)) / (th * th)) * (k @ k)
+
+
+def _orthonormalize(r: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(r)
+    return u @ vt
+
+
+def weighted_mean_rotation(rotations: np.ndarray, weights: np.ndarray, iterations: int = 2) -> np.ndarray:
+    """Weighted Karcher mean of (N, 3, 3) rotations (left perturbations), started at the heaviest one."""
+    mean = rotations[int(np.argmax(weights))]
+    for _ in range(iterations):
+        d = so3.log(rotations @ mean.T)
+        mean = _exp1(weights @ d) @ mean
+    return mean
+
+
+def systematic_resample(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Indices of a systematic resampling of normalized ``weights`` (one uniform draw)."""
+    n = len(weights)
+    positions = (rng.random() + np.arange(n)) / n
+    cum = np.cumsum(weights)
+    cum[-1] = 1.0
+    return np.minimum(np.searchsorted(cum, positions, side="right"), n - 1)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# trackers: one batch at a time
+# ------------------------------------------------------------------------------------------------------------
+@dataclass
+class _Context:
+    """Arrays shared by the trackers: events (bearings, polarity, batch of the previous event at the same sensor
+    pixel), batch mid-times, pose history (map dtype for the kernels, float64 for the output), the mapper."""
+
+    bearings: np.ndarray
+    pol: np.ndarray
+    prev_batch: np.ndarray
+    mids: np.ndarray
+    hist: np.ndarray
+    hist64: np.ndarray
+    mapper: GrayscaleMapper
+    contrast: float  # C / map gain
+    sigma: float  # measurement_sigma / map gain
+    batch_size: int
+
+    def measure_args(self, b: int):
+        bs, n = self.batch_size, len(self.pol)
+        e0, e1 = b * bs, min((b + 1) * bs, n)
+        pb = self.prev_batch[e0:e1]
+        m = self.mapper
+        uv = ks.project_prev(self.hist, pb, self.bearings[e0:e1], m.width, m.height, m.dtype)
+        return self.bearings[e0:e1], uv, (pb >= 0).astype(np.int8), self.pol[e0:e1]
+
+
+class EkfTracker:
+    """Error-state EKF on SO(3), random-walk motion model, batched brightness-increment updates; a chunk of
+    batches per kernel launch (kernels/smt.ekf_track)."""
+
+    name = "ekf"
+
+    def __init__(self, r0: np.ndarray, cfg: SmtConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self.state_R = np.array(r0, np.float64).reshape(1, 3, 3).copy()
+        self.state_P = (np.eye(3) * np.radians(cfg.initial_std_deg) ** 2).reshape(1, 3, 3).copy()
+
+    def run(self, b0: int, b1: int, ctx: _Context) -> np.ndarray:
+        """Track batches b0..b1-1; returns (b1 - b0, 4): valid, supported, agreeing measurements, pose std (deg)."""
+        c, m = self.cfg, ctx.mapper
+        diag = ks.ekf_track(ctx.hist, ctx.hist64, ctx.mids, b0, b1, ctx.batch_size, ctx.bearings, ctx.prev_batch,
+                            ctx.pol, m.gradient, m.covariance, m.updates, ctx.contrast, ctx.sigma,
+                            m.config.outlier_distance_px, c.min_displacement_px, c.huber, c.angular_velocity_std,
+                            c.min_step_std, c.ekf_iterations, self.state_R, self.state_P)
+        diag[:, 3] = np.degrees(np.sqrt(np.maximum(diag[:, 3], 0.0)))
+        return diag
+
+
+class PfTracker:
+    """Bootstrap particle filter on SO(3): random walk, per-event likelihoods, systematic resampling."""
+
+    name = "pf"
+
+    def __init__(self, r0: np.ndarray, cfg: SmtConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+        n = cfg.num_particles
+        noise = rng.normal(scale=np.radians(cfg.initial_std_deg), size=(n, 3))
+        self.particles = so3.exp(noise) @ np.asarray(r0, np.float64)
+        self.logw = np.zeros(n)
+        self.R = np.array(r0, np.float64)
+        self.resamples = 0
+
+    def step(self, dt: float, ctx: _Context, b: int) -> np.ndarray:
+        """One batch: (valid, supported, agreeing measurements at the estimate, particle spread in deg)."""
+        cfg, m = self.cfg, ctx.mapper
+        n = len(self.particles)
+        std = max(cfg.angular_velocity_std * dt, cfg.min_step_std)
+        self.particles = so3.exp(self.rng.normal(scale=std, size=(n, 3))) @ self.particles
+        bear, uv, valid, pol = ctx.measure_args(b)
+        out = m.config.outlier_distance_px
+        ll = ks.pf_loglik(self.particles, bear, uv, valid, pol, m.gradient, m.covariance, m.updates, ctx.contrast,
+                          ctx.sigma, out, cfg.min_displacement_px, cfg.pf_outlier_density)
+        logw = self.logw + ll
+        logw -= logw.max()
+        w = np.exp(logw)
+        w /= w.sum()
+        self.R = _orthonormalize(weighted_mean_rotation(self.particles, w))
+        d = so3.log(self.particles @ self.R.T)
+        spread = float(np.degrees(np.sqrt(np.max(w @ (d * d)))))
+        if 1.0 / np.sum(w * w) < cfg.pf_resample_ess * n:
+            self.particles = self.particles[systematic_resample(w, self.rng)]
+            self.logw = np.zeros(n)
+            self.resamples += 1
+        else:
+            self.logw = np.log(np.maximum(w, 1e-300))
+        acc = ks.ekf_accumulate(self.R, bear, uv, valid, pol, m.gradient, m.covariance, m.updates, ctx.contrast,
+                                ctx.sigma, out, cfg.min_displacement_px, cfg.huber)
+        return np.array([acc[9], acc[10], acc[11], spread])
+
+    def run(self, b0: int, b1: int, ctx: _Context) -> np.ndarray:
+        diag = np.zeros((b1 - b0, 4))
+        for b in range(b0, b1):
+            diag[b - b0] = self.step(float(ctx.mids[b] - ctx.mids[b - 1]), ctx, b)
+            ctx.hist64[b] = self.R
+            ctx.hist[b] = self.R
+        return diag
+
+
+# ------------------------------------------------------------------------------------------------------------
+# the pipeline
+# ------------------------------------------------------------------------------------------------------------
+def _bootstrap_trajectory(events: Events, imu, groundtruth: Trajectory | None, seconds: float):
+    if imu is not None and len(getattr(imu, "t", ())) >= 2:
+        r0 = groundtruth.at(imu.t[0])[0] if groundtruth is not None else None
+        return dead_reckoning(imu.t, imu.gyro, r0), "imu"
+    if groundtruth is not None:
+        return groundtruth, "groundtruth"
+    if seconds > 0:
+        raise InputError("SMT needs IMU data or ground truth to bootstrap (or bootstrap_seconds=0)")
+    return Trajectory(np.array([events.t[0]]), np.eye(3)[None]), "identity"
+
+
+def _previous_batch(pix: np.ndarray, batch_size: int) -> np.ndarray:
+    """For each event, the batch of the previous event at its sensor pixel; -1 when there is none or when it
+    is in the same batch (that increment is split between events sharing one pose: not a measurement)."""
+    n = len(pix)
+    order = np.argsort(pix, kind="stable")
+    same = pix[order[1:]] == pix[order[:-1]]
+    prev = np.full(n, -1, np.int64)
+    prev[order[1:][same]] = order[:-1][same]
+    pb = np.where(prev >= 0, prev // batch_size, -1)
+    own = np.arange(n) // batch_size
+    pb[pb == own] = -1
+    return pb.astype(np.int32)
+
+
+def _calibrate_gain(cfg: SmtConfig, mapper: GrayscaleMapper, contrast: float, events: Events, bearings, prev_batch,
+                    hist, mids, nbb: int, bs: int, max_batches: int = 400) -> float:
+    """Map gain k with p C ~ k g . dp, from the bootstrap's last gain_calibration_seconds (known poses).
+
+    The mapping EKFs fit g per map pixel by least squares over events of every displacement, which weighs the
+    long displacements on an edge's shoulders most; most events, though, fire on the steep part with short
+    displacements, so g . dp under-predicts their increment (by ~20% on DAVIS240C data at 1024 x 512). Left
+    uncorrected, the tracker reads the missing increment as extra motion: a velocity bias that SMT's
+    relative measurements integrate into drift. k = mean(p C) / mean(p z_hat) over mapped measurements
+    (a ratio of means, unbiased by zero-mean noise in z_hat), clipped to [0.5, 2]; C and sigma are divided by k.
+    """
+    first = int(np.searchsorted(mids, mids[nbb - 1] - cfg.gain_calibration_seconds, side="left"))
+    first = max(first, 1)
+    batches = np.arange(first, nbb)
+    if len(batches) > max_batches:
+        batches = batches[np.linspace(0, len(batches) - 1, max_batches).astype(np.int64)]
+    n, tot = len(events), np.zeros(ks.N_ACC)
+    w, h = mapper.width, mapper.height
+    for b in batches:
+        e0, e1 = b * bs, min((b + 1) * bs, n)
+        pb = prev_batch[e0:e1]
+        uv = ks.project_prev(hist, pb, bearings[e0:e1], w, h, mapper.dtype)
+        tot += ks.ekf_accumulate(hist[b], bearings[e0:e1], uv, (pb >= 0).astype(np.int8), events.p[e0:e1],
+                                 mapper.gradient, mapper.covariance, mapper.updates, contrast,
+                                 cfg.measurement_sigma, mapper.config.outlier_distance_px,
+                                 cfg.min_displacement_px, cfg.huber)
+    if tot[10] < 100 or tot[14] <= 0:
+        return 1.0
+    return float(np.clip(contrast * tot[10] / tot[14], 0.5, 2.0))
+
+
+def _loss_reason(cfg: SmtConfig, std_deg: float, hist64, mids, window, sums, b: int, nbb: int) -> str:
+    """Why tracking is lost at batch b ("" if it is not): see the module doc."""
+    if not np.all(np.isfinite(hist64[b])) or not np.isfinite(std_deg):
+        return "divergence: non-finite state"
+    if std_deg > cfg.loss_max_std_deg:
+        return f"divergence: pose std {std_deg:.2f} deg"
+    if mids[b] - mids[nbb] < cfg.loss_window:
+        return ""
+    b0 = window[0][1]
+    span = mids[b] - mids[b0]
+    if span > 0.5 * cfg.loss_window:
+        rate = float(so3.geodesic_angle(hist64[b0], hist64[b])) / span
+        if rate > cfg.loss_max_angular_velocity:
+            return f"divergence: {rate:.1f} rad/s"
+    if sums[0] >= cfg.loss_min_measurements:
+        support = sums[1] / sums[0]
+        if support < cfg.loss_min_support:
+            return f"map support: {100 * support:.1f}% of measurements on mapped pixels"
+        if sums[1] >= cfg.loss_min_measurements and sums[2] / sums[1] < cfg.loss_min_agreement:
+            return f"likelihood collapse: polarity agreement {100 * sums[2] / sums[1]:.1f}%"
+    return ""
+
+
+def _warm_up(dtype) -> float:
+    start = time.perf_counter()
+    km.warm_up(dtype)
+    grad = np.zeros((2, 4, 2), dtype)
+    cov = np.ones((2, 4, 3), dtype)
+    upd = np.zeros((2, 4), np.int32)
+    b = np.array([[0.0, 0.0, 1.0]], dtype)
+    uv = ks.project_prev(np.eye(3)[None], np.zeros(1, np.int32), b, 4, 2, dtype)
+    one = np.ones(1, np.int8)
+    ks.ekf_accumulate(np.eye(3), b, uv, one, one, grad, cov, upd, 0.2, 0.1, 10.0, 0.0, 2.0)
+    ks.pf_loglik(np.eye(3)[None], b, uv, one, one, grad, cov, upd, 0.2, 0.1, 10.0, 0.0, 0.05)
+    hist = np.repeat(np.eye(3, dtype=dtype)[None], 2, axis=0)
+    ks.ekf_track(hist, hist.astype(np.float64), np.array([0.0, 1e-3]), 1, 2, 1, np.repeat(b, 2, axis=0),
+                 np.array([-1, 0], np.int32), np.ones(2, np.int8), grad, cov, upd, 0.2, 0.1, 10.0, 0.0, 2.0, 1.0,
+                 1e-4, 1, np.eye(3)[None].copy(), np.eye(3)[None] * 1e-4)
+    return time.perf_counter() - start
+
+
+def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig | None = None,
+            tracker: str | None = None, imu=None, groundtruth: Trajectory | None = None,
+            contrast_threshold: float | None = None) -> SmtResult:
+    """Run PF-SMT or EKF-SMT on time-ordered events (an Events or an iterable of chunks, concatenated).
+
+    ``tracker`` overrides ``config.tracker``. ``imu``: an object with t (N,) and gyro (N, 3) in the camera frame
+    (ti_cmax.io.ImuData); ``groundtruth`` bootstraps when there is no IMU (and fixes the world frame of the IMU
+    dead reckoning). ``contrast_threshold``: C (default: :func:`smt_contrast` without a dataset path, i.e.
+    mapping.contrast_threshold or 0.22). Never raises on tracking failure: see ``report['status']``.
+    """
+    cfg = config or SmtConfig()
+    if tracker is not None:
+        cfg = dataclasses.replace(cfg, tracker=tracker)
+    if not isinstance(events, Events):
+        events = Events.concatenate(list(events))
+    if len(events) < 2:
+        raise InputError(f"SMT needs events, got {len(events)}")
+    wall0 = time.perf_counter()
+    contrast = float(contrast_threshold) if contrast_threshold else smt_contrast(cfg)
+    mcfg = cfg.mapping
+    width, height = mcfg.pano_size
+    mapper = GrayscaleMapper(camera, width, height, mcfg, contrast)
+    dtype = mapper.dtype
+    compile_seconds = _warm_up(dtype)
+
+    bs = cfg.batch_size if cfg.tracker == "ekf" else cfg.pf_batch_size
+    n = len(events)
+    nb = -(-n // bs)
+    mids = batch_mid_times(events.t, bs)
+    bearings = np.ascontiguousarray(camera.bearings(events.x, events.y, dtype=dtype))
+    pix = km.sensor_index(events.x, events.y, camera.width)
+    prev_batch = _previous_batch(pix, bs)
+    hist = np.zeros((nb, 3, 3), dtype)  # poses as the kernels read them
+    hist64 = np.zeros((nb, 3, 3))
+
+    boot, boot_source = _bootstrap_trajectory(events, imu, groundtruth, cfg.bootstrap_seconds)
+    t_boot = events.t[0] + cfg.bootstrap_seconds
+    nbb = min(max(int(np.searchsorted(mids, t_boot, side="left")), 1), nb)
+    hist64[:nbb] = boot.at(mids[:nbb])
+    hist[:nbb] = hist64[:nbb]
+
+    map_batches = max(1, cfg.map_update_events // bs)
+    mapped = 0  # batches already given to the mapper
+
+    def feed_mapper(upto: int):
+        nonlocal mapped
+        while mapped < upto:
+            hi = min(upto, mapped + map_batches)
+            e0, e1 = mapped * bs, min(hi * bs, n)
+            mapper.update(events[e0:e1], hist[mapped:hi], bs, bearings=bearings[e0:e1], batch_times=mids[mapped:hi])
+            mapped = hi
+
+    feed_mapper(nbb)
+    gain = _calibrate_gain(cfg, mapper, contrast, events, bearings, prev_batch, hist, mids, nbb, bs) \
+        if cfg.gain_calibration_seconds > 0 else 1.0
+    c_eff, sigma_eff = contrast / gain, cfg.measurement_sigma / gain
+    t_track0 = time.perf_counter()
+    rng = np.random.default_rng(cfg.seed)
+    trk = (EkfTracker if cfg.tracker == "ekf" else PfTracker)(hist64[nbb - 1], cfg, rng)
+    ctx = _Context(bearings, np.ascontiguousarray(events.p, np.int8), prev_batch, mids, hist, hist64, mapper, c_eff,
+                   sigma_eff, bs)
+
+    window: deque = deque()
+    sums = np.zeros(3)  # valid, supported, agree in the window
+    status, reason, lost_batch, detected_at = "ok", "", nb, None
+    diag_total = np.zeros(3)
+    b0 = nbb
+    while b0 < nb and status == "ok":
+        b1 = min(b0 + map_batches, nb)
+        diag = trk.run(b0, b1, ctx)
+        for i, b in enumerate(range(b0, b1)):  # loss checks, batch by batch
+            d = diag[i, :3]
+            diag_total += d
+            window.append((mids[b], b, d))
+            sums += d
+            while window and window[0][0] < mids[b] - cfg.loss_window:
+                sums -= window.popleft()[2]
+            why = _loss_reason(cfg, diag[i, 3], hist64, mids, window, sums, b, nbb)
+            if why:
+                status, reason = "lost", why
+                detected_at = float(mids[b])
+                lost_t = max(detected_at - cfg.loss_window, float(mids[nbb - 1]))
+                lost_batch = int(np.searchsorted(mids, lost_t, side="right"))
+                break
+        if status == "ok":
+            feed_mapper(b1)
+        b0 = b1
+    track_seconds = time.perf_counter() - t_track0
+    feed_mapper(min(lost_batch, nb))
+    gmap = mapper.reconstruct()
+    end = min(lost_batch, nb)
+    keep = np.concatenate([[True], np.diff(mids[:end]) > 0])
+    trajectory = Trajectory(mids[:end][keep], hist64[:end][keep])
+    events_processed = min(end * bs, n)
+    wall = time.perf_counter() - wall0 - compile_seconds
+    tracked_events = max(events_processed - nbb * bs, 0)
+    report = {
+        "method": f"smt-{cfg.tracker}",
+        "status": status,
+        "lost_at": float(trajectory.t_end) if status == "lost" else None,
+        "lost_detected_at": detected_at,
+        "lost_reason": reason or None,
+        "events_total": int(n),
+        "events_processed": int(events_processed),
+        "events_tracked": int(tracked_events),
+        "bootstrap_source": boot_source,
+        "bootstrap_end": float(mids[nbb - 1]),
+        "contrast_threshold": contrast,
+        "map_gain": gain,
+        "wall_seconds": wall,
+        "compile_seconds": compile_seconds,
+        "tracking_seconds": track_seconds,
+        "us_per_event": 1e6 * wall / max(events_processed, 1),
+        "tracking_us_per_event": 1e6 * track_seconds / max(tracked_events, 1),
+        "measurements": {"valid": int(diag_total[0]), "supported": int(diag_total[1]), "agree": int(diag_total[2])},
+        "map": gmap.summary(),
+        "parameters": dataclasses.asdict(cfg),
+    }
+    if cfg.tracker == "pf":
+        report["resamples"] = int(trk.resamples)
+    return SmtResult(trajectory, gmap, report)
+
+
+def run_smt_ekf(events, camera, config: SmtConfig | None = None, **kwargs) -> SmtResult:
+    """EKF-SMT: :func:`run_smt` with tracker="ekf"."""
+    return run_smt(events, camera, config, tracker="ekf", **kwargs)
+
+
+def run_smt_pf(events, camera, config: SmtConfig | None = None, **kwargs) -> SmtResult:
+    """PF-SMT: :func:`run_smt` with tracker="pf"."""
+    return run_smt(events, camera, config, tracker="pf", **kwargs)
+
+
+def _as_baseline(tracker: str, events_or_chunks, camera, config=None, imu=None, groundtruth=None,
+                 contrast_threshold=None):
+    """Registry adapter: (events, camera, BaselineConfig, imu) -> BaselineResult (map: the 8-bit grayscale
+    panorama; report['us_per_event'] = {'frontend': ...} like the other baselines, the SMT figures kept apart).
+    The SMT parameters come from ``config.smt`` when the BaselineConfig has that section, else the defaults."""
+    from . import BaselineResult, collect_events
+
+    cfg = getattr(config, "smt", None) or SmtConfig()
+    res = run_smt(collect_events(events_or_chunks), camera, cfg, tracker=tracker, imu=imu,
+                  groundtruth=groundtruth, contrast_threshold=contrast_threshold)
+    report = dict(res.report)
+    report["smt_us_per_event"] = report["us_per_event"]
+    report["us_per_event"] = {"frontend": report["smt_us_per_event"]}
+    report["map_image"] = "8-bit grayscale panorama (Poisson-integrated log intensity)"
+    return BaselineResult(res.trajectory, res.map.to_uint8(cfg.mapping.display_percentile_low,
+                                                          cfg.mapping.display_percentile_high), report)
+
+
+def smt_ekf_baseline(events_or_chunks, camera, config=None, imu=None, **kwargs):
+    """Registry entry "smt-ekf" (BASELINES signature)."""
+    return _as_baseline("ekf", events_or_chunks, camera, config, imu, **kwargs)
+
+
+def smt_pf_baseline(events_or_chunks, camera, config=None, imu=None, **kwargs):
+    """Registry entry "smt-pf" (BASELINES signature)."""
+    return _as_baseline("pf", events_or_chunks, camera, config, imu, **kwargs)
+
+
+__all__ = ["SmtConfig", "SmtResult", "run_smt", "run_smt_ekf", "run_smt_pf", "smt_ekf_baseline", "smt_pf_baseline",
+           "smt_contrast", "TRACKERS",
+           "EkfTracker", "PfTracker", "systematic_resample", "weighted_mean_rotation"]
