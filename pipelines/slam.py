@@ -157,14 +157,26 @@ def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig()
     return SlamResult(backend.spline, trajectory, backend.map.raw, report, frontend, backend.windows)
 
 
+def _at_frontend_rate(trajectory: Trajectory, dt: float) -> Trajectory:
+    if len(trajectory) < 3 or np.median(np.diff(trajectory.t)) >= 0.999 * dt:
+        return trajectory
+    times = np.arange(trajectory.t_start, trajectory.t_end, dt)
+    if trajectory.t_end - times[-1] > 1e-9:
+        times = np.append(times, trajectory.t_end)
+    return trajectory.resampled(times)
+
+
 def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: SlamConfig = SlamConfig(), *,
            progress_total: float | None = None) -> SlamResult:
     """Offline BA: refine a given trajectory over the whole stream with the sliding-window machinery.
 
     The result stays in the given trajectory's world frame (it starts from the given pose at the first event).
-    Events outside the given trajectory's time range are ignored.
+    Events outside the given trajectory's time range are ignored. Trajectories sampled faster than the front-end
+    (IMU at 1 kHz, RTPT per packet) are resampled at 1/dt_ang_vel first: the back-end initializes from poses at
+    the front-end's rate (with 1 kHz sources the cubic fit was measured to end windows worse: 0.31 vs 0.11 deg).
     """
     wall0 = time.perf_counter()
+    trajectory = _at_frontend_rate(trajectory, config.frontend.dt_ang_vel)
     compile_s = _compile_backend(config)
     feed = _BackendFeed(camera, config, lambda t0: trajectory.at(t0)[0])
     inside = (ev.slice_time(trajectory.t_start, np.nextafter(trajectory.t_end, np.inf))

@@ -34,7 +34,7 @@ class FrontendConfig:
     frontend_min_event_rate: float = 10000.0  # events/s floor of the "bounded" rule
     # packets take at least every event within t_ref +- span/2 (high event rates: N events would cover too
     # little motion to measure); 0 disables (the reference's fixed N)
-    frontend_min_packet_span: float = 0.02
+    frontend_min_packet_span: float = 0.04
     # packets holding more events than this are thinned uniformly (1 of k, k = ceil(n / max)) before the
     # optimisation: the span (motion) is kept, the cost per packet is bounded at high event rates; 0 disables
     frontend_max_packet_events: int = 20000
@@ -63,7 +63,9 @@ class BackendConfig:
     backend_event_sample_rate: int = 1
     backend_time_window_size: float = 0.2
     backend_sliding_window_stride: float = 0.1
-    spline_degree: int = 1  # 1 linear, 3 cubic
+    # 1 linear, 3 cubic. The reference defaults to linear; cubic is measured better at a similar cost on every
+    # simulated sequence we ran (rel RMSE 0.12-0.30 vs 0.25-0.36 deg/s, abs 0.07-0.18 vs 0.09-0.21 deg)
+    spline_degree: int = 3
     dt_knots: float = 0.05  # control-pose spacing (s)
     pano_height: int = 512
     pano_width: int = 0  # 0 means 2 * pano_height

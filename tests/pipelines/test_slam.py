@@ -28,7 +28,7 @@ def test_slam_beats_frontend_alone(fast_sequence):
     result = run_slam(seq.events, seq.camera, SlamConfig())
     front = evaluate_rotations(seq.groundtruth, result.frontend.trajectory())
     slam = evaluate_rotations(seq.groundtruth, result.trajectory)
-    assert slam.abs_rmse_deg < 0.5 * front.abs_rmse_deg  # measured: 0.10 vs 0.76 deg
+    assert slam.abs_rmse_deg < front.abs_rmse_deg  # measured: 0.067 vs 0.151 deg
     assert slam.abs_rmse_deg < 0.3 and slam.rel_rmse_deg_per_s < 0.3  # the issue's targets
     # the trajectory covers the events and no more; the spline is queryable anywhere inside
     assert result.trajectory.t_end <= seq.events.t[-1] + 1e-9
@@ -77,13 +77,14 @@ def test_backend_initialization_follows_the_source_without_refinement(short_sequ
     assert err.abs_max_deg < 0.3  # linear spline at 20 Hz vs the smooth ground truth
 
 
-def test_cubic_spline_slam_runs(short_sequence):
+def test_linear_spline_slam_runs(short_sequence):
+    """The reference's linear spline (the default is cubic)."""
     seq = short_sequence
     ev = seq.events.slice_time(seq.events.t[0], seq.events.t[0] + 0.6)
-    cfg = load_config(SlamConfig, None, ["spline_degree=3"])
+    cfg = load_config(SlamConfig, None, ["spline_degree=1"])
     res = run_slam(ev, seq.camera, cfg)
     err = evaluate_rotations(seq.groundtruth, res.trajectory)
-    assert res.report["backend"]["spline_degree"] == 3 and err.abs_rmse_deg < 1.0
+    assert res.report["backend"]["spline_degree"] == 1 and err.abs_rmse_deg < 1.0
 
 
 def test_cli_slam_refine_imu_map_evaluate(short_dataset, tmp_path, capsys):

@@ -12,7 +12,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", metavar="DATASET", help="dataset folder (ECD layout) or events file")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--spline", choices=("linear", "cubic"), default=None,
-                        help="trajectory model (default: spline_degree of the config, linear)")
+                        help="trajectory model (default: spline_degree of the config, cubic)")
 
 
 def spline_override(args) -> list[str]:
