@@ -25,6 +25,22 @@ class Block:
     nlines: int = 0  # text files: newlines in the block
 
 
+def grouped_blocks(arrays, block: int, make_events) -> Iterator[Block]:
+    """Group record arrays (one per message/packet) into Blocks of at least ``block`` events; ``make_events``
+    turns the concatenated records into Events. Used by the message-based formats (ROS bags, AEDAT4)."""
+    parts, n, first = [], 0, 0
+    for arr in arrays:
+        if len(arr):
+            parts.append(arr)
+            n += len(arr)
+        if n >= block:
+            yield Block(make_events(np.concatenate(parts)), None, first)
+            first += n
+            parts, n = [], 0
+    if parts:
+        yield Block(make_events(np.concatenate(parts)), None, first)
+
+
 def _where(block: Block, i: int) -> dict:
     if block.lines is not None:
         return {"line": int(block.lines[i])}

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..events import Events
-from ._common import Block
+from ._common import Block, grouped_blocks
 from .text import ImuData
 
 G = 9.80665
@@ -54,24 +54,13 @@ class Aedat4Source:
             raise InputError(f"cannot decode AEDAT4 data (truncated or corrupt?): {exc}", source=self.source) from None
 
     def iter_blocks(self, t_start=None) -> Iterator[Block]:
-        parts, n, first = [], 0, 0
-        for pk in self._packets():
-            if pk.get("stream_id") != self.stream_id or "events" not in pk:
-                continue
-            parts.append(pk["events"])
-            n += len(pk["events"])
-            if n >= self.block:
-                yield self._block(parts, first)
-                first += n
-                parts, n = [], 0
-        if parts:
-            yield self._block(parts, first)
+        arrays = (pk["events"] for pk in self._packets()
+                  if pk.get("stream_id") == self.stream_id and "events" in pk)
+        return grouped_blocks(arrays, self.block, self._events)
 
     @staticmethod
-    def _block(parts, first) -> Block:
-        a = np.concatenate(parts)
-        return Block(Events(a["t"].astype(np.float64) * 1e-6, a["x"], a["y"], np.where(a["on"], 1, -1).astype(np.int8)),
-                     None, first)
+    def _events(a) -> Events:
+        return Events(a["t"].astype(np.float64) * 1e-6, a["x"], a["y"], np.where(a["on"], 1, -1).astype(np.int8))
 
     def _scan(self):
         if self._summary is None:

@@ -18,7 +18,7 @@ from ..camera import Camera
 from ..errors import InputError
 from ..events import Events
 from ..trajectory import Trajectory
-from ._common import Block
+from ._common import Block, grouped_blocks
 from .text import ImuData
 
 EVENT_ARRAY = "dvs_msgs/msg/EventArray"
@@ -109,24 +109,14 @@ class BagSource:
 
     def iter_blocks(self, t_start=None) -> Iterator[Block]:
         with _reader(self.path) as r:
-            parts, n, first = [], 0, 0
-            for k, (_, _, raw) in enumerate(r.messages(connections=self._connections(r, EVENT_ARRAY, self.topic))):
-                _, _, arr = self._decode(raw, k)
-                if len(arr):
-                    parts.append(arr)
-                    n += len(arr)
-                if n >= self.block:
-                    yield self._block(parts, first)
-                    first += n
-                    parts, n = [], 0
-            if parts:
-                yield self._block(parts, first)
+            messages = r.messages(connections=self._connections(r, EVENT_ARRAY, self.topic))
+            yield from grouped_blocks((self._decode(raw, k)[2] for k, (_, _, raw) in enumerate(messages)),
+                                      self.block, self._events)
 
     @staticmethod
-    def _block(parts, first) -> Block:
-        a = np.concatenate(parts)
+    def _events(a) -> Events:
         t = a["sec"].astype(np.float64) + 1e-9 * a["nsec"].astype(np.float64)
-        return Block(Events(t, a["x"], a["y"], np.where(a["p"] > 0, 1, -1).astype(np.int8)), None, first)
+        return Events(t, a["x"], a["y"], np.where(a["p"] > 0, 1, -1).astype(np.int8))
 
     def time_range(self):
         first = last = None
