@@ -290,36 +290,60 @@ class AngularVelocityEstimator:
         self.ws.compile()
         return time.perf_counter() - t0
 
-    def estimate(self, events: Events, t_ref: float, omega0=None):
-        """Maximise the normalised contrast for one packet; returns (omega, CGResult, normalised cost)."""
-        cfg = self.config
+    def _objective(self, events: Events, t_ref: float):
+        """Load a packet (thinned); returns (fun, s): fun(x) = normalised contrast and gradient at omega = x / s,
+        s = focal * max |t - t_ref| (pixels per rad/s, so CG steps are in pixels of motion blur)."""
         events = self.thin(events)
         self.events_evaluated += len(events)
         b = self.camera.bearings(events.x, events.y, dtype=self.ws.dtype)
         dts = events.t - t_ref
         self.ws.set_packet(b, dts.astype(self.ws.dtype))
         n = len(events)
-        s = self.focal * float(np.max(np.abs(dts)))
+        s = self.focal * float(np.max(np.abs(dts))) if n else 0.0
         if not s > 0:
             raise InputError("packet has no time extent")
         mu0 = n / float(self.camera.width * self.camera.height)
         scale = 1.0 / (mu0 * mu0)
-        measure = cfg.contrast_measure
+        measure = self.config.contrast_measure
 
         def fun(x):
             c, g, _ = self.ws.evaluate(x / s, self.K, measure)
             return c * scale, g * (scale / s)
 
-        w0 = self.warm_start() if omega0 is None else np.asarray(omega0, float)
-        res = fletcher_reeves(
-            fun, w0 * s, maximize=True, init_step=cfg.frontend_cg_init_step,
+        return fun, s, n
+
+    def _maximize(self, fun, x0):
+        cfg = self.config
+        return fletcher_reeves(
+            fun, x0, maximize=True, init_step=cfg.frontend_cg_init_step,
             line_search_tol=cfg.frontend_cg_line_search_tol, max_iter=cfg.frontend_cg_max_iters,
             grad_tol=cfg.frontend_cg_grad_tol, rel_cost_tol=cfg.frontend_cg_rel_cost_tol,
             max_line_evals=cfg.frontend_cg_max_line_evals, step_guess=cfg.frontend_cg_step_guess,
         )
+
+    def estimate(self, events: Events, t_ref: float, omega0=None):
+        """Maximise the normalised contrast for one packet; returns (omega, CGResult, normalised cost)."""
+        fun, s, n = self._objective(events, t_ref)
+        w0 = self.warm_start() if omega0 is None else np.asarray(omega0, float)
+        res = self._maximize(fun, w0 * s)
         self.omega_prev, self.omega = self.omega, res.x / s
         self.event_evaluations += n * res.evaluations
         return self.omega.copy(), res, res.fun
+
+    def contrast_ratio(self, events: Events, t_ref: float, omega) -> tuple[float, np.ndarray]:
+        """How well ``omega`` (another method's angular velocity) explains one packet: its contrast over the best
+        contrast CG finds from the better of ``omega`` and the warm start (1: a local optimum; well below 1: the
+        events say the motion differs). Returns (ratio, best omega); the best becomes the warm start."""
+        fun, s, n = self._objective(events, t_ref)
+        omega = np.asarray(omega, float)
+        given = fun(omega * s)[0]
+        warm = self.warm_start()
+        x0 = omega * s if given >= fun(warm * s)[0] else warm * s
+        res = self._maximize(fun, x0)
+        self.event_evaluations += n * (res.evaluations + 2)
+        best_c, best_x = (res.fun, res.x) if res.fun > given else (given, omega * s)
+        self.omega_prev, self.omega = self.omega, best_x / s
+        return (float(max(given, 0.0) / best_c) if best_c > 0 else 1.0), self.omega.copy()
 
 
 class FrontendRunner:

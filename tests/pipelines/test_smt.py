@@ -45,7 +45,11 @@ def test_ekf_smt_tracks_with_imu_bootstrap(city):
 
 def test_pf_smt_tracks_and_is_reproducible(city):
     res = _run(city, "pf")
-    assert res.report["status"] == "ok"
+    rep = res.report
+    # the particle filter may lose track on this sequence (it did once its velocity error exceeded ~0.5 rad/s at
+    # 1.3 s: 0.8 -> 5.9 deg in 0.2 s); what it returns must be accurate and cover most of the tracking time
+    assert rep["status"] == "ok" or rep["lost_reason"], rep
+    assert res.trajectory.t_end > 1.0
     err = evaluate_rotations(city.groundtruth, res.trajectory)
     assert err.abs_rmse_deg < 6.0, err.abs_rmse_deg
     # same seed, same result; another seed, another result (0.5 s bootstrap + 0.15 s of tracking)
@@ -56,6 +60,26 @@ def test_pf_smt_tracks_and_is_reproducible(city):
     np.testing.assert_array_equal(a.trajectory.R, b.trajectory.R)
     assert not np.array_equal(a.trajectory.R, c.trajectory.R)
     assert a.report["resamples"] > 0
+
+
+@pytest.mark.parametrize("scene,seed", [("bicycle", 0), ("bay", 1)])
+def test_ekf_smt_never_returns_a_silently_bad_trajectory(ti_runtime, scene, seed):
+    """Simulator defaults (peak 5 rad/s), the first two seeds, two textures: declared before any run, not picked
+    from results (the duration was raised from 1.2 to 2 s because at 1.2 s neither run drifted). Without the
+    consistency check EKF-SMT drifted to 9-17 deg RMSE with status "ok" on 2-2.5 s sequences like these (bay
+    seed 1: 17 deg; measured 0.87 deg up to lost_at 1.28 s with the check; bicycle seed 0: ok, 0.28 deg, with
+    and without); whatever it returns (whole sequence or up to lost_at) must be accurate."""
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
+
+    seq = simulate_sequence(SimulatorConfig(scene=scene, duration=2.0, seed=seed))
+    res = _run(seq, "ekf")
+    rep = res.report
+    assert rep["status"] in ("ok", "lost") and rep["consistency"]["checks"] > 0
+    if rep["status"] == "lost":
+        assert rep["lost_reason"] and rep["lost_at"] >= rep["bootstrap_end"]
+    if res.trajectory.t_end - res.trajectory.t_start > 0.55:  # enough poses to score (1 s relative pairs aside)
+        err = evaluate_rotations(seq.groundtruth, res.trajectory)
+        assert err.abs_rmse_deg < 3.0, (err.abs_rmse_deg, rep["status"], rep["lost_at"])
 
 
 def test_pure_noise_is_reported_lost_not_raised(ti_runtime):
@@ -73,7 +97,7 @@ def test_pure_noise_is_reported_lost_not_raised(ti_runtime):
                       tracker=tracker, groundtruth=gt, contrast_threshold=0.2)
         rep = res.report
         assert rep["status"] == "lost", rep
-        assert rep["lost_reason"] and 0.3 <= rep["lost_at"] < 1.0
+        assert rep["lost_reason"] and rep["bootstrap_end"] <= rep["lost_at"] < 1.0
         assert res.trajectory.t_end <= rep["lost_at"] + 1e-9
         assert rep["events_processed"] < n
 
@@ -159,3 +183,30 @@ def test_registry_adapter_returns_baseline_result(city):
     assert res.report["us_per_event"]["frontend"] > 0
     assert res.map.dtype == np.uint8 and res.map.shape == (512, 1024)
     assert res.trajectory.t_end > 0.65
+
+
+# --- motion consistency: the events judge the tracker's angular velocity ---------------------------------------
+def test_consistency_check_passes_truth_and_flags_a_velocity_error(city):
+    """Ground-truth poses are consistent all along; the same poses with 2 rad/s added about the camera x axis
+    from t = 0.9 s fail, and the failing run starts at that time, not before."""
+    from ti_cmax.pipelines.baselines.consistency import MotionConsistencyCheck
+
+    times = np.arange(0.0, 1.5, 0.002)
+    truth = city.groundtruth.at(times)
+    extra = np.clip(times - 0.9, 0.0, None) * 2.0
+    wrong = truth @ so3.exp(np.outer(extra, [1.0, 0.0, 0.0]))  # right (camera-frame) perturbation
+    results = {}
+    for name, poses in (("truth", truth), ("wrong", wrong)):
+        check = MotionConsistencyCheck(city.camera, 0.3, 0.05, 0.04, 0.9, 2)
+        failed_from = None
+        for t_done in np.arange(0.35, 1.5, 0.1):  # fed in pieces, like the tracker does
+            failed_from = check.update(city.events, times, poses, float(t_done))
+            if failed_from is not None:
+                break
+        results[name] = (failed_from, check.summary())
+    failed, summary = results["truth"]
+    assert failed is None and summary["checks"] >= 20
+    assert summary["min_ratio"] > 0.95, summary
+    failed, summary = results["wrong"]
+    assert failed is not None and 0.85 <= failed <= 1.0, (failed, summary)
+    assert summary["min_ratio"] < 0.8
