@@ -27,8 +27,9 @@ from ..frontend import AngularVelocityEstimator
 class MotionConsistencyCheck:
     """Contrast ratios of a tracker's angular velocity over windows of ``span`` s centred every ``interval`` s.
 
-    ``update(events, times, poses, t_done)`` checks every window that ends by ``t_done`` and returns the start
-    of the first failing window of a failing run (None while consistent): tracking fails when the mean ratio of
+    Streaming: ``update(events, times, poses, t_done)`` takes the events and tracker poses that are new since the
+    last call (it keeps only the tail it still needs), checks every window that ends by ``t_done`` and returns
+    the start of the first window of a failing run (None while consistent): tracking fails when the mean ratio of
     the last ``checks`` windows is below ``min_ratio``. Windows with fewer events than the front-end's minimum
     event rate times ``span`` are skipped (nothing to judge).
     """
@@ -42,29 +43,53 @@ class MotionConsistencyCheck:
         self.recent: deque = deque(maxlen=max(int(checks), 1))
         self.ratios: list[float] = []
         self.seconds = 0.0  # spent checking (part of the tracker's wall time)
+        self._events: list[Events] = []
+        self._times: list[np.ndarray] = []
+        self._poses: list[np.ndarray] = []
 
     def compile(self) -> float:
         return self.estimator.compile()
 
+    def _trim(self) -> None:
+        keep_from = self.next_centre - self.half
+        while len(self._events) > 1 and self._events[0].t[-1] < keep_from:
+            self._events.pop(0)
+        while len(self._times) > 1 and self._times[1][0] <= keep_from:  # keep the last pose before keep_from
+            self._times.pop(0)
+            self._poses.pop(0)
+
     def update(self, events: Events, times: np.ndarray, poses: np.ndarray, t_done: float) -> float | None:
-        """``times`` / ``poses`` (world_from_camera) of the tracker so far, valid up to ``t_done``."""
-        while self.next_centre + self.half <= t_done:
+        """New ``events`` and tracker ``times`` / ``poses`` (world_from_camera), the poses valid up to ``t_done``."""
+        if len(events):
+            self._events.append(events)
+        if len(times):
+            self._times.append(np.asarray(times, np.float64))
+            self._poses.append(np.asarray(poses, np.float64))
+        if self.next_centre + self.half > t_done or not self._times:
+            self._trim()
+            return None
+        ev = Events.concatenate(self._events) if len(self._events) > 1 else self._events[0]
+        times, poses = np.concatenate(self._times), np.concatenate(self._poses)
+        self._events, self._times, self._poses = [ev], [times], [poses]
+        failed = None
+        while failed is None and self.next_centre + self.half <= t_done:
             tc = self.next_centre
             self.next_centre += self.interval
             a = int(np.searchsorted(times, tc - self.half, side="left"))
             b = int(np.searchsorted(times, tc + self.half, side="right")) - 1
-            i0, i1 = np.searchsorted(events.t, [tc - self.half, tc + self.half])
+            i0, i1 = np.searchsorted(ev.t, [tc - self.half, tc + self.half])
             if b <= a or times[b] <= times[a] or i1 - i0 < self.min_events:
                 continue
             omega = so3.log(poses[a].T @ poses[b]) / (times[b] - times[a])  # camera frame (right increment)
             tic = time.perf_counter()
-            ratio, _ = self.estimator.contrast_ratio(events[i0:i1], tc, omega)
+            ratio, _ = self.estimator.contrast_ratio(ev[i0:i1], tc, omega)
             self.seconds += time.perf_counter() - tic
             self.ratios.append(ratio)
             self.recent.append((tc - self.half, ratio))
             if len(self.recent) == self.recent.maxlen and np.mean([r for _, r in self.recent]) < self.min_ratio:
-                return self.recent[0][0]
-        return None
+                failed = self.recent[0][0]
+        self._trim()
+        return failed
 
     def summary(self) -> dict:
         r = np.asarray(self.ratios)

@@ -41,7 +41,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Iterable
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -82,6 +82,7 @@ class SmtConfig:
     seed: int = 0
     gain_calibration_seconds: float = 0.1  # end of the bootstrap used to calibrate the map gain (0: gain 1)
     map_update_events: int = 5000  # tracked events buffered before the mapping EKFs take them
+    chunk_events: int = 1_000_000  # events per streamed chunk (the first one spans the bootstrap)
     loss_window: float = 0.1  # s, sliding window of the loss checks
     loss_min_measurements: int = 200  # measurements in the window needed to judge support and agreement
     loss_min_support: float = 0.1  # fraction of measurements on mapped pixels
@@ -103,7 +104,7 @@ class SmtConfig:
             raise InputError(f"unknown SMT tracker {self.tracker!r} (expected one of {', '.join(TRACKERS)})")
         positive = ("batch_size", "pf_batch_size", "measurement_sigma", "angular_velocity_std", "min_step_std",
                     "initial_std_deg",
-                    "ekf_iterations", "huber", "num_particles", "pf_outlier_density", "map_update_events",
+                    "ekf_iterations", "huber", "num_particles", "pf_outlier_density", "map_update_events", "chunk_events",
                     "loss_window", "loss_max_std_deg", "loss_max_angular_velocity", "consistency_span",
                     "consistency_checks")
         for name in positive:
@@ -283,23 +284,64 @@ def _bootstrap_trajectory(events: Events, imu, groundtruth: Trajectory | None, s
     return Trajectory(np.array([events.t[0]]), np.eye(3)[None]), "identity"
 
 
-def _previous_batch(pix: np.ndarray, batch_size: int) -> np.ndarray:
-    """For each event, the batch of the previous event at its sensor pixel; -1 when there is none or when it
-    is in the same batch (that increment is split between events sharing one pose: not a measurement)."""
+def _aligned_chunks(chunks: Iterable[Events], batch_size: int, bootstrap_seconds: float,
+                    size: int) -> Iterator[Events]:
+    """Re-cut time-ordered chunks at batch boundaries: the first piece holds every event of the bootstrap
+    (t < t_0 + bootstrap_seconds, rounded up to whole batches: bootstrap and gain calibration happen in one
+    piece), the next ones ``size`` events (a multiple of the batch size), the last whatever remains."""
+    size = max(size // batch_size, 1) * batch_size
+    pending: list[Events] = []
+    count, want, t_boot = 0, None, None
+    for chunk in chunks:
+        if not len(chunk):
+            continue
+        if t_boot is None:
+            t_boot = float(chunk.t[0]) + bootstrap_seconds
+        pending.append(chunk)
+        count += len(chunk)
+        while pending:
+            if want is None:  # the bootstrap piece: complete once an event at or after t_boot has arrived
+                if pending[-1].t[-1] < t_boot:
+                    break
+                buf = Events.concatenate(pending) if len(pending) > 1 else pending[0]
+                pending = [buf]
+                want = max(-(-int(np.searchsorted(buf.t, t_boot, side="left")) // batch_size), 1) * batch_size
+            if count < want:
+                break
+            buf = Events.concatenate(pending) if len(pending) > 1 else pending[0]
+            yield buf[:want]
+            pending = [buf[want:]] if len(buf) > want else []
+            count -= want
+            want = size
+    if pending:
+        yield Events.concatenate(pending) if len(pending) > 1 else pending[0]
+
+
+def _previous_batch(pix: np.ndarray, batch_size: int, carried: np.ndarray | None = None, offset: int = 0):
+    """Per event of a chunk, the local batch index (chunk batch j -> offset + j) of the previous event at its
+    sensor pixel; -1 when there is none or when it is in the same batch (that increment is split between events
+    sharing one pose: not a measurement). ``carried`` (per sensor pixel, -1: none) gives the previous event of
+    each pixel's first event in the chunk. Also returns (pixels, chunk batch of their last event in the chunk)."""
     n = len(pix)
     order = np.argsort(pix, kind="stable")
     same = pix[order[1:]] == pix[order[:-1]]
     prev = np.full(n, -1, np.int64)
     prev[order[1:][same]] = order[:-1][same]
-    pb = np.where(prev >= 0, prev // batch_size, -1)
     own = np.arange(n) // batch_size
+    pb = np.where(prev >= 0, prev // batch_size, -1)
     pb[pb == own] = -1
-    return pb.astype(np.int32)
+    pb[pb >= 0] += offset
+    if carried is not None and n:
+        firsts = order[np.concatenate([[True], ~same])]
+        pb[firsts] = carried[pix[firsts]]
+    lasts = order[np.concatenate([~same, [True]])] if n else order
+    return pb.astype(np.int32), pix[lasts], lasts // batch_size
 
 
-def _calibrate_gain(cfg: SmtConfig, mapper: GrayscaleMapper, contrast: float, events: Events, bearings, prev_batch,
-                    hist, mids, nbb: int, bs: int, max_batches: int = 400) -> float:
-    """Map gain k with p C ~ k g . dp, from the bootstrap's last gain_calibration_seconds (known poses).
+def _calibrate_gain(cfg: SmtConfig, mapper: GrayscaleMapper, contrast: float, pol, bearings, prev_batch,
+                    hist, mids, b_first: int, b_end: int, bs: int, max_batches: int = 400) -> float:
+    """Map gain k with p C ~ k g . dp, from the bootstrap's last gain_calibration_seconds (known poses: local
+    batches b_first..b_end-1 of the first chunk, whose events start at b * bs in ``pol`` / ``bearings``).
 
     The mapping EKFs fit g per map pixel by least squares over events of every displacement, which weighs the
     long displacements on an edge's shoulders most; most events, though, fire on the steep part with short
@@ -308,18 +350,17 @@ def _calibrate_gain(cfg: SmtConfig, mapper: GrayscaleMapper, contrast: float, ev
     relative measurements integrate into drift. k = mean(p C) / mean(p z_hat) over mapped measurements
     (a ratio of means, unbiased by zero-mean noise in z_hat), clipped to [0.5, 2]; C and sigma are divided by k.
     """
-    first = int(np.searchsorted(mids, mids[nbb - 1] - cfg.gain_calibration_seconds, side="left"))
-    first = max(first, 1)
-    batches = np.arange(first, nbb)
+    first = int(np.searchsorted(mids[:b_end], mids[b_end - 1] - cfg.gain_calibration_seconds, side="left"))
+    batches = np.arange(max(first, b_first), b_end)
     if len(batches) > max_batches:
         batches = batches[np.linspace(0, len(batches) - 1, max_batches).astype(np.int64)]
-    n, tot = len(events), np.zeros(ks.N_ACC)
+    n, tot = len(pol), np.zeros(ks.N_ACC)
     w, h = mapper.width, mapper.height
     for b in batches:
         e0, e1 = b * bs, min((b + 1) * bs, n)
         pb = prev_batch[e0:e1]
         uv = ks.project_prev(hist, pb, bearings[e0:e1], w, h, mapper.dtype)
-        tot += ks.ekf_accumulate(hist[b], bearings[e0:e1], uv, (pb >= 0).astype(np.int8), events.p[e0:e1],
+        tot += ks.ekf_accumulate(hist[b], bearings[e0:e1], uv, (pb >= 0).astype(np.int8), pol[e0:e1],
                                  mapper.gradient, mapper.covariance, mapper.updates, contrast,
                                  cfg.measurement_sigma, mapper.config.outlier_distance_px,
                                  cfg.min_displacement_px, cfg.huber)
@@ -328,18 +369,19 @@ def _calibrate_gain(cfg: SmtConfig, mapper: GrayscaleMapper, contrast: float, ev
     return float(np.clip(contrast * tot[10] / tot[14], 0.5, 2.0))
 
 
-def _loss_reason(cfg: SmtConfig, std_deg: float, hist64, mids, window, sums, b: int, nbb: int) -> str:
-    """Why tracking is lost at batch b ("" if it is not): see the module doc."""
-    if not np.all(np.isfinite(hist64[b])) or not np.isfinite(std_deg):
+def _loss_reason(cfg: SmtConfig, std_deg: float, R_now, t_now: float, t_track0: float, window, sums) -> str:
+    """Why tracking is lost now ("" if it is not): see the module doc. ``window`` holds (t, R, counts) of the
+    batches of the last loss_window s, ``sums`` their counts (valid, supported, agreeing measurements)."""
+    if not np.all(np.isfinite(R_now)) or not np.isfinite(std_deg):
         return "divergence: non-finite state"
     if std_deg > cfg.loss_max_std_deg:
         return f"divergence: pose std {std_deg:.2f} deg"
-    if mids[b] - mids[nbb] < cfg.loss_window:
+    if t_now - t_track0 < cfg.loss_window:
         return ""
-    b0 = window[0][1]
-    span = mids[b] - mids[b0]
+    t_first, R_first = window[0][0], window[0][1]
+    span = t_now - t_first
     if span > 0.5 * cfg.loss_window:
-        rate = float(so3.geodesic_angle(hist64[b0], hist64[b])) / span
+        rate = float(so3.geodesic_angle(R_first, R_now)) / span
         if rate > cfg.loss_max_angular_velocity:
             return f"divergence: {rate:.1f} rad/s"
     if sums[0] >= cfg.loss_min_measurements:
@@ -372,20 +414,21 @@ def _warm_up(dtype) -> float:
 def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig | None = None,
             tracker: str | None = None, imu=None, groundtruth: Trajectory | None = None,
             contrast_threshold: float | None = None) -> SmtResult:
-    """Run PF-SMT or EKF-SMT on time-ordered events (an Events or an iterable of chunks, concatenated).
+    """Run PF-SMT or EKF-SMT on time-ordered events (an Events, an iterable of chunks or a dataset).
 
+    Streaming: events are processed in batch-aligned chunks of ``chunk_events`` (the first one spans the
+    bootstrap); between chunks only per-pixel state is kept (the mapper's EKFs, the pose of each sensor pixel's
+    last event), so memory does not grow with the input, except for the output trajectory (one pose per batch).
     ``tracker`` overrides ``config.tracker``. ``imu``: an object with t (N,) and gyro (N, 3) in the camera frame
     (ti_cmax.io.ImuData); ``groundtruth`` bootstraps when there is no IMU (and fixes the world frame of the IMU
     dead reckoning). ``contrast_threshold``: C (default: :func:`smt_contrast` without a dataset path, i.e.
     mapping.contrast_threshold or 0.22). Never raises on tracking failure: see ``report['status']``.
     """
+    from ..frontend import as_chunks
+
     cfg = config or SmtConfig()
     if tracker is not None:
         cfg = dataclasses.replace(cfg, tracker=tracker)
-    if not isinstance(events, Events):
-        events = Events.concatenate(list(events))
-    if len(events) < 2:
-        raise InputError(f"SMT needs events, got {len(events)}")
     wall0 = time.perf_counter()
     contrast = float(contrast_threshold) if contrast_threshold else smt_contrast(cfg)
     mcfg = cfg.mapping
@@ -393,115 +436,185 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
     mapper = GrayscaleMapper(camera, width, height, mcfg, contrast)
     dtype = mapper.dtype
     compile_seconds = _warm_up(dtype)
-
     bs = cfg.batch_size if cfg.tracker == "ekf" else cfg.pf_batch_size
-    n = len(events)
-    nb = -(-n // bs)
-    mids = batch_mid_times(events.t, bs)
-    bearings = np.ascontiguousarray(camera.bearings(events.x, events.y, dtype=dtype))
-    pix = km.sensor_index(events.x, events.y, camera.width)
-    prev_batch = _previous_batch(pix, bs)
-    hist = np.zeros((nb, 3, 3), dtype)  # poses as the kernels read them
-    hist64 = np.zeros((nb, 3, 3))
-
-    boot, boot_source = _bootstrap_trajectory(events, imu, groundtruth, cfg.bootstrap_seconds)
-    t_boot = events.t[0] + cfg.bootstrap_seconds
-    nbb = min(max(int(np.searchsorted(mids, t_boot, side="left")), 1), nb)
-    hist64[:nbb] = boot.at(mids[:nbb])
-    hist[:nbb] = hist64[:nbb]
-
     map_batches = max(1, cfg.map_update_events // bs)
-    mapped = 0  # batches already given to the mapper
-
-    def feed_mapper(upto: int):
-        nonlocal mapped
-        while mapped < upto:
-            hi = min(upto, mapped + map_batches)
-            e0, e1 = mapped * bs, min(hi * bs, n)
-            mapper.update(events[e0:e1], hist[mapped:hi], bs, bearings=bearings[e0:e1], batch_times=mids[mapped:hi])
-            mapped = hi
-
-    feed_mapper(nbb)
-    gain = _calibrate_gain(cfg, mapper, contrast, events, bearings, prev_batch, hist, mids, nbb, bs) \
-        if cfg.gain_calibration_seconds > 0 else 1.0
-    c_eff, sigma_eff = contrast / gain, cfg.measurement_sigma / gain
-    checker = None
-    if cfg.consistency_interval > 0:
-        checker = MotionConsistencyCheck(camera, float(mids[nbb - 1]), cfg.consistency_interval, cfg.consistency_span,
-                                         cfg.consistency_min_ratio, cfg.consistency_checks)
-        compile_seconds += checker.compile()
-    t_track0 = time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
-    trk = (EkfTracker if cfg.tracker == "ekf" else PfTracker)(hist64[nbb - 1], cfg, rng)
-    ctx = _Context(bearings, np.ascontiguousarray(events.p, np.int8), prev_batch, mids, hist, hist64, mapper, c_eff,
-                   sigma_eff, bs)
 
+    # per sensor pixel: global batch of its last event (-1: none yet); the poses those batches had
+    last_batch = np.full(camera.width * camera.height, -1, np.int64)
+    store_ids = np.zeros(0, np.int64)  # sorted global batch ids kept (referenced + the last batch)
+    store_R = np.zeros((0, 3, 3))
+    store_t = np.zeros(0)
+    out_t: list[np.ndarray] = []  # output trajectory pieces (batch mid-times and poses)
+    out_R: list[np.ndarray] = []
+
+    boot = boot_source = None
+    trk = checker = None
+    gain, c_eff, sigma_eff = 1.0, contrast, cfg.measurement_sigma
+    t_boot = t_track0 = bootstrap_end = None
     window: deque = deque()
     sums = np.zeros(3)  # valid, supported, agree in the window
-    status, reason, lost_batch, detected_at = "ok", "", nb, None
     diag_total = np.zeros(3)
-    b0 = nbb
-    while b0 < nb and status == "ok":
-        b1 = min(b0 + map_batches, nb)
-        diag = trk.run(b0, b1, ctx)
-        for i, b in enumerate(range(b0, b1)):  # loss checks, batch by batch
-            d = diag[i, :3]
-            diag_total += d
-            window.append((mids[b], b, d))
-            sums += d
-            while window and window[0][0] < mids[b] - cfg.loss_window:
-                sums -= window.popleft()[2]
-            why = _loss_reason(cfg, diag[i, 3], hist64, mids, window, sums, b, nbb)
-            if why:
-                status, reason = "lost", why
-                detected_at = float(mids[b])
-                lost_t = max(detected_at - cfg.loss_window, float(mids[nbb - 1]))
-                lost_batch = int(np.searchsorted(mids, lost_t, side="right"))
-                break
-        if status == "ok" and checker is not None:
-            failed_from = checker.update(events, mids[:b1], hist64[:b1], float(mids[b1 - 1]))
-            if failed_from is not None:
-                status = "lost"
-                reason = (f"motion inconsistent with events: contrast ratio "
-                          f"{np.mean([r for _, r in checker.recent]):.2f} < {cfg.consistency_min_ratio}")
-                detected_at = float(mids[b1 - 1])
-                lost_batch = int(np.searchsorted(mids, max(failed_from, float(mids[nbb - 1])), side="right"))
-        if status == "ok":
-            feed_mapper(b1)
-        b0 = b1
-    track_seconds = time.perf_counter() - t_track0
-    feed_mapper(min(lost_batch, nb))
+    status, reason, lost_t, detected_at = "ok", "", None, None
+    n_total = n_tracked = 0
+    g0 = 0  # global index of the chunk's first batch
+    track_seconds = 0.0
+
+    chunks = _aligned_chunks(as_chunks(events), bs, cfg.bootstrap_seconds, cfg.chunk_events)
+    for chunk in chunks:
+        n = len(chunk)
+        nbc = -(-n // bs)
+        if boot is None:
+            boot, boot_source = _bootstrap_trajectory(chunk, imu, groundtruth, cfg.bootstrap_seconds)
+            t_boot = float(chunk.t[0]) + cfg.bootstrap_seconds
+        # local batch layout: 0 = the previous chunk's last batch (dt of the first batch), 1..nbc = this chunk,
+        # then the stored poses of older batches that pixels still refer to; events are padded by one batch so
+        # that local batch b's events start at b * bs, as the kernels index them
+        k_old = len(store_ids)
+        mids = np.empty(1 + nbc + k_old)
+        mids[1:1 + nbc] = batch_mid_times(chunk.t, bs)
+        mids[1 + nbc:] = store_t
+        hist64 = np.zeros((1 + nbc + k_old, 3, 3))
+        hist64[1 + nbc:] = store_R
+        if k_old:
+            mids[0], hist64[0] = store_t[-1], store_R[-1]
+        else:
+            mids[0], hist64[0] = mids[1], np.eye(3)
+        carried = np.where(last_batch >= 0, 1 + nbc + np.searchsorted(store_ids, last_batch), -1)
+        pix = km.sensor_index(chunk.x, chunk.y, camera.width)
+        pb, last_pix, last_b = _previous_batch(pix, bs, carried, offset=1)
+        pad = lambda a: np.concatenate([np.zeros((bs,) + a.shape[1:], a.dtype), a])  # noqa: E731
+        bearings = np.ascontiguousarray(pad(camera.bearings(chunk.x, chunk.y, dtype=dtype)))
+        prev_batch = np.ascontiguousarray(pad(pb) - (np.arange(bs + n) < bs).astype(np.int32))
+        pol = np.ascontiguousarray(pad(np.asarray(chunk.p, np.int8)))
+
+        # bootstrap batches: known poses
+        nbb = 0
+        if t_track0 is None:
+            nbb = min(max(int(np.searchsorted(mids[1:1 + nbc], t_boot, side="left")), 1), nbc)
+            hist64[1:1 + nbb] = boot.at(mids[1:1 + nbb])
+        hist = hist64.astype(dtype)
+        mapped = 1  # local batches already given to the mapper
+
+        def feed_mapper(upto: int):
+            nonlocal mapped
+            while mapped < upto:
+                hi = min(upto, mapped + map_batches)
+                e0, e1 = (mapped - 1) * bs, min((hi - 1) * bs, n)
+                mapper.update(chunk[e0:e1], hist[mapped:hi], bs, bearings=bearings[bs + e0:bs + e1],
+                              batch_times=mids[mapped:hi])
+                mapped = hi
+
+        b_start = 1
+        if t_track0 is None:
+            feed_mapper(1 + nbb)
+            b_start = 1 + nbb
+            bootstrap_end = float(mids[nbb])
+            if b_start <= nbc:  # tracking starts in this chunk
+                t_track0 = bootstrap_end
+                if cfg.gain_calibration_seconds > 0:
+                    gain = _calibrate_gain(cfg, mapper, contrast, pol, bearings, prev_batch, hist, mids, 1,
+                                           1 + nbb, bs)
+                c_eff, sigma_eff = contrast / gain, cfg.measurement_sigma / gain
+                trk = (EkfTracker if cfg.tracker == "ekf" else PfTracker)(hist64[nbb], cfg, rng)
+                if cfg.consistency_interval > 0:
+                    checker = MotionConsistencyCheck(camera, t_track0, cfg.consistency_interval,
+                                                     cfg.consistency_span, cfg.consistency_min_ratio,
+                                                     cfg.consistency_checks)
+                    compile_seconds += checker.compile()
+                    boot_events = int(nbb * bs)
+                    checker.update(chunk[max(boot_events - 1, 0):boot_events], mids[nbb:nbb + 1],
+                                   hist64[nbb:nbb + 1], t_track0)
+        tic = time.perf_counter()
+        end = 1 + nbc  # local batches kept in the output
+        if trk is not None:
+            ctx = _Context(bearings, pol, prev_batch, mids, hist, hist64, mapper, c_eff, sigma_eff, bs)
+            b0 = b_start
+            while b0 <= nbc and status == "ok":
+                b1 = min(b0 + map_batches, 1 + nbc)
+                diag = trk.run(b0, b1, ctx)
+                for i, b in enumerate(range(b0, b1)):  # loss checks, batch by batch
+                    d = diag[i, :3]
+                    diag_total += d
+                    window.append((mids[b], hist64[b], d))
+                    sums += d
+                    while window and window[0][0] < mids[b] - cfg.loss_window:
+                        sums -= window.popleft()[2]
+                    why = _loss_reason(cfg, diag[i, 3], hist64[b], float(mids[b]), t_track0, window, sums)
+                    if why:
+                        status, reason = "lost", why
+                        detected_at = float(mids[b])
+                        lost_t = max(detected_at - cfg.loss_window, t_track0)
+                        break
+                if status == "ok" and checker is not None:
+                    e0, e1 = (b0 - 1) * bs, min((b1 - 1) * bs, n)
+                    failed_from = checker.update(chunk[e0:e1], mids[b0:b1], hist64[b0:b1], float(mids[b1 - 1]))
+                    if failed_from is not None:
+                        status = "lost"
+                        reason = (f"motion inconsistent with events: contrast ratio "
+                                  f"{np.mean([r for _, r in checker.recent]):.2f} < {cfg.consistency_min_ratio}")
+                        detected_at = float(mids[b1 - 1])
+                        lost_t = max(failed_from, t_track0)
+                if status == "ok":
+                    feed_mapper(b1)
+                else:
+                    end = b1
+                b0 = b1
+            if status != "ok":  # map what was tracked before the failure (in this chunk)
+                end = max(int(np.searchsorted(mids[1:end], lost_t, side="right")) + 1, b_start)
+                feed_mapper(end)
+            n_tracked += min((end - 1) * bs, n) - (b_start - 1) * bs
+        track_seconds += time.perf_counter() - tic
+        out_t.append(mids[1:end])
+        out_R.append(hist64[1:end].copy())
+        n_total += min((end - 1) * bs, n)
+        if status != "ok":
+            break
+        # keep the poses that pixels will refer to, and the last batch
+        last_batch[last_pix] = g0 + last_b
+        ids = np.union1d(last_batch[last_batch >= 0], [g0 + nbc - 1])
+        in_chunk = ids >= g0
+        old_pos = np.searchsorted(store_ids, ids[~in_chunk])
+        new_R = np.empty((len(ids), 3, 3))
+        new_t = np.empty(len(ids))
+        new_R[in_chunk], new_t[in_chunk] = hist64[1 + ids[in_chunk] - g0], mids[1 + ids[in_chunk] - g0]
+        new_R[~in_chunk], new_t[~in_chunk] = store_R[old_pos], store_t[old_pos]
+        store_ids, store_R, store_t = ids, new_R, new_t
+        g0 += nbc
+    if boot is None:
+        raise InputError("SMT needs events, got none")
+
     gmap = mapper.reconstruct()
-    end = min(lost_batch, nb)
-    keep = np.concatenate([[True], np.diff(mids[:end]) > 0])
-    trajectory = Trajectory(mids[:end][keep], hist64[:end][keep])
-    events_processed = min(end * bs, n)
+    times, poses = np.concatenate(out_t), np.concatenate(out_R)
+    if status != "ok":  # the trajectory ends where the failing window started
+        keep_n = max(int(np.searchsorted(times, lost_t, side="right")), 1)
+        times, poses = times[:keep_n], poses[:keep_n]
+    keep = np.concatenate([[True], np.diff(times) > 0])
+    trajectory = Trajectory(times[keep], poses[keep])
     wall = time.perf_counter() - wall0 - compile_seconds
-    tracked_events = max(events_processed - nbb * bs, 0)
     report = {
         "method": f"smt-{cfg.tracker}",
         "status": status,
         "lost_at": float(trajectory.t_end) if status == "lost" else None,
         "lost_detected_at": detected_at,
         "lost_reason": reason or None,
-        "events_total": int(n),
-        "events_processed": int(events_processed),
-        "events_tracked": int(tracked_events),
+        "events_processed": int(n_total),
+        "events_tracked": int(n_tracked),
         "bootstrap_source": boot_source,
-        "bootstrap_end": float(mids[nbb - 1]),
+        "bootstrap_end": bootstrap_end,
         "contrast_threshold": contrast,
         "map_gain": gain,
         "wall_seconds": wall,
         "compile_seconds": compile_seconds,
         "tracking_seconds": track_seconds,
-        "us_per_event": 1e6 * wall / max(events_processed, 1),
-        "tracking_us_per_event": 1e6 * track_seconds / max(tracked_events, 1),
+        "us_per_event": 1e6 * wall / max(n_total, 1),
+        "tracking_us_per_event": 1e6 * track_seconds / max(n_tracked, 1),
         "consistency": checker.summary() if checker is not None else None,
         "measurements": {"valid": int(diag_total[0]), "supported": int(diag_total[1]), "agree": int(diag_total[2])},
         "map": gmap.summary(),
         "parameters": dataclasses.asdict(cfg),
     }
-    if cfg.tracker == "pf":
+    if cfg.tracker == "pf" and trk is not None:
         report["resamples"] = int(trk.resamples)
     return SmtResult(trajectory, gmap, report)
 
@@ -521,10 +634,10 @@ def _as_baseline(tracker: str, events_or_chunks, camera, config=None, imu=None, 
     """Registry adapter: (events, camera, BaselineConfig, imu) -> BaselineResult (map: the 8-bit grayscale
     panorama; report['us_per_event'] = {'frontend': ...} like the other baselines, the SMT figures kept apart).
     The SMT parameters come from ``config.smt`` when the BaselineConfig has that section, else the defaults."""
-    from . import BaselineResult, collect_events
+    from . import BaselineResult
 
     cfg = getattr(config, "smt", None) or SmtConfig()
-    res = run_smt(collect_events(events_or_chunks), camera, cfg, tracker=tracker, imu=imu,
+    res = run_smt(events_or_chunks, camera, cfg, tracker=tracker, imu=imu,
                   groundtruth=groundtruth, contrast_threshold=contrast_threshold)
     report = dict(res.report)
     report["smt_us_per_event"] = report["us_per_event"]
