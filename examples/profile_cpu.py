@@ -1,7 +1,7 @@
 """Where the CPU time goes in CMax-SLAM: per stage (Python profiler, grouped by pipeline function) and per Taichi
 kernel (Taichi's kernel profiler), on a simulated sequence. Compilation is done first and reported apart.
 
-    python examples/profile_cpu.py [--duration 2] [--scene bay] [--spline linear|cubic] [--threads 2]
+    python examples/profile_cpu.py [--duration 2] [--scene bay] [--sensor DVS128] [--spline linear|cubic] [--threads 2]
 """
 import argparse
 import cProfile
@@ -25,6 +25,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=2.0)
     ap.add_argument("--scene", default="bay")
+    ap.add_argument("--sensor", default="DAVIS240C", help="DAVIS240C, DVS128, DAVIS346 or VGA")
     ap.add_argument("--spline", choices=("linear", "cubic"), default="linear")
     ap.add_argument("--threads", type=int, default=None)
     args = ap.parse_args()
@@ -36,8 +37,8 @@ def main():
     progress.set_quiet(True)
     if args.threads:
         runtime.set_num_threads(args.threads)
-    seq = ti_cmax.simulate_sequence(ti_cmax.SimulatorConfig(scene=args.scene, duration=args.duration,
-                                                             max_angular_velocity=3.0))
+    seq = ti_cmax.simulate_sequence(ti_cmax.SimulatorConfig(scene=args.scene, sensor=args.sensor,
+                                                             duration=args.duration, max_angular_velocity=3.0))
     cfg = load_config(ti_cmax.SlamConfig, None, [f"spline_degree={1 if args.spline == 'linear' else 3}"])
     tic = time.perf_counter()
     ti_cmax.run_slam(seq.events[:100_000], seq.camera, cfg)  # compile (or load from the offline cache)
