@@ -98,12 +98,17 @@ def bilinear_funcs(dtype) -> SimpleNamespace:
 
     @ti.func
     def wrap_cols(i0, width):
-        """Columns i0 and i0 + 1 modulo the width, for i0 in [-width, 2 width) (branches, no integer modulo)."""
+        """Columns i0 and i0 + 1 modulo the width: branches for i0 in [-width, 2 width) (every caller's range), an
+        integer modulo beyond it (a non-finite point must not index outside the image)."""
         ia = i0
         if ia < 0:
             ia += width
         if ia >= width:
             ia -= width
+        if ia < 0 or ia >= width:
+            ia = ia % width
+            if ia < 0:
+                ia += width
         ib = ia + 1
         if ib >= width:
             ib -= width

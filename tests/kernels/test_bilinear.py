@@ -153,3 +153,17 @@ def test_sample_channels_and_clamp():
     # clamp_v: rows beyond the border read the border row
     val, _, _ = bilinear.sample_numpy(img[..., 0], np.array([2.0]), np.array([-3.0]), wrap_u=True, clamp_v=True)
     assert val[0] == pytest.approx(img[0, 2, 0])
+
+
+def test_wrapped_vote_far_outside_the_seam_range(ti_runtime):
+    """Columns beyond [-w, 2w) (a diverged pose) still wrap into the image instead of indexing outside it."""
+    from ti_cmax.kernels import bilinear
+    from ti_cmax.kernels.runtime import ti
+
+    u = np.array([5.5 * W + 0.25, -3.0 * W - 0.75, 1e6 + 0.5, -1e6 - 0.25])
+    v = np.array([1.5, 2.25, 0.5, 3.0])
+    img = np.zeros((H, W))
+    landed = np.zeros(len(u))
+    _test_kernels(ti.f64)[0](u, v, np.ones(len(u)), 1, img, landed)
+    np.testing.assert_allclose(img, bilinear.vote_numpy(np.zeros((H, W)), u, v, wrap_u=True), atol=1e-9)
+    np.testing.assert_allclose(landed, 1.0)
