@@ -24,6 +24,8 @@ import numpy as np
 
 from ti_cmax import so3
 
+from . import bilinear
+from .bilinear import ATOMIC, CLEAR, bilinear_funcs
 from .pano import _ti_dtype
 from .runtime import ensure_init, ti
 from .so3 import so3_funcs
@@ -49,19 +51,6 @@ def _cell_directions(rows, cols, w, h):
     return np.stack([np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon)], -1)
 
 
-def _splat_np(img, px, py, wts):
-    vh, vw = img.shape
-    i0 = np.floor(px).astype(np.int64)
-    j0 = np.floor(py).astype(np.int64)
-    fu, fv = px - i0, py - j0
-    for dj, wv in ((0, 1 - fv), (1, fv)):
-        for di, wu in ((0, 1 - fu), (1, fu)):
-            i, j = i0 + di, j0 + dj
-            ok = (i >= 0) & (i < vw) & (j >= 0) & (j < vh)
-            np.add.at(img, (j[ok], i[ok]), (wu * wv * wts)[ok])
-    return img
-
-
 def render_sphere_numpy(hist, R, Kv, vw, vh) -> np.ndarray:
     """Twin of ``render_sphere`` over the whole histogram: bilinear splats of the cells seen by the view."""
     hist = np.asarray(hist, dtype=np.float64)
@@ -73,7 +62,7 @@ def render_sphere_numpy(hist, R, Kv, vw, vh) -> np.ndarray:
     c, z, wts = c[front], z[front], hist[jj, ii][front]
     px = Kv[0, 0] * c[:, 0] / z + Kv[0, 2]
     py = Kv[1, 1] * c[:, 1] / z + Kv[1, 2]
-    return _splat_np(np.zeros((vh, vw)), px, py, wts)
+    return bilinear.vote_numpy(np.zeros((vh, vw)), px, py, wts)
 
 
 def warp_numpy(bearings, dts, omega, phi, Kv):
@@ -108,21 +97,11 @@ def objective_numpy(bearings, dts, omega, phi, Kv, vw, vh, G):
     p, valid, D = warp_numpy(bearings, dts, omega, phi, Kv)
     G = np.asarray(G, dtype=np.float64)
     p, D = p[valid], D[valid]
-    il = _splat_np(np.zeros((vh, vw)), p[:, 0], p[:, 1], np.ones(len(p)))
+    il = bilinear.vote_numpy(np.zeros((vh, vw)), p[:, 0], p[:, 1])
     s = il + G
     np_ = vw * vh
     cost = float(np.sum(s * s)) / np_
-    i0 = np.floor(p[:, 0]).astype(np.int64)
-    j0 = np.floor(p[:, 1]).astype(np.int64)
-    fu, fv = p[:, 0] - i0, p[:, 1] - j0
-    gu = np.zeros(len(p))
-    gv = np.zeros(len(p))
-    for dj, di, dwu, dwv in ((0, 0, -(1 - fv), -(1 - fu)), (0, 1, 1 - fv, -fu), (1, 0, -fv, 1 - fu), (1, 1, fv, fu)):
-        i, j = i0 + di, j0 + dj
-        ok = (i >= 0) & (i < vw) & (j >= 0) & (j < vh)
-        sv = np.where(ok, s[np.clip(j, 0, vh - 1), np.clip(i, 0, vw - 1)], 0.0)
-        gu += sv * dwu
-        gv += sv * dwv
+    _, gu, gv = bilinear.sample_numpy(s, p[:, 0], p[:, 1])
     grad = 2.0 * (gu @ D[:, 0, :] + gv @ D[:, 1, :]) / np_
     return cost, grad, il
 
@@ -133,6 +112,7 @@ def objective_numpy(bearings, dts, omega, phi, Kv, vw, vh, G):
 @functools.cache
 def _kernels(dtype):
     s3 = so3_funcs(dtype)
+    bl = bilinear_funcs(dtype)
     vec3 = ti.types.vector(3, dtype)
 
     @ti.func
@@ -179,43 +159,20 @@ def _kernels(dtype):
                     st[k, 6 + q] = du_p[q]
                     st[k, 9 + q] = dv_w[q]
                     st[k, 12 + q] = dv_p[q]
-                i0 = ti.cast(ti.floor(pu), ti.i32)
-                j0 = ti.cast(ti.floor(pv), ti.i32)
-                fu = pu - c(i0)
-                fv = pv - c(j0)
-                for dj, di in ti.static(ti.ndrange(2, 2)):
-                    i = i0 + di
-                    j = j0 + dj
-                    if i >= 0 and i < vw and j >= 0 and j < vh:
-                        wu = fu if di == 1 else c(1.0) - fu
-                        wv = fv if dj == 1 else c(1.0) - fv
-                        il[j, i] += wu * wv
+                bl.vote(il, pu, pv, c(1.0), ATOMIC)
         # pass 2: cost and gradient
         cost = c(0.0)
         g = ti.Vector([c(0.0)] * 6)
         ti.loop_config(serialize=True)
         for k in range(n):
             if st[k, 2] > c(0.5):
-                pu = st[k, 0]
-                pv = st[k, 1]
-                i0 = ti.cast(ti.floor(pu), ti.i32)
-                j0 = ti.cast(ti.floor(pv), ti.i32)
-                fu = pu - c(i0)
-                fv = pv - c(j0)
-                gu = c(0.0)
-                gv = c(0.0)
-                for dj, di in ti.static(ti.ndrange(2, 2)):
-                    i = i0 + di
-                    j = j0 + dj
-                    if i >= 0 and i < vw and j >= 0 and j < vh:
-                        wu = fu if di == 1 else c(1.0) - fu
-                        wv = fv if dj == 1 else c(1.0) - fv
-                        dwu = wv if di == 1 else -wv
-                        dwv = wu if dj == 1 else -wu
-                        s = il[j, i] + G[j, i]
-                        cost += wu * wv * (il[j, i] + c(2.0) * G[j, i])
-                        gu += s * dwu
-                        gv += s * dwv
+                i0, j0, fu, fv = bl.split(st[k, 0], st[k, 1])
+                oka, okb = bl.col_ok(i0, vw)
+                a_l = bl.gather(il, 0, vh, j0, i0, i0 + 1, oka, okb, -1)
+                a_g = bl.gather(G, 0, vh, j0, i0, i0 + 1, oka, okb, -1)
+                val, _, _ = bl.interp(a_l + c(2.0) * a_g, fu, fv)
+                _, gu, gv = bl.interp(a_l + a_g, fu, fv)
+                cost += val
                 for q in ti.static(range(6)):
                     g[q] += c(2.0) * (gu * st[k, 3 + q] + gv * st[k, 9 + q])
         out[0] = cost
@@ -224,13 +181,7 @@ def _kernels(dtype):
         # pass 3: clear the touched pixels for the next evaluation
         for k in range(n):
             if st[k, 2] > c(0.5):
-                i0 = ti.cast(ti.floor(st[k, 0]), ti.i32)
-                j0 = ti.cast(ti.floor(st[k, 1]), ti.i32)
-                for dj, di in ti.static(ti.ndrange(2, 2)):
-                    i = i0 + di
-                    j = j0 + dj
-                    if i >= 0 and i < vw and j >= 0 and j < vh:
-                        il[j, i] = c(0.0)
+                bl.vote(il, st[k, 0], st[k, 1], c(0.0), CLEAR)
 
     @ti.kernel
     def k_render(hist: ti.types.ndarray(ndim=2), r0: ti.i32, nr: ti.i32, c0: ti.i32, nc: ti.i32,
@@ -238,8 +189,6 @@ def _kernels(dtype):
                  out: ti.types.ndarray(dtype=dtype, ndim=2)):
         h = hist.shape[0]
         w = hist.shape[1]
-        vh = out.shape[0]
-        vw = out.shape[1]
         for jr, ic in ti.ndrange(nr, nc):
             j = r0 + jr
             i = (c0 + ic) % w
@@ -252,19 +201,7 @@ def _kernels(dtype):
                 for p, q in ti.static(ti.ndrange(3, 3)):
                     x[p] += rt[p, q] * d[q]
                 if x[2] > c(1e-6):
-                    pu = kv[0] * x[0] / x[2] + kv[2]
-                    pv = kv[1] * x[1] / x[2] + kv[3]
-                    i0 = ti.cast(ti.floor(pu), ti.i32)
-                    j0 = ti.cast(ti.floor(pv), ti.i32)
-                    fu = pu - c(i0)
-                    fv = pv - c(j0)
-                    for dj, di in ti.static(ti.ndrange(2, 2)):
-                        ii = i0 + di
-                        jj = j0 + dj
-                        if ii >= 0 and ii < vw and jj >= 0 and jj < vh:
-                            wu = fu if di == 1 else c(1.0) - fu
-                            wv = fv if dj == 1 else c(1.0) - fv
-                            out[jj, ii] += wu * wv * val
+                    bl.vote(out, kv[0] * x[0] / x[2] + kv[2], kv[1] * x[1] / x[2] + kv[3], val, ATOMIC)
 
     return k_eval, k_render
 

@@ -40,6 +40,8 @@ import functools
 
 import numpy as np
 
+from ti_cmax.kernels import bilinear
+from ti_cmax.kernels.bilinear import ADD, ATOMIC, bilinear_funcs
 from ti_cmax.kernels.blur import gaussian_taps
 from ti_cmax.kernels.runtime import ensure_init, num_threads, ti
 
@@ -67,6 +69,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
     """Fields and kernels for one float type, blur, sensor size, packet capacity and number of vote parts
     (compiled once)."""
     f = ti.f32 if dtype_name == "f32" else ti.f64
+    bl = bilinear_funcs(f)
     r2 = (len(taps2) - 1) // 2  # radius of the G2 taps
     pady = r2 + 1  # T rows padded so the vertical gather needs no bounds checks (y0 may be -1)
     h, w = height, width
@@ -74,7 +77,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
     wi = w4 + 2 * r2  # I is padded by r2 zero columns each side (and up to the next group on the right)
     ev = ti.Vector.field(4, f, shape=capacity)  # bx, by, bz, dt
     wp = ti.Vector.field(8, f, shape=capacity)  # pass 1 -> pass 3: u, v, x'(3), B, C, 1/z (u = -2: not in the image)
-    img = ti.field(f, shape=(parts, h, wi))
+    img = ti.field(f, shape=(parts * h, wi))  # copy p holds rows [p h, (p + 1) h)
     tmp = ti.field(f, shape=(h + 2 * pady, w4 + 2))
     out = ti.field(ti.f64, shape=8)
     nblocks_max = (capacity + _BLOCK - 1) // _BLOCK
@@ -136,23 +139,10 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                     v = fy * xr[1] * iz + cy
                     if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
                         wp[k] = ti.Vector([u, v, xr[0], xr[1], xr[2], bb, cc, iz])
-                        x0 = ti.cast(ti.floor(u), ti.i32)
-                        y0 = ti.cast(ti.floor(v), ti.i32)
-                        ax = u - f(x0)
-                        ay = v - f(y0)
-                        mx0 = f(x0 >= 0)
-                        mx1 = f(x0 + 1 < w)
-                        my0 = f(y0 >= 0)
-                        my1 = f(y0 + 1 < h)
-                        xi = x0 + r2  # padded column: always within [r2-1, r2+w]
-                        if y0 >= 0:
-                            img[part, y0, xi] = img[part, y0, xi] + mx0 * (f(1.0) - ax) * (f(1.0) - ay)
-                            img[part, y0, xi + 1] = img[part, y0, xi + 1] + mx1 * ax * (f(1.0) - ay)
-                        if y0 + 1 < h:
-                            img[part, y0 + 1, xi] = img[part, y0 + 1, xi] + mx0 * (f(1.0) - ax) * ay
-                            img[part, y0 + 1, xi + 1] = img[part, y0 + 1, xi + 1] + mx1 * ax * ay
-                        sw += ti.cast(my0 * (f(1.0) - ay) * (mx0 * (f(1.0) - ax) + mx1 * ax)
-                                      + my1 * ay * (mx0 * (f(1.0) - ax) + mx1 * ax), ti.f64)
+                        x0, y0, ax, ay = bl.split(u, v)
+                        xi = x0 + r2  # padded column: always within [r2-1, r2+w]; u in (-1, w) needs 2 checks
+                        sw += ti.cast(bl.scatter(img, part * h, h, y0, xi, xi + 1, x0 >= 0, x0 + 1 < w, ax, ay,
+                                                 f(1.0), ADD), ti.f64)
                         cnt += 1.0
             out[0] += sw
             out[5] += cnt
@@ -164,12 +154,12 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                 for c in ti.static(range(2 * r2 + 1)):
                     for q in ti.static(range(_LANES)):
                         for p in ti.static(range(parts)):
-                            s[q] += f(taps2[c]) * img[p, i, j + c + q]
+                            s[q] += f(taps2[c]) * img[p * h + i, j + c + q]
                 for q in ti.static(range(_LANES)):
                     tmp[i + pady, j + q + 1] = s[q]
             for j in range(wi):
                 for p in ti.static(range(parts)):
-                    img[p, i, j] = f(0.0)
+                    img[p * h + i, j] = f(0.0)
         # pass 3: cost and gradient, gathering the vertical G2 taps from T per event
         npix = f(float(h * w))
         mu = f(0.0)
@@ -182,10 +172,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                 u = q[0]
                 v = q[1]
                 if u > f(-1.0):  # stored by pass 1 (no second warp)
-                    x0 = ti.cast(ti.floor(u), ti.i32)
-                    y0 = ti.cast(ti.floor(v), ti.i32)
-                    ax = u - f(x0)
-                    ay = v - f(y0)
+                    x0, y0, ax, ay = bl.split(u, v)
                     mx0 = f(x0 >= 0)
                     mx1 = f(x0 + 1 < w)
                     my0 = f(y0 >= 0)
@@ -210,8 +197,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                     h10 = my1 * mx0 * (h10 - mu)
                     h11 = my1 * mx1 * (h11 - mu)
                     # cost term sum_n w_n (H_n - mu'): sums to <I, G2 I> - mu' sum(I) = C * Np
-                    wsum = ((f(1.0) - ay) * ((f(1.0) - ax) * h00 + ax * h01)
-                            + ay * ((f(1.0) - ax) * h10 + ax * h11))
+                    wsum, gu, gv = bl.interp(ti.Vector([h00, h01, h10, h11]), ax, ay)
                     acc[3] += ti.cast(wsum, ti.f64)
                     if with_grad != 0:
                         xr = ti.Vector([q[2], q[3], q[4]])
@@ -220,8 +206,6 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                         iz = q[7]
                         dk = ev[k][3]
                         phi = ti.Vector([wx * dk, wy * dk, wz * dk])
-                        gu = (f(1.0) - ay) * (h01 - h00) + ay * (h11 - h10)
-                        gv = (f(1.0) - ax) * (h10 - h00) + ax * (h11 - h01)
                         av = ti.Vector([fx * gu * iz, fy * gv * iz,
                                         -(fx * gu * xr[0] + fy * gv * xr[1]) * iz * iz])
                         cc = xr.cross(av)
@@ -247,16 +231,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                 u = fx * xr[0] / xr[2] + cx
                 v = fy * xr[1] / xr[2] + cy
                 if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
-                    x0 = ti.cast(ti.floor(u), ti.i32)
-                    y0 = ti.cast(ti.floor(v), ti.i32)
-                    ax = u - f(x0)
-                    ay = v - f(y0)
-                    for dy, dx in ti.static(ti.ndrange(2, 2)):
-                        yy = y0 + dy
-                        xx = x0 + dx
-                        if 0 <= yy < h and 0 <= xx < w:
-                            wgt = (ax if dx == 1 else f(1.0) - ax) * (ay if dy == 1 else f(1.0) - ay)
-                            ti.atomic_add(dst[yy, xx], wgt)
+                    bl.vote(dst, u, v, f(1.0), ATOMIC)
 
     assert nblocks_max >= 1
     return load, evaluate, render
@@ -387,32 +362,11 @@ def _project_np(xr, K, width, height):
     return u, v, zs, valid
 
 
-def _neighbours(u, v, width, height):
-    """Per neighbour: column, row, in-bounds mask, weight, d weight/du, d weight/dv."""
-    x0 = np.floor(u).astype(np.int64)
-    y0 = np.floor(v).astype(np.int64)
-    ax, ay = u - x0, v - y0
-    nb = []
-    for dx, dy, w, dwdu, dwdv in (
-        (0, 0, (1 - ax) * (1 - ay), -(1 - ay), -(1 - ax)),
-        (1, 0, ax * (1 - ay), (1 - ay), -ax),
-        (0, 1, (1 - ax) * ay, -ay, (1 - ax)),
-        (1, 1, ax * ay, ay, ax),
-    ):
-        xx, yy = x0 + dx, y0 + dy
-        ok = (xx >= 0) & (xx < width) & (yy >= 0) & (yy < height)
-        nb.append((xx, yy, ok, w, dwdu, dwdv))
-    return nb
-
-
 def vote_numpy(bearings, dts, omega, K, width, height) -> np.ndarray:
     """Unblurred IWE I (height, width) float64 (bilinear votes of in-bounds neighbours)."""
     xr, *_ = warp_numpy(bearings, dts, omega)
     u, v, _, valid = _project_np(xr, K, width, height)
-    img = np.zeros((height, width))
-    for xx, yy, ok, w, _, _ in _neighbours(u[valid], v[valid], width, height):
-        np.add.at(img, (yy[ok], xx[ok]), w[ok])
-    return img
+    return bilinear.vote_numpy(np.zeros((height, width)), u[valid], v[valid])
 
 
 def contrast_numpy(bearings, dts, omega, K, width, height, measure="variance", blur_sigma=1.0, truncate=4.0):
@@ -422,23 +376,12 @@ def contrast_numpy(bearings, dts, omega, K, width, height, measure="variance", b
     dts = np.asarray(dts, float).reshape(-1)
     fx, fy = K[0, 0], K[1, 1]
     u, v, zs, valid = _project_np(xr, K, width, height)
-    nbs = _neighbours(u, v, width, height)
-    img = np.zeros((height, width))
-    for xx, yy, ok, w, _, _ in nbs:
-        m = ok & valid
-        np.add.at(img, (yy[m], xx[m]), w[m])
+    img = bilinear.vote_numpy(np.zeros((height, width)), u[valid], v[valid])
     npix = width * height
     himg = _blur_np(img, gram_taps(blur_sigma, truncate))  # G2 I
     mu = img.sum() / npix if mid == 0 else 0.0
     cost = np.sum(img * himg) / npix - mu * mu
-    gu = np.zeros(len(u))
-    gv = np.zeros(len(u))
-    for xx, yy, ok, _, dwdu, dwdv in nbs:
-        m = ok & valid
-        hv = np.zeros(len(u))
-        hv[m] = himg[yy[m], xx[m]] - mu
-        gu += dwdu * hv
-        gv += dwdv * hv
+    _, gu, gv = bilinear.sample_numpy(himg - mu, u, v)  # in-bounds neighbours only; invalid events dropped below
     iz = 1.0 / zs
     a = np.stack([fx * gu * iz, fy * gv * iz, -(fx * gu * xr[:, 0] + fy * gv * xr[:, 1]) * iz * iz], axis=1)
     cc = np.cross(xr, a)

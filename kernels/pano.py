@@ -33,6 +33,8 @@ from scipy.ndimage import gaussian_filter1d
 
 from ti_cmax.metrics import event_area_percent
 
+from . import bilinear
+from .bilinear import ADD, ATOMIC, bilinear_funcs
 from .blur import TRUNCATE, blur_radius, gaussian_taps
 from .runtime import ensure_init, ti
 from .spline import spline_funcs
@@ -79,20 +81,6 @@ def equirect_numpy(xw: np.ndarray, width: int, height: int) -> tuple[np.ndarray,
     return width / 2 + width * lon / (2 * np.pi), height / 2 + height * lat / np.pi
 
 
-def _bilinear(u, v, width, height):
-    """Four (row, col, weight) triples per event; rows outside the map get weight 0 (row clipped)."""
-    i0 = np.floor(u).astype(np.int64)
-    j0 = np.floor(v).astype(np.int64)
-    fu, fv = u - i0, v - j0
-    out = []
-    for dj, wv in ((0, 1 - fv), (1, fv)):
-        for di, wu in ((0, 1 - fu), (1, fu)):
-            row = j0 + dj
-            ok = (row >= 0) & (row < height)
-            out.append((np.clip(row, 0, height - 1), (i0 + di) % width, np.where(ok, wu * wv, 0.0)))
-    return out
-
-
 def vote_map_numpy(bearings, rotations, width, height, batch_size=None, out=None) -> np.ndarray:
     """Twin of ``vote_map``: bilinear votes of R b (per-event or per-batch rotations), float64 (h, w)."""
     b = np.asarray(bearings, dtype=np.float64).reshape(-1, 3)
@@ -101,10 +89,7 @@ def vote_map_numpy(bearings, rotations, width, height, batch_size=None, out=None
         rot = np.repeat(rot, batch_size, axis=0)[: len(b)]
     xw = np.einsum("nij,nj->ni", rot, b)
     u, v = equirect_numpy(xw, width, height)
-    img = np.zeros((height, width)) if out is None else out
-    for row, col, w in _bilinear(u, v, width, height):
-        np.add.at(img, (row, col), w)
-    return img
+    return bilinear.vote_numpy(np.zeros((height, width)) if out is None else out, u, v, wrap_u=True)
 
 
 def pano_iwe_numpy(
@@ -121,11 +106,7 @@ def pano_iwe_numpy(
     bid = np.arange(len(b)) // batch_size
     xw = np.einsum("nij,nj->ni", r_b[bid], b)
     u, v = equirect_numpy(xw, width, height)
-    taps = _bilinear(u, v, width, height)
-    i_l = np.zeros((height, width))
-    for row, col, w in taps:
-        np.add.at(i_l, (row, col), w)
-    img = blur_map(i_l, sigma)
+    img = blur_map(bilinear.vote_numpy(np.zeros((height, width)), u, v, wrap_u=True), sigma)
     if global_blurred is not None:
         img = img + alpha * np.asarray(global_blurred, dtype=np.float64)
     mu = img.mean()
@@ -133,19 +114,7 @@ def pano_iwe_numpy(
     if not with_grad:
         return var, None, img
     wmap = blur_map(img - mu, sigma)
-    # d interp(W)/du, d/dv from the four neighbours (rows outside the map have W = 0)
-    i0 = np.floor(u).astype(np.int64)
-    j0 = np.floor(v).astype(np.int64)
-    fu, fv = u - i0, v - j0
-
-    def w_at(row, col):
-        ok = (row >= 0) & (row < height)
-        return np.where(ok, wmap[np.clip(row, 0, height - 1), col % width], 0.0)
-
-    w00, w01 = w_at(j0, i0), w_at(j0, i0 + 1)
-    w10, w11 = w_at(j0 + 1, i0), w_at(j0 + 1, i0 + 1)
-    gu = (1 - fv) * (w01 - w00) + fv * (w11 - w10)
-    gv = (1 - fu) * (w10 - w00) + fu * (w11 - w01)
+    _, gu, gv = bilinear.sample_numpy(wmap, u, v, wrap_u=True)  # d interp(W)/du, d/dv (W = 0 beyond the rows)
     x, y, z = xw[:, 0], xw[:, 1], xw[:, 2]
     rho2 = x * x + z * z
     rho = np.sqrt(rho2)
@@ -229,24 +198,12 @@ def _proj_funcs(dtype):
 def _iwe_kernels(dtype, degree: int, radius: int):
     """Kernels of one cost/gradient evaluation for one dtype, spline degree and blur radius (taps unrolled)."""
     spl = spline_funcs(dtype, degree)
+    bl = bilinear_funcs(dtype)
     project, project_jacobian = _proj_funcs(dtype)
     mat3 = ti.types.matrix(3, 3, dtype)
     vec3 = ti.types.vector(3, dtype)
     order = degree + 1
     taps_t = ti.types.vector(2 * radius + 1, dtype)
-
-    @ti.func
-    def local_cols(i0, c0, width):
-        """Buffer columns of map columns i0 and i0 + 1 (mod w) for a buffer starting at column c0 (no int mod)."""
-        la = i0 - c0
-        if la < 0:
-            la += width
-        if la >= width:
-            la -= width
-        lb = la + 1
-        if lb >= width:
-            lb -= width
-        return la, lb
 
     @ti.kernel
     def k_project(
@@ -370,22 +327,9 @@ def _iwe_kernels(dtype, degree: int, radius: int):
         # events) and bit-reproducible
         ti.loop_config(serialize=True)
         for e in range(uv.shape[0]):
-            pu = uv[e, 0]
-            pv = uv[e, 1]
-            i0f = ti.floor(pu)
-            j0f = ti.floor(pv)
-            fu = pu - i0f
-            fv = pv - j0f
-            i0 = ti.cast(i0f, ti.i32)
-            lr = ti.cast(j0f, ti.i32) - r0
-            la, lb = local_cols(i0, c0, width)
-            one = ti.cast(1.0, dtype)
-            if lr >= 0 and lr < bh:
-                buf[lr, la] = buf[lr, la] + (one - fu) * (one - fv)
-                buf[lr, lb] = buf[lr, lb] + fu * (one - fv)
-            if lr + 1 >= 0 and lr + 1 < bh:
-                buf[lr + 1, la] = buf[lr + 1, la] + (one - fu) * fv
-                buf[lr + 1, lb] = buf[lr + 1, lb] + fu * fv
+            i0, j0, fu, fv = bl.split(uv[e, 0], uv[e, 1])
+            la, lb = bl.wrap_cols(i0 - c0, width)  # buffer columns of map columns i0, i0 + 1 (mod w)
+            bl.scatter(buf, 0, bh, j0 - r0, la, lb, 1, 1, fu, fv, ti.cast(1.0, dtype), ADD)
         blur_cols(buf, taps, wrap, tmp)
         blur_rows(tmp, taps, buf)
         gw = gmap.shape[1]
@@ -443,31 +387,12 @@ def _iwe_kernels(dtype, degree: int, radius: int):
         blur_cols(tmp, taps, wrap, lmap)
         blur_rows(lmap, taps, tmp)  # tmp = W
         n_ev = xw.shape[0]
-        one = ti.cast(1.0, dtype)
         for b in range(jac.shape[0]):
             g = vec3(0, 0, 0)
             for e in range(b * batch_size, ti.min((b + 1) * batch_size, n_ev)):
-                pu = uv[e, 0]
-                pv = uv[e, 1]
-                i0f = ti.floor(pu)
-                j0f = ti.floor(pv)
-                fu = pu - i0f
-                fv = pv - j0f
-                i0 = ti.cast(i0f, ti.i32)
-                lr = ti.cast(j0f, ti.i32) - r0
-                la, lb = local_cols(i0, c0, width)
-                w00 = ti.cast(0.0, dtype)
-                w01 = ti.cast(0.0, dtype)
-                w10 = ti.cast(0.0, dtype)
-                w11 = ti.cast(0.0, dtype)
-                if lr >= 0 and lr < bh:
-                    w00 = tmp[lr, la]
-                    w01 = tmp[lr, lb]
-                if lr + 1 >= 0 and lr + 1 < bh:
-                    w10 = tmp[lr + 1, la]
-                    w11 = tmp[lr + 1, lb]
-                gu = (one - fv) * (w01 - w00) + fv * (w11 - w10)
-                gv = (one - fu) * (w10 - w00) + fu * (w11 - w01)
+                i0, j0, fu, fv = bl.split(uv[e, 0], uv[e, 1])
+                la, lb = bl.wrap_cols(i0 - c0, width)
+                _, gu, gv = bl.interp(bl.gather(tmp, 0, bh, j0 - r0, la, lb, 1, 1, -1), fu, fv)
                 x = xw[e]
                 du, dv = project_jacobian(x, su, sv)
                 g += x.cross(gu * du + gv * dv)
@@ -480,6 +405,7 @@ def _iwe_kernels(dtype, degree: int, radius: int):
 @functools.cache
 def _vote_kernel(dtype):
     project, _ = _proj_funcs(dtype)
+    bl = bilinear_funcs(dtype)
     mat3 = ti.types.matrix(3, 3, dtype)
     vec3 = ti.types.vector(3, dtype)
 
@@ -496,24 +422,12 @@ def _vote_kernel(dtype):
         occ_row: ti.types.ndarray(dtype=ti.i32, ndim=1),
     ):
         height, width = out.shape[0], out.shape[1]
-        one = ti.cast(1.0, dtype)
         for e in range(bearings.shape[0]):
             x = rot[e // batch_size] @ bearings[e]
             pu, pv = project(x, width, height, su, sv)
-            i0f = ti.floor(pu)
-            j0f = ti.floor(pv)
-            fu = pu - i0f
-            fv = pv - j0f
-            i0 = ti.cast(i0f, ti.i32)
-            j0 = ti.cast(j0f, ti.i32)
-            ia = i0 % width
-            ib = (i0 + 1) % width
-            if j0 >= 0 and j0 < height:
-                out[j0, ia] += (one - fu) * (one - fv)
-                out[j0, ib] += fu * (one - fv)
-            if j0 + 1 >= 0 and j0 + 1 < height:
-                out[j0 + 1, ia] += (one - fu) * fv
-                out[j0 + 1, ib] += fu * fv
+            i0, j0, fu, fv = bl.split(pu, pv)
+            ia, ib = bl.wrap_cols(i0, width)  # pu in [0, w] up to round-off
+            bl.scatter(out, 0, height, j0, ia, ib, 1, 1, fu, fv, ti.cast(1.0, dtype), ATOMIC)
             if track:  # mark the touched columns and rows (all writers store 1: benign races)
                 occ_col[ia] = 1
                 occ_col[ib] = 1

@@ -26,7 +26,10 @@ import math  # (no `from __future__ import annotations`: Taichi needs evaluated 
 
 import numpy as np
 
+from ti_cmax.kernels import bilinear
 from ti_cmax.kernels.runtime import ensure_init, ti
+
+_BL = bilinear.bilinear_funcs(ti.f32)
 
 _F32_2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 _F32_3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
@@ -86,23 +89,12 @@ def _sample_pano(pano: ti.template(), dx: ti.f32, dy: ti.f32, dz: ti.f32) -> ti.
     lat = _atan2(dy, ti.sqrt(dx * dx + dz * dz))  # = asin(dy / |d|)
     u = ti.f32(0.5) * w + w * lon / ti.f32(_TWO_PI)
     v = ti.f32(0.5) * h + h * lat / ti.f32(math.pi)
-    uf = ti.floor(u)
-    vf = ti.floor(v)
-    fu = u - uf
-    fv = v - vf
-    u0 = ti.cast(uf, ti.i32)  # in [-1, w] up to round-off: wrap with branches (cheaper than %)
-    if u0 >= w:
-        u0 -= w
-    if u0 < 0:
-        u0 += w
-    u1 = u0 + 1
-    if u1 >= w:
-        u1 = 0
-    v0 = ti.min(ti.max(ti.cast(vf, ti.i32), 0), h - 1)
-    v1 = ti.min(ti.max(ti.cast(vf, ti.i32) + 1, 0), h - 1)
-    top = (ti.f32(1.0) - fu) * pano[v0, u0] + fu * pano[v0, u1]
-    bot = (ti.f32(1.0) - fu) * pano[v1, u0] + fu * pano[v1, u1]
-    return (ti.f32(1.0) - fv) * top + fv * bot
+    i0, j0, fu, fv = _BL.split(u, v)
+    u0, u1 = _BL.wrap_cols(i0, w)  # i0 in [-1, w] up to round-off
+    v0 = ti.min(ti.max(j0, 0), h - 1)  # rows clamped to the border (not dropped)
+    v1 = ti.min(ti.max(j0 + 1, 0), h - 1)
+    val, _, _ = _BL.interp(ti.Vector([pano[v0, u0], pano[v0, u1], pano[v1, u0], pano[v1, u1]]), fu, fv)
+    return val
 
 
 @ti.kernel
@@ -273,15 +265,7 @@ def render_numpy(pano: np.ndarray, bearings: np.ndarray, R: np.ndarray) -> np.nd
     lat = np.arcsin(np.clip(d[:, 1] / np.linalg.norm(d, axis=1), -1, 1))
     u = w / 2 + w * lon / (2 * np.pi)
     v = h / 2 + h * lat / np.pi
-    uf, vf = np.floor(u), np.floor(v)
-    fu, fv = u - uf, v - vf
-    u0 = uf.astype(np.int64) % w
-    u1 = (u0 + 1) % w
-    v0 = np.clip(vf.astype(np.int64), 0, h - 1)
-    v1 = np.clip(vf.astype(np.int64) + 1, 0, h - 1)
-    top = (1 - fu) * pano[v0, u0] + fu * pano[v0, u1]
-    bot = (1 - fu) * pano[v1, u0] + fu * pano[v1, u1]
-    return (1 - fv) * top + fv * bot
+    return bilinear.sample_numpy(pano, u, v, wrap_u=True, clamp_v=True)[0]
 
 
 def emit_numpy(lbuf, times, ref, cpos, cneg, last_t, refractory: float, width: int):

@@ -26,6 +26,8 @@ import numpy as np
 
 from ti_cmax import so3
 
+from . import bilinear
+from .bilinear import ATOMIC, bilinear_funcs
 from .pano import _proj_funcs, _ti_dtype, equirect_numpy
 from .runtime import ensure_init, ti
 from .so3 import so3_funcs
@@ -89,24 +91,6 @@ def edge_map(O, N) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------------------------
 # numpy twins
 # ----------------------------------------------------------------------------------------------------------------
-def _sample_np(m, u, v):
-    """Bilinear M at (u, v) without wrap and dM/du, dM/dv."""
-    h, w = m.shape
-    i0 = np.floor(u).astype(np.int64)
-    j0 = np.floor(v).astype(np.int64)
-    fu, fv = u - i0, v - j0
-
-    def at(j, i):
-        ok = (i >= 0) & (i < w) & (j >= 0) & (j < h)
-        return np.where(ok, m[np.clip(j, 0, h - 1), np.clip(i, 0, w - 1)], 0.0)
-
-    m00, m01, m10, m11 = at(j0, i0), at(j0, i0 + 1), at(j0 + 1, i0), at(j0 + 1, i0 + 1)
-    val = (1 - fv) * ((1 - fu) * m00 + fu * m01) + fv * ((1 - fu) * m10 + fu * m11)
-    du = (1 - fv) * (m01 - m00) + fv * (m11 - m10)
-    dv = (1 - fu) * (m10 - m00) + fu * (m11 - m01)
-    return val, du, dv
-
-
 def normal_equations_numpy(bearings, R, O, N):
     """Twin of ``normal_equations``: (cost 1/2 sum r^2, J^T J (3, 3), J^T r (3,), mean M) in float64."""
     b = np.asarray(bearings, dtype=np.float64).reshape(-1, 3)
@@ -116,7 +100,7 @@ def normal_equations_numpy(bearings, R, O, N):
     xw = b @ R.T
     u, v = equirect_numpy(xw, w, h)
     u = unwrap_about_centre_numpy(u, R, w, h)
-    val, du, dv = _sample_np(m, u, v)
+    val, du, dv = bilinear.sample_numpy(m, u, v)
     r = 1.0 - val
     x, y, z = xw[:, 0], xw[:, 1], xw[:, 2]
     rho2 = x * x + z * z
@@ -154,15 +138,7 @@ def update_map_numpy(bearings, R, O, N, K, cam_w, cam_h):
     b = np.asarray(bearings, dtype=np.float64).reshape(-1, 3)
     xw = b @ np.asarray(R, dtype=np.float64).T
     u, v = equirect_numpy(xw, w, h)
-    u = unwrap_about_centre_numpy(u, R, w, h)
-    i0 = np.floor(u).astype(np.int64)
-    j0 = np.floor(v).astype(np.int64)
-    fu, fv = u - i0, v - j0
-    for dj, wv in ((0, 1 - fv), (1, fv)):
-        for di, wu in ((0, 1 - fu), (1, fu)):
-            i, j = i0 + di, j0 + dj
-            ok = (i >= 0) & (i < w) & (j >= 0) & (j < h)
-            np.add.at(O, (j[ok], i[ok]), (wu * wv)[ok])
+    bilinear.vote_numpy(O, unwrap_about_centre_numpy(u, R, w, h), v)
     jj, ii = np.mgrid[0:h, 0:w].astype(np.float64)
     lon = (ii - w / 2) * 2 * np.pi / w
     lat = (jj - h / 2) * np.pi / h
@@ -184,6 +160,7 @@ def update_map_numpy(bearings, R, O, N, K, cam_w, cam_h):
 def _kernels(dtype):
     project, project_jacobian = _proj_funcs(dtype)
     s3 = so3_funcs(dtype)
+    bl = bilinear_funcs(dtype)
     vec3 = ti.types.vector(3, dtype)
     mat3 = ti.types.matrix(3, 3, dtype)
 
@@ -227,20 +204,11 @@ def _kernels(dtype):
             bk = vec3(b[k, 0], b[k, 1], b[k, 2])
             x = R @ bk
             pu, pv = project(x, w, h, su, sv)
-            pu = unwrap(pu, uc, w)
-            i0 = ti.cast(ti.floor(pu), ti.i32)
-            j0 = ti.cast(ti.floor(pv), ti.i32)
-            fu = pu - ti.cast(i0, dtype)
-            fv = pv - ti.cast(j0, dtype)
-            m00 = m_at(O, N, j0, i0)
-            m01 = m_at(O, N, j0, i0 + 1)
-            m10 = m_at(O, N, j0 + 1, i0)
-            m11 = m_at(O, N, j0 + 1, i0 + 1)
-            one = ti.cast(1.0, dtype)
-            val = (one - fv) * ((one - fu) * m00 + fu * m01) + fv * ((one - fu) * m10 + fu * m11)
-            dmu = (one - fv) * (m01 - m00) + fv * (m11 - m10)
-            dmv = (one - fu) * (m10 - m00) + fu * (m11 - m01)
-            r = one - val
+            i0, j0, fu, fv = bl.split(unwrap(pu, uc, w), pv)
+            m4 = ti.Vector([m_at(O, N, j0, i0), m_at(O, N, j0, i0 + 1), m_at(O, N, j0 + 1, i0),
+                            m_at(O, N, j0 + 1, i0 + 1)])
+            val, dmu, dmv = bl.interp(m4, fu, fv)
+            r = ti.cast(1.0, dtype) - val
             ddu, ddv = project_jacobian(x, su, sv)
             gx = -(dmu * ddu + dmv * ddv)
             J = bk.cross(R.transpose() @ gx)
@@ -305,19 +273,7 @@ def _kernels(dtype):
         for k in range(n):
             x = Rm @ vec3(b[k, 0], b[k, 1], b[k, 2])
             pu, pv = project(x, w, h, su, sv)
-            pu = unwrap(pu, uc, w)
-            i0 = ti.cast(ti.floor(pu), ti.i32)
-            j0 = ti.cast(ti.floor(pv), ti.i32)
-            fu = pu - ti.cast(i0, dtype)
-            fv = pv - ti.cast(j0, dtype)
-            one = ti.cast(1.0, dtype)
-            for dj, di in ti.static(ti.ndrange(2, 2)):
-                i = i0 + di
-                j = j0 + dj
-                if i >= 0 and i < w and j >= 0 and j < h:
-                    wu = fu if di == 1 else one - fu
-                    wv = fv if dj == 1 else one - fv
-                    O[j, i] += wu * wv
+            bl.vote(O, unwrap(pu, uc, w), pv, ti.cast(1.0, dtype), ATOMIC)
 
     @ti.kernel
     def k_fov(Rt: ti.types.ndarray(dtype=dtype, ndim=2), N: ti.types.ndarray(ndim=2), r0: ti.i32, nr: ti.i32,

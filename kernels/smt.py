@@ -29,6 +29,8 @@ import functools
 
 import numpy as np
 
+from . import bilinear
+from .bilinear import bilinear_funcs
 from .pano import _proj_funcs, equirect_numpy
 from .runtime import ensure_init, ti
 from .so3 import so3_funcs as _so3_funcs
@@ -54,34 +56,6 @@ def _project_jacobian_numpy(xw, width, height):
     return du, dv
 
 
-def _bilinear_maps_numpy(mu, mv, grad, cov, updates):
-    """g (n, 2), P (n, 3) and mapped weight (n,) bilinear at (mu, mv); pixel i is centred at u = i; rows outside
-    the map contribute nothing."""
-    h, w = updates.shape
-    i0 = np.floor(mu).astype(np.int64)
-    j0 = np.floor(mv).astype(np.int64)
-    fu, fv = mu - i0, mv - j0
-    g = np.zeros((len(mu), 2))
-    P = np.zeros((len(mu), 3))
-    gdu = np.zeros((len(mu), 2))  # d g / d u
-    gdv = np.zeros((len(mu), 2))  # d g / d v
-    sup = np.zeros(len(mu))
-    for dj, wv in ((0, 1 - fv), (1, fv)):
-        for di, wu in ((0, 1 - fu), (1, fu)):
-            row = j0 + dj
-            ok = (row >= 0) & (row < h)
-            rr = np.clip(row, 0, h - 1)
-            cc = (i0 + di) % w
-            wt = np.where(ok, wu * wv, 0.0)
-            gval = grad[rr, cc].astype(np.float64)
-            g += wt[:, None] * gval
-            gdu += np.where(ok, (1.0 if di else -1.0) * wv, 0.0)[:, None] * gval
-            gdv += np.where(ok, (1.0 if dj else -1.0) * wu, 0.0)[:, None] * gval
-            P += wt[:, None] * cov[rr, cc].astype(np.float64)
-            sup += wt * (updates[rr, cc] > 0)
-    return g, P, sup, gdu, gdv
-
-
 def _measure_numpy(R, bearings, prev_uv, valid, pol, grad, cov, updates, contrast, sigma2, outlier_px,
                    min_disp_px):
     """Per-event (ok, r, S, H (n, 3), pred, support) for one pose R (float64)."""
@@ -95,7 +69,10 @@ def _measure_numpy(R, bearings, prev_uv, valid, pol, grad, cov, updates, contras
     ok = (np.asarray(valid) != 0) & (d2 <= outlier_px ** 2) & (d2 >= min_disp_px ** 2)
     mu = prev_uv[:, 0] + 0.5 * du
     mv = prev_uv[:, 1] + 0.5 * dv
-    g, P, sup, gdu, gdv = _bilinear_maps_numpy(mu, mv, grad, cov, updates)
+    # g, P and the mapped weight bilinear at (mu, mv) (longitude wrapped, rows outside the map contribute nothing)
+    g, gdu, gdv = bilinear.sample_numpy(grad, mu, mv, wrap_u=True)
+    P = bilinear.sample_numpy(cov, mu, mv, wrap_u=True)[0]
+    sup = bilinear.sample_numpy(updates > 0, mu, mv, wrap_u=True)[0]
     pred = g[:, 0] * du + g[:, 1] * dv
     S = sigma2 + du * du * P[:, 0] + 2 * du * dv * P[:, 1] + dv * dv * P[:, 2]
     r = np.asarray(pol, np.float64) * contrast - pred
@@ -161,6 +138,7 @@ def pf_loglik_numpy(particles, bearings, prev_uv, valid, pol, grad, cov, updates
 @functools.cache
 def _kernels(dtype):
     project, project_jacobian = _proj_funcs(dtype)
+    bl = bilinear_funcs(dtype)
     vec3 = ti.types.vector(3, dtype)
     mat3 = ti.types.matrix(3, 3, dtype)
 
@@ -188,45 +166,15 @@ def _kernels(dtype):
             ok = 1
             mu = u0 + ti.cast(0.5, dtype) * du
             mv = v0 + ti.cast(0.5, dtype) * dv
-            fi = ti.floor(mu)
-            fj = ti.floor(mv)
-            i0 = ti.cast(fi, ti.i32)
-            j0 = ti.cast(fj, ti.i32)
-            fu = mu - fi
-            fv = mv - fj
-            gu = ti.cast(0.0, dtype)
-            gv = ti.cast(0.0, dtype)
-            p00 = ti.cast(0.0, dtype)
-            p01 = ti.cast(0.0, dtype)
-            p11 = ti.cast(0.0, dtype)
-            gu_u = ti.cast(0.0, dtype)  # d g_u / d u, ...
-            gv_u = ti.cast(0.0, dtype)
-            gu_v = ti.cast(0.0, dtype)
-            gv_v = ti.cast(0.0, dtype)
-            for dj, di in ti.static(ti.ndrange(2, 2)):
-                row = j0 + dj
-                if row >= 0 and row < height:
-                    col = (i0 + di) % width
-                    if col < 0:
-                        col += width
-                    wu = fu if di == 1 else ti.cast(1.0, dtype) - fu
-                    wv = fv if dj == 1 else ti.cast(1.0, dtype) - fv
-                    wt = wu * wv
-                    g0 = grad[row, col, 0]
-                    g1 = grad[row, col, 1]
-                    gu += wt * g0
-                    gv += wt * g1
-                    su_ = ti.cast(1.0 if di == 1 else -1.0, dtype) * wv
-                    sv_ = ti.cast(1.0 if dj == 1 else -1.0, dtype) * wu
-                    gu_u += su_ * g0
-                    gv_u += su_ * g1
-                    gu_v += sv_ * g0
-                    gv_v += sv_ * g1
-                    p00 += wt * cov[row, col, 0]
-                    p01 += wt * cov[row, col, 1]
-                    p11 += wt * cov[row, col, 2]
-                    if updates[row, col] > 0:
-                        sup += wt
+            i0, j0, fu, fv = bl.split(mu, mv)
+            ia, ib = bl.wrap_cols(i0, width)  # mu in (-w/2, 3w/2)
+            gu, gu_u, gu_v = bl.interp(bl.gather(grad, 0, height, j0, ia, ib, 1, 1, 0), fu, fv)  # g_u, d/du, d/dv
+            gv, gv_u, gv_v = bl.interp(bl.gather(grad, 0, height, j0, ia, ib, 1, 1, 1), fu, fv)
+            p00, _, _ = bl.interp(bl.gather(cov, 0, height, j0, ia, ib, 1, 1, 0), fu, fv)
+            p01, _, _ = bl.interp(bl.gather(cov, 0, height, j0, ia, ib, 1, 1, 1), fu, fv)
+            p11, _, _ = bl.interp(bl.gather(cov, 0, height, j0, ia, ib, 1, 1, 2), fu, fv)
+            mapped = ti.cast(bl.gather(updates, 0, height, j0, ia, ib, 1, 1, -1) > 0, dtype)
+            sup, _, _ = bl.interp(mapped, fu, fv)
             pred = gu * du + gv * dv
             S = sigma2 + du * du * p00 + ti.cast(2.0, dtype) * du * dv * p01 + dv * dv * p11
             r = ti.cast(pol, dtype) * contrast - pred
