@@ -243,9 +243,11 @@ class SlidingWindowBackend:
 
     # ---- internals -------------------------------------------------------------------------------------------------
     def _source_segment(self, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:
-        """Source poses in (t_from, t_to] plus the first one beyond, re-anchored to the spline at the anchor."""
+        """Source poses in (t_from, t_to] plus the first one beyond t_to + _TIME_EPS, re-anchored to the spline at
+        the anchor. A sample that only coincides with t_to (to rounding) does not count as beyond: it would leave
+        the control poses of the window's end unconstrained (measured: 82 deg off, then every window rejected)."""
         i0 = int(np.searchsorted(self._src_t, t_from, side="right"))
-        i1 = min(int(np.searchsorted(self._src_t, t_to - _TIME_EPS, side="left")) + 1, len(self._src_t))
+        i1 = min(int(np.searchsorted(self._src_t, t_to + _TIME_EPS, side="right")) + 1, len(self._src_t))
         times, rots = self._src_t[i0:i1], self._src_R[i0:i1]
         t_a, r_src_a, r_spl_a = self._anchor
         return times, r_spl_a @ r_src_a.T @ rots

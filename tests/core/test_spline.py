@@ -111,7 +111,8 @@ def test_fit_reproduces_spline_from_its_samples(degree):
     assert plain.t0 == pytest.approx(truth.t0) and plain.num_control == truth.num_control
     assert so3.geodesic_angle(plain.control_R, truth.control_R).max() < 2e-3
     refined = SO3Spline.fit(degree, truth.dt, times, samples, refine_iters=2)
-    assert so3.geodesic_angle(refined.control_R, truth.control_R).max() < 1e-9
+    # exact up to the smoothness term's pull on these deliberately rough random poses (2e-7 rad measured)
+    assert so3.geodesic_angle(refined.control_R, truth.control_R).max() < 2e-6
 
 
 @pytest.mark.parametrize("degree", [1, 3])
@@ -125,7 +126,7 @@ def test_fit_new_segment_keeps_earlier_poses_fixed(degree):
     partial.fit_new_segment(times, truth.evaluate(times), first_free=keep, refine_iters=2)
     assert partial.num_control == truth.num_control
     np.testing.assert_array_equal(partial.control_R[:keep], truth.control_R[:keep])
-    assert so3.geodesic_angle(partial.control_R, truth.control_R).max() < 1e-8
+    assert so3.geodesic_angle(partial.control_R, truth.control_R).max() < 2e-6  # smoothness pull: 6e-7 rad
 
 
 def test_append_retract_and_to_trajectory():
@@ -140,3 +141,19 @@ def test_append_retract_and_to_trajectory():
     before = spline.control_R[2].copy()
     spline.retract(np.array([[0.0, 0.0, 0.1]]), first=2)
     np.testing.assert_allclose(spline.control_R[2], so3.exp(np.array([0.0, 0.0, 0.1])) @ before)
+
+
+def test_fit_extrapolates_poses_that_samples_barely_reach():
+    """A cubic control pose whose only sample lies 0.2 knot intervals into its support (basis weight 0.0013)
+    follows the smooth extrapolation instead of amplifying 0.05 deg of sample noise into tens of degrees."""
+    dt, w = 0.05, np.array([0.3, -1.0, 0.5])
+    times = np.arange(0.0, 0.31 + 1e-12, 0.01)  # ends 0.2 dt past the knot at 0.30
+    rng = np.random.default_rng(0)
+    noise = so3.exp(rng.normal(scale=np.radians(0.05), size=(len(times), 3)))
+    sp = SO3Spline(3, -dt, dt, np.broadcast_to(np.eye(3), (4, 3, 3)).copy())
+    sp.fit_new_segment(times, noise @ so3.exp(np.outer(times, w)), first_free=0, refine_iters=1)
+    clean = SO3Spline(3, -dt, dt, np.broadcast_to(np.eye(3), (4, 3, 3)).copy())
+    clean.fit_new_segment(times, so3.exp(np.outer(times, w)), first_free=0, refine_iters=1)
+    err = np.degrees(so3.geodesic_angle(sp.control_R, clean.control_R))
+    assert err[-1] < 1.5, err  # measured: 0.93 deg; with smoothness 1e-6: 43 deg
+    assert max(err[0], err[-2]) < 1.5 and err[1:-2].max() < 0.2, err  # poses at the ends see fewer samples

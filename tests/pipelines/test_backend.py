@@ -24,3 +24,24 @@ def test_global_map_incremental_updates_match_full_recompute(ti_runtime):
     assert gm.n_events == pytest.approx(gm.raw.sum(dtype=np.float64), rel=1e-6)
     assert gm.area == pytest.approx(event_area(gm.raw), rel=1e-5)
     assert gm._scratch.max() == 0  # the scratch map is left clean
+
+
+def test_window_initialization_reaches_beyond_the_window_end():
+    """Source samples that coincide with the window end up to rounding (100 Hz poses, 0.1 s windows, a start
+    time like 0.066265000000000004) must not count as the sample beyond it: the window's last control poses
+    would be left unconstrained (it made every later window of an RTPT refinement fail)."""
+    from ti_cmax.config import BackendConfig
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+    from ti_cmax import so3
+
+    t_start = 0.06626499999999999
+    src_t = 0.066265000000000004 + 0.01 * np.arange(60)
+    src_R = so3.exp(np.outer(src_t, [0.3, -1.0, 0.5]))
+    be = SlidingWindowBackend(BackendConfig(), t_start, src_R[0])
+    be.push_source_poses(src_t, src_R)
+    t_end = be.window_end
+    assert np.any(np.abs(src_t - t_end) < 1e-12)  # the case: a sample at the window end, to rounding
+    be._initialize_until(t_end)
+    assert be._anchor[0] > t_end + 1e-3
+    times, _ = be._source_segment(t_start, t_end)
+    assert times[-1] > t_end + 1e-3
