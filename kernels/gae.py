@@ -13,7 +13,8 @@ touched pixels are cleared again after the pass) and sum_px G^2 is a per-interva
 
 The global map is a fixed-size equirectangular histogram of past events on the unit sphere (``vote_map`` of world
 bearings); ``render_sphere`` splats its cells inside the view (rows/columns box from ``footprint_bbox``) bilinearly.
-Kernels per dtype (f32 production, f64 for finite differences); evaluation loops are serial (no float atomics).
+Kernels per dtype (f32 production, f64 for finite differences); evaluation and rendering loops are serial (no float
+atomics), so a run is reproducible bit for bit.
 ``objective_numpy`` and ``render_sphere_numpy`` are the float64 twins.
 """
 
@@ -25,7 +26,7 @@ import numpy as np
 from ti_cmax import so3
 
 from . import bilinear
-from .bilinear import ATOMIC, CLEAR, bilinear_funcs
+from .bilinear import ADD, ATOMIC, CLEAR, bilinear_funcs
 from .pano import _ti_dtype
 from .runtime import ensure_init, ti
 from .so3 import so3_funcs
@@ -189,6 +190,9 @@ def _kernels(dtype):
                  out: ti.types.ndarray(dtype=dtype, ndim=2)):
         h = hist.shape[0]
         w = hist.shape[1]
+        # serial: a parallel loop needs float atomics, whose summation order varies run to run (CMax-GAE gave
+        # 0.35-1.6 deg on the same input); serial plain adds make the baseline reproducible
+        ti.loop_config(serialize=True)
         for jr, ic in ti.ndrange(nr, nc):
             j = r0 + jr
             i = (c0 + ic) % w
@@ -201,7 +205,7 @@ def _kernels(dtype):
                 for p, q in ti.static(ti.ndrange(3, 3)):
                     x[p] += rt[p, q] * d[q]
                 if x[2] > c(1e-6):
-                    bl.vote(out, kv[0] * x[0] / x[2] + kv[2], kv[1] * x[1] / x[2] + kv[3], val, ATOMIC)
+                    bl.vote(out, kv[0] * x[0] / x[2] + kv[2], kv[1] * x[1] / x[2] + kv[3], val, ADD)
 
     return k_eval, k_render
 

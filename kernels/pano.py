@@ -34,7 +34,7 @@ from scipy.ndimage import gaussian_filter1d
 from ti_cmax.metrics import event_area_percent
 
 from . import bilinear
-from .bilinear import ADD, ATOMIC, bilinear_funcs
+from .bilinear import ADD, bilinear_funcs
 from .blur import TRUNCATE, blur_radius, gaussian_taps
 from .runtime import ensure_init, ti
 from .spline import spline_funcs
@@ -420,15 +420,21 @@ def _vote_kernel(dtype):
         track: ti.i32,
         occ_col: ti.types.ndarray(dtype=ti.i32, ndim=1),
         occ_row: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        uv: ti.types.ndarray(dtype=dtype, ndim=2),
     ):
         height, width = out.shape[0], out.shape[1]
-        for e in range(bearings.shape[0]):
+        for e in range(bearings.shape[0]):  # parallel: rotate and project (the costly part)
             x = rot[e // batch_size] @ bearings[e]
             pu, pv = project(x, width, height, su, sv)
-            i0, j0, fu, fv = bl.split(pu, pv)
+            uv[e, 0] = pu
+            uv[e, 1] = pv
+        # serial plain adds: bit-reproducible (parallel float atomics sum in a varying order), and no slower here
+        ti.loop_config(serialize=True)
+        for e in range(bearings.shape[0]):
+            i0, j0, fu, fv = bl.split(uv[e, 0], uv[e, 1])
             ia, ib = bl.wrap_cols(i0, width)  # pu in [0, w] up to round-off
-            bl.scatter(out, 0, height, j0, ia, ib, 1, 1, fu, fv, ti.cast(1.0, dtype), ATOMIC)
-            if track:  # mark the touched columns and rows (all writers store 1: benign races)
+            bl.scatter(out, 0, height, j0, ia, ib, 1, 1, fu, fv, ti.cast(1.0, dtype), ADD)
+            if track:  # mark the touched columns and rows
                 occ_col[ia] = 1
                 occ_col[ib] = 1
                 occ_row[ti.min(ti.max(j0, 0), height - 1)] = 1
@@ -464,7 +470,7 @@ def vote_map(bearings, rotations, width: int, height: int, batch_size: int | Non
             raise ValueError("occupancy must be int32 arrays of shapes (width,) and (height,)")
     if len(b):
         _vote_kernel(_ti_dtype(dtype))(b, rot, bs, width / (2 * math.pi), height / math.pi, out, track,
-                                       occ_col, occ_row)
+                                       occ_col, occ_row, np.empty((len(b), 2), dtype))
     return out
 
 

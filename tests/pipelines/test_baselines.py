@@ -61,6 +61,10 @@ def test_cmax_gae_tracks_slow_sequence_with_bounded_memory(slow_sequence):
     half = run_baseline("cmax-gae", seq.events[: len(seq.events) // 3], seq.camera,
                         BaselineConfig(gae=GAEConfig(gae_sphere_height=512, gae_iterations=2)))
     assert half.report["sphere_bytes"] == rep["sphere_bytes"] and result.map.shape == half.map.shape
+    # reproducible bit for bit (no float atomics anywhere in its kernels)
+    again = run_baseline("cmax-gae", seq.events[: len(seq.events) // 3], seq.camera,
+                         BaselineConfig(gae=GAEConfig(gae_sphere_height=512, gae_iterations=2)))
+    np.testing.assert_array_equal(again.trajectory.R, half.trajectory.R)
 
 
 def test_sphere_map_size_is_fixed(ti_runtime):
