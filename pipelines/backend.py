@@ -24,13 +24,14 @@ import numpy as np
 
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
+from ti_cmax.errors import InputError
 from ti_cmax.kernels.pano import (
     PanoIWE, batch_mid_times, blur_radius, blur_region, event_area, touched_region, vote_map,
 )
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
-from .optim import fletcher_reeves
+from .optim import STEP_GUESSES, fletcher_reeves
 
 _TIME_EPS = 1e-9
 
@@ -151,6 +152,9 @@ class SlidingWindowBackend:
     """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""
 
     def __init__(self, config: BackendConfig, t_start: float, r_start: np.ndarray | None = None):
+        if config.backend_cg_step_guess not in STEP_GUESSES:
+            raise InputError(f"backend_cg_step_guess must be one of {', '.join(STEP_GUESSES)}, got "
+                             f"{config.backend_cg_step_guess!r}")
         self.cfg = config
         self.width, self.height = config.pano_size
         self.t_start = float(t_start)
@@ -337,6 +341,7 @@ class SlidingWindowBackend:
             objective, np.zeros(3 * n_free), maximize=True, init_step=self._init_step(),
             line_search_tol=cfg.backend_cg_line_search_tol, max_iter=cfg.backend_cg_max_iters,
             grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
+            max_line_evals=cfg.backend_cg_max_line_evals, step_guess=cfg.backend_cg_step_guess,
         )
         correction = np.linalg.norm(result.x.reshape(-1, 3), axis=1)
         report.max_correction = float(correction.max())

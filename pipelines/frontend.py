@@ -45,11 +45,10 @@ from ti_cmax.events import Events
 from ti_cmax.kernels.iwe import IWEWorkspace, measure_id
 from ti_cmax.trajectory import Trajectory
 
-from .optim import fletcher_reeves
+from .optim import STEP_GUESSES, fletcher_reeves
 
 SLICING_RULES = ("bounded", "paper")
 WARM_STARTS = ("previous", "linear")
-STEP_GUESSES = ("decrease", "secant")
 
 
 @dataclass(frozen=True, eq=False)

@@ -44,6 +44,9 @@ class _Counted:
         return c, g
 
 
+STEP_GUESSES = ("decrease", "secant")  # first trial step of later line searches (see fletcher_reeves)
+
+
 def _cubic_min(a, fa, da, b, fb, db):
     """Minimiser of the cubic through (a, fa, da), (b, fb, db), or None."""
     d1 = da + db - 3 * (fa - fb) / (a - b)
@@ -137,7 +140,7 @@ def fletcher_reeves(
     step, (s.y)/(s.s) (s: step, y: change of gradient), so on a near-quadratic cost the first trial is usually
     accepted (falls back to "decrease" when s.y <= 0).
     """
-    if step_guess not in ("decrease", "secant"):
+    if step_guess not in STEP_GUESSES:
         raise ValueError(f"step_guess must be 'decrease' or 'secant', got {step_guess!r}")
     sign = -1.0 if maximize else 1.0
     fc = _Counted(fun, sign)

@@ -82,6 +82,8 @@ class BackendConfig:
     backend_cg_max_iters: int = 50
     backend_cg_grad_tol: float = 1e-4
     backend_cg_rel_cost_tol: float = 1e-4
+    backend_cg_max_line_evals: int = 20  # evaluations per line search at most
+    backend_cg_step_guess: str = "decrease"  # first trial step of later line searches (see pipelines/optim.py)
 
     @property
     def pano_size(self) -> tuple[int, int]:

@@ -45,3 +45,13 @@ def test_window_initialization_reaches_beyond_the_window_end():
     assert be._anchor[0] > t_end + 1e-3
     times, _ = be._source_segment(t_start, t_end)
     assert times[-1] > t_end + 1e-3
+
+
+def test_backend_rejects_an_unknown_line_search_step_guess():
+    """The CG step guess is a config field (YAML / --set): a typo is one clear error, not a late ValueError."""
+    from ti_cmax.config import BackendConfig
+    from ti_cmax.errors import InputError
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+
+    with pytest.raises(InputError, match="backend_cg_step_guess"):
+        SlidingWindowBackend(BackendConfig(backend_cg_step_guess="newton"), 0.0)
