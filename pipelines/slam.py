@@ -78,6 +78,7 @@ def _backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
         "windows": len(backend.windows),
         "windows_optimized": len(optimized),
         "mean_iterations": float(np.mean([w.iterations for w in optimized])) if optimized else 0.0,
+        "mean_evaluations": float(np.mean([w.evaluations for w in optimized])) if optimized else 0.0,
         "events_settled": int(backend.events_settled),
         "event_window_pairs_optimized": int(backend.events_optimized),
         "wall_seconds": wall,

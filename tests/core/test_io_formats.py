@@ -189,52 +189,9 @@ def test_h5_compressed_with_hdf5plugin(tmp_path):
 
 
 # ROS1 bag -----------------------------------------------------------------------------------------
-EVENT_MSG = "uint16 x\nuint16 y\ntime ts\nbool polarity\n"
-EVENT_ARRAY_MSG = "std_msgs/Header header\nuint32 height\nuint32 width\ndvs_msgs/Event[] events\n"
-
-
-def _write_bag(path, ev: Events, per_msg=700, with_extras=True):
-    rosbag1 = pytest.importorskip("rosbags.rosbag1")
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.ROS1_NOETIC)
-    types = get_types_from_msg(EVENT_MSG, "dvs_msgs/msg/Event")
-    types.update(get_types_from_msg(EVENT_ARRAY_MSG, "dvs_msgs/msg/EventArray"))
-    store.register(types)
-    Event, EventArray = store.types["dvs_msgs/msg/Event"], store.types["dvs_msgs/msg/EventArray"]
-    Header, Time = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
-
-    def stamp(t):
-        s = int(np.floor(t))
-        return Time(sec=s, nanosec=int(round((t - s) * 1e9)))
-
-    with rosbag1.Writer(path) as w:
-        conn = w.add_connection("/dvs/events", "dvs_msgs/msg/EventArray", typestore=store)
-        for k, i in enumerate(range(0, len(ev), per_msg)):
-            part = ev[i:i + per_msg]
-            msg = EventArray(
-                header=Header(seq=k, stamp=stamp(part.t[-1]), frame_id="dvs" * (k % 3)),
-                height=180, width=240,
-                events=[Event(x=int(x), y=int(y), ts=stamp(t), polarity=bool(p > 0))
-                        for t, x, y, p in zip(part.t, part.x, part.y, part.p)],
-            )
-            w.write(conn, int(part.t[-1] * 1e9), store.serialize_ros1(msg, "dvs_msgs/msg/EventArray"))
-        if with_extras:
-            CameraInfo = store.types["sensor_msgs/msg/CameraInfo"]
-            RegionOfInterest = store.types["sensor_msgs/msg/RegionOfInterest"]
-            ci = CameraInfo(header=Header(seq=0, stamp=stamp(ev.t[0]), frame_id="dvs"), height=180, width=240,
-                            distortion_model="plumb_bob", D=np.array(CAM.dist), K=CAM.K.ravel(),
-                            R=np.eye(3).ravel(), P=np.hstack([CAM.K, np.zeros((3, 1))]).ravel(),
-                            binning_x=0, binning_y=0,
-                            roi=RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
-            c2 = w.add_connection("/dvs/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store)
-            w.write(c2, int(ev.t[0] * 1e9), store.serialize_ros1(ci, "sensor_msgs/msg/CameraInfo"))
-    return path
-
-
-def test_bag_round_trip(tmp_path):
+def test_bag_round_trip(tmp_path, write_ros1_bag):
     ev = random_events(3000)
-    path = _write_bag(tmp_path / "seq.bag", ev)
+    path = write_ros1_bag(tmp_path / "seq.bag", ev, CAM)
     ds = open_dataset(path)
     assert ds.sensor_size == (240, 180)
     assert ds.camera.K.tolist() == CAM.K.tolist() and ds.camera.dist == CAM.dist

@@ -39,6 +39,7 @@ def test_slam_beats_frontend_alone(fast_sequence):
     assert rep["status"] == "ok" and rep["events_processed"] == len(seq.events)
     assert rep["us_per_event"]["frontend"] > 0 and rep["us_per_event"]["backend"] > 0
     assert rep["backend"]["windows_optimized"] >= 10
+    assert rep["backend"]["mean_evaluations"] >= rep["backend"]["mean_iterations"] > 0
     # the global map holds every settled event (bilinear votes sum to one per event, minus the polar rows)
     assert abs(result.map.sum() - len(seq.events)) < 0.01 * len(seq.events)
 
