@@ -153,6 +153,45 @@ def downsampled(chunks: Iterable[Events], q: int) -> Iterator[Events]:
             yield chunk
 
 
+def fixed_count_packets(chunks: Iterable[Events], n: int) -> Iterator[Events]:
+    """Consecutive packets of exactly ``n`` events from time-ordered chunks (a last remainder below n is dropped)."""
+    pending: list[Events] = []
+    count = 0
+    for chunk in chunks:
+        i = 0
+        while i < len(chunk):
+            take = min(n - count, len(chunk) - i)
+            pending.append(chunk[i:i + take])
+            count += take
+            i += take
+            if count == n:
+                yield pending[0] if len(pending) == 1 else Events.concatenate(pending)
+                pending, count = [], 0
+
+
+def time_intervals(chunks: Iterable[Events], length: float) -> Iterator[tuple[int, float, Events]]:
+    """(k, t_start_k, events of [t0 + k length, t0 + (k + 1) length)) for k = 0, 1, ..., t0 the first event's time;
+    empty intervals included. Events exactly at the end of the last interval belong to it (as with
+    ceil((t_last - t0) / length) intervals over the whole stream)."""
+    buf = None
+    t0 = None
+    k = 0
+    for chunk in chunks:
+        if len(chunk) == 0:
+            continue
+        if buf is None:
+            t0, buf = float(chunk.t[0]), chunk
+        else:
+            buf = Events.concatenate([buf, chunk])
+        while buf.t[-1] > t0 + length * (k + 1):
+            i = int(np.searchsorted(buf.t, t0 + length * (k + 1), side="left"))
+            yield k, t0 + length * k, buf[:i]
+            buf = buf[i:]
+            k += 1
+    if buf is not None:
+        yield k, t0 + length * k, buf
+
+
 @dataclass(frozen=True)
 class Packet:
     t_ref: float

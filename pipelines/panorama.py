@@ -37,18 +37,39 @@ class PanoramaResult:
 
 def render_panorama(chunks: Iterable[Events], camera: Camera, trajectory: Trajectory, width: int, height: int,
                     batch_size: int = 100, t_start: float | None = None, t_end: float | None = None) -> PanoramaResult:
-    """Vote every event within the trajectory's time range (and [t_start, t_end] if given) into a panorama."""
+    """Vote every event within the trajectory's time range (and [t_start, t_end] if given) into a panorama.
+
+    Batches are counted from the first event used, across chunk boundaries, so the map does not depend on how
+    the input was chunked."""
     lo = max(trajectory.t_start, -np.inf if t_start is None else t_start)
     hi = min(trajectory.t_end, np.inf if t_end is None else t_end)
     image = np.zeros((height, width), np.float32)
     used = 0
+    carry = Events.empty()  # the head of a batch that the next chunk completes
+
+    def vote(ev: Events) -> None:
+        nonlocal used
+        mids = batch_mid_times(ev.t, batch_size)
+        vote_map(camera.bearings(ev.x, ev.y), trajectory.at(mids), width, height, batch_size=batch_size, out=image)
+        used += len(ev)
+
     for chunk in chunks:
         ev = chunk.slice_time(lo, np.nextafter(hi, np.inf))
         if len(ev) == 0:
             continue
-        mids = batch_mid_times(ev.t, batch_size)
-        vote_map(camera.bearings(ev.x, ev.y), trajectory.at(mids), width, height, batch_size=batch_size, out=image)
-        used += len(ev)
+        if len(carry):
+            k = min(batch_size - len(carry), len(ev))
+            carry, ev = Events.concatenate([carry, ev[:k]]), ev[k:]
+            if len(carry) < batch_size:
+                continue
+            vote(carry)
+            carry = Events.empty()
+        n_full = len(ev) // batch_size * batch_size
+        if n_full:
+            vote(ev[:n_full])
+        carry = ev[n_full:]
+    if len(carry):
+        vote(carry)
     return PanoramaResult(image, used)
 
 

@@ -59,16 +59,31 @@ class BaselineResult:
     frontend: AngularVelocity | None = None  # name kept from SlamResult: the slam writer reads it
 
 
-def collect_events(events_or_chunks) -> Events:
-    """One ``Events`` from an Events object, an iterable of chunks, or a dataset (``iter_events``)."""
-    from ti_cmax.pipelines.frontend import as_chunks
+class CountedChunks:
+    """The time-ordered chunks of an Events object, an iterable of chunks or a dataset, counting the events read
+    (``count``), so that a baseline streams its input and still reports how much it consumed."""
 
+    def __init__(self, events_or_chunks):
+        from ti_cmax.pipelines.frontend import as_chunks
+
+        self._chunks = as_chunks(events_or_chunks)
+        self.span = _known_span(events_or_chunks)
+        self.count = 0
+
+    def __iter__(self):
+        for chunk in self._chunks:
+            self.count += len(chunk)
+            yield chunk
+
+
+def _known_span(events_or_chunks) -> float | None:
+    """Duration of the input when it is known before reading (Events, dataset), for progress bars."""
     if isinstance(events_or_chunks, Events):
-        return events_or_chunks
-    ev = Events.concatenate(list(as_chunks(events_or_chunks)))
-    if len(ev) == 0:
-        raise InputError("no events to process")
-    return ev
+        return float(events_or_chunks.duration) if len(events_or_chunks) else None
+    if hasattr(events_or_chunks, "time_range"):
+        t0, t1 = events_or_chunks.time_range()
+        return float(t1 - t0)
+    return None
 
 
 def run_imu(events_or_chunks, camera, config: BaselineConfig = BaselineConfig(), imu=None) -> BaselineResult:
@@ -80,11 +95,13 @@ def run_imu(events_or_chunks, camera, config: BaselineConfig = BaselineConfig(),
         raise InputError("the imu baseline needs IMU data (imu.txt in the dataset folder)")
     tic = time.perf_counter()
     traj = dead_reckoning(imu.t, imu.gyro)
-    ev = collect_events(events_or_chunks)
+    chunks = CountedChunks(events_or_chunks)
     w, h = config.backend.pano_size
-    pano = render_panorama([ev], camera, traj, w, h)
+    pano = render_panorama(chunks, camera, traj, w, h)
+    if chunks.count == 0:
+        raise InputError("no events to process")
     wall = time.perf_counter() - tic
-    report = {"status": "ok", "method": "imu", "events_processed": int(len(ev)), "imu_samples": int(len(imu.t)),
+    report = {"status": "ok", "method": "imu", "events_processed": int(chunks.count), "imu_samples": int(len(imu.t)),
               "wall_seconds": wall, "us_per_event": {"frontend": 0.0},
               "parameters": {"map_size": [int(w), int(h)]}}
     return BaselineResult(traj, pano.image, report)
@@ -113,4 +130,4 @@ def run_baseline(name: str, events, camera, config: BaselineConfig = BaselineCon
 
 
 __all__ = ["BASELINES", "BaselineConfig", "BaselineResult", "AngularVelocity", "RTPTConfig", "GAEConfig",
-           "SmtConfig", "run_baseline", "run_rtpt", "run_cmax_gae", "run_imu", "collect_events"]
+           "SmtConfig", "run_baseline", "run_rtpt", "run_cmax_gae", "run_imu", "CountedChunks"]

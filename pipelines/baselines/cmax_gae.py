@@ -14,8 +14,9 @@ Events are kept 1 of ``gae_event_sample_rate`` (4, as the original) and cut into
 The first interval only estimates omega (nothing to align to) and defines the world frame (R = I). Intervals with
 fewer than ``gae_min_events`` sampled events (camera about still) keep the constant-velocity pose unoptimized.
 
-Memory is bounded (the paper notes the original keeps every past event): the sphere histogram has a fixed size
-whatever the sequence length, at the price of quantizing past bearings to cells (0.18 deg at the default 1024 rows).
+Memory is bounded (the paper notes the original keeps every past event): the input is streamed interval by
+interval, and the sphere histogram has a fixed size whatever the sequence length, at the price of quantizing past
+bearings to cells (0.18 deg at the default 1024 rows).
 """
 from __future__ import annotations
 
@@ -100,16 +101,19 @@ def _compile(camera) -> float:
 
 
 def run_cmax_gae(events_or_chunks, camera, config=None, imu=None):
-    """CMax-GAE on events (Events, chunks or a dataset) -> BaselineResult (40 Hz trajectory, sphere histogram)."""
+    """CMax-GAE on events (Events, chunks or a dataset, streamed) -> BaselineResult (40 Hz trajectory, sphere
+    histogram)."""
     from ti_cmax.kernels import gae as G
     from ti_cmax.kernels.rtpt import footprint_bbox, view_border_rays
+    from ti_cmax.pipelines.frontend import downsampled, time_intervals
 
-    from . import AngularVelocity, BaselineConfig, BaselineResult, collect_events
+    from . import AngularVelocity, BaselineConfig, BaselineResult, CountedChunks
 
     cfg = (config or BaselineConfig()).gae
     wall0 = time.perf_counter()
-    ev_all = collect_events(events_or_chunks)
-    ev = ev_all.downsample(cfg.gae_event_sample_rate) if cfg.gae_event_sample_rate > 1 else ev_all
+    chunks = CountedChunks(events_or_chunks)
+    T = float(cfg.gae_interval)
+    intervals = time_intervals(downsampled(chunks, cfg.gae_event_sample_rate), T)
     compile_s = _compile(camera)
     tic = time.perf_counter()
     vw, vh = 2 * camera.width, 2 * camera.height
@@ -118,24 +122,19 @@ def run_cmax_gae(events_or_chunks, camera, config=None, imu=None):
     obj = G.GAEObjective(kv, vw, vh)
     sphere = SphereMap(cfg.gae_sphere_height)
     f = 0.5 * (camera.fx + camera.fy)
-    T = float(cfg.gae_interval)
     scale = np.array([f * T / 2] * 3 + [f] * 3)
-    t0, t1 = float(ev.t[0]), float(ev.t[-1])
-    n_int = max(int(np.ceil((t1 - t0) / T)), 1)
-    edges = np.searchsorted(ev.t, t0 + T * np.arange(n_int + 1), side="left")
-    edges[-1] = len(ev)
     R = np.eye(3)
     omega = np.zeros(3)
     t_prev = None
     times, rots, omegas = [], [], []
-    bar = progress(total=t1 - t0, desc="cmax-gae", unit="s")
+    used = 0
+    bar = progress(total=chunks.span, desc="cmax-gae", unit="s")
     try:
-        for k in range(n_int):
-            i0, i1 = int(edges[k]), int(edges[k + 1])
-            t_ref = t0 + (k + 0.5) * T
+        for _, t_start, sub in intervals:  # streamed: memory holds one input chunk and one interval
+            t_ref = t_start + 0.5 * T
             first = t_prev is None
-            if i1 - i0 >= cfg.gae_min_events:
-                sub = ev[i0:i1]
+            used += len(sub)
+            if len(sub) >= cfg.gae_min_events:
                 b = camera.bearings(sub.x, sub.y)
                 dts = sub.t - t_ref
                 g_img = None
@@ -172,12 +171,12 @@ def run_cmax_gae(events_or_chunks, camera, config=None, imu=None):
     if len(times) < 2:
         raise InputError(f"CMax-GAE needs at least 2 intervals with {cfg.gae_min_events} sampled events")
     seconds = time.perf_counter() - tic
-    n_read = len(ev_all)
+    n_read = chunks.count
     report = {
         "status": "ok",
         "method": "cmax-gae",
         "events_processed": int(n_read),
-        "events_used": int(len(ev)),
+        "events_used": int(used),
         "intervals": int(len(times)),
         "evaluations": int(obj.evaluations),
         "sphere_bytes": sphere.nbytes,

@@ -20,6 +20,8 @@ The map does not wrap in longitude (like the original's bounded map): once the c
 left/right border (looking backwards, lon = +-180 deg) its events read M = 0, the quality drops, map updates stop and
 tracking is lost, the failure mode described in the paper (Sec. IV-C1).
 The first ``rtpt_bootstrap_packets`` packets always update the map (the first one at the identity, untracked).
+Unlike the original, which keeps every event (Sec. II-E), the input is streamed packet by packet: memory is the map
+plus one input chunk.
 """
 from __future__ import annotations
 
@@ -68,15 +70,17 @@ def _compile(camera, dtype=np.float32) -> float:
 
 
 def run_rtpt(events_or_chunks, camera, config=None, imu=None):
-    """RTPT on events (Events, chunks or a dataset) -> BaselineResult (trajectory at packet mid-times, edge map)."""
+    """RTPT on events (Events, chunks or a dataset, streamed) -> BaselineResult (trajectory at packet mid-times,
+    edge map). Reading stops where tracking is lost."""
     from ti_cmax.kernels import rtpt as K
+    from ti_cmax.pipelines.frontend import downsampled, fixed_count_packets
 
-    from . import BaselineConfig, BaselineResult, collect_events
+    from . import BaselineConfig, BaselineResult, CountedChunks
 
     cfg = (config or BaselineConfig()).rtpt
     wall0 = time.perf_counter()
-    ev_all = collect_events(events_or_chunks)
-    ev = ev_all.downsample(cfg.rtpt_event_sample_rate) if cfg.rtpt_event_sample_rate > 1 else ev_all
+    chunks = CountedChunks(events_or_chunks)
+    packets = fixed_count_packets(downsampled(chunks, cfg.rtpt_event_sample_rate), cfg.rtpt_packet_size)
     compile_s = _compile(camera)
     tic = time.perf_counter()
     h = int(cfg.rtpt_pano_height)
@@ -85,11 +89,6 @@ def run_rtpt(events_or_chunks, camera, config=None, imu=None):
     N = np.zeros((h, w), np.float32)
     kmat = camera.K
     rays = K.view_border_rays(kmat, camera.width, camera.height)
-    bearings = camera.bearings(ev.x, ev.y)
-    t = ev.t
-    n_packets = len(ev) // cfg.rtpt_packet_size
-    if n_packets < 2:
-        raise InputError(f"RTPT needs at least 2 packets of {cfg.rtpt_packet_size} events, got {len(ev)} events")
     R = np.eye(3)
     v = np.zeros(3)
     t_prev = None
@@ -99,12 +98,11 @@ def run_rtpt(events_or_chunks, camera, config=None, imu=None):
     times, rots, quality = [], [], []
     jv = 0
     updates = 0
-    bar = progress(total=float(t[-1] - t[0]), desc="rtpt", unit="s")
+    bar = progress(total=chunks.span, desc="rtpt", unit="s")
     try:
-        for i in range(n_packets):
-            sl = slice(i * cfg.rtpt_packet_size, (i + 1) * cfg.rtpt_packet_size)
-            b = bearings[sl]
-            tm = 0.5 * (float(t[sl.start]) + float(t[sl.stop - 1]))
+        for i, packet in enumerate(packets):  # streamed: memory holds one input chunk and one packet
+            b = camera.bearings(packet.x, packet.y)
+            tm = 0.5 * (float(packet.t[0]) + float(packet.t[-1]))
             if i == 0:
                 r_est, q = np.eye(3), 1.0
             else:
@@ -139,6 +137,9 @@ def run_rtpt(events_or_chunks, camera, config=None, imu=None):
             t_prev = tm
     finally:
         bar.close()
+    if len(quality) < 2:
+        raise InputError(f"RTPT needs at least 2 packets of {cfg.rtpt_packet_size} events (after keeping 1 of "
+                         f"{cfg.rtpt_event_sample_rate}), got {chunks.count} events")
     seconds = time.perf_counter() - tic
     times = np.asarray(times)
     rots = np.asarray(rots)
@@ -146,7 +147,7 @@ def run_rtpt(events_or_chunks, camera, config=None, imu=None):
         keep = times < lost_at
         keep[:2] = True
         times, rots = times[keep], rots[keep]
-    n_read = len(ev_all)
+    n_read = chunks.count
     report = {
         "status": "ok" if lost_at is None else "lost",
         "method": "rtpt",

@@ -121,3 +121,24 @@ def test_baseline_command(tiny_dataset, tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown baseline 'smt-nope'" in err[0]
     assert not bad.exists()
+
+
+@pytest.mark.parametrize("name", ["rtpt", "cmax-gae", "imu"])
+def test_baselines_stream_their_input(slow_sequence, name):
+    """Uneven chunks from a generator (never the whole stream at once) give the same result as one Events."""
+
+    seq = slow_sequence
+    cfg = BaselineConfig(gae=GAEConfig(gae_sphere_height=256, gae_iterations=3))
+    events = seq.events[: len(seq.events) // 2]
+    whole = run_baseline(name, events, seq.camera, cfg, imu=seq.imu)
+    cuts = np.sort(np.random.default_rng(2).integers(0, len(events), 40))
+
+    def chunks():
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(events)]):
+            yield events[a:b]
+
+    streamed = run_baseline(name, chunks(), seq.camera, cfg, imu=seq.imu)
+    np.testing.assert_array_equal(streamed.trajectory.t, whole.trajectory.t)
+    np.testing.assert_array_equal(streamed.trajectory.R, whole.trajectory.R)
+    np.testing.assert_array_equal(streamed.map, whole.map)
+    assert streamed.report["events_processed"] == whole.report["events_processed"] == len(events)

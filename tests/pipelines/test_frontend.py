@@ -207,3 +207,35 @@ def test_bad_speed_parameters_are_rejected(key, value):
 
     with pytest.raises(InputError, match=key):
         check_config(replace(FrontendConfig(), **{key: value}))
+
+
+def _uneven_chunks(ev, seed, max_size):
+    cuts = np.sort(np.random.default_rng(seed).integers(0, len(ev), len(ev) // max(1, max_size // 2) + 2))
+    return [ev[a:b] for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(ev)])]  # empty chunks included
+
+
+def test_stream_regrouping_matches_the_whole_stream():
+    """fixed_count_packets and time_intervals (the streamed input of RTPT and CMax-GAE) regroup uneven chunks,
+    empty ones included, exactly as slicing the whole stream would."""
+    from ti_cmax.pipelines.frontend import fixed_count_packets, time_intervals
+
+    rng = np.random.default_rng(0)
+    n = 5000
+    t = np.sort(np.r_[rng.uniform(0.0, 0.3, n - 500), rng.uniform(0.5, 0.6, 500)])  # a gap: empty intervals
+    t[-1] = t[0] + 0.024 * 25  # the last event exactly at an interval end: it belongs to the last interval
+    ev = Events(t, rng.integers(0, 20, n), rng.integers(0, 20, n), rng.choice([-1, 1], n))
+    chunks = _uneven_chunks(ev, 1, 300)
+    packets = list(fixed_count_packets(chunks, 700))
+    assert [len(p) for p in packets] == [700] * (n // 700)
+    np.testing.assert_array_equal(np.concatenate([p.t for p in packets]), t[:700 * (n // 700)])
+    length = 0.024
+    got = list(time_intervals(chunks, length))
+    n_int = int(np.ceil((t[-1] - t[0]) / length))
+    edges = np.searchsorted(t, t[0] + length * np.arange(n_int + 1), side="left")
+    edges[-1] = n
+    assert [k for k, _, _ in got] == list(range(n_int))
+    for k, t_start, part in got:
+        assert t_start == pytest.approx(t[0] + k * length, abs=1e-12)
+        np.testing.assert_array_equal(part.t, t[edges[k]:edges[k + 1]])
+    assert sum(len(p) == 0 for _, _, p in got) > 3
+    assert list(time_intervals([], length)) == [] and list(fixed_count_packets(chunks[:1], 10**6)) == []
