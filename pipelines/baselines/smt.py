@@ -287,8 +287,9 @@ def _bootstrap_trajectory(events: Events, imu, groundtruth: Trajectory | None, s
 def _aligned_chunks(chunks: Iterable[Events], batch_size: int, bootstrap_seconds: float,
                     size: int) -> Iterator[Events]:
     """Re-cut time-ordered chunks at batch boundaries: the first piece holds every event of the bootstrap
-    (t < t_0 + bootstrap_seconds, rounded up to whole batches: bootstrap and gain calibration happen in one
-    piece), the next ones ``size`` events (a multiple of the batch size), the last whatever remains."""
+    (t < t_0 + bootstrap_seconds, rounded up to whole batches) and one batch more, so that bootstrap, gain
+    calibration and the start of tracking happen in one piece; the next ones ``size`` events (a multiple of the
+    batch size), the last whatever remains."""
     size = max(size // batch_size, 1) * batch_size
     pending: list[Events] = []
     count, want, t_boot = 0, None, None
@@ -305,7 +306,9 @@ def _aligned_chunks(chunks: Iterable[Events], batch_size: int, bootstrap_seconds
                     break
                 buf = Events.concatenate(pending) if len(pending) > 1 else pending[0]
                 pending = [buf]
-                want = max(-(-int(np.searchsorted(buf.t, t_boot, side="left")) // batch_size), 1) * batch_size
+                # whole batches up to t_boot, plus one: tracking (and the gain calibration on the bootstrap's
+                # last batches) must start in this piece
+                want = (-(-int(np.searchsorted(buf.t, t_boot, side="left")) // batch_size) + 1) * batch_size
             if count < want:
                 break
             buf = Events.concatenate(pending) if len(pending) > 1 else pending[0]
