@@ -479,19 +479,23 @@ class _Notes:
         return [f"[{i}] {t}" for i, t in enumerate(self.items, start=1)]
 
 
-def _cell(row: dict | None, keys_digits, notes: _Notes, seq: str) -> list[str]:
-    """Cells of one method in one sequence: figures if ok, else the status (with a note)."""
+def _cell(row: dict | None, keys_digits, notes: _Notes, seq: str, show_lost: bool = False) -> list[str]:
+    """Cells of one method in one sequence: figures if ok, else the status (with a note). ``show_lost``: a lost
+    run still shows its figures (runtime: they cover the events processed until the loss), tagged."""
     if row is None:
         return ["n/a"] * len(keys_digits)
+    figures = [_fmt(row[k], d) if row[k] is not None else "-" for k, d in keys_digits]
     if row["status"] == "ok":
-        return [_fmt(row[k], d) if row[k] is not None else "-" for k, d in keys_digits]
+        return figures
     if row["status"] == "not implemented":
         return ["not implemented"] + [""] * (len(keys_digits) - 1)
     tag = notes.ref(f"{row['method']} on {seq}: {row['status']}" + (f", {row['note']}" if row.get("note") else ""))
+    if show_lost and row["status"] == "lost" and figures[0] != "-":
+        return [f"{figures[0]} {tag}"] + figures[1:]
     return [f"- {tag}"] + ["-"] * (len(keys_digits) - 1)
 
 
-def _grid(results, kinds, keys_digits, sub_headers, notes) -> list[str]:
+def _grid(results, kinds, keys_digits, sub_headers, notes, show_lost: bool = False) -> list[str]:
     seqs = [r["sequence"] for r in results]
     by = {(res["sequence"], r["method"]): r for res in results for r in res["rows"]}
     header = "| method | " + " | ".join(f"{s} {h}" for s in seqs for h in sub_headers) + " |"
@@ -501,7 +505,7 @@ def _grid(results, kinds, keys_digits, sub_headers, notes) -> list[str]:
             continue
         cells = []
         for res in results:
-            cells += _cell(by.get((res["sequence"], method)), keys_digits, notes, res["sequence"])
+            cells += _cell(by.get((res["sequence"], method)), keys_digits, notes, res["sequence"], show_lost)
         lines.append(f"| {method} | " + " | ".join(cells) + " |")
     return lines
 
@@ -536,7 +540,7 @@ def format_tables(results: list[dict], meta: dict) -> str:
                    f"{val(lin, 'compile_seconds', 1)} |")
     out += ["", "## Runtime of every method: us/event (compilation apart) / wall s (with compilation)", ""]
     out += _grid(results, ("front-end", "ba", "slam"), (("us_per_event", 2), ("wall_seconds", 1)),
-                 ("us/ev", "wall s"), notes)
+                 ("us/ev", "wall s"), notes, show_lost=True)
     out += ["", "## Per sequence", "",
             "| sequence | simulate s (0: cached) | benchmark wall s | load avg start / end (1 min) | peak RSS MB |",
             "|---|---|---|---|---|"]
@@ -546,8 +550,9 @@ def format_tables(results: list[dict], meta: dict) -> str:
     out += ["", "## Notes", ""]
     out += notes.lines() or ["(none)"]
     out += ["", "- \"-\": lost (trajectory cut at lost_at; figures of the part before are in results.json as "
-            "partial_*), skipped (BA of a lost or failed front-end) or error; \"not implemented\": the method is "
-            "not in the baselines registry" + (f" (registry import failed: {BASELINES_IMPORT_ERROR})"
+            "partial_*; runtimes of a lost run, tagged, cover the events processed until the loss), skipped (BA "
+            "of a lost or failed front-end) or error; \"not implemented\": the method is not in the baselines "
+            "registry" + (f" (registry import failed: {BASELINES_IMPORT_ERROR})"
                                                if BASELINES_IMPORT_ERROR else "") + ".",
             "- rel RMSE uses 1 s pairs every 0.1 s (nan if the sequence is shorter); errors at each estimate's own "
             "timestamps after alignment at t0 = start of the overlap + 0.1 s.",

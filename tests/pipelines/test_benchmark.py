@@ -2,6 +2,7 @@
 import csv
 import json
 import math
+import re
 
 import pytest
 
@@ -110,6 +111,10 @@ def test_lost_front_end_and_cache(tmp_path, monkeypatch):
     text = B.format_tables(res, {"map_height": 64})
     assert "| CMax-GAE | - [2] | - |" in text and "[2] CMax-GAE on playroom: lost, lost at 0.20 s" in text
     assert "| PF-SMT | - [1] | - |" in text and "[1] PF-SMT on playroom: error, RuntimeError: boom" in text
+    # the runtime table keeps a lost run's figures (events processed until the loss), tagged; not an error's
+    runtime = text.split("## Runtime of every method")[1]
+    assert re.search(r"\| CMax-GAE \| 1\.00 \[2\] \| [0-9.]+ \|", runtime), runtime
+    assert "| PF-SMT | - [1] | - |" in runtime
     again = B.run_benchmark(cfg, [spec], ["imu"], tmp_path, plots=False)
     assert again[0]["cached"] and again[0]["simulate_seconds"] == 0.0
 
