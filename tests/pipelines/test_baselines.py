@@ -52,7 +52,14 @@ def test_cmax_gae_tracks_slow_sequence_with_bounded_memory(slow_sequence):
     cfg = BaselineConfig(gae=GAEConfig(gae_sphere_height=512))
     result = run_baseline("cmax-gae", seq.events, seq.camera, cfg)
     rep = result.report
-    assert rep["status"] == "ok" and rep["events_used"] == (len(seq.events) + 3) // 4
+    # 1 of 4 per 25 ms interval, but never fewer than gae_min_sampled_events (15000) per interval
+    t = seq.events.t
+    edges = np.searchsorted(t, t[0] + 0.025 * np.arange(int(np.ceil((t[-1] - t[0]) / 0.025)) + 1), side="left")
+    edges[-1] = len(t)
+    n_k = np.diff(edges)
+    q_k = np.clip(n_k // 15000, 1, 4)
+    assert rep["status"] == "ok" and rep["events_used"] == int(np.sum(-(-n_k // q_k)))
+    assert (q_k < 4).any() and (q_k > 1).any()  # both regimes occur in this sequence
     err = evaluate_rotations(seq.groundtruth, result.trajectory)
     assert err.abs_rmse_deg < 5.0
     assert np.allclose(np.diff(result.trajectory.t), 0.025)  # 40 Hz poses
@@ -142,3 +149,12 @@ def test_baselines_stream_their_input(slow_sequence, name):
     np.testing.assert_array_equal(streamed.trajectory.R, whole.trajectory.R)
     np.testing.assert_array_equal(streamed.map, whole.map)
     assert streamed.report["events_processed"] == whole.report["events_processed"] == len(events)
+
+
+@pytest.mark.parametrize("n,minimum,expected", [(80000, 15000, 4), (40000, 15000, 2), (17500, 15000, 1),
+                                                (100, 15000, 1), (17500, 0, 4)])
+def test_cmax_gae_sampling_keeps_enough_events(n, minimum, expected):
+    """1 of Q (the original's 4) at high event rates, fewer skipped at low rates; 0 restores the fixed 1 of Q."""
+    from ti_cmax.pipelines.baselines.cmax_gae import sample_step
+
+    assert sample_step(n, GAEConfig(gae_min_sampled_events=minimum)) == expected
