@@ -159,3 +159,15 @@ def test_false_maxima_are_rejected_on_a_map_too_coarse_for_the_sensor(ti_runtime
     assert any(w.rejected for w in res.windows)
     assert all(w.max_correction <= 0.1 for w in res.windows if w.optimized)
     assert slam.abs_rmse_deg < 2 * front.abs_rmse_deg  # without the guard: about 35 deg
+
+
+def test_sparse_knots_are_judged_by_the_trajectory_not_the_control_poses(ti_runtime):
+    """With 10 Hz control poses, a window's end poses are barely reached by its events: the optimum moves them by
+    5-14 deg while the trajectory where the events are moves by 1-2.5 deg. The false-maximum guard must judge the
+    trajectory (it rejected these windows, and every later window then started from a wrong pose)."""
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
+
+    seq = simulate_sequence(SimulatorConfig(scene="bicycle", duration=2.0, max_angular_velocity=3.0))
+    res = run_slam(seq.events, seq.camera, load_config(SlamConfig, None, ["dt_knots=0.1"]))
+    assert not any(w.rejected for w in res.windows), [(w.t_start, w.max_correction) for w in res.windows]
+    assert evaluate_rotations(seq.groundtruth, res.trajectory).abs_rmse_deg < 1.0
