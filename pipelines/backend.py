@@ -24,14 +24,13 @@ import numpy as np
 
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
-from ti_cmax.errors import InputError
 from ti_cmax.kernels.pano import (
     PanoIWE, batch_mid_times, blur_radius, blur_region, event_area, touched_region, vote_map,
 )
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
-from .optim import STEP_GUESSES, fletcher_reeves
+from .optim import check_line_search, fletcher_reeves
 
 _TIME_EPS = 1e-9
 
@@ -152,9 +151,7 @@ class SlidingWindowBackend:
     """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""
 
     def __init__(self, config: BackendConfig, t_start: float, r_start: np.ndarray | None = None):
-        if config.backend_cg_step_guess not in STEP_GUESSES:
-            raise InputError(f"backend_cg_step_guess must be one of {', '.join(STEP_GUESSES)}, got "
-                             f"{config.backend_cg_step_guess!r}")
+        check_line_search("backend", config.backend_cg_step_guess, config.backend_cg_max_line_evals)
         self.cfg = config
         self.width, self.height = config.pano_size
         self.t_start = float(t_start)

@@ -45,7 +45,7 @@ from ti_cmax.events import Events
 from ti_cmax.kernels.iwe import IWEWorkspace, measure_id
 from ti_cmax.trajectory import Trajectory
 
-from .optim import STEP_GUESSES, fletcher_reeves
+from .optim import check_line_search, fletcher_reeves
 
 SLICING_RULES = ("bounded", "paper")
 WARM_STARTS = ("previous", "linear")
@@ -108,11 +108,7 @@ def check_config(config: FrontendConfig) -> None:
         raise InputError(f"frontend_blur_sigma must be >= 0, got {config.frontend_blur_sigma}")
     if config.frontend_max_packet_events < 0 or 0 < config.frontend_max_packet_events < 2:
         raise InputError(f"frontend_max_packet_events must be 0 (off) or >= 2, got {config.frontend_max_packet_events}")
-    if config.frontend_cg_step_guess not in STEP_GUESSES:
-        raise InputError(f"frontend_cg_step_guess must be one of {', '.join(STEP_GUESSES)}, got "
-                         f"{config.frontend_cg_step_guess!r}")
-    if config.frontend_cg_max_line_evals < 1:
-        raise InputError(f"frontend_cg_max_line_evals must be >= 1, got {config.frontend_cg_max_line_evals}")
+    check_line_search("frontend", config.frontend_cg_step_guess, config.frontend_cg_max_line_evals)
     if config.frontend_warm_start not in WARM_STARTS:
         raise InputError(f"frontend_warm_start must be one of {', '.join(WARM_STARTS)}, got "
                          f"{config.frontend_warm_start!r}")

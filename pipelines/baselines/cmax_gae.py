@@ -4,7 +4,8 @@ Events are cut into intervals of ``gae_interval`` (25 ms: poses at 40 Hz, at the
 kept 1 of ``gae_event_sample_rate`` (4, as the original), but never fewer than ``gae_min_sampled_events`` per
 interval: 1 of q with q = min(Q, n // min), at least 1. The original's 1 of 4 suits DAVIS240C-like rates (60-80 k
 events per interval on the benchmark); on the 0.7 M events/s DVS128 playroom-like sequence it leaves 4.4 k events
-per interval and the tracker drifts away (17.0 deg RMSE; 5.3 deg keeping 1 of 2, 0.45 deg keeping all). For each interval, with R the pose at the previous t_ref:
+per interval and the tracker drifts away (17.0 deg RMSE; 5.3 deg keeping 1 of 2, 0.45 deg keeping all).
+For each interval, with R the pose at the previous t_ref:
 1. I_G: the past events (a fixed-size equirectangular histogram of world bearings on the unit sphere,
    ``gae_sphere_height`` x 2 ``gae_sphere_height`` cells) splatted into a view twice as wide and high as the sensor
    around R, blurred by ``gae_blur_sigma`` (G);

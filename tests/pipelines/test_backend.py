@@ -47,11 +47,13 @@ def test_window_initialization_reaches_beyond_the_window_end():
     assert times[-1] > t_end + 1e-3
 
 
-def test_backend_rejects_an_unknown_line_search_step_guess():
-    """The CG step guess is a config field (YAML / --set): a typo is one clear error, not a late ValueError."""
+@pytest.mark.parametrize("field,value", [("backend_cg_step_guess", "newton"), ("backend_cg_max_line_evals", 0)])
+def test_backend_rejects_bad_line_search_settings(field, value):
+    """The CG line-search settings are config fields (YAML / --set): a bad value is one clear error naming the
+    field, not a late ValueError or a line search that never evaluates."""
     from ti_cmax.config import BackendConfig
     from ti_cmax.errors import InputError
     from ti_cmax.pipelines.backend import SlidingWindowBackend
 
-    with pytest.raises(InputError, match="backend_cg_step_guess"):
-        SlidingWindowBackend(BackendConfig(backend_cg_step_guess="newton"), 0.0)
+    with pytest.raises(InputError, match=field):
+        SlidingWindowBackend(BackendConfig(**{field: value}), 0.0)
