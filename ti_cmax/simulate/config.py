@@ -25,6 +25,9 @@ class SimulatorConfig:
     trajectory: str = "random"  # random (ECD-like ramp), pan (360 deg about vertical), constant
     max_angular_velocity: float = 5.0  # rad/s, peak of the random trajectory (reached near the end)
     random_frequency_max: float = 1.5  # Hz, highest frequency of the random angular velocity
+    # envelope of the random motion at the start, as a fraction of its end (0.1: ECD-like slow start; 1: as fast
+    # from the first 5 % of the sequence on as at the end)
+    random_ramp_start: float = 0.1
     constant_rate_deg: float = 4.0  # deg/s for trajectory=constant (star tracking)
     rotation_axis: tuple[float, ...] = ()  # camera-frame axis for trajectory=constant; empty: seeded random axis
     integration_rate: float = 10000.0  # Hz, exact-exp integration of the ground truth
@@ -62,7 +65,8 @@ class SimulatorConfig:
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be positive, got {getattr(self, name)}")
         nonneg = ("threshold_sigma", "refractory_period", "noise_rate", "time_resolution", "gyro_bias_std",
-                  "gyro_noise_std", "acc_noise_std", "blur_sigma_px", "pano_height", "max_angular_velocity")
+                  "gyro_noise_std", "acc_noise_std", "blur_sigma_px", "pano_height", "max_angular_velocity",
+                  "random_ramp_start")
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")

@@ -64,7 +64,8 @@ def _setup(config: SimulatorConfig) -> _Setup:
     pano = make_panorama(config, 1.0 / max(camera.fx, camera.fy))
     motion = make_motion(config.trajectory, config.duration, seed=config.seed,
                          max_angular_velocity=config.max_angular_velocity,
-                         frequency_max=config.random_frequency_max, constant_rate_deg=config.constant_rate_deg,
+                         frequency_max=config.random_frequency_max, ramp_start=config.random_ramp_start,
+                         constant_rate_deg=config.constant_rate_deg,
                          axis=config.rotation_axis, integration_rate=config.integration_rate)
     times = render_times(motion, camera, config.max_pixel_step, config.max_render_dt)
     t, acc, gyro, bias = simulate_imu(motion, config.imu_rate, gyro_bias_std=config.gyro_bias_std,
