@@ -13,10 +13,11 @@ With P the sensor's pixel count, s = P / 43200 (DAVIS240C = 1) and f = (fx + fy)
 - ``frontend_min_event_rate``   = 10 000 * s events/s (still-camera floor): a smaller sensor sees fewer events
   for the same motion, a larger one more.
 - ``backend_min_ev_rate``       = 10 000 * s events/s (below it a window is treated as still: no BA).
-- ``pano_height``               = W / 2 with W = 2 pi f * ``pano_pixels_per_sensor_pixel`` rounded up to a
-  multiple of 256: the map's angular resolution follows the camera's (DAVIS240C, f = 199: 2048 x 1024; DVS128,
-  f = 110: 1280 x 640; VGA, f = 520: 5120 x 2560). The back-end's work per window depends on the field of view's
-  area in map pixels (about P * ratio^2), not on the map size.
+- ``pano_height``               = W / 2 with W = 2 pi f * ``pano_pixels_per_sensor_pixel`` (1.5) rounded up to a
+  multiple of 256, at most 8192: the map's angular resolution follows the camera's (DAVIS240C, f = 199:
+  2048 x 1024; DVS128, f = 110: 1280 x 640; VGA, f = 520: 5120 x 2560; HD, f = 1235: 8192 x 4096, the cap, about
+  1.06 map pixels per sensor pixel, 400 MB of map state). The back-end's work per window depends on the field
+  of view's area in map pixels (about P * ratio^2), not on the map size.
 - ``backend_max_window_events`` = 5 * P * window / 0.2 s, rounded to 1000: a window with more events is
   sampled evenly (every n/cap-th event, so evenly in time and, in proportion, over the image) for the BA; every
   event still goes into the map. 5 events per pixel per 0.2 s window is about 1.1 M events/s on a DAVIS240C and
@@ -37,6 +38,7 @@ REFERENCE_MAX_PACKET_EVENTS = 20_000
 REFERENCE_MIN_EVENT_RATE = 10_000.0  # events/s
 WINDOW_EVENTS_PER_PIXEL = 5.0  # per 0.2 s window
 MAP_WIDTH_MULTIPLE = 256
+MAX_MAP_WIDTH = 8192  # 8192 x 4096: 33 M pixels, about 400 MB of map state (raw, blurred, scratch; float32)
 
 
 def _pixel_scale(camera: Camera) -> float:
@@ -60,7 +62,8 @@ def derived_frontend(camera: Camera) -> dict:
 def map_width_for(camera: Camera, pixels_per_sensor_pixel: float) -> int:
     """Panorama width whose angular resolution matches the camera's at the image centre (times the ratio)."""
     focal = 0.5 * (camera.fx + camera.fy)
-    return MAP_WIDTH_MULTIPLE * math.ceil(2 * math.pi * focal * pixels_per_sensor_pixel / MAP_WIDTH_MULTIPLE)
+    width = MAP_WIDTH_MULTIPLE * math.ceil(2 * math.pi * focal * pixels_per_sensor_pixel / MAP_WIDTH_MULTIPLE)
+    return min(width, MAX_MAP_WIDTH)
 
 
 def derived_backend(camera: Camera, config: BackendConfig = BackendConfig()) -> dict:

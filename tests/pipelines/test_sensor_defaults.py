@@ -12,14 +12,14 @@ from ti_cmax.pipelines.sensor_defaults import derived_summary, resolve_config
 DAVIS240C = Camera(240, 180, 199.1, 198.9, 132.2, 110.7)
 DVS128 = Camera(128, 128, 110.0, 110.0, 63.5, 63.5)
 VGA = Camera(640, 480, 520.0, 520.0, 319.5, 239.5)
-HD = Camera(1280, 720, 1000.0, 1000.0, 639.5, 359.5)
+HD = Camera(1280, 720, 1235.0, 1235.0, 639.5, 359.5)
 
 
 @pytest.mark.parametrize("camera, packet, cap, rate, map_w, window_cap", [
     (DVS128, 10000, 20000, 3792.6, 1280, 82000),   # smaller sensor: packets stay at the reference's size
     (DAVIS240C, 10000, 20000, 10000.0, 2048, 216000),
     (VGA, 71000, 142000, 71111.1, 5120, 1536000),
-    (HD, 213000, 427000, 213333.3, 9472, 4608000),
+    (HD, 213000, 427000, 213333.3, 8192, 4608000),
 ])
 def test_derived_values_follow_the_documented_rules(camera, packet, cap, rate, map_w, window_cap):
     cfg = resolve_config(SlamConfig(), camera)
@@ -27,9 +27,9 @@ def test_derived_values_follow_the_documented_rules(camera, packet, cap, rate, m
     assert (f.num_events_per_packet, f.frontend_max_packet_events) == (packet, cap)
     assert f.frontend_min_event_rate == pytest.approx(rate, abs=0.1) and b.backend_min_ev_rate == f.frontend_min_event_rate
     assert b.pano_size == (map_w, map_w // 2)
-    # about 1.5 map pixels per sensor pixel at the image centre, never coarser than the sensor
-    focal = 0.5 * (camera.fx + camera.fy)
-    assert 1.5 <= map_w / (2 * np.pi * focal) < 1.5 + 256 / (2 * np.pi * focal)
+    # about 1.5 map pixels per sensor pixel at the image centre (at most 8192 wide), never coarser than the sensor
+    ratio = map_w / (2 * np.pi * 0.5 * (camera.fx + camera.fy))
+    assert 1.5 <= ratio < 1.5 + 256 / (2 * np.pi * camera.fx) or (map_w == 8192 and ratio >= 1.0)
     assert b.backend_max_window_events == window_cap
     assert resolve_config(cfg, camera) == cfg  # idempotent: resolved values are plain numbers
 
