@@ -78,6 +78,22 @@ def test_raw_from_the_published_layout(tmp_path, version, encode):
     check_events(ds, t, x, y, p)
 
 
+def test_evt3_vectorized_events(tmp_path):
+    """EVT 3.0 vectors: VECT_BASE_X (type 3: polarity bit 11, x base) then VECT_12 (type 4) and VECT_8 (type 5)
+    masks; bit i of a mask is an event at x = base + i, and the base advances by the mask's width."""
+    m12, m8 = 0b101000000011, 0b10010001
+    words = [(8 << 12) | 0x001, (6 << 12) | 0x234, 37, (3 << 12) | (1 << 11) | 100, (4 << 12) | m12, (5 << 12) | m8,
+             (3 << 12) | 500, (5 << 12) | 0b1]  # then an OFF vector at x = 500
+    path = tmp_path / "vec.raw"
+    path.write_bytes(header("3.0", 640, 480) + np.array(words, "<u2").tobytes())
+    ev = open_dataset(path).read_events()
+    xs = [100 + i for i in range(12) if m12 >> i & 1] + [112 + i for i in range(8) if m8 >> i & 1] + [500]
+    np.testing.assert_array_equal(ev.x, xs)
+    np.testing.assert_array_equal(ev.y, 37)
+    np.testing.assert_array_equal(ev.p, [1] * (len(xs) - 1) + [-1])
+    np.testing.assert_allclose(ev.t, 0x001234 * 1e-6)
+
+
 @pytest.mark.parametrize("version", ["evt2", "evt3"])
 def test_raw_round_trip_through_faery(tmp_path, version):
     t, x, y, p = random_events(20000, 1280, 720, 3_000_000, seed=1)
