@@ -183,7 +183,7 @@ def _simulator_config(spec: SequenceSpec, settings: BenchmarkSettings):
     from ti_cmax.simulate import SimulatorConfig
 
     return SimulatorConfig(scene=spec.scene, sensor=spec.sensor, duration=settings.duration or spec.duration,
-                           seed=settings.seed + spec.seed)
+                           seed=settings.seed + spec.seed).resolved()  # as simulation.json records it
 
 
 def ensure_sequence(spec: SequenceSpec, settings: BenchmarkSettings, cache_dir, show_progress: bool = False):

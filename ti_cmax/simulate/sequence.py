@@ -54,7 +54,7 @@ class _Setup:
 
 def _as_config(config: SimulatorConfig | None, overrides: dict) -> SimulatorConfig:
     config = config or SimulatorConfig()
-    return dataclasses.replace(config, **overrides) if overrides else config
+    return (dataclasses.replace(config, **overrides) if overrides else config).resolved()
 
 
 def _setup(config: SimulatorConfig) -> _Setup:
