@@ -15,13 +15,17 @@ VGA = Camera(640, 480, 520.0, 520.0, 319.5, 239.5)
 HD = Camera(1280, 720, 1235.0, 1235.0, 639.5, 359.5)
 
 
-@pytest.mark.parametrize("camera, packet, cap, rate, map_w, window_cap", [
-    (DVS128, 10000, 20000, 3792.6, 1280, 82000),   # smaller sensor: packets stay at the reference's size
-    (DAVIS240C, 10000, 20000, 10000.0, 2048, 216000),
-    (VGA, 71000, 142000, 71111.1, 5120, 1536000),
-    (HD, 213000, 427000, 213333.3, 8192, 4608000),
+@pytest.mark.parametrize("sensor, packet, cap, rate, map_w, window_cap", [
+    ("DVS128", 10000, 20000, 3792.6, 1280, 82000),   # smaller sensor: packets stay at the reference's size
+    ("DAVIS240C", 10000, 20000, 10000.0, 2048, 216000),
+    ("DAVIS346", 21000, 42000, 20824.1, 2560, 450000),
+    ("DVXplorer", 71000, 142000, 71111.1, 5120, 1536000),
+    ("HD", 213000, 427000, 213333.3, 8192, 4608000),  # map width at its cap
 ])
-def test_derived_values_follow_the_documented_rules(camera, packet, cap, rate, map_w, window_cap):
+def test_derived_values_follow_the_documented_rules(sensor, packet, cap, rate, map_w, window_cap):
+    from ti_cmax.simulate import sensor_camera
+
+    camera = sensor_camera(sensor)
     cfg = resolve_config(SlamConfig(), camera)
     f, b = cfg.frontend, cfg.backend
     assert (f.num_events_per_packet, f.frontend_max_packet_events) == (packet, cap)
