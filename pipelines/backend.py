@@ -30,7 +30,7 @@ from ti_cmax.kernels.pano import (
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
-from .optim import check_line_search, fletcher_reeves
+from .optim import fletcher_reeves
 
 _TIME_EPS = 1e-9
 
@@ -151,7 +151,6 @@ class SlidingWindowBackend:
     """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""
 
     def __init__(self, config: BackendConfig, t_start: float, r_start: np.ndarray | None = None):
-        check_line_search("backend", config.backend_cg_step_guess, config.backend_cg_max_line_evals)
         self.cfg = config
         self.width, self.height = config.pano_size
         self.t_start = float(t_start)

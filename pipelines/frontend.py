@@ -39,16 +39,14 @@ import numpy as np
 
 from ti_cmax import so3
 from ti_cmax.camera import Camera
-from ti_cmax.config import FrontendConfig, config_to_dict
+from ti_cmax.config import SLICING_RULES, FrontendConfig, config_to_dict
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
 from ti_cmax.kernels.iwe import IWEWorkspace, measure_id
 from ti_cmax.trajectory import Trajectory
 
-from .optim import check_line_search, fletcher_reeves
+from .optim import fletcher_reeves
 
-SLICING_RULES = ("bounded", "paper")
-WARM_STARTS = ("previous", "linear")
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,32 +84,6 @@ class FrontendResult:
             **{k: (float(v) if isinstance(v, (int, float, np.floating, np.integer)) else v)
                for k, v in self.timing.items()},
         }
-
-
-def check_config(config: FrontendConfig) -> None:
-    """Raise InputError on parameter values the front-end cannot run with."""
-    if config.frontend_slicing not in SLICING_RULES:
-        raise InputError(f"frontend_slicing must be one of {', '.join(SLICING_RULES)}, got {config.frontend_slicing!r}")
-    try:
-        measure_id(config.contrast_measure)
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
-    if config.num_events_per_packet < 2:
-        raise InputError(f"num_events_per_packet must be >= 2, got {config.num_events_per_packet}")
-    if not config.dt_ang_vel > 0:
-        raise InputError(f"dt_ang_vel must be > 0, got {config.dt_ang_vel}")
-    if config.frontend_event_sample_rate < 1:
-        raise InputError(f"frontend_event_sample_rate must be >= 1, got {config.frontend_event_sample_rate}")
-    if not config.still_span_factor > 0:
-        raise InputError(f"still_span_factor must be > 0, got {config.still_span_factor}")
-    if config.frontend_blur_sigma < 0:
-        raise InputError(f"frontend_blur_sigma must be >= 0, got {config.frontend_blur_sigma}")
-    if config.frontend_max_packet_events < 0 or 0 < config.frontend_max_packet_events < 2:
-        raise InputError(f"frontend_max_packet_events must be 0 (off) or >= 2, got {config.frontend_max_packet_events}")
-    check_line_search("frontend", config.frontend_cg_step_guess, config.frontend_cg_max_line_evals)
-    if config.frontend_warm_start not in WARM_STARTS:
-        raise InputError(f"frontend_warm_start must be one of {', '.join(WARM_STARTS)}, got "
-                         f"{config.frontend_warm_start!r}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -284,7 +256,6 @@ class AngularVelocityEstimator:
     """Estimates omega for one packet at a time (keeps the compiled workspace and the warm start)."""
 
     def __init__(self, camera: Camera, config: FrontendConfig = FrontendConfig(), dtype=np.float32):
-        check_config(config)
         self.camera, self.config = camera, config
         self.K = camera.K
         self.focal = 0.5 * (camera.fx + camera.fy)
@@ -388,7 +359,6 @@ class FrontendRunner:
     """
 
     def __init__(self, camera: Camera, config: FrontendConfig = FrontendConfig(), dtype=np.float32):
-        check_config(config)
         self.config = config
         self.estimator = AngularVelocityEstimator(camera, config, dtype)
         self.slicer = PacketSlicer(config)
@@ -480,4 +450,4 @@ def report_parameters(config: FrontendConfig) -> dict:
 
 
 __all__ = ["FrontendResult", "PacketSlicer", "Packet", "AngularVelocityEstimator", "estimate_angular_velocity",
-           "check_config", "SLICING_RULES", "FrontendRunner", "as_chunks", "downsampled"]
+           "SLICING_RULES", "FrontendRunner", "as_chunks", "downsampled"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from .errors import InputError
@@ -30,6 +31,7 @@ COMMANDS = {
     "grayscale": "grayscale",
     "star-tracking": "star_tracking",
     "super-resolution": "super_resolution",
+    "params": "params",
 }
 
 
@@ -43,10 +45,23 @@ def _available_commands():
             raise
 
 
+def version_text() -> str:
+    from importlib import metadata
+
+    from . import __version__
+
+    try:
+        taichi = metadata.version("taichi")
+    except metadata.PackageNotFoundError:  # pragma: no cover - taichi is a dependency
+        taichi = "not installed"
+    return f"ti-cmax {__version__} (taichi {taichi})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ti-cmax", description="CMax-SLAM: rotational motion estimation for event cameras (Taichi CPU)."
     )
+    parser.add_argument("--version", action="version", version=version_text())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, module in _available_commands():
@@ -73,7 +88,14 @@ def main(argv: list[str] | None = None) -> int:
 
         runtime.set_num_threads(args.threads)
     try:
-        return int(args._run(args) or 0)
+        code = int(args._run(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
+        return code
+    except BrokenPipeError:
+        # the reader of stdout went away (``ti-cmax evaluate ... | head -2``): end quietly, like a SIGPIPE
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
     except InputError as exc:
         print(f"ti-cmax {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -18,11 +18,10 @@ def run(args) -> int:
     from ..config import SlamConfig, config_to_dict, load_config, save_config
     from ..io import open_dataset_from_config, write_angular_velocity, write_tum
     from ..outputs import OutputDir
-    from ..pipelines.frontend import check_config, estimate_angular_velocity
+    from ..pipelines.frontend import estimate_angular_velocity
 
     tic = time.perf_counter()
     cfg = load_config(SlamConfig, args.config, args.overrides)
-    check_config(cfg.frontend)
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     camera = dataset.camera
     t0, t1 = dataset.time_range()

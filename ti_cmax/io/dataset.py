@@ -233,8 +233,9 @@ class Dataset:
             return Camera(w, h, cam.fx, cam.fy, cam.cx, cam.cy, cam.dist), f"{self.format} file"
         if self.allow_default_calibration:
             return Camera.ideal(w, h, DEFAULT_FOV_DEG), f"default (ideal pinhole, {DEFAULT_FOV_DEG:g} deg field of view)"
-        raise InputError("no camera calibration: expected calib.txt or a camera_info YAML beside the events "
-                         "(or allow the default ideal calibration explicitly)", source=str(self.path))
+        raise InputError("no camera calibration: expected calib.txt or a camera_info YAML beside the events (or "
+                         f"use an ideal {DEFAULT_FOV_DEG:g} deg pinhole: --set allow_default_calibration=true)",
+                         source=str(self.path))
 
     @property
     def camera(self) -> Camera:
