@@ -7,7 +7,7 @@ events file (.txt, .h5/.hdf5, .bag, .aedat4). A single file named ``events.*`` i
 groundtruth.txt and imu.txt beside it (it is the events file of an ECD folder); any other single file only with
 what it carries itself (so an unrelated calib.txt in the same folder is never picked up by accident).
 
-Sensor size, first match wins: the ``width``/``height`` arguments; the calibration YAML; the events file
+Sensor size, first match wins: the ``width``/``height`` arguments; the calibration YAML; a second line 'width height' in calib.txt; the events file
 (HDF5 attributes, bag message width/height, AEDAT4 stream); otherwise it is inferred from the largest x, y of
 the first chunk, snapped to the smallest sensor of ``ti_cmax.camera.SENSORS`` containing them (by pixel count:
 DVS128, DAVIS240C, DAVIS346, VGA) whose central half holds calib.txt's principal point. A recording whose
@@ -32,7 +32,7 @@ from ..errors import InputError
 from ..events import Events
 from ..trajectory import Trajectory
 from ._common import infer_sensor_size, validated_chunks
-from .calib import read_calib_txt_params, read_camera_info_yaml
+from .calib import read_calib_txt_params, read_calib_txt_size, read_camera_info_yaml
 from .text import ImuData, read_imu_txt, read_tum
 
 def open_dataset_from_config(path, cfg: DatasetConfig) -> "Dataset":
@@ -182,11 +182,13 @@ class Dataset:
             raise InputError("give both width and height, or neither")
         self._yaml_camera = None
         self._txt_calib = None
+        self._txt_size = None
         if self.calib_path is not None:
             if self.calib_path.suffix.lower() in (".yaml", ".yml"):
                 self._yaml_camera = read_camera_info_yaml(self.calib_path)
             else:
                 self._txt_calib = read_calib_txt_params(self.calib_path)
+                self._txt_size = read_calib_txt_size(self.calib_path)
         if isinstance(self._source, (TxtSource, H5Source)):
             self._source.time_range()  # cheap here: fails early on an empty or unreadable file
         self.width, self.height = self._sensor_size()
@@ -199,6 +201,9 @@ class Dataset:
         if self._yaml_camera is not None:
             self.size_source = self.calib_path.name
             return self._yaml_camera.width, self._yaml_camera.height
+        if self._txt_size is not None:
+            self.size_source = f"{self.calib_path.name}, line {self._txt_size[2]}"
+            return self._txt_size[:2]
         if self._source.sensor_size is not None:
             self.size_source = f"{self.format} file"
             return tuple(int(v) for v in self._source.sensor_size)
