@@ -363,7 +363,8 @@ class FrontendRunner:
         self.estimator = AngularVelocityEstimator(camera, config, dtype)
         self.slicer = PacketSlicer(config)
         self.rows: list[tuple] = []
-        self.events_processed = 0  # events in non-still packets (each counted once per packet)
+        self.events_processed = 0  # events in non-still packets (each counted once per packet): packet_events
+        self.input_events = 0  # counted by counted(); 0: the slicer's count is the input
         self.compile_seconds = 0.0
         self.seconds = 0.0  # steady-state time spent in process()
         self.cpu_seconds = 0.0  # CPU time of the process (all threads) spent in process()
@@ -371,6 +372,12 @@ class FrontendRunner:
     @property
     def events_read(self) -> int:
         return self.slicer.events_read
+
+    def counted(self, chunks: Iterable[Events]) -> Iterator[Events]:
+        """The input chunks, counted before any event sampling (the unit of us_per_event: input events)."""
+        for chunk in chunks:
+            self.input_events += len(chunk)
+            yield chunk
 
     def compile(self) -> float:
         self.compile_seconds = self.estimator.compile()
@@ -396,15 +403,19 @@ class FrontendRunner:
         arr = list(zip(*self.rows)) if self.rows else [()] * 10
         evals = np.asarray(arr[7], dtype=int)
         processed = self.events_processed
+        inputs = self.input_events or self.events_read
         evaluated = self.estimator.event_evaluations
         timing = {
             "compile_seconds": self.compile_seconds,
             "wall_seconds": self.seconds,
             "cpu_seconds": self.cpu_seconds,
+            # one unit everywhere: us per INPUT event (events_processed = events read, as in report.json);
+            # packet_events counts each event once per (overlapping, non-still) packet that holds it
             "events_read": int(self.events_read),
-            "events_processed": int(processed),
-            "us_per_event": self.seconds * 1e6 / processed if processed else 0.0,
-            "us_per_input_event": self.seconds * 1e6 / self.events_read if self.events_read else 0.0,
+            "events_processed": int(inputs),
+            "us_per_event": self.seconds * 1e6 / inputs if inputs else 0.0,
+            "packet_events": int(processed),
+            "us_per_packet_event": self.seconds * 1e6 / processed if processed else 0.0,
             "events_evaluated": int(self.estimator.events_evaluated),
             "evaluations": int(evals.sum()),
             "us_per_event_per_evaluation": self.seconds * 1e6 / evaluated if evaluated else 0.0,
@@ -431,7 +442,7 @@ def estimate_angular_velocity(events_or_chunks, camera: Camera, config: Frontend
 
     runner = FrontendRunner(camera, config, dtype)
     runner.compile()
-    chunks = downsampled(as_chunks(events_or_chunks), int(config.frontend_event_sample_rate))
+    chunks = downsampled(runner.counted(as_chunks(events_or_chunks)), int(config.frontend_event_sample_rate))
     bar = progress(total=progress_total, desc="front-end", unit="s")
     t_prev = None
     try:
