@@ -22,17 +22,21 @@ REQUIRED_TAICHI_VERSION = (1, 7, 4)
 
 
 @contextlib.contextmanager
-def _stdout_to_stderr():
-    """Route file descriptor 1 to 2 (Taichi's C++ logger writes to fd 1 directly)."""
+def _stdout_to_stderr(discard: bool = False):
+    """Route file descriptor 1 to 2, or to /dev/null when ``discard`` (Taichi's C++ logger writes to fd 1
+    directly, and ``ti.init`` prints its arch line with print())."""
     sys.stdout.flush()
     saved = os.dup(1)
+    target = os.open(os.devnull, os.O_WRONLY) if discard else 2
     try:
-        os.dup2(2, 1)
+        os.dup2(target, 1)
         yield
     finally:
         sys.stdout.flush()
         os.dup2(saved, 1)
         os.close(saved)
+        if discard:
+            os.close(target)
 
 
 with _stdout_to_stderr():
@@ -64,8 +68,10 @@ def ensure_init() -> None:
     """Initialize Taichi once: CPU arch, offline cache, quiet log, chosen thread count."""
     if _state["initialized"]:
         return
+    from ti_cmax.progress import is_quiet
+
     threads = num_threads()
-    with _stdout_to_stderr():
+    with _stdout_to_stderr(discard=is_quiet()):  # --quiet: no "[Taichi] Starting on arch=x64" line either
         ti.init(
             arch=ti.cpu,
             offline_cache=True,

@@ -33,11 +33,11 @@ def check_events(ds, chunk_size: int) -> int:
 
     n = 0
     t0, t1 = ds.time_range()
-    with progress(total=round(t1 - t0, 2), desc="checking events", unit="s") as bar:
+    with progress(total=t1 - t0, desc="checking events", unit="s") as bar:
         for chunk in ds.iter_events(chunk_size):
             n += len(chunk)
             if len(chunk):
-                bar.update(round(float(chunk.t[-1]) - t0, 2) - bar.n)
+                bar.update(float(chunk.t[-1]) - t0 - bar.n)
     return n
 
 

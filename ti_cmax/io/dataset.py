@@ -274,6 +274,10 @@ class Dataset:
         return validated_chunks(self._source.iter_blocks(t_start=t_start), self._source.source,
                                 self.width, self.height, chunk_size, t_start, t_end)
 
+    def stream(self, chunk_size: int = 1_000_000) -> "EventStream":
+        """The validated chunks as an iterable that also knows the time range (progress bars get a total)."""
+        return EventStream(self, chunk_size)
+
     def read_events(self, t_start: float | None = None, t_end: float | None = None) -> Events:
         """All events in [t_start, t_end) at once (convenience for short recordings)."""
         return Events.concatenate(list(self.iter_events(1 << 22, t_start, t_end)))
@@ -287,6 +291,19 @@ class Dataset:
 
     def __repr__(self) -> str:
         return f"Dataset({self.name!r}, {self.format}, {self.width}x{self.height})"
+
+
+class EventStream:
+    """One pass over a dataset's events in chunks (``iter``), with the dataset's ``time_range()``."""
+
+    def __init__(self, dataset: Dataset, chunk_size: int):
+        self.dataset, self.chunk_size = dataset, int(chunk_size)
+
+    def time_range(self) -> tuple[float, float]:
+        return self.dataset.time_range()
+
+    def __iter__(self) -> Iterator[Events]:
+        return iter(self.dataset.iter_events(self.chunk_size))
 
 
 def open_dataset(path, width: int | None = None, height: int | None = None, *,
