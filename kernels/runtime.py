@@ -6,7 +6,9 @@ kernel wrapper calls :func:`ensure_init` before launching. This keeps stdout cle
 backend with the offline cache, and makes a later switch of fork or arch a one-file
 change.
 
-Threads: ``TI_CMAX_THREADS`` (env) or :func:`set_num_threads` before the first kernel.
+Threads: ``TI_CMAX_THREADS`` (env) or :func:`set_num_threads` before the first kernel (the CLI's ``--threads`` and
+``--set num_threads``). Float atomics (the bilinear votes) add in thread-schedule order, so results depend on the
+thread count; ``cpu_max_num_threads=1`` is bit-exact run to run (tests/pipelines/test_threads.py).
 Profiling: ``TI_CMAX_KERNEL_PROFILER=1`` turns on Taichi's kernel profiler (see examples/profile_cpu.py).
 """
 from __future__ import annotations

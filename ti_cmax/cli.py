@@ -76,6 +76,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def configured_threads(args) -> int | None:
+    """``num_threads`` from --set or the --config file (flat or output.num_threads), read before any kernel
+    starts; a bad value or file is left to the command's own config load to report."""
+    import yaml
+
+    from .config import parse_overrides
+
+    try:
+        values = parse_overrides(getattr(args, "overrides", None))
+        if getattr(args, "config", None):
+            with open(args.config) as fh:
+                loaded = yaml.safe_load(fh)
+            if isinstance(loaded, dict):
+                values = {**loaded, **(loaded.get("output") if isinstance(loaded.get("output"), dict) else {}),
+                          **values}
+    except (InputError, OSError, yaml.YAMLError):
+        return None
+    n = values.get("output.num_threads", values.get("num_threads"))
+    return n if isinstance(n, int) and not isinstance(n, bool) and n > 0 else None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -83,10 +104,11 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.quiet:
         progress.set_quiet(True)
-    if args.threads:
+    threads = args.threads or configured_threads(args)
+    if threads:
         from .kernels import runtime
 
-        runtime.set_num_threads(args.threads)
+        runtime.set_num_threads(threads)
     try:
         code = int(args._run(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
