@@ -24,6 +24,7 @@ COMMANDS = {
     "imu": "imu",
     "map": "map",
     "evaluate": "evaluate",
+    "plot": "plot",
     "demo": "demo",
     "benchmark": "benchmark",
     "sweep": "sweep",
