@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import numbers
 import operator
 import os
 import typing
@@ -62,10 +63,10 @@ def _hints(cls) -> dict:
 def _type_ok(value, typ) -> bool:
     if typ is bool:
         return isinstance(value, bool)
-    if typ is int:
-        return isinstance(value, int) and not isinstance(value, bool)
+    if typ is int:  # numpy integers too
+        return isinstance(value, numbers.Integral) and not isinstance(value, bool)
     if typ is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
     if typ is str:
         return isinstance(value, str)
     if typing.get_origin(typ) in (tuple, list):
@@ -97,8 +98,12 @@ class Params:
     def __post_init__(self):
         hints = _hints(type(self))
         for f in fields(self):
-            if not is_dataclass(hints[f.name]):
-                check_field(f.name, getattr(self, f.name), hints[f.name], f.metadata)
+            typ = hints[f.name]
+            if not is_dataclass(typ):
+                value = getattr(self, f.name)
+                check_field(f.name, value, typ, f.metadata)
+                if typ in (int, float) and type(value) is not typ:  # numpy scalars -> Python (YAML-safe)
+                    object.__setattr__(self, f.name, typ(value))
         self._relations()
 
     def _relations(self) -> None:

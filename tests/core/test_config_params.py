@@ -149,3 +149,16 @@ def test_missing_calibration_and_missing_extra_say_how(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "aedat", None)  # import aedat now raises ImportError
     with pytest.raises(InputError, match=re.escape('pip install -e ".[aedat]"')):
         aedat4._decoder(tmp_path / "x.aedat4")
+
+
+def test_numpy_scalars_are_accepted_and_stored_as_python_numbers(tmp_path):
+    import numpy as np
+
+    from ti_cmax.config import save_config
+
+    cfg = BackendConfig(pano_height=np.int64(256), dt_knots=np.float32(0.1))
+    assert type(cfg.pano_height) is int and type(cfg.dt_knots) is float
+    save_config(SlamConfig(backend=cfg), tmp_path / "c.yaml")  # YAML-safe
+    assert load_config(SlamConfig, tmp_path / "c.yaml").backend == cfg
+    with pytest.raises(InputError, match="pano_height expects int"):
+        BackendConfig(pano_height=True)
