@@ -42,11 +42,10 @@ from ti_cmax.camera import Camera
 from ti_cmax.config import SLICING_RULES, FrontendConfig, config_to_dict
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
-from ti_cmax.kernels.iwe import IWEWorkspace, measure_id
+from ti_cmax.kernels.iwe import IWEWorkspace
 from ti_cmax.trajectory import Trajectory
 
 from .optim import fletcher_reeves
-
 
 
 @dataclass(frozen=True, eq=False)
