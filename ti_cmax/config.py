@@ -227,6 +227,10 @@ class DatasetConfig(Params):
     topic: str = param("", "ROS bag event topic (empty: the only dvs_msgs/EventArray topic)")
     chunk_size: int = param(1_000_000, "events per streamed chunk", unit="events", ge=1)
 
+    def _relations(self) -> None:
+        if (self.width == 0) != (self.height == 0):
+            raise InputError(f"give both width and height, or neither (got width={self.width}, height={self.height})")
+
 
 @dataclass(frozen=True)
 class OutputConfig(Params):

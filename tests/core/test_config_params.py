@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[2]
     ("chunk_size=0", "chunk_size must be >= 1"),
     ("frontend_slicing=fixed", "frontend_slicing must be one of bounded, paper"),
     ("contrast_measure=entropy", "contrast_measure must be one of variance, mean_square"),
+    ("width=240", "give both width and height, or neither"),
 ])
 def test_bad_values_are_one_error_naming_key_and_allowed_values(override, message):
     with pytest.raises(InputError, match=message) as exc:
