@@ -6,7 +6,9 @@ kernel wrapper calls :func:`ensure_init` before launching. This keeps stdout cle
 backend with the offline cache, and makes a later switch of fork or arch a one-file
 change.
 
-Threads: ``TI_CMAX_THREADS`` (env) or :func:`set_num_threads` before the first kernel.
+Threads: ``TI_CMAX_THREADS`` (env) or :func:`set_num_threads` before the first kernel (the CLI's ``--threads`` and
+``--set num_threads``). Float atomics (the bilinear votes) add in thread-schedule order, so results depend on the
+thread count; ``cpu_max_num_threads=1`` is bit-exact run to run (tests/pipelines/test_threads.py).
 Profiling: ``TI_CMAX_KERNEL_PROFILER=1`` turns on Taichi's kernel profiler (see examples/profile_cpu.py).
 """
 from __future__ import annotations
@@ -22,17 +24,21 @@ REQUIRED_TAICHI_VERSION = (1, 7, 4)
 
 
 @contextlib.contextmanager
-def _stdout_to_stderr():
-    """Route file descriptor 1 to 2 (Taichi's C++ logger writes to fd 1 directly)."""
+def _stdout_to_stderr(discard: bool = False):
+    """Route file descriptor 1 to 2, or to /dev/null when ``discard`` (Taichi's C++ logger writes to fd 1
+    directly, and ``ti.init`` prints its arch line with print())."""
     sys.stdout.flush()
     saved = os.dup(1)
+    target = os.open(os.devnull, os.O_WRONLY) if discard else 2
     try:
-        os.dup2(2, 1)
+        os.dup2(target, 1)
         yield
     finally:
         sys.stdout.flush()
         os.dup2(saved, 1)
         os.close(saved)
+        if discard:
+            os.close(target)
 
 
 with _stdout_to_stderr():
@@ -64,8 +70,10 @@ def ensure_init() -> None:
     """Initialize Taichi once: CPU arch, offline cache, quiet log, chosen thread count."""
     if _state["initialized"]:
         return
+    from ti_cmax.progress import is_quiet
+
     threads = num_threads()
-    with _stdout_to_stderr():
+    with _stdout_to_stderr(discard=is_quiet()):  # --quiet: no "[Taichi] Starting on arch=x64" line either
         ti.init(
             arch=ti.cpu,
             offline_cache=True,

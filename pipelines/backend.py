@@ -30,7 +30,7 @@ from ti_cmax.kernels.pano import (
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
-from .optim import check_line_search, fletcher_reeves
+from .optim import fletcher_reeves
 
 _TIME_EPS = 1e-9
 
@@ -153,7 +153,6 @@ class SlidingWindowBackend:
 
     def __init__(self, config: BackendConfig, t_start: float, r_start: np.ndarray | None = None):
         """``config`` must be resolved for the camera (``sensor_defaults.resolve_backend``): no derived 0s."""
-        check_line_search("backend", config.backend_cg_step_guess, config.backend_cg_max_line_evals)
         if config.pano_height <= 0 or config.backend_max_window_events == 0 or config.backend_min_ev_rate <= 0:
             raise ValueError("the back-end needs a config resolved for the camera (sensor_defaults.resolve_backend)")
         self.cfg = config

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ti_cmax.config import SlamConfig, config_to_dict, update_config
+from ti_cmax.config import Params, SlamConfig, config_to_dict, param, update_config
 from ti_cmax.errors import InputError
 
 from .bench_slam import PAPER_TAB2, PAPER_TAB6, _fmt, _slam_extra, peak_rss_mb
@@ -84,22 +84,22 @@ ROW_FIELDS = ("sequence", "sensor", "scene", "duration_s", "events", "method", "
 
 
 @dataclass(frozen=True)
-class BenchmarkSettings:
+class BenchmarkSettings(Params):
     """The benchmark's own parameters (section ``benchmark``)."""
 
-    seed: int = 0  # simulator seed of the first sequence (the others: seed + their index in the suite)
-    duration: float = 0.0  # s; 0: each sequence's own duration (2.5 s playroom, 5 s the others)
-    map_height: int = 512  # Tab. IV maps: 2 map_height x map_height (the paper's 1024x512)
-    ba_degrees: str = "1,3"  # spline degrees of the offline BA rows ("1", "3" or "1,3"; "" none)
-    ba_pano_height: int = 0  # map height of the BA rows' back-end; 0: backend.pano_height
+    seed: int = param(0, "simulator seed of the first sequence (the others: seed + their index in the suite)")
+    duration: float = param(0.0, "length of each sequence", unit="s", gt=0,
+                            zero="each sequence's own (2.5 s playroom, 5 s the others)")
+    map_height: int = param(512, "Tab. IV maps: 2 map_height x map_height (the paper's 1024x512)", unit="px", ge=8)
+    ba_degrees: str = param("1,3", "spline degrees of the offline BA rows: 1, 3 or 1,3 (empty: none)")
+    ba_pano_height: int = param(0, "map height of the BA rows' back-end", unit="px", ge=8, zero="backend.pano_height")
     # denser source trajectories (IMU 1 kHz, RTPT ~2 kHz) are resampled to this rate (Slerp) before the BA: it only
     # initializes control poses every dt_knots, and the back-end's cost grows with the source's pose count
     # (measured, city 5 s, cubic BA: 195 s from RTPT's poses vs 13-17 s from CMax-omega's 100 Hz); 0: as given
-    ba_source_rate: float = 200.0
+    ba_source_rate: float = param(200.0, "denser BA sources are resampled to this rate", unit="Hz", gt=0,
+                                  zero="as given")
 
-    def __post_init__(self):
-        if self.duration < 0 or self.map_height < 8 or self.ba_pano_height < 0 or self.ba_source_rate < 0:
-            raise InputError("benchmark: duration must be >= 0, map_height >= 8, ba_pano_height >= 0")
+    def _relations(self) -> None:
         self.degrees()
 
     def degrees(self) -> tuple[int, ...]:

@@ -46,17 +46,14 @@ import numpy as np
 
 from ti_cmax import so3
 from ti_cmax.camera import Camera
-from ti_cmax.config import FrontendConfig, config_to_dict
+from ti_cmax.config import SLICING_RULES, FrontendConfig, config_to_dict
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
-from ti_cmax.kernels.iwe import IWEWorkspace, measure_id
+from ti_cmax.kernels.iwe import IWEWorkspace
 from ti_cmax.trajectory import Trajectory
 
-from .optim import check_line_search, fletcher_reeves
+from .optim import fletcher_reeves
 from .sensor_defaults import resolve_frontend
-
-SLICING_RULES = ("bounded", "paper")
-WARM_STARTS = ("previous", "linear")
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,36 +102,6 @@ class FrontendResult:
             **{k: (float(v) if isinstance(v, (int, float, np.floating, np.integer)) else v)
                for k, v in self.timing.items()},
         }
-
-
-def check_config(config: FrontendConfig) -> None:
-    """Raise InputError on parameter values the front-end cannot run with."""
-    if config.frontend_slicing not in SLICING_RULES:
-        raise InputError(f"frontend_slicing must be one of {', '.join(SLICING_RULES)}, got {config.frontend_slicing!r}")
-    try:
-        measure_id(config.contrast_measure)
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
-    if config.num_events_per_packet < 0 or config.num_events_per_packet == 1:
-        raise InputError(f"num_events_per_packet must be 0 (derived from the sensor) or >= 2, got "
-                         f"{config.num_events_per_packet}")
-    if config.frontend_min_event_rate < 0:
-        raise InputError(f"frontend_min_event_rate must be 0 (derived) or > 0, got {config.frontend_min_event_rate}")
-    if not config.dt_ang_vel > 0:
-        raise InputError(f"dt_ang_vel must be > 0, got {config.dt_ang_vel}")
-    if config.frontend_event_sample_rate < 1:
-        raise InputError(f"frontend_event_sample_rate must be >= 1, got {config.frontend_event_sample_rate}")
-    if not config.still_span_factor > 0:
-        raise InputError(f"still_span_factor must be > 0, got {config.still_span_factor}")
-    if config.frontend_blur_sigma < 0:
-        raise InputError(f"frontend_blur_sigma must be >= 0, got {config.frontend_blur_sigma}")
-    if config.frontend_max_packet_events < -1 or config.frontend_max_packet_events == 1:
-        raise InputError(f"frontend_max_packet_events must be -1 (off), 0 (derived from the sensor) or >= 2, got "
-                         f"{config.frontend_max_packet_events}")
-    check_line_search("frontend", config.frontend_cg_step_guess, config.frontend_cg_max_line_evals)
-    if config.frontend_warm_start not in WARM_STARTS:
-        raise InputError(f"frontend_warm_start must be one of {', '.join(WARM_STARTS)}, got "
-                         f"{config.frontend_warm_start!r}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -310,7 +277,6 @@ class AngularVelocityEstimator:
     """Estimates omega for one packet at a time (keeps the compiled workspace and the warm start)."""
 
     def __init__(self, camera: Camera, config: FrontendConfig = FrontendConfig(), dtype=np.float32):
-        check_config(config)
         config = resolve_frontend(config, camera)
         self.camera, self.config = camera, config
         self.K = camera.K
@@ -422,13 +388,13 @@ class FrontendRunner:
     """
 
     def __init__(self, camera: Camera, config: FrontendConfig = FrontendConfig(), dtype=np.float32):
-        check_config(config)
         config = resolve_frontend(config, camera)
         self.config = config
         self.estimator = AngularVelocityEstimator(camera, config, dtype)
         self.slicer = PacketSlicer(config)
         self.rows: list[tuple] = []
-        self.events_processed = 0  # events in non-still packets (each counted once per packet)
+        self.events_processed = 0  # events in non-still packets (each counted once per packet): packet_events
+        self.input_events = 0  # counted by counted(); 0: the slicer's count is the input
         self.compile_seconds = 0.0
         self.seconds = 0.0  # steady-state time spent in process()
         self.cpu_seconds = 0.0  # CPU time of the process (all threads) spent in process()
@@ -436,6 +402,12 @@ class FrontendRunner:
     @property
     def events_read(self) -> int:
         return self.slicer.events_read
+
+    def counted(self, chunks: Iterable[Events]) -> Iterator[Events]:
+        """The input chunks, counted before any event sampling (the unit of us_per_event: input events)."""
+        for chunk in chunks:
+            self.input_events += len(chunk)
+            yield chunk
 
     def compile(self) -> float:
         self.compile_seconds = self.estimator.compile()
@@ -461,15 +433,19 @@ class FrontendRunner:
         arr = list(zip(*self.rows)) if self.rows else [()] * 12
         evals = np.asarray(arr[7], dtype=int)
         processed = self.events_processed
+        inputs = self.input_events or self.events_read
         evaluated = self.estimator.event_evaluations
         timing = {
             "compile_seconds": self.compile_seconds,
             "wall_seconds": self.seconds,
             "cpu_seconds": self.cpu_seconds,
+            # one unit everywhere: us per INPUT event (events_processed = events read, as in report.json);
+            # packet_events counts each event once per (overlapping, non-still) packet that holds it
             "events_read": int(self.events_read),
-            "events_processed": int(processed),
-            "us_per_event": self.seconds * 1e6 / processed if processed else 0.0,
-            "us_per_input_event": self.seconds * 1e6 / self.events_read if self.events_read else 0.0,
+            "events_processed": int(inputs),
+            "us_per_event": self.seconds * 1e6 / inputs if inputs else 0.0,
+            "packet_events": int(processed),
+            "us_per_packet_event": self.seconds * 1e6 / processed if processed else 0.0,
             "events_evaluated": int(self.estimator.events_evaluated),
             "evaluations": int(evals.sum()),
             "us_per_event_per_evaluation": self.seconds * 1e6 / evaluated if evaluated else 0.0,
@@ -498,7 +474,7 @@ def estimate_angular_velocity(events_or_chunks, camera: Camera, config: Frontend
 
     runner = FrontendRunner(camera, config, dtype)
     runner.compile()
-    chunks = downsampled(as_chunks(events_or_chunks), int(config.frontend_event_sample_rate))
+    chunks = downsampled(runner.counted(as_chunks(events_or_chunks)), int(config.frontend_event_sample_rate))
     bar = progress(total=progress_total, desc="front-end", unit="s")
     t_prev = None
     try:
@@ -517,4 +493,4 @@ def report_parameters(config: FrontendConfig) -> dict:
 
 
 __all__ = ["FrontendResult", "PacketSlicer", "Packet", "AngularVelocityEstimator", "estimate_angular_velocity",
-           "check_config", "SLICING_RULES", "FrontendRunner", "as_chunks", "downsampled"]
+           "SLICING_RULES", "FrontendRunner", "as_chunks", "downsampled"]

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 
 from ti_cmax.camera import Camera
+from ti_cmax.config import Params, param
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
 from ti_cmax.kernels import mapping as km
@@ -39,38 +40,32 @@ C_REAL = 0.22  # ... and for real data (its true value is unknown there)
 
 
 @dataclass(frozen=True)
-class GrayscaleConfig:
+class GrayscaleConfig(Params):
     """Mapping module of SMT (App. B). Load with ``load_config(GrayscaleConfig, ...)`` or nest it in a config."""
 
-    contrast_threshold: float = 0.0  # C; 0: the simulator's value if known, else 0.22 (real data, App. B)
-    measurement_noise: float = 0.05  # sigma_z of z = p C (log-intensity units)
-    initial_gradient_variance: float = 1.0  # prior covariance of g: this * I (g in log intensity per map pixel)
-    outlier_distance_px: float = 10.0  # map points of consecutive events at a sensor pixel farther apart: outlier
-    max_updates_per_pixel: int = 5  # visits after which a map pixel stops updating (0: no cap)
-    visit_gap: float = 0.1  # s without update that end a visit of a map pixel (0: every update is a visit)
-    event_batch_size: int = 100  # events sharing one pose (at the batch's mid-time), as in the back-end
-    pano_height: int = 512
-    pano_width: int = 0  # 0: 2 * pano_height
-    mapping_precision: str = "f32"  # "f32" (production) or "f64"
-    coverage_interval: float = 0.01  # s between poses marked in the observed-area mask
-    display_percentile_low: float = 1.0  # robust 8-bit normalization of M over the observed pixels
-    display_percentile_high: float = 99.0
+    contrast_threshold: float = param(0.0, "contrast threshold C", ge=0,
+                                      zero="the simulator's value if known, else 0.22 (real data, App. B)")
+    measurement_noise: float = param(0.05, "sigma_z of z = p C (log-intensity units)", gt=0)
+    initial_gradient_variance: float = param(1.0, "prior covariance of g: this x I (log intensity per map pixel)",
+                                             gt=0)
+    outlier_distance_px: float = param(10.0, "consecutive events of a sensor pixel farther apart in the map: outlier",
+                                       unit="map px", gt=0)
+    max_updates_per_pixel: int = param(5, "visits after which a map pixel stops updating", ge=1, zero="no cap")
+    visit_gap: float = param(0.1, "time without update that ends a visit of a map pixel (0: every update)", unit="s",
+                             ge=0)
+    event_batch_size: int = param(100, "events sharing one pose (at the batch's mid-time)", unit="events", ge=1)
+    pano_height: int = param(512, "map height", unit="px", ge=2)
+    pano_width: int = param(0, "map width", unit="px", ge=2, zero="2 x pano_height")
+    mapping_precision: str = param("f32", "float precision of the EKFs: f32 (production) or f64", choices=("f32", "f64"))
+    coverage_interval: float = param(0.01, "time between poses marked in the observed-area mask", unit="s", gt=0)
+    display_percentile_low: float = param(1.0, "robust 8-bit normalization of M over the observed pixels: low",
+                                          unit="%", ge=0, le=100)
+    display_percentile_high: float = param(99.0, "same, high percentile (> low)", unit="%", ge=0, le=100)
 
-    def __post_init__(self):
-        checks = {
-            "contrast_threshold": self.contrast_threshold >= 0, "measurement_noise": self.measurement_noise > 0,
-            "initial_gradient_variance": self.initial_gradient_variance > 0,
-            "outlier_distance_px": self.outlier_distance_px > 0, "max_updates_per_pixel": self.max_updates_per_pixel >= 0,
-            "visit_gap": self.visit_gap >= 0, "event_batch_size": self.event_batch_size >= 1,
-            "pano_height": self.pano_height >= 2, "pano_width": self.pano_width >= 0,
-            "coverage_interval": self.coverage_interval > 0,
-            "display_percentile_low": 0 <= self.display_percentile_low < self.display_percentile_high <= 100,
-        }
-        for name, ok in checks.items():
-            if not ok:
-                raise InputError(f"invalid {name}: {getattr(self, name)}")
-        if self.mapping_precision not in ("f32", "f64"):
-            raise InputError(f"mapping_precision must be f32 or f64, got {self.mapping_precision!r}")
+    def _relations(self) -> None:
+        if not self.display_percentile_low < self.display_percentile_high:
+            raise InputError(f"display_percentile_low must be < display_percentile_high "
+                             f"({self.display_percentile_high:g}), got {self.display_percentile_low:g}")
 
     @property
     def pano_size(self) -> tuple[int, int]:

@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from ti_cmax.errors import InputError
+from ti_cmax.config import STEP_GUESSES
 
 
 @dataclass(frozen=True)
@@ -44,18 +44,6 @@ class _Counted:
         if self.best is None or c < self.best[1]:
             self.best = (np.array(x, dtype=float), c, g)
         return c, g
-
-
-STEP_GUESSES = ("decrease", "secant")  # first trial step of later line searches (see fletcher_reeves)
-
-
-def check_line_search(prefix: str, step_guess: str, max_line_evals: int) -> None:
-    """Validate the line-search fields ``<prefix>_cg_step_guess`` / ``<prefix>_cg_max_line_evals`` of a config
-    (front-end or back-end): one clear InputError naming the field."""
-    if step_guess not in STEP_GUESSES:
-        raise InputError(f"{prefix}_cg_step_guess must be one of {', '.join(STEP_GUESSES)}, got {step_guess!r}")
-    if max_line_evals < 1:
-        raise InputError(f"{prefix}_cg_max_line_evals must be >= 1, got {max_line_evals}")
 
 
 def _cubic_min(a, fa, da, b, fb, db):

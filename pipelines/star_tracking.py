@@ -128,7 +128,7 @@ def run_star_tracking(source, camera: Camera, config: SlamConfig | None = None, 
     report = {
         "status": "ok",
         "method": "cmax-star-tracking (front-end + offline BA)",
-        "events_processed": int(fe.timing.get("events_read", 0)),
+        "events_processed": int(fe.timing.get("events_processed", 0)),
         "wall_seconds": time.perf_counter() - wall0,
         "us_per_event": {"frontend": fe.timing.get("us_per_event", 0.0),
                          "backend": ba.report["us_per_event"]["backend"]},

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from .errors import InputError
@@ -23,6 +24,7 @@ COMMANDS = {
     "imu": "imu",
     "map": "map",
     "evaluate": "evaluate",
+    "plot": "plot",
     "demo": "demo",
     "benchmark": "benchmark",
     "sweep": "sweep",
@@ -30,6 +32,7 @@ COMMANDS = {
     "grayscale": "grayscale",
     "star-tracking": "star_tracking",
     "super-resolution": "super_resolution",
+    "params": "params",
 }
 
 
@@ -43,10 +46,23 @@ def _available_commands():
             raise
 
 
+def version_text() -> str:
+    from importlib import metadata
+
+    from . import __version__
+
+    try:
+        taichi = metadata.version("taichi")
+    except metadata.PackageNotFoundError:  # pragma: no cover - taichi is a dependency
+        taichi = "not installed"
+    return f"ti-cmax {__version__} (taichi {taichi})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ti-cmax", description="CMax-SLAM: rotational motion estimation for event cameras (Taichi CPU)."
     )
+    parser.add_argument("--version", action="version", version=version_text())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, module in _available_commands():
@@ -61,6 +77,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def configured_threads(args) -> int | None:
+    """``num_threads`` from --set or the --config file (flat or output.num_threads), read before any kernel
+    starts; a bad value or file is left to the command's own config load to report."""
+    import yaml
+
+    from .config import parse_overrides
+
+    try:
+        values = parse_overrides(getattr(args, "overrides", None))
+        if getattr(args, "config", None):
+            with open(args.config) as fh:
+                loaded = yaml.safe_load(fh)
+            if isinstance(loaded, dict):
+                values = {**loaded, **(loaded.get("output") if isinstance(loaded.get("output"), dict) else {}),
+                          **values}
+    except (InputError, OSError, yaml.YAMLError):
+        return None
+    n = values.get("output.num_threads", values.get("num_threads"))
+    return n if isinstance(n, int) and not isinstance(n, bool) and n > 0 else None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -68,12 +105,20 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.quiet:
         progress.set_quiet(True)
-    if args.threads:
+    threads = args.threads or configured_threads(args)
+    if threads:
         from .kernels import runtime
 
-        runtime.set_num_threads(args.threads)
+        runtime.set_num_threads(threads)
     try:
-        return int(args._run(args) or 0)
+        code = int(args._run(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
+        return code
+    except BrokenPipeError:
+        # the reader of stdout went away (``ti-cmax evaluate ... | head -2``): end quietly, like a SIGPIPE
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
     except InputError as exc:
         print(f"ti-cmax {args.command}: error: {exc}", file=sys.stderr)
         return 2

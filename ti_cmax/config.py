@@ -4,10 +4,19 @@ A config is loaded from YAML (flat, launch-file style, or nested by section) and
 ``--set key=value`` overrides. Flat keys are resolved by their unique field name across sections,
 so ``--set num_events_per_packet=20000`` and ``--set frontend.num_events_per_packet=20000`` both work.
 The config used is written beside the outputs (:func:`save_config`).
+
+Every field is declared with :func:`param`: its default, one line of meaning, its unit and its rule (range or
+choices; ``zero=`` names what 0 means when 0 is allowed outside the range). The same declaration drives the
+check made when a config is built (:class:`Params`, one :class:`InputError` naming the key and the allowed
+values) and ``ti-cmax params``. Rules between fields go in a class's ``_relations`` method.
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
+import math
+import numbers
+import operator
 import os
 import typing
 from dataclasses import dataclass, field, fields, is_dataclass, replace
@@ -16,85 +25,206 @@ import yaml
 
 from .errors import InputError
 
+# ------------------------------------------------------------------------------------------
+# declaring and checking fields
+# ------------------------------------------------------------------------------------------
+
+_BOUNDS = {"ge": operator.ge, "gt": operator.gt, "le": operator.le, "lt": operator.lt}
+
+
+def param(default=dataclasses.MISSING, help: str = "", *, unit: str = "", ge=None, gt=None, le=None, lt=None,
+          choices=None, zero: str | None = None, off: int | None = None, factory=None):
+    """A config field: default, one line of help, unit, and its rule (bounds ge/gt/le/lt, or choices; ``zero``:
+    0 is also allowed and means this; a ``zero`` starting with "derived" also accepts ``auto``; ``off``: this
+    value is also allowed and switches the feature off). ``factory`` builds a mutable or nested default."""
+    meta = {"help": help, "unit": unit, "ge": ge, "gt": gt, "le": le, "lt": lt,
+            "choices": tuple(choices) if choices is not None else None, "zero": zero, "off": off}
+    if factory is not None:
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def rule_text(meta) -> str:
+    """The allowed values of a field, as the error message and ``ti-cmax params`` state them."""
+    if meta.get("choices") is not None:
+        return "one of " + ", ".join(str(c) for c in meta["choices"])
+    lo = f">= {meta['ge']:g}" if meta.get("ge") is not None else f"> {meta['gt']:g}" if meta.get("gt") is not None else ""
+    hi = f"<= {meta['le']:g}" if meta.get("le") is not None else f"< {meta['lt']:g}" if meta.get("lt") is not None else ""
+    text = " and ".join(s for s in (lo, hi) if s)
+    if meta.get("zero"):
+        text = f"0 ({meta['zero']}) or {text}" if text else f"0 means {meta['zero']}"
+    if meta.get("off") is not None:
+        text = f"{meta['off']} (off), {text}"
+    return text
+
+
+@functools.lru_cache(maxsize=None)
+def _hints(cls) -> dict:
+    return typing.get_type_hints(cls)
+
+
+def _type_ok(value, typ) -> bool:
+    if typ is bool:
+        return isinstance(value, bool)
+    if typ is int:  # numpy integers too
+        return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    if typ is float:
+        return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    if typ is str:
+        return isinstance(value, str)
+    if typing.get_origin(typ) in (tuple, list):
+        return isinstance(value, (tuple, list))
+    return True
+
+
+def check_field(key: str, value, typ, meta) -> None:
+    """Raise InputError naming ``key`` and the allowed values when ``value`` breaks the field's rule."""
+    if not _type_ok(value, typ):
+        name = getattr(typ, "__name__", str(typ))
+        extra = " (finite)" if typ is float else ""
+        raise InputError(f"{key} expects {name}{extra}, got {value!r}")
+    if (meta.get("zero") and value == 0) or (meta.get("off") is not None and value == meta["off"]):
+        return
+    if meta.get("choices") is not None:
+        ok = value in meta["choices"]
+    else:
+        ok = all(op(value, meta[k]) for k, op in _BOUNDS.items() if meta.get(k) is not None)
+    if not ok:
+        unit = f" {meta['unit']}" if meta.get("unit") else ""
+        raise InputError(f"{key} must be {rule_text(meta)}{unit}, got {value!r}")
+
+
+class Params:
+    """Base of the config dataclasses: checks every field declared with :func:`param` when built (also by
+    ``dataclasses.replace``), then the class's ``_relations`` (rules between fields)."""
+
+    def __post_init__(self):
+        hints = _hints(type(self))
+        for f in fields(self):
+            typ = hints[f.name]
+            if not is_dataclass(typ):
+                value = getattr(self, f.name)
+                check_field(f.name, value, typ, f.metadata)
+                if typ in (int, float) and type(value) is not typ:  # numpy scalars -> Python (YAML-safe)
+                    object.__setattr__(self, f.name, typ(value))
+        self._relations()
+
+    def _relations(self) -> None:
+        """Rules between fields; raise InputError naming the keys."""
+
+
+def iter_params(cls, prefix: str = ""):
+    """(dotted key, field, type) of every leaf field of a (nested) config dataclass, in declaration order."""
+    hints = _hints(cls)
+    for f in fields(cls):
+        if is_dataclass(hints[f.name]):
+            yield from iter_params(hints[f.name], f"{prefix}{f.name}.")
+        else:
+            yield f"{prefix}{f.name}", f, hints[f.name]
+
+
+def field_default(f):
+    return f.default_factory() if f.default is dataclasses.MISSING else f.default
+
+
+# choices shared with the pipelines (which import them from here)
+CONTRAST_MEASURES = ("variance", "mean_square")
+SLICING_RULES = ("bounded", "paper")
+WARM_STARTS = ("previous", "linear")
+STEP_GUESSES = ("decrease", "secant")  # first trial step of later line searches (see pipelines/optim.py)
+
 
 @dataclass(frozen=True)
-class FrontendConfig:
+class FrontendConfig(Params):
     """CMax-omega front-end (Sec. II-B, III-C1)."""
 
-    contrast_measure: str = "variance"  # "variance" or "mean_square"
-    frontend_blur_sigma: float = 1.0
-    frontend_event_sample_rate: int = 1  # keep 1 of Q events
-    # 0 (or auto): derived from the sensor (pipelines/sensor_defaults.py: 10000 x max(1, pixels / 43200))
-    num_events_per_packet: int = 0
-    dt_ang_vel: float = 0.01  # 1/f, packet centre spacing (s)
-    still_span_factor: float = 10.0  # a packet spanning more than factor*dt_ang_vel means a still camera
+    contrast_measure: str = param("variance", "contrast of the image of warped events", choices=CONTRAST_MEASURES)
+    frontend_blur_sigma: float = param(1.0, "Gaussian blur of the IWE", unit="px", ge=0)
+    frontend_event_sample_rate: int = param(1, "keep 1 of Q events", ge=1)
+    num_events_per_packet: int = param(0, "events per packet N (Sec. III-C1); derived: 10000 x max(1, pixels / 43200)",
+                                       unit="events", ge=2, zero="derived")
+    dt_ang_vel: float = param(0.01, "spacing of the packet centres, 1/f", unit="s", gt=0)
+    still_span_factor: float = param(10.0, "a packet spanning more than this x dt_ang_vel means a still camera",
+                                     gt=0)
     # "bounded" (default): a packet spanning more than W = still_span_factor*dt_ang_vel is shrunk to the
     # events within t_ref +- W/2, and omega = 0 only if fewer than frontend_min_event_rate*W remain.
     # "paper": the reference rule (omega = 0 as soon as the N events span more than W).
-    frontend_slicing: str = "bounded"
-    frontend_min_event_rate: float = 0.0  # events/s floor of the "bounded" rule; 0: 10000 x pixels / 43200
+    frontend_slicing: str = param("bounded", "still-camera rule: bounded (shrink long packets) or paper (omega = 0)",
+                                  choices=SLICING_RULES)
+    frontend_min_event_rate: float = param(0.0, "event-rate floor of the bounded rule; derived: 10000 x pixels / 43200",
+                                           unit="events/s", gt=0, zero="derived")
     # packets take at least every event within t_ref +- span/2 (high event rates: N events would cover too
     # little motion to measure); 0 disables (the reference's fixed N)
-    frontend_min_packet_span: float = 0.04
+    frontend_min_packet_span: float = param(0.04, "a packet holds at least every event within this span (0: off)",
+                                            unit="s", ge=0)
     # packets holding more events than this are thinned uniformly (1 of k, k = ceil(n / max)) before the
-    # optimisation: the span (motion) is kept, the cost per packet is bounded at high event rates;
-    # 0 (or auto): derived, 20000 x max(1, pixels / 43200); -1 disables
-    frontend_max_packet_events: int = 0
+    # optimisation: the span (motion) is kept, the cost per packet is bounded at high event rates
+    frontend_max_packet_events: int = param(0, "packets with more events are thinned 1 of k; derived: 20000 x max(1, "
+                                               "pixels / 43200)", unit="events", ge=2, zero="derived", off=-1)
     # a packet whose solution moves its events by >= 1 px but raises the contrast by less than this fraction over
     # omega = 0 is "suspect" (report.json counts them; most packets suspect: status "suspect")
-    frontend_min_contrast_gain: float = 0.02
+    frontend_min_contrast_gain: float = param(0.02, "packets gaining less contrast over omega = 0 are suspect",
+                                              ge=0)
     # warm start of packet j: "previous" (omega_{j-1}) or "linear" (2 omega_{j-1} - omega_{j-2}, when both exist)
-    frontend_warm_start: str = "linear"
+    frontend_warm_start: str = param("linear", "initial omega: previous packet's, or linear extrapolation",
+                                     choices=WARM_STARTS)
     # Fletcher-Reeves CG
-    frontend_cg_init_step: float = 0.1
+    frontend_cg_init_step: float = param(0.1, "CG first trial step", gt=0)
     # 0.5 with the "secant" step guess (the reference's 0.05 costs ~2.5x the evaluations for no accuracy on
     # this smooth 3-parameter cost; measured with pipelines/bench_frontend.py)
-    frontend_cg_line_search_tol: float = 0.5
-    frontend_cg_max_iters: int = 50
-    frontend_cg_grad_tol: float = 1e-3
-    frontend_cg_rel_cost_tol: float = 1e-4
-    frontend_cg_max_line_evals: int = 4  # evaluations per line search at most (then its best point is taken)
+    frontend_cg_line_search_tol: float = param(0.5, "CG line-search (strong Wolfe curvature) tolerance", gt=0, lt=1)
+    frontend_cg_max_iters: int = param(50, "CG line searches per packet at most", ge=1)
+    frontend_cg_grad_tol: float = param(1e-3, "CG stops below this gradient norm", ge=0)
+    frontend_cg_rel_cost_tol: float = param(1e-4, "CG stops below this relative cost change", ge=0)
+    frontend_cg_max_line_evals: int = param(4, "evaluations per line search at most (then its best point)", ge=1)
     # first trial step of each later line search: "decrease" (Nocedal & Wright eq. 3.60) or "secant" (minimum of
     # the quadratic model with the last step's secant curvature; see pipelines/optim.py)
-    frontend_cg_step_guess: str = "secant"
+    frontend_cg_step_guess: str = param("secant", "first trial step of later line searches", choices=STEP_GUESSES)
 
 
 @dataclass(frozen=True)
-class BackendConfig:
+class BackendConfig(Params):
     """Sliding-window CMax bundle adjustment (Sec. III-B, III-C2)."""
 
-    backend_blur_sigma: float = 1.0
-    event_batch_size: int = 100
-    backend_event_sample_rate: int = 1
-    backend_time_window_size: float = 0.2
-    backend_sliding_window_stride: float = 0.1
+    backend_blur_sigma: float = param(1.0, "Gaussian blur of the panoramic IWE", unit="px", ge=0)
+    event_batch_size: int = param(100, "events sharing one pose", unit="events", ge=1)
+    backend_event_sample_rate: int = param(1, "keep 1 of Q events", ge=1)
+    backend_time_window_size: float = param(0.2, "sliding window length", unit="s", gt=0)
+    backend_sliding_window_stride: float = param(0.1, "window step (<= backend_time_window_size)", unit="s", gt=0)
     # 1 linear, 3 cubic. The reference defaults to linear; cubic is measured better at a similar cost on every
     # simulated sequence we ran (rel RMSE 0.12-0.30 vs 0.25-0.36 deg/s, abs 0.07-0.18 vs 0.09-0.21 deg)
-    spline_degree: int = 3
-    dt_knots: float = 0.05  # control-pose spacing (s)
-    # 0 (or auto): derived from the focal length, width = 2 pi f x pano_pixels_per_sensor_pixel rounded up to a
-    # multiple of 256 (pipelines/sensor_defaults.py)
-    pano_height: int = 0
-    pano_width: int = 0  # 0 means 2 * pano_height
-    pano_pixels_per_sensor_pixel: float = 1.5  # map pixels per sensor pixel at the image centre (derived size)
-    backend_min_ev_rate: float = 0.0  # events/s; below: camera treated as still, no BA; 0: 10000 x pixels / 43200
-    # a window with more events is sampled evenly to this many for the BA (all events still go into the map);
-    # 0 (or auto): 5 x pixels x backend_time_window_size / 0.2 s; -1: every event
-    backend_max_window_events: int = 0
-    freeze_pixels: bool = False
-    max_update_time: float = 10.0  # s a map pixel stays updatable once observed (if freeze_pixels)
-    lambda0: float = 1.0
-    # a window whose optimum moves a control pose by more than this (rad) is a false maximum (e.g. a map too
-    # coarse for the sensor, or a textureless window): the initialization is kept for that window
-    backend_max_correction: float = 0.1
+    spline_degree: int = param(3, "trajectory spline: 1 linear, 3 cubic", choices=(1, 3))
+    dt_knots: float = param(0.05, "control-pose spacing", unit="s", gt=0)
+    pano_height: int = param(0, "panoramic map height; derived: width 2 pi f x pano_pixels_per_sensor_pixel, up to a "
+                                "multiple of 256, at most 8192", unit="px", ge=8, zero="derived")
+    pano_width: int = param(0, "panoramic map width", unit="px", ge=16, zero="2 x pano_height")
+    pano_pixels_per_sensor_pixel: float = param(1.5, "map pixels per sensor pixel at the image centre (derived size)",
+                                                gt=0)
+    backend_min_ev_rate: float = param(0.0, "below this rate the camera is still: no BA; derived: 10000 x pixels / "
+                                            "43200", unit="events/s", gt=0, zero="derived")
+    # a window with more events is sampled evenly to this many for the BA (all events still go into the map)
+    backend_max_window_events: int = param(0, "BA events per window at most (even sample); derived: 5 x pixels x "
+                                              "window / 0.2 s", unit="events", ge=200, zero="derived", off=-1)
+    freeze_pixels: bool = param(False, "map pixels stop updating max_update_time after first seen")
+    max_update_time: float = param(10.0, "time a map pixel stays updatable (with freeze_pixels)", unit="s", gt=0)
+    lambda0: float = param(1.0, "weight of the event area in the map quality figures", ge=0)
+    # a window whose optimum moves the trajectory at its events by more than this (rad) is a false maximum (e.g. a
+    # map too coarse for the sensor, or a textureless window): the initialization is kept for that window
+    backend_max_correction: float = param(0.1, "a window's larger correction is a false maximum (kept as initialized)",
+                                          unit="rad", gt=0)
     # Fletcher-Reeves CG
-    backend_cg_init_step: float = 0.1
-    backend_cg_line_search_tol: float = 0.1
-    backend_cg_max_iters: int = 50
-    backend_cg_grad_tol: float = 1e-4
-    backend_cg_rel_cost_tol: float = 1e-4
-    backend_cg_max_line_evals: int = 20  # evaluations per line search at most
-    backend_cg_step_guess: str = "decrease"  # first trial step of later line searches (see pipelines/optim.py)
+    backend_cg_init_step: float = param(0.1, "CG first trial step", gt=0)
+    backend_cg_line_search_tol: float = param(0.1, "CG line-search (strong Wolfe curvature) tolerance", gt=0, lt=1)
+    backend_cg_max_iters: int = param(50, "CG line searches per window at most", ge=1)
+    backend_cg_grad_tol: float = param(1e-4, "CG stops below this gradient norm", ge=0)
+    backend_cg_rel_cost_tol: float = param(1e-4, "CG stops below this relative cost change", ge=0)
+    backend_cg_max_line_evals: int = param(20, "evaluations per line search at most", ge=1)
+    backend_cg_step_guess: str = param("decrease", "first trial step of later line searches", choices=STEP_GUESSES)
+
+    def _relations(self) -> None:
+        if self.backend_sliding_window_stride > self.backend_time_window_size:
+            raise InputError(f"backend_sliding_window_stride must be <= backend_time_window_size "
+                             f"({self.backend_time_window_size:g} s), got {self.backend_sliding_window_stride:g}")
 
     @property
     def pano_size(self) -> tuple[int, int]:
@@ -106,29 +236,37 @@ class BackendConfig:
 
 
 @dataclass(frozen=True)
-class DatasetConfig:
+class DatasetConfig(Params):
     """How to open a DATASET (``--set width=346 --set height=260 --set allow_default_calibration=true``)."""
 
-    width: int = 0  # 0: from the calibration YAML, the events file, or inferred
-    height: int = 0
-    allow_default_calibration: bool = False  # no intrinsics found: use Camera.ideal (60 deg) instead of failing
-    topic: str = ""  # ROS bag event topic ("": the only dvs_msgs/EventArray topic)
-    chunk_size: int = 1_000_000  # events per streamed chunk
+    width: int = param(0, "sensor width", unit="px", ge=1, zero="from the calibration YAML, events file or inferred")
+    height: int = param(0, "sensor height", unit="px", ge=1, zero="from the calibration YAML, events file or inferred")
+    allow_default_calibration: bool = param(False, "no intrinsics found: use an ideal 60 deg camera instead of failing")
+    topic: str = param("", "ROS bag event topic (empty: the only dvs_msgs/EventArray topic)")
+    chunk_size: int = param(1_000_000, "events per streamed chunk", unit="events", ge=1)
+
+    def _relations(self) -> None:
+        if (self.width == 0) != (self.height == 0):
+            raise InputError(f"give both width and height, or neither (got width={self.width}, height={self.height})")
 
 
 @dataclass(frozen=True)
-class OutputConfig:
-    gamma: float = 0.75
-    trajectory_rate: float = 200.0  # Hz at which continuous trajectories are sampled to TUM
-    num_threads: int = 0  # 0: all cores (or TI_CMAX_THREADS)
+class OutputConfig(Params):
+    """What the outputs look like."""
+
+    gamma: float = param(0.75, "gamma of the map images", gt=0)
+    trajectory_rate: float = param(200.0, "rate at which continuous trajectories are sampled to TUM", unit="Hz", gt=0)
+    num_threads: int = param(0, "CPU threads of the kernels (--threads wins)", ge=1, zero="all cores or TI_CMAX_THREADS")
 
 
 @dataclass(frozen=True)
-class SlamConfig:
-    dataset: DatasetConfig = field(default_factory=DatasetConfig)
-    frontend: FrontendConfig = field(default_factory=FrontendConfig)
-    backend: BackendConfig = field(default_factory=BackendConfig)
-    output: OutputConfig = field(default_factory=OutputConfig)
+class SlamConfig(Params):
+    """All parameters of CMax-SLAM (``ti-cmax slam``, ``refine``, ``frontend``, ``map``, ...)."""
+
+    dataset: DatasetConfig = param(help="opening the dataset", factory=DatasetConfig)
+    frontend: FrontendConfig = param(help="CMax-omega front-end", factory=FrontendConfig)
+    backend: BackendConfig = param(help="sliding-window BA and the panoramic map", factory=BackendConfig)
+    output: OutputConfig = param(help="outputs", factory=OutputConfig)
 
 
 # ------------------------------------------------------------------------------------------
@@ -150,15 +288,8 @@ def _leaf_paths(cls, prefix=()) -> dict[str, tuple[str, ...]]:
     return out
 
 
-# keys whose 0 means "derived from the sensor" (pipelines/sensor_defaults.py); "auto" is accepted for them
-DERIVED_KEYS = frozenset({"num_events_per_packet", "frontend_max_packet_events", "frontend_min_event_rate",
-                          "pano_height", "backend_min_ev_rate", "backend_max_window_events"})
-
-
 def _convert(value, typ, key: str, source: str):
     origin = typing.get_origin(typ)
-    if isinstance(value, str) and value.strip().lower() == "auto" and key.split(".")[-1] in DERIVED_KEYS:
-        return typ(0)
     try:
         if typ is bool:
             if isinstance(value, str):
@@ -217,8 +348,17 @@ def _apply(cls, flat, prefix, source):
         if is_dataclass(t):
             kwargs[f.name] = _apply(t, flat, path, source)
         elif path in flat:
-            kwargs[f.name] = _convert(flat[path], t, ".".join(path), source)
-    return cls(**kwargs)
+            value = flat[path]
+            if isinstance(value, str) and value.strip().lower() == "auto" and \
+                    str(f.metadata.get("zero") or "").startswith("derived"):
+                value = 0  # "auto": derived from the sensor
+            kwargs[f.name] = _convert(value, t, ".".join(path), source)
+    try:
+        return cls(**kwargs)
+    except InputError as exc:
+        if exc.source is not None:
+            raise
+        raise InputError(str(exc), source=source) from None
 
 
 def parse_overrides(items: list[str] | None) -> dict:
@@ -291,6 +431,7 @@ def save_config(cfg, path: str | os.PathLike) -> None:
 
 
 __all__ = [
-    "DatasetConfig", "FrontendConfig", "BackendConfig", "OutputConfig", "SlamConfig",
+    "param", "Params", "iter_params", "check_field", "rule_text", "field_default",
+    "CONTRAST_MEASURES", "SLICING_RULES", "WARM_STARTS", "STEP_GUESSES", "DatasetConfig", "FrontendConfig", "BackendConfig", "OutputConfig", "SlamConfig",
     "load_config", "update_config", "build_config", "save_config", "config_to_dict", "parse_overrides", "replace",
 ]

@@ -14,3 +14,9 @@ class InputError(ValueError):
         super().__init__(where + message)
         self.source = source
         self.line = line
+
+
+def missing_extra(what: str, package: str, extra: str) -> str:
+    """The message for an optional dependency that is not installed: how to add it from PyPI or a checkout."""
+    return (f"{what} needs the '{package}' package: pip install {package} "
+            f"(or, in a checkout of ti_cmax: pip install -e \".[{extra}]\")")

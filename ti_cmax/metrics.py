@@ -21,6 +21,7 @@ import numpy as np
 from scipy import ndimage
 
 from . import so3
+from .config import Params, param
 from .errors import InputError
 from .trajectory import Trajectory
 
@@ -33,15 +34,17 @@ _EPS_T = 1e-9
 
 
 @dataclass(frozen=True)
-class EvaluationConfig:
+class EvaluationConfig(Params):
     """Parameters of :func:`evaluate_rotations` (also the ``--config``/``--set`` keys of ``ti-cmax evaluate``)."""
 
-    t0_offset: float = T0_OFFSET_SYNTHETIC  # t0 = start of the overlap + t0_offset, unless t0 is given
-    align: bool = True  # align the estimate to the ground truth at t0
-    sample_rate: float = 0.0  # Hz of the absolute-error grid; 0: the estimate's own timestamps
-    rel_delta: float = 1.0  # time span of the relative-error pairs (s)
-    rel_step: float = 0.1  # spacing of the relative-error pair starts (s)
-    gt_filter_span: float = 0.0  # Gaussian low-pass span on the ground truth (s); 0: off
+    t0_offset: float = param(T0_OFFSET_SYNTHETIC, "t0 = start of the overlap + this (unless --t0 is given)", unit="s",
+                             ge=0)
+    align: bool = param(True, "align the estimate to the ground truth at t0")
+    sample_rate: float = param(0.0, "rate of the absolute-error grid", unit="Hz", gt=0,
+                               zero="the estimate's own timestamps")
+    rel_delta: float = param(1.0, "time span of the relative-error pairs", unit="s", gt=0)
+    rel_step: float = param(0.1, "spacing of the relative-error pair starts", unit="s", gt=0)
+    gt_filter_span: float = param(0.0, "Gaussian low-pass span on the ground truth (0: off)", unit="s", ge=0)
 
 
 @dataclass(frozen=True, eq=False)

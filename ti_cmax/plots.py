@@ -1,18 +1,22 @@
 """PNG figures of the evaluation (matplotlib, Agg, no pyplot state): trajectories per axis (paper Fig. 6/8/12),
-error distributions per method (violins, Fig. 7/9/13) and panoramic maps side by side (Fig. 5/10).
+errors over time, error distributions per method (violins, Fig. 7/9/13) and panoramic maps side by side
+(Fig. 5/10; cropped to the observed region, contrast stretched, so sharpness can be judged).
 
 Each function takes data, writes one PNG (atomically) and returns nothing.
 """
 from __future__ import annotations
 
 import os
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING, Mapping, Sequence
 
 import numpy as np
 
 from .metrics import event_area_percent, gradient_magnitude
 from .outputs import atomic_path
 from .trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from .metrics import RotationErrors
 
 _GT_STYLE = dict(color="k", linestyle="--", linewidth=1.2, label="ground truth")
 
@@ -112,31 +116,95 @@ def plot_error_distributions(path: str | os.PathLike, abs_errors_deg: Mapping[st
     _save(fig, path)
 
 
-def map_display(image: np.ndarray, gamma: float = 0.75) -> np.ndarray:
-    """IWE -> [0, 1] for display: gamma-corrected (I / max)^gamma, inverted so events are dark on white."""
+def plot_errors_over_time(path: str | os.PathLike, errors: Mapping[str, "RotationErrors"], *,
+                          title: str | None = None) -> None:
+    """Absolute error [deg] at each evaluated time and relative error [deg/s] at each pair start, per method."""
+    fig = _figure(9, 6)
+    axes = fig.subplots(2, 1, sharex=True)
+    for name, e in errors.items():
+        axes[0].plot(e.abs_times, e.abs_errors_deg, linewidth=1.0, label=name)
+        axes[1].plot(e.rel_times, e.rel_errors_deg_per_s, linewidth=1.0, marker=".", markersize=3, label=name)
+    axes[0].set_ylabel("absolute error [deg]")
+    delta = next(iter(errors.values())).rel_delta if errors else 1.0
+    axes[1].set_ylabel(f"relative error [deg/s]\n(pairs of {delta:g} s, at their start)")
+    axes[1].set_xlabel("time [s]")
+    for ax in axes:
+        ax.set_ylim(bottom=0)
+        ax.grid(True, alpha=0.3)
+    if not any(len(e.rel_times) for e in errors.values()):
+        axes[1].text(0.5, 0.5, f"no pair of {delta:g} s fits in the overlap", ha="center", va="center",
+                     transform=axes[1].transAxes)
+    if errors:
+        axes[0].legend(loc="best", fontsize="small", ncol=min(4, len(errors)))
+    if title:
+        fig.suptitle(title)
+    _save(fig, path)
+
+
+def map_display(image: np.ndarray, gamma: float = 0.75, percentile: float | None = None) -> np.ndarray:
+    """IWE -> [0, 1] for display: gamma-corrected (I / peak)^gamma clipped at 1, inverted so events are dark on
+    white. ``peak``: the maximum, or (contrast stretch) this percentile of the pixels that hold events."""
     h = np.clip(np.asarray(image, dtype=np.float64), 0, None)
     peak = h.max() if h.size else 0.0
-    norm = (h / peak) ** gamma if peak > 0 else np.zeros_like(h)
+    if percentile is not None and peak > 0:
+        peak = float(np.percentile(h[h > 0], percentile))
+    norm = np.minimum(h / peak, 1.0) ** gamma if peak > 0 else np.zeros_like(h)
     return 1.0 - norm
+
+
+def observed_window(images: Sequence[np.ndarray], margin: float = 0.03) -> tuple[int, slice, slice]:
+    """(column roll, rows, columns) of the smallest window holding every pixel with events in any of the (same
+    size, equirectangular) images, plus ``margin`` of the size on each side. Columns wrap (u = 0 is u = w): the
+    widest run of empty columns is rolled to the border first, so a region across the seam stays in one piece."""
+    mask = np.zeros(np.asarray(images[0]).shape[:2], bool)
+    for img in images:
+        mask |= np.asarray(img) > 0
+    if not mask.any():
+        return 0, slice(None), slice(None)
+    h, w = mask.shape
+    empty = ~mask.any(axis=0)
+    best_len, best_end, run = 0, 0, 0
+    for i, e in enumerate(np.concatenate([empty, empty])):  # circular runs of empty columns
+        run = run + 1 if e else 0
+        if min(run, w) > best_len:
+            best_len, best_end = min(run, w), (i + 1) % w
+    used = w - best_len
+    pad_c = min(int(margin * w), (w - used) // 2)
+    roll = -(best_end - pad_c) % w if best_len else 0
+    rows = np.flatnonzero(mask.any(axis=1))
+    pad_r = int(margin * h)
+    r0, r1 = max(0, int(rows[0]) - pad_r), min(h, int(rows[-1]) + 1 + pad_r)
+    return int(roll), slice(r0, r1), slice(0, min(w, used + 2 * pad_c))
 
 
 def plot_maps(path: str | os.PathLike, maps: Mapping[str, np.ndarray] | Sequence[tuple[str, np.ndarray]], *,
               gamma: float = 0.75, lambda0: float = 1.0, show_metrics: bool = True, ncols: int | None = None,
-              title: str | None = None) -> None:
-    """Images of warped events side by side, each titled with its name and (optionally) EA% and GM."""
+              title: str | None = None, crop: bool = True, percentile: float | None = 99.0,
+              panel_width: float = 4.5) -> None:
+    """Images of warped events side by side, each titled with its name and (optionally) EA% and GM (of the whole
+    map). ``crop``: all shown on the same window around what any of them observed (:func:`observed_window`);
+    ``percentile``: contrast stretch (:func:`map_display`; None: scaled to the maximum)."""
     items = list(maps.items()) if isinstance(maps, Mapping) else list(maps)
     if not items:
         raise ValueError("plot_maps needs at least one image")
     n = len(items)
     ncols = ncols or min(n, 3)
     nrows = -(-n // ncols)
-    h0, w0 = np.asarray(items[0][1]).shape[:2]
-    panel_w = 4.5
+    shapes = {np.asarray(img).shape[:2] for _, img in items}
+    roll, rows, cols = observed_window([img for _, img in items]) if crop and len(shapes) == 1 else (0, None, None)
+
+    def shown(img):
+        if rows is None:
+            return img
+        return np.roll(img, roll, axis=1)[rows, cols]
+
+    h0, w0 = shown(np.asarray(items[0][1])).shape[:2]
+    panel_w = panel_width
     fig = _figure(panel_w * ncols, nrows * (panel_w * h0 / max(w0, 1) + 0.6))
     axes = np.atleast_1d(fig.subplots(nrows, ncols)).reshape(-1)
     for ax, (name, img) in zip(axes, items):
         img = np.asarray(img, dtype=np.float64)
-        ax.imshow(map_display(img, gamma), cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+        ax.imshow(map_display(shown(img), gamma, percentile), cmap="gray", vmin=0, vmax=1, interpolation="nearest")
         label = name
         if show_metrics:
             label += f"\nEA {event_area_percent(img, lambda0):.2f}%  GM {gradient_magnitude(img):.3f}"
@@ -150,4 +218,5 @@ def plot_maps(path: str | os.PathLike, maps: Mapping[str, np.ndarray] | Sequence
     _save(fig, path)
 
 
-__all__ = ["plot_trajectories", "plot_error_distributions", "plot_maps", "map_display"]
+__all__ = ["plot_trajectories", "plot_errors_over_time", "plot_error_distributions", "plot_maps", "map_display",
+           "observed_window"]

@@ -31,30 +31,26 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from ti_cmax import so3
+from ti_cmax.config import Params, param
 from ti_cmax.errors import InputError
 from ti_cmax.progress import progress
 from ti_cmax.trajectory import Trajectory
 
 
 @dataclass(frozen=True)
-class GAEConfig:
-    gae_interval: float = 0.025  # s per estimate (40 Hz)
-    gae_event_sample_rate: int = 4  # keep 1 of Q events (original: 4) ...
-    gae_min_sampled_events: int = 15000  # ... unless an interval would keep fewer than this (0: always 1 of Q)
-    gae_iterations: int = 65  # RMSProp iterations (public code)
-    gae_step: float = 0.05  # RMSProp step, pixel units (public code)
-    gae_decay: float = 0.995  # RMSProp decay of the squared-gradient average (public code)
-    gae_blur_sigma: float = 1.0  # Gaussian blur of the global view I_G (pixels); 0: none
-    gae_sphere_height: int = 1024  # rows of the sphere histogram (columns = 2 x rows)
-    gae_min_events: int = 200  # an interval with fewer (sampled) events keeps the pose (camera ~ still)
+class GAEConfig(Params):
+    """CMax-GAE (Kim & Kim 2021): defaults of the public code where it has them."""
 
-    def __post_init__(self):
-        if (not self.gae_interval > 0 or self.gae_event_sample_rate < 1 or self.gae_iterations < 0
-                or self.gae_min_sampled_events < 0):
-            raise InputError("gae_interval must be > 0, gae_event_sample_rate >= 1, gae_iterations >= 0, "
-                             "gae_min_sampled_events >= 0")
-        if self.gae_sphere_height < 8:
-            raise InputError(f"gae_sphere_height must be >= 8, got {self.gae_sphere_height}")
+    gae_interval: float = param(0.025, "time per estimate (40 Hz)", unit="s", gt=0)
+    gae_event_sample_rate: int = param(4, "keep 1 of Q events (original: 4) ...", ge=1)
+    gae_min_sampled_events: int = param(15000, "... unless an interval would keep fewer than this", unit="events",
+                                        ge=1, zero="always 1 of Q")
+    gae_iterations: int = param(65, "RMSProp iterations", ge=0)
+    gae_step: float = param(0.05, "RMSProp step", unit="px", gt=0)
+    gae_decay: float = param(0.995, "RMSProp decay of the squared-gradient average", gt=0, lt=1)
+    gae_blur_sigma: float = param(1.0, "Gaussian blur of the global view I_G (0: none)", unit="px", ge=0)
+    gae_sphere_height: int = param(1024, "rows of the sphere histogram (columns = 2 x rows)", unit="px", ge=8)
+    gae_min_events: int = param(200, "an interval with fewer (sampled) events keeps the pose", unit="events", ge=0)
 
 
 class SphereMap:

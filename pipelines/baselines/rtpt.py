@@ -31,30 +31,29 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ti_cmax import so3
+from ti_cmax.config import Params, param
 from ti_cmax.errors import InputError
 from ti_cmax.progress import progress
 from ti_cmax.trajectory import Trajectory
 
 
 @dataclass(frozen=True)
-class RTPTConfig:
-    rtpt_packet_size: int = 1500  # events per packet (public code default)
-    rtpt_iterations: int = 10  # LM iterations per packet (public code default)
-    rtpt_lambda: float = 100.0  # LM damping (public code default)
-    rtpt_acceleration: float = 0.4  # momentum of the LM steps (public code default)
-    rtpt_pano_height: int = 512  # edge map height (width = 2 x height)
-    rtpt_event_sample_rate: int = 1  # keep 1 of Q events
-    rtpt_bootstrap_packets: int = 20  # packets that always update the map
-    rtpt_quality_ratio: float = 0.5  # bad packet: quality below this fraction of the running reference
-    rtpt_quality_memory: float = 0.02  # weight of a new good packet in the running reference
-    rtpt_lost_seconds: float = 0.1  # consecutive bad time that declares the track lost
-    rtpt_velocity_window: float = 0.01  # s of past estimates that give the constant-velocity prediction
+class RTPTConfig(Params):
+    """RTPT (Kim et al. 2016): defaults of the public code where it has them."""
 
-    def __post_init__(self):
-        if self.rtpt_packet_size < 10:
-            raise InputError(f"rtpt_packet_size must be >= 10, got {self.rtpt_packet_size}")
-        if self.rtpt_iterations < 0 or self.rtpt_pano_height < 8 or self.rtpt_event_sample_rate < 1:
-            raise InputError("rtpt_iterations must be >= 0, rtpt_pano_height >= 8, rtpt_event_sample_rate >= 1")
+    rtpt_packet_size: int = param(1500, "events per packet", unit="events", ge=10)
+    rtpt_iterations: int = param(10, "LM iterations per packet", ge=0)
+    rtpt_lambda: float = param(100.0, "LM damping", ge=0)
+    rtpt_acceleration: float = param(0.4, "momentum of the LM steps", ge=0, lt=1)
+    rtpt_pano_height: int = param(512, "edge map height (width = 2 x height)", unit="px", ge=8)
+    rtpt_event_sample_rate: int = param(1, "keep 1 of Q events", ge=1)
+    rtpt_bootstrap_packets: int = param(20, "packets that always update the map", ge=0)
+    rtpt_quality_ratio: float = param(0.5, "bad packet: quality below this fraction of the running reference",
+                                      ge=0, le=1)
+    rtpt_quality_memory: float = param(0.02, "weight of a new good packet in the running reference", gt=0, le=1)
+    rtpt_lost_seconds: float = param(0.1, "consecutive bad time that declares the track lost", unit="s", gt=0)
+    rtpt_velocity_window: float = param(0.01, "past estimates that give the constant-velocity prediction", unit="s",
+                                        gt=0)
 
 
 def _compile(camera, dtype=np.float32) -> float:

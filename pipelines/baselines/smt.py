@@ -40,13 +40,14 @@ import dataclasses
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Iterable, Iterator
 
 import numpy as np
 
 from ti_cmax import so3
 from ti_cmax.camera import Camera
+from ti_cmax.config import Params, param
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
 from ti_cmax.kernels import mapping as km
@@ -62,61 +63,53 @@ TRACKERS = ("ekf", "pf")
 
 
 @dataclass(frozen=True)
-class SmtConfig:
+class SmtConfig(Params):
     """Parameters of SMT (load with ``load_config(SmtConfig, ...)``; mapping keys as ``mapping.<name>``)."""
 
-    tracker: str = "ekf"  # "ekf" (EKF-SMT) or "pf" (PF-SMT)
-    batch_size: int = 100  # events sharing one tracker pose (EKF-SMT)
-    pf_batch_size: int = 200  # same for PF-SMT (its cost per batch is ~num_particles times the EKF's)
-    bootstrap_seconds: float = 0.5  # poses from IMU dead reckoning (or ground truth) at the start
-    measurement_sigma: float = 0.1  # std of z = p C around the predicted increment (log intensity)
-    min_displacement_px: float = 0.05  # map displacement below which an event says nothing about the pose
-    angular_velocity_std: float = 4.0  # rad/s: random-walk step std per batch = this * batch duration
-    min_step_std: float = 2e-4  # rad, floor of that step std
-    initial_std_deg: float = 0.3  # std of the pose at the end of the bootstrap
-    ekf_iterations: int = 2  # Gauss-Newton iterations of the EKF update per batch
-    huber: float = 2.0  # EKF: Huber threshold on normalized residuals
-    num_particles: int = 100
-    pf_outlier_density: float = 0.05  # PF: floor added to each event's Gaussian likelihood (robustness)
-    pf_resample_ess: float = 0.5  # resample when ESS < this * num_particles
-    seed: int = 0
-    gain_calibration_seconds: float = 0.1  # end of the bootstrap used to calibrate the map gain (0: gain 1)
-    map_update_events: int = 5000  # tracked events buffered before the mapping EKFs take them
-    chunk_events: int = 1_000_000  # events per streamed chunk (the first one spans the bootstrap)
-    loss_window: float = 0.1  # s, sliding window of the loss checks
-    loss_min_measurements: int = 200  # measurements in the window needed to judge support and agreement
-    loss_min_support: float = 0.1  # fraction of measurements on mapped pixels
-    loss_min_agreement: float = 0.55  # fraction of supported measurements whose predicted sign matches p
-    loss_max_std_deg: float = 5.0  # pose std (EKF covariance / particle spread)
-    loss_max_angular_velocity: float = 50.0  # rad/s over the window
+    tracker: str = param("ekf", "tracker: ekf (EKF-SMT) or pf (PF-SMT)", choices=TRACKERS)
+    batch_size: int = param(100, "events sharing one tracker pose (EKF-SMT)", unit="events", ge=1)
+    pf_batch_size: int = param(200, "same for PF-SMT (~num_particles times the EKF's cost per batch)", unit="events",
+                               ge=1)
+    bootstrap_seconds: float = param(0.5, "poses from IMU dead reckoning (or ground truth) at the start", unit="s",
+                                     ge=0)
+    measurement_sigma: float = param(0.1, "std of z = p C around the predicted increment (log intensity)", gt=0)
+    min_displacement_px: float = param(0.05, "map displacement below which an event says nothing about the pose",
+                                       unit="px", ge=0)
+    angular_velocity_std: float = param(4.0, "random-walk step std per batch = this x batch duration", unit="rad/s",
+                                        gt=0)
+    min_step_std: float = param(2e-4, "floor of that step std", unit="rad", gt=0)
+    initial_std_deg: float = param(0.3, "std of the pose at the end of the bootstrap", unit="deg", gt=0)
+    ekf_iterations: int = param(2, "Gauss-Newton iterations of the EKF update per batch", ge=1)
+    huber: float = param(2.0, "EKF: Huber threshold on normalized residuals", gt=0)
+    num_particles: int = param(100, "PF-SMT particles", ge=1)
+    pf_outlier_density: float = param(0.05, "PF: floor added to each event's Gaussian likelihood (robustness)", gt=0)
+    pf_resample_ess: float = param(0.5, "resample when ESS < this x num_particles", ge=0, le=1)
+    seed: int = param(0, "random seed of the particle filter")
+    gain_calibration_seconds: float = param(0.1, "end of the bootstrap that calibrates the map gain (0: gain 1)",
+                                            unit="s", ge=0)
+    map_update_events: int = param(5000, "tracked events buffered before the mapping EKFs take them", unit="events",
+                                   ge=1)
+    chunk_events: int = param(1_000_000, "events per streamed chunk (the first one spans the bootstrap)",
+                              unit="events", ge=1)
+    loss_window: float = param(0.1, "sliding window of the loss checks", unit="s", gt=0)
+    loss_min_measurements: int = param(200, "measurements in the window needed to judge support and agreement", ge=0)
+    loss_min_support: float = param(0.1, "lost below this fraction of measurements on mapped pixels", ge=0, le=1)
+    loss_min_agreement: float = param(0.55, "lost below this fraction of supported measurements of matching sign",
+                                      ge=0, le=1)
+    loss_max_std_deg: float = param(5.0, "lost above this pose std (EKF covariance / particle spread)", unit="deg",
+                                    gt=0)
+    loss_max_angular_velocity: float = param(50.0, "lost above this angular velocity over the window", unit="rad/s",
+                                             gt=0)
     # motion consistency (baselines/consistency.py): every consistency_interval s, the contrast of the events of a
     # consistency_span window warped with the tracker's angular velocity, over the best contrast near it; lost when
     # the mean of the last consistency_checks ratios is below consistency_min_ratio (0 interval: off)
-    consistency_interval: float = 0.05
-    consistency_span: float = 0.04
-    consistency_min_ratio: float = 0.9
-    consistency_checks: int = 2
-    mapping: GrayscaleConfig = field(default_factory=lambda: GrayscaleConfig(
+    consistency_interval: float = param(0.05, "time between motion-consistency checks (0: off)", unit="s", ge=0)
+    consistency_span: float = param(0.04, "events of this span judge the tracker's angular velocity", unit="s", gt=0)
+    consistency_min_ratio: float = param(0.9, "lost when the mean contrast ratio of the last checks is below this",
+                                         ge=0, le=1)
+    consistency_checks: int = param(2, "checks averaged by that rule", ge=1)
+    mapping: GrayscaleConfig = param(help="the mapping EKFs", factory=lambda: GrayscaleConfig(
         outlier_distance_px=10.0, max_updates_per_pixel=5, pano_height=512))
-
-    def __post_init__(self):
-        if self.tracker not in TRACKERS:
-            raise InputError(f"unknown SMT tracker {self.tracker!r} (expected one of {', '.join(TRACKERS)})")
-        positive = ("batch_size", "pf_batch_size", "measurement_sigma", "angular_velocity_std", "min_step_std",
-                    "initial_std_deg",
-                    "ekf_iterations", "huber", "num_particles", "pf_outlier_density", "map_update_events", "chunk_events",
-                    "loss_window", "loss_max_std_deg", "loss_max_angular_velocity", "consistency_span",
-                    "consistency_checks")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise InputError(f"{name} must be positive, got {getattr(self, name)}")
-        for name in ("bootstrap_seconds", "min_displacement_px", "loss_min_measurements", "gain_calibration_seconds",
-                     "consistency_interval"):
-            if getattr(self, name) < 0:
-                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("pf_resample_ess", "loss_min_support", "loss_min_agreement", "consistency_min_ratio"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise InputError(f"{name} must be in [0, 1], got {getattr(self, name)}")
 
 
 @dataclass

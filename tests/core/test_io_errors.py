@@ -198,3 +198,37 @@ def test_garbage_bag_and_aedat4(tmp_path, name, lib):
     (tmp_path / name).write_bytes(b"not a recording\n" * 10)
     with pytest.raises(InputError, match=rf"{name}: cannot open"):
         open_dataset(tmp_path / name)
+
+
+@pytest.mark.parametrize("bad, line, what", [
+    ("0.0005 3 3 1\n", 6, "timestamps are not sorted"),
+    ("nan 3 3 1\n", 6, "timestamp is not a finite number"),
+    ("0.0055 241 3 1\n", 6, "x=241 is outside the sensor"),
+])
+def test_info_checks_what_it_reads(tmp_path, capsys, bad, line, what):
+    """info streams the events through the readers' checks: exit 2 naming the line, not a fine-looking summary.
+    The pixel check uses the sensor size of calib.txt's second line ('240 180', as some ECD copies have)."""
+    lines = GOOD.splitlines(keepends=True)
+    d = folder_with(tmp_path, "".join(lines[:5]) + bad + "".join(lines[5:]))
+    (d / "calib.txt").write_text("199 199 120 90\n240 180\n")
+    assert main(["info", str(d)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"events.txt, line {line}: {what}" in err
+    assert main(["info", str(d), "--no-check", "--json"]) == 0  # the cheap summary does not read the events
+    assert json.loads(capsys.readouterr().out)["events_checked"] is False
+
+
+def test_info_sensor_size_sources(tmp_path, capsys):
+    d = folder_with(tmp_path, GOOD)
+    assert main(["info", str(d)]) == 0
+    out = capsys.readouterr().out
+    assert "inferred from pixel coordinates: the smallest known sensor" in out and "--set width=W" in out
+    assert "checked       timestamps finite and sorted" in out
+    (d / "calib.txt").write_text("199 199 120 90\n346 260\n")
+    assert main(["info", str(d), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["sensor"] == {"width": 346, "height": 260, "from": "calib.txt, line 2"}
+    assert main(["info", str(d), "--json", "--set", "width=240", "--set", "height=180"]) == 0
+    assert json.loads(capsys.readouterr().out)["sensor"]["from"] == "given"
+    (d / "calib.txt").write_text("199 199 120 90\n346 x\n")
+    assert main(["info", str(d)]) == 2
+    assert "calib.txt, line 2: expected the sensor size 'width height'" in capsys.readouterr().err

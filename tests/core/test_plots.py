@@ -1,5 +1,6 @@
 """Plot functions write non-empty PNG files (content is checked by eye, not here)."""
 import numpy as np
+import pytest
 
 from ti_cmax import so3
 from ti_cmax.plots import map_display, plot_error_distributions, plot_maps, plot_trajectories
@@ -42,3 +43,69 @@ def test_plot_maps(tmp_path):
     assert _is_png(tmp_path / "maps.png") and _is_png(tmp_path / "one.png")
     disp = map_display(np.array([[0.0, 1.0], [4.0, 0.0]]), gamma=0.5)
     np.testing.assert_allclose(disp, [[1.0, 0.5], [0.0, 1.0]])
+
+
+def test_maps_cropped_to_the_observed_region_across_the_seam():
+    """A region straddling u = 0 stays one piece; the window holds every observed pixel and little else."""
+    from ti_cmax.plots import observed_window
+
+    img = np.zeros((100, 200))
+    img[40:50, 190:200] = 1.0
+    img[45:60, 0:15] = 2.0
+    roll, rows, cols = observed_window([img, np.zeros_like(img)], margin=0.0)
+    view = np.roll(img, roll, axis=1)[rows, cols]
+    assert view.sum() == img.sum() and view.shape == (20, 25)
+    roll, rows, cols = observed_window([img], margin=0.05)
+    assert np.roll(img, roll, axis=1)[rows, cols].shape == (30, 45)
+    assert observed_window([np.zeros((4, 8))]) == (0, slice(None), slice(None))
+
+
+def test_map_contrast_stretch():
+    """With a percentile peak, a few hot pixels no longer make the rest faint: they saturate (0, black)."""
+    img = np.ones((10, 10))
+    img[0, 0] = 1000.0
+    faint = map_display(img, gamma=1.0)
+    stretched = map_display(img, gamma=1.0, percentile=95.0)
+    assert faint[5, 5] > 0.99 and stretched[5, 5] == 0.0 and stretched[0, 0] == 0.0
+
+
+def test_plot_errors_over_time(tmp_path):
+    from ti_cmax.metrics import evaluate_rotations
+    from ti_cmax.plots import plot_errors_over_time
+
+    t = np.linspace(0.0, 3.0, 301)
+    gt = Trajectory(t, so3.exp(np.stack([0.3 * np.sin(t), 0.2 * t, 0.5 * t], axis=1)))
+    est = Trajectory(t, gt.R @ so3.exp(np.outer(t, [0.01, 0.0, 0.0])))
+    plot_errors_over_time(tmp_path / "e.png", {"drift": evaluate_rotations(gt, est)})
+    assert _is_png(tmp_path / "e.png")
+
+
+def test_cli_plot(tmp_path, capsys):
+    import json
+
+    from ti_cmax.cli import main
+    from ti_cmax.io import write_tum
+    from ti_cmax.metrics import evaluate_rotations
+
+    t = np.linspace(0.0, 3.0, 301)
+    gt = Trajectory(t, so3.exp(np.stack([0.3 * np.sin(t), 0.2 * t, 0.5 * t], axis=1)))
+    paths = []
+    for i, name in enumerate(("a", "b")):
+        (tmp_path / name).mkdir()
+        est = Trajectory(t, gt.R @ so3.exp(np.outer(t, [0.01 * (i + 1), 0.0, 0.0])))
+        paths.append(write_tum(tmp_path / name / "trajectory.txt", est))
+    write_tum(tmp_path / "gt.txt", gt)
+    out = tmp_path / "plots"
+    assert main(["plot", "--groundtruth", str(tmp_path / "gt.txt"), "--estimate", *map(str, paths),
+                 "--out", str(out)]) == 0
+    for name in ("trajectories.png", "errors_over_time.png", "errors.png"):
+        assert _is_png(out / name), name
+    summary = json.loads((out / "errors.json").read_text())
+    assert list(summary) == ["a/trajectory", "b/trajectory"]  # same file names: the folder tells them apart
+    from ti_cmax.io import read_tum
+
+    expected = evaluate_rotations(gt, read_tum(paths[1])).abs_rmse_deg
+    assert summary["b/trajectory"]["abs_rmse_deg"] == pytest.approx(expected)
+    assert main(["plot", "--groundtruth", str(tmp_path / "gt.txt"), "--estimate", *map(str, paths),
+                 "--labels", "only-one", "--out", str(tmp_path / "bad")]) == 2
+    assert "expected 2 labels" in capsys.readouterr().err and not (tmp_path / "bad").exists()

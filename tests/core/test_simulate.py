@@ -310,3 +310,19 @@ def test_cli(tmp_path, capsys):
     rc = main(["simulate", str(bad), "--image", str(tmp_path / "missing.png"), "--quiet"])
     assert rc == 2 and not bad.exists()
     assert "missing.png" in capsys.readouterr().err
+
+
+def test_cli_events_format(tmp_path):
+    """--format h5 (default) / txt / both: only the chosen events files, the same events in each."""
+    from ti_cmax.cli import main
+    from ti_cmax.io import open_dataset
+
+    args = ["--sensor", "DVS128", "--duration", "0.05", "--scene", "bay", "--quiet"]
+    files = {}
+    for fmt in (None, "txt", "both"):
+        out = tmp_path / f"f_{fmt}"
+        assert main(["simulate", str(out), *args, *(["--format", fmt] if fmt else [])]) == 0
+        files[fmt] = {p.name for p in out.glob("events.*")}
+    assert files == {None: {"events.h5"}, "txt": {"events.txt"}, "both": {"events.h5", "events.txt"}}
+    n = json.loads((tmp_path / "f_None" / "simulation.json").read_text())["num_events"]
+    assert len(open_dataset(tmp_path / "f_txt").read_events()) == len(open_dataset(tmp_path / "f_None").read_events()) == n

@@ -37,7 +37,7 @@ def run(args) -> int:
         from ..pipelines.baselines.smt import smt_contrast
 
         extra = {"groundtruth": dataset.groundtruth, "contrast_threshold": smt_contrast(cfg.smt, args.dataset)}
-    result = run_baseline(args.name, dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, imu=imu, **extra)
+    result = run_baseline(args.name, dataset.stream(cfg.dataset.chunk_size), camera, cfg, imu=imu, **extra)
     refined = None
     if args.refine:
         from ..pipelines.slam import refine

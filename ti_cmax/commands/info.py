@@ -1,7 +1,9 @@
 """``ti-cmax info DATASET``: what a dataset holds (events, duration, rate, sensor, calibration, GT, IMU).
 
-Cheap: time range from the file's ends, event count from the format's metadata (text: data lines counted on
-raw bytes). ``--json`` prints one JSON object instead of the table.
+The events are read once, streamed, with the readers' checks (timestamps finite and sorted, pixels inside the
+sensor): a bad file ends with exit 2 and one line naming the line (text) or event index (HDF5).
+``--no-check`` only reads the file's ends and metadata (text: data lines counted on raw bytes).
+``--json`` prints one JSON object instead of the table.
 """
 from __future__ import annotations
 
@@ -17,12 +19,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=None, help="sensor width (overrides what the files say)")
     parser.add_argument("--height", type=int, default=None, help="sensor height")
     parser.add_argument("--topic", default=None, help="ROS bag event topic (default: the only EventArray topic)")
+    parser.add_argument("--no-check", action="store_true",
+                        help="do not read the events (no check of timestamps and pixels; faster on big files)")
 
 
-def dataset_info(ds) -> dict:
-    """Summary of an opened dataset as a JSON-ready dict."""
+INFERRED_HOW = ("the smallest known sensor holding the largest x, y of the first chunk and centred on the "
+                "principal point; if wrong: --set width=W --set height=H")
+
+
+def check_events(ds, chunk_size: int) -> int:
+    """Stream every event through the readers' checks (InputError naming the line on the first bad one)."""
+    from ..progress import progress
+
+    n = 0
     t0, t1 = ds.time_range()
-    n = ds.num_events()
+    with progress(total=t1 - t0, desc="checking events", unit="s") as bar:
+        for chunk in ds.iter_events(chunk_size):
+            n += len(chunk)
+            if len(chunk):
+                bar.update(float(chunk.t[-1]) - t0 - bar.n)
+    return n
+
+
+def dataset_info(ds, checked_events: int | None = None) -> dict:
+    """Summary of an opened dataset as a JSON-ready dict (``checked_events``: the count of a checked read)."""
+    t0, t1 = ds.time_range()
+    n = ds.num_events() if checked_events is None else checked_events
     dur = t1 - t0
     cam_src = ds.calibration_source
     info = {
@@ -30,6 +52,7 @@ def dataset_info(ds) -> dict:
         "num_events": n, "t_start": t0, "t_end": t1, "duration_s": dur,
         "event_rate_per_s": n / dur if dur > 0 else None,
         "sensor": {"width": ds.width, "height": ds.height, "from": ds.size_source},
+        "events_checked": checked_events is not None,
         "calibration": None,
         "groundtruth": None, "imu": None,
     }
@@ -57,7 +80,10 @@ def format_info(info: dict) -> str:
     rate = info["event_rate_per_s"]
     lines.append(f"event rate    {rate / 1e6:.3f} M events/s" if rate else "event rate    n/a")
     s = info["sensor"]
-    lines.append(f"sensor        {s['width']} x {s['height']}  ({s['from']})")
+    how = f": {INFERRED_HOW}" if s["from"].startswith("inferred") else ""
+    lines.append(f"sensor        {s['width']} x {s['height']}  ({s['from']}{how})")
+    lines.append("checked       timestamps finite and sorted, pixels inside the sensor" if info["events_checked"]
+                 else "checked       no (--no-check)")
     c = info["calibration"]
     if c is None:
         lines.append("calibration   none (no calib.txt or camera_info YAML)")
@@ -89,6 +115,6 @@ def run(args) -> int:
     if args.topic:
         cfg = replace(cfg, topic=args.topic)
     ds = open_dataset_from_config(args.dataset, cfg)
-    info = dataset_info(ds)
+    info = dataset_info(ds, None if args.no_check else check_events(ds, cfg.chunk_size))
     print(json.dumps(info, indent=2) if args.json else format_info(info))
     return 0

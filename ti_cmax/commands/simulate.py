@@ -1,4 +1,10 @@
-"""``ti-cmax simulate OUT_DIR``: write a simulated rotational event dataset (ECD layout + events.h5)."""
+"""``ti-cmax simulate OUT_DIR``: write a simulated rotational event dataset (ECD layout).
+
+``--format h5`` (default) writes events.h5 only, smaller and faster to read: 1 s of city on a DAVIS240C (3.7 M
+events) is 48.6 MB as events.h5 against 78.0 MB as events.txt, and ``ti-cmax info`` (which reads every event) took
+3.1 s against 5.1 s (measured 2026-12-01, load average 7.7 on 2 cores). ``txt`` writes the ECD text file, ``both``
+both (the Python API's ``simulate_to_folder`` default).
+"""
 from __future__ import annotations
 
 import sys
@@ -30,6 +36,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--max-angular-velocity", type=float, metavar="RAD_S", help="peak of the random motion")
     parser.add_argument("--pano-height", type=int, metavar="H", help="panorama height (0: automatic)")
     parser.add_argument("--seed", type=int, help="random seed (default 0)")
+    parser.add_argument("--format", choices=("txt", "h5", "both"), default="h5", dest="events_format",
+                        help="events file: events.h5 (default: smaller, reads faster), events.txt (ECD text) or both")
 
 
 def run(args) -> int:
@@ -42,7 +50,7 @@ def run(args) -> int:
         given["image"] = ""
     if given:
         config = update_config(config, given, source="command line")
-    info = simulate_to_folder(config, args.out_dir)
+    info = simulate_to_folder(config, args.out_dir, events_format=args.events_format)
     print(f"ti-cmax simulate: wrote {args.out_dir}: {info['num_events']} events "
           f"({info['event_rate'] / 1e6:.2f} M ev/s) over {config.duration:g} s in {info['wall_seconds']:.1f} s",
           file=sys.stderr)

@@ -10,7 +10,7 @@ from typing import Iterator
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, missing_extra
 from ._common import Block, ScannedSource, grouped_blocks
 from .text import ImuData
 
@@ -21,7 +21,7 @@ def _decoder(path: Path):
     try:
         import aedat
     except ImportError:  # pragma: no cover
-        raise InputError("reading AEDAT4 needs the 'aedat' package (pip install ti-cmax[aedat])",
+        raise InputError(missing_extra("reading AEDAT4", "aedat", "aedat"),
                          source=str(path)) from None
     try:
         return aedat.Decoder(str(path))

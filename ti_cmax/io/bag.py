@@ -15,7 +15,7 @@ from typing import Iterator
 import numpy as np
 
 from ..camera import Camera
-from ..errors import InputError
+from ..errors import InputError, missing_extra
 from ..events import Events
 from ..trajectory import Trajectory
 from ._common import Block, grouped_blocks
@@ -36,7 +36,7 @@ def _reader(path: Path):
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
     except ImportError:  # pragma: no cover
-        raise InputError("reading ROS bags needs the 'rosbags' package (pip install ti-cmax[rosbags])",
+        raise InputError(missing_extra("reading ROS bags", "rosbags", "rosbags"),
                          source=str(path)) from None
     try:
         r = AnyReader([path], default_typestore=get_typestore(Stores.ROS1_NOETIC))

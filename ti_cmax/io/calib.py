@@ -11,31 +11,48 @@ from ..errors import InputError
 _CALIB_EXPECTED = "expected 'fx fy cx cy [k1 k2 p1 p2 [k3]]' (4, 8 or 9 numbers)"
 
 
-def read_calib_txt_params(path) -> tuple[tuple[float, float, float, float], tuple]:
-    """(fx, fy, cx, cy), dist from the first non-comment line of an ECD calib.txt."""
+def _calib_txt_lines(path):
+    """(line number, fields) of the data lines of an ECD calib.txt ('#' starts a comment)."""
     path = Path(path)
-    source = str(path)
     if not path.is_file():
-        raise InputError("calibration file not found", source=source)
+        raise InputError("calibration file not found", source=str(path))
     with open(path, "r", encoding="utf-8", errors="replace") as f:
         for lineno, raw in enumerate(f, 1):
-            k = raw.find("#")
-            if k >= 0:
-                raw = raw[:k]
-            parts = raw.split()
-            if not parts:
-                continue
-            if len(parts) not in (4, 8, 9):
-                raise InputError(f"{_CALIB_EXPECTED}, got {len(parts)} values", source=source, line=lineno)
-            try:
-                v = [float(s) for s in parts]
-            except ValueError:
-                raise InputError(f"{_CALIB_EXPECTED}, got {raw.strip()[:80]!r}", source=source, line=lineno) from None
-            if not np.isfinite(v).all() or v[0] <= 0 or v[1] <= 0:
-                raise InputError(f"focal lengths must be positive finite numbers, got {raw.strip()[:80]!r}",
-                                 source=source, line=lineno)
-            return (v[0], v[1], v[2], v[3]), tuple(v[4:])
+            parts = raw.split("#", 1)[0].split()
+            if parts:
+                yield lineno, parts
+
+
+def read_calib_txt_params(path) -> tuple[tuple[float, float, float, float], tuple]:
+    """(fx, fy, cx, cy), dist from the first non-comment line of an ECD calib.txt."""
+    source = str(path)
+    for lineno, parts in _calib_txt_lines(path):
+        if len(parts) not in (4, 8, 9):
+            raise InputError(f"{_CALIB_EXPECTED}, got {len(parts)} values", source=source, line=lineno)
+        try:
+            v = [float(s) for s in parts]
+        except ValueError:
+            raise InputError(f"{_CALIB_EXPECTED}, got {' '.join(parts)[:80]!r}", source=source, line=lineno) from None
+        if not np.isfinite(v).all() or v[0] <= 0 or v[1] <= 0:
+            raise InputError(f"focal lengths must be positive finite numbers, got {' '.join(parts)[:80]!r}",
+                             source=source, line=lineno)
+        return (v[0], v[1], v[2], v[3]), tuple(v[4:])
     raise InputError(f"calibration file is empty ({_CALIB_EXPECTED})", source=source)
+
+
+def read_calib_txt_size(path) -> tuple[int, int, int] | None:
+    """(width, height, line) from the optional second data line 'width height' of a calib.txt (some ECD copies
+    have it), or None when the file has one data line."""
+    lines = _calib_txt_lines(path)
+    next(lines, None)
+    second = next(lines, None)
+    if second is None:
+        return None
+    lineno, parts = second
+    if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
+        raise InputError(f"expected the sensor size 'width height' (2 positive integers) after the intrinsics, got "
+                         f"{' '.join(parts)[:80]!r}", source=str(path), line=lineno)
+    return int(parts[0]), int(parts[1]), lineno
 
 
 def read_camera_info_yaml(path, width: int | None = None, height: int | None = None) -> Camera:
@@ -105,5 +122,8 @@ def read_calib(path, width: int | None = None, height: int | None = None) -> Cam
         return read_camera_info_yaml(path, width, height)
     (fx, fy, cx, cy), dist = read_calib_txt_params(path)
     if width is None or height is None:
-        raise InputError("calib.txt holds no sensor size: give width and height", source=str(path))
+        size = read_calib_txt_size(path)
+        if size is None:
+            raise InputError("calib.txt holds no sensor size: give width and height", source=str(path))
+        width, height = size[:2]
     return Camera(int(width), int(height), fx, fy, cx, cy, dist)

@@ -7,8 +7,9 @@ events file (.txt, .h5/.hdf5, .bag, .aedat4, .raw). A single file named ``events
 groundtruth.txt and imu.txt beside it (it is the events file of an ECD folder); any other single file only with
 what it carries itself (so an unrelated calib.txt in the same folder is never picked up by accident).
 
-Sensor size, first match wins: the ``width``/``height`` arguments; the calibration YAML; the events file
-(HDF5 attributes, bag message width/height, AEDAT4 stream, Prophesee RAW header); otherwise it is inferred from the largest x, y of
+Sensor size, first match wins: the ``width``/``height`` arguments; the calibration YAML; a second line
+'width height' in calib.txt; the events file (HDF5 attributes, bag message width/height, AEDAT4 stream, Prophesee
+RAW header); otherwise it is inferred from the largest x, y of
 the first chunk, snapped to the smallest sensor of ``ti_cmax.camera.SENSORS`` containing them (by pixel count:
 DVS128, DAVIS240C, DAVIS346, VGA / DVXplorer, HD) whose central half holds calib.txt's principal point. A recording whose
 first chunk never reaches the far border of a bigger sensor could still be mis-sized: give width and height
@@ -32,7 +33,7 @@ from ..errors import InputError
 from ..events import Events
 from ..trajectory import Trajectory
 from ._common import NoCompanions, infer_sensor_size, validated_chunks
-from .calib import read_calib_txt_params, read_camera_info_yaml
+from .calib import read_calib_txt_params, read_calib_txt_size, read_camera_info_yaml
 from .text import ImuData, read_imu_txt, read_tum
 
 def open_dataset_from_config(path, cfg: DatasetConfig) -> "Dataset":
@@ -179,11 +180,13 @@ class Dataset:
             raise InputError("give both width and height, or neither")
         self._yaml_camera = None
         self._txt_calib = None
+        self._txt_size = None
         if self.calib_path is not None:
             if self.calib_path.suffix.lower() in (".yaml", ".yml"):
                 self._yaml_camera = read_camera_info_yaml(self.calib_path)
             else:
                 self._txt_calib = read_calib_txt_params(self.calib_path)
+                self._txt_size = read_calib_txt_size(self.calib_path)
         if isinstance(self._source, (TxtSource, H5Source)):
             self._source.time_range()  # cheap here: fails early on an empty or unreadable file
         self.width, self.height = self._sensor_size()
@@ -196,6 +199,9 @@ class Dataset:
         if self._yaml_camera is not None:
             self.size_source = self.calib_path.name
             return self._yaml_camera.width, self._yaml_camera.height
+        if self._txt_size is not None:
+            self.size_source = f"{self.calib_path.name}, line {self._txt_size[2]}"
+            return self._txt_size[:2]
         if self._source.sensor_size is not None:
             self.size_source = f"{self.format} file"
             return tuple(int(v) for v in self._source.sensor_size)
@@ -230,8 +236,9 @@ class Dataset:
             return Camera(w, h, cam.fx, cam.fy, cam.cx, cam.cy, cam.dist), f"{self.format} file"
         if self.allow_default_calibration:
             return Camera.ideal(w, h, DEFAULT_FOV_DEG), f"default (ideal pinhole, {DEFAULT_FOV_DEG:g} deg field of view)"
-        raise InputError("no camera calibration: expected calib.txt or a camera_info YAML beside the events "
-                         "(or allow the default ideal calibration explicitly)", source=str(self.path))
+        raise InputError("no camera calibration: expected calib.txt or a camera_info YAML beside the events (or "
+                         f"use an ideal {DEFAULT_FOV_DEG:g} deg pinhole: --set allow_default_calibration=true)",
+                         source=str(self.path))
 
     @property
     def camera(self) -> Camera:
@@ -265,6 +272,10 @@ class Dataset:
         return validated_chunks(self._source.iter_blocks(t_start=t_start), self._source.source,
                                 self.width, self.height, chunk_size, t_start, t_end)
 
+    def stream(self, chunk_size: int = 1_000_000) -> "EventStream":
+        """The validated chunks as an iterable that also knows the time range (progress bars get a total)."""
+        return EventStream(self, chunk_size)
+
     def read_events(self, t_start: float | None = None, t_end: float | None = None) -> Events:
         """All events in [t_start, t_end) at once (convenience for short recordings)."""
         return Events.concatenate(list(self.iter_events(1 << 22, t_start, t_end)))
@@ -278,6 +289,19 @@ class Dataset:
 
     def __repr__(self) -> str:
         return f"Dataset({self.name!r}, {self.format}, {self.width}x{self.height})"
+
+
+class EventStream:
+    """One pass over a dataset's events in chunks (``iter``), with the dataset's ``time_range()``."""
+
+    def __init__(self, dataset: Dataset, chunk_size: int):
+        self.dataset, self.chunk_size = dataset, int(chunk_size)
+
+    def time_range(self) -> tuple[float, float]:
+        return self.dataset.time_range()
+
+    def __iter__(self) -> Iterator[Events]:
+        return iter(self.dataset.iter_events(self.chunk_size))
 
 
 def open_dataset(path, width: int | None = None, height: int | None = None, *,

@@ -4,6 +4,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from ..camera import SENSORS
+from ..config import Params, param
 from ..errors import InputError
 
 SCENES = ("bicycle", "city", "street", "town", "bay", "stars")
@@ -11,66 +13,52 @@ TRAJECTORIES = ("random", "pan", "constant")
 
 
 @dataclass(frozen=True)
-class SimulatorConfig:
+class SimulatorConfig(Params):
     # scene -----------------------------------------------------------------------------------
-    scene: str = "city"  # one of SCENES; ignored when `image` is given
-    image: str = ""  # equirectangular image file (any size; resampled to the panorama size)
-    pano_height: int = 0  # panorama height (width = 2 x height); 0: about 2 panorama pixels per sensor pixel
-    blur_sigma_px: float = 0.6  # anti-alias blur of the panorama, in sensor pixels (latitude-adaptive)
-    log_eps: float = 0.01  # L = log(eps + I): keeps log intensity finite on black (star field)
-    num_stars: int = 3000
+    scene: str = param("city", "procedural scene (ignored when image is given)", choices=SCENES)
+    image: str = param("", "equirectangular image file as the scene (any size; resampled to the panorama size)")
+    pano_height: int = param(0, "panorama height (width = 2 x height)", unit="px", ge=8,
+                             zero="about 2 panorama pixels per sensor pixel")
+    blur_sigma_px: float = param(0.6, "anti-alias blur of the panorama (latitude-adaptive)", unit="sensor px", ge=0)
+    log_eps: float = param(0.01, "L = log(eps + I): keeps log intensity finite on black (star field)", gt=0)
+    num_stars: int = param(3000, "stars of the stars scene", ge=0)
     # sensor ----------------------------------------------------------------------------------
-    sensor: str = "DAVIS240C"  # DAVIS240C (ECD-like, distorted), DVS128, DAVIS346, VGA, DVXplorer, HD
+    sensor: str = param("DAVIS240C", "sensor model (DAVIS240C is ECD-like, with distortion)", choices=tuple(SENSORS))
     # motion ----------------------------------------------------------------------------------
-    duration: float = 2.0  # s
-    trajectory: str = "random"  # random (ECD-like ramp), pan (360 deg about vertical), constant
-    max_angular_velocity: float = 5.0  # rad/s, peak of the random trajectory (reached near the end)
-    random_frequency_max: float = 1.5  # Hz, highest frequency of the random angular velocity
-    # envelope of the random motion at the start, as a fraction of its end (0.1: ECD-like slow start; 1: as fast
-    # from the first 5 % of the sequence on as at the end)
-    random_ramp_start: float = 0.1
-    constant_rate_deg: float = 4.0  # deg/s for trajectory=constant (star tracking)
-    rotation_axis: tuple[float, ...] = ()  # camera-frame axis for trajectory=constant; empty: seeded random axis
-    integration_rate: float = 10000.0  # Hz, exact-exp integration of the ground truth
+    duration: float = param(2.0, "length of the sequence", unit="s", gt=0)
+    trajectory: str = param("random", "motion: random (ECD-like ramp), pan (360 deg about vertical), constant",
+                            choices=TRAJECTORIES)
+    max_angular_velocity: float = param(5.0, "peak of the random trajectory (reached near the end)", unit="rad/s",
+                                        ge=0)
+    random_frequency_max: float = param(1.5, "highest frequency of the random angular velocity", unit="Hz", gt=0)
+    random_ramp_start: float = param(0.1, "envelope of the random motion at the start, as a fraction of its end "
+                                          "(0.1: ECD-like slow start; 1: fast from the first 5 % on)", ge=0)
+    constant_rate_deg: float = param(4.0, "rate of trajectory=constant (star tracking)", unit="deg/s", ge=0)
+    rotation_axis: tuple[float, ...] = param((), "camera-frame axis of trajectory=constant (3 numbers; empty: "
+                                                 "seeded random axis)")
+    integration_rate: float = param(10000.0, "exact-exp integration rate of the ground truth", unit="Hz", gt=0)
     # events ----------------------------------------------------------------------------------
-    contrast_threshold: float = 0.0  # 0: the sensor's (0.2; DVXplorer 0.25, HD 0.35: their usual event rates)
-    threshold_sigma: float = 0.03  # per-pixel Gaussian mismatch of the threshold (each polarity)
-    threshold_min: float = 0.01  # thresholds are clipped below at this value
-    refractory_period: float = 0.0  # s
-    noise_rate: float = 0.0  # background-activity events per pixel per second
-    max_pixel_step: float = 0.2  # render so that no pixel moves more than this between renders
-    max_render_dt: float = 0.002  # s, longest interval between renders (slow motion)
-    time_resolution: float = 1e-6  # s, timestamps rounded to this (0: no rounding)
-    chunk_megabytes: float = 64.0  # memory of the render buffer per chunk of renders
+    contrast_threshold: float = param(0.0, "log-intensity change that fires an event", gt=0,
+                                      zero="the sensor's: 0.2; DVXplorer 0.25, HD 0.35 (their usual event rates)")
+    threshold_sigma: float = param(0.03, "per-pixel Gaussian mismatch of the threshold (each polarity)", ge=0)
+    threshold_min: float = param(0.01, "thresholds are clipped below at this value", gt=0)
+    refractory_period: float = param(0.0, "per-pixel refractory period", unit="s", ge=0)
+    noise_rate: float = param(0.0, "background-activity events per pixel per second", unit="Hz", ge=0)
+    max_pixel_step: float = param(0.2, "render so that no pixel moves more than this between renders", unit="px",
+                                  gt=0)
+    max_render_dt: float = param(0.002, "longest interval between renders (slow motion)", unit="s", gt=0)
+    time_resolution: float = param(1e-6, "timestamps rounded to this (0: no rounding)", unit="s", ge=0)
+    chunk_megabytes: float = param(64.0, "memory of the render buffer per chunk of renders", unit="MB", gt=0)
     # IMU and ground truth --------------------------------------------------------------------
-    imu_rate: float = 1000.0
-    gt_rate: float = 1000.0
-    gyro_bias_std: float = 0.003  # rad/s, std of the constant (seeded) gyro bias per axis
-    gyro_noise_std: float = 0.003  # rad/s per sample
-    acc_noise_std: float = 0.02  # m/s^2 per sample
-    gravity: float = 9.81
-    seed: int = 0
+    imu_rate: float = param(1000.0, "IMU sample rate", unit="Hz", gt=0)
+    gt_rate: float = param(1000.0, "ground-truth pose rate", unit="Hz", gt=0)
+    gyro_bias_std: float = param(0.003, "std of the constant (seeded) gyro bias per axis", unit="rad/s", ge=0)
+    gyro_noise_std: float = param(0.003, "gyro noise per sample", unit="rad/s", ge=0)
+    acc_noise_std: float = param(0.02, "accelerometer noise per sample", unit="m/s^2", ge=0)
+    gravity: float = param(9.81, "gravity magnitude of the accelerometer", unit="m/s^2", ge=0)
+    seed: int = param(0, "random seed (motion, thresholds, noise, gyro bias)")
 
-    def __post_init__(self):
-        if not self.image and self.scene not in SCENES:
-            raise InputError(f"unknown scene {self.scene!r} (expected one of {', '.join(SCENES)} or --image FILE)")
-        if self.trajectory not in TRAJECTORIES:
-            raise InputError(f"unknown trajectory {self.trajectory!r} (expected one of {', '.join(TRAJECTORIES)})")
-        from ..camera import SENSORS
-
-        if self.sensor not in SENSORS:
-            raise InputError(f"unknown sensor {self.sensor!r} (expected one of {', '.join(SENSORS)})")
-        positive = ("duration", "max_pixel_step", "max_render_dt", "imu_rate", "gt_rate",
-                    "integration_rate", "log_eps", "chunk_megabytes", "threshold_min")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise InputError(f"{name} must be positive, got {getattr(self, name)}")
-        nonneg = ("contrast_threshold", "threshold_sigma", "refractory_period", "noise_rate", "time_resolution",
-                  "gyro_bias_std", "gyro_noise_std", "acc_noise_std", "blur_sigma_px", "pano_height",
-                  "max_angular_velocity", "random_ramp_start")
-        for name in nonneg:
-            if getattr(self, name) < 0:
-                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
+    def _relations(self) -> None:
         if self.rotation_axis and len(self.rotation_axis) != 3:
             raise InputError(f"rotation_axis needs 3 numbers, got {self.rotation_axis!r}")
 

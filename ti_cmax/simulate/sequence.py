@@ -7,6 +7,7 @@ intensity, 8 bit) and simulation.json (all parameters, seed, gyro bias, event co
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import time
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
+from ..errors import InputError
 from ..events import Events
 from ..outputs import OutputDir
 from ..trajectory import Trajectory
@@ -141,26 +143,39 @@ def _write_json(path: Path, info: dict) -> None:
     path.write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
 
 
-def write_sequence(seq: SimulatedSequence, out_dir) -> Path:
-    """Write an in-memory sequence as an ECD-layout folder (all-or-nothing)."""
+EVENT_FORMATS = ("txt", "h5", "both")  # events.txt (ECD text), events.h5 (smaller, reads faster), or both
+
+
+def _check_format(events_format: str) -> None:
+    if events_format not in EVENT_FORMATS:
+        raise InputError(f"events format must be one of {', '.join(EVENT_FORMATS)}, got {events_format!r}")
+
+
+def write_sequence(seq: SimulatedSequence, out_dir, events_format: str = "both") -> Path:
+    """Write an in-memory sequence as an ECD-layout folder (all-or-nothing); ``events_format``: txt, h5 or both."""
     from ..io import write_events_h5, write_events_txt
 
+    _check_format(events_format)
     with OutputDir(out_dir) as out:
-        write_events_txt(out / "events.txt", seq.events)
-        write_events_h5(out / "events.h5", seq.events, camera=seq.camera)
+        if events_format in ("txt", "both"):
+            write_events_txt(out / "events.txt", seq.events)
+        if events_format in ("h5", "both"):
+            write_events_h5(out / "events.h5", seq.events, camera=seq.camera)
         _write_static(out, seq.config, seq.camera, seq.motion, seq.imu, seq.panorama)
         _write_json(out / "simulation.json", seq.info)
     return Path(out_dir)
 
 
 def simulate_to_folder(config: SimulatorConfig | None = None, out_dir=".", *, show_progress: bool = True,
-                       **overrides) -> dict:
-    """Simulate and stream events chunk by chunk into ``out_dir`` (memory stays bounded).
+                       events_format: str = "both", **overrides) -> dict:
+    """Simulate and stream events chunk by chunk into ``out_dir`` (memory stays bounded); ``events_format``:
+    events.txt, events.h5 or both.
 
     Returns the info written to simulation.json. On any failure nothing is left behind.
     """
     from ..io import EventsH5Writer, EventsTxtWriter
 
+    _check_format(events_format)
     config = _as_config(config, overrides)
     start = time.perf_counter()
     with OutputDir(out_dir) as out:
@@ -168,10 +183,15 @@ def simulate_to_folder(config: SimulatorConfig | None = None, out_dir=".", *, sh
         bar, update = _progress(config, show_progress)
         n = 0
         try:
-            with EventsTxtWriter(out / "events.txt") as wt, EventsH5Writer(out / "events.h5", s.camera) as wh:
+            with contextlib.ExitStack() as stack:
+                writers = []
+                if events_format in ("txt", "both"):
+                    writers.append(stack.enter_context(EventsTxtWriter(out / "events.txt")))
+                if events_format in ("h5", "both"):
+                    writers.append(stack.enter_context(EventsH5Writer(out / "events.h5", s.camera)))
                 for chunk in generate_events(s.motion, s.camera, s.log_pano, config, s.times, update):
-                    wt.append(chunk)
-                    wh.append(chunk)
+                    for w in writers:
+                        w.append(chunk)
                     n += len(chunk)
         finally:
             if bar is not None:
