@@ -245,6 +245,23 @@ class SlidingWindowBackend:
         last = self.events_until if np.isfinite(self.events_until) else end
         return self.spline.to_trajectory(rate, max(start, self.t_start), min(end, last))
 
+    def pose_at(self, times) -> np.ndarray:
+        """Best estimate of R(t) now, (M, 3, 3): the spline up to its last initialized pose (refined where windows
+        are done), beyond it the source poses re-anchored to the spline (extrapolated past the last sample)."""
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        out = np.broadcast_to(self.r_start, (len(times), 3, 3)).copy()
+        if len(self._src_t) == 0:
+            return out
+        t_a, r_src_a, r_spl_a = self._anchor or (self.t_start, self._source_at(self.t_start), self.r_start)
+        inside = times <= t_a + _TIME_EPS if self.spline is not None else np.zeros(len(times), bool)
+        if inside.any():
+            start, end = self.spline.valid_time_range()
+            out[inside] = self.spline.evaluate(np.clip(times[inside], start, end))
+        for i in np.flatnonzero(~inside):
+            t = times[i]
+            out[i] = self._extrapolate(t) if t > self._src_t[-1] else r_spl_a @ r_src_a.T @ self._source_at(t)
+        return out
+
     # ---- internals -------------------------------------------------------------------------------------------------
     def _source_segment(self, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:
         """Source poses in (t_from, t_to] plus the first one beyond t_to + _TIME_EPS, re-anchored to the spline at
@@ -294,7 +311,7 @@ class SlidingWindowBackend:
 
     def _extrapolate(self, t: float) -> np.ndarray:
         """Re-anchored source pose at t beyond its last sample, at the last sampled angular velocity."""
-        t_a, r_src_a, r_spl_a = self._anchor
+        t_a, r_src_a, r_spl_a = self._anchor or (self.t_start, self._source_at(self.t_start), self.r_start)
         r_last = self._src_R[-1]
         if len(self._src_t) > 1:
             dt = self._src_t[-1] - self._src_t[-2]

@@ -126,14 +126,17 @@ def as_chunks(events_or_chunks, chunk_size: int = CHUNK_EVENTS) -> Iterator[Even
         yield chunk
 
 
+def every_qth(chunk: Events, q: int, offset: int) -> Events:
+    """The events of ``chunk`` whose global index (``offset`` = index of its first event) is a multiple of q."""
+    return chunk[(-offset) % q::q] if q > 1 else chunk
+
+
 def downsampled(chunks: Iterable[Events], q: int) -> Iterator[Events]:
     """Keep events whose global index is a multiple of q (same as Events.downsample on the whole stream)."""
     offset = 0
     for chunk in chunks:
         n = len(chunk)
-        if q > 1:
-            first = (-offset) % q
-            chunk = chunk[first::q]
+        chunk = every_qth(chunk, q, offset)
         offset += n
         if len(chunk):
             yield chunk
@@ -187,7 +190,11 @@ class Packet:
 
 
 class PacketSlicer:
-    """Rolling-buffer slicer: yields one :class:`Packet` per equispaced timestamp (see module docstring).
+    """Rolling-buffer slicer: one :class:`Packet` per equispaced timestamp (see module docstring).
+
+    Push form (for live sources): ``push(chunk)`` yields the packets the chunk completes, ``flush()`` the rest once
+    the stream has ended; ``slicer(chunks)`` does both over an iterable. A packet is emitted as soon as later events
+    cannot change it, so the packets do not depend on how the stream is chunked.
 
     Memory: the buffer holds the events from the current packet's start to at most N/2 events or W/2
     seconds past its centre, plus the chunk being read.
@@ -204,69 +211,71 @@ class PacketSlicer:
         self.min_events = max(1, int(np.ceil(config.frontend_min_event_rate * self.window)))
         self.min_span = float(config.frontend_min_packet_span)
         self.events_read = 0
+        self._buf = Events.empty()
+        self._t_last = -np.inf
+        self.t_ref: float | None = None  # the next packet's centre (None before the first event)
 
     def __call__(self, chunks: Iterable[Events]) -> Iterator[Packet]:
-        it = iter(chunks)
-        buf = Events.empty()
-        exhausted = False
-        t_last = -np.inf
+        for chunk in chunks:
+            yield from self.push(chunk)
+        yield from self.flush()
 
-        def pull() -> bool:
-            nonlocal buf, exhausted, t_last
-            for chunk in it:
-                if len(chunk) == 0:
-                    continue
-                if chunk.t[0] < t_last:
-                    raise InputError(f"event chunks are not in time order (t={chunk.t[0]!r} after {t_last!r})")
-                t_last = float(chunk.t[-1])
-                self.events_read += len(chunk)
-                buf = Events.concatenate([buf, chunk])
-                return True
-            exhausted = True
-            return False
-
-        while len(buf) == 0 and not exhausted:
-            pull()
-        if len(buf) == 0:
+    def push(self, chunk: Events) -> Iterator[Packet]:
+        """Append a time-ordered chunk; yield every packet it completes."""
+        if len(chunk) == 0:
             return
-        t_ref = float(buf.t[0]) + 0.5 * self.dt
-        half = self.n // 2
-        while True:
-            # read until the packet around t_ref is known: N - N/2 events from the centre on, or events
-            # later than t_ref + W (then the full packet would span more than W anyway)
-            while not exhausted:
-                c = int(buf.index_at(t_ref))
-                enough = len(buf) - c >= self.n - half and buf.t[-1] >= t_ref + 0.5 * self.min_span
-                if enough or buf.t[-1] > t_ref + self.window:
-                    break
-                pull()
-            if t_ref > buf.t[-1]:
-                return  # past the last event
-            c = int(buf.index_at(t_ref))
-            i0, i1 = max(0, c - half), min(len(buf), c + self.n - half)
-            if self.min_span > 0:  # high event rates: take every event of the minimum span
-                i0 = min(i0, int(buf.index_at(t_ref - 0.5 * self.min_span)))
-                i1 = max(i1, int(buf.index_at(t_ref + 0.5 * self.min_span)))
-            packet = buf[i0:i1]
-            span = packet.duration
-            still = False
-            if span > self.window:
-                if self.rule == "paper":
-                    still = True
-                else:
-                    j0 = max(i0, int(buf.index_at(t_ref - 0.5 * self.window)))
-                    j1 = min(i1, int(buf.index_at(t_ref + 0.5 * self.window, side="right")))
-                    packet = buf[j0:j1]
-                    span = packet.duration
-                    still = len(packet) < self.min_events
-            if len(packet) < 2 or packet.duration <= 0:
+        if chunk.t[0] < self._t_last:
+            raise InputError(f"event chunks are not in time order (t={chunk.t[0]!r} after {self._t_last!r})")
+        self._t_last = float(chunk.t[-1])
+        self.events_read += len(chunk)
+        self._buf = Events.concatenate([self._buf, chunk])
+        if self.t_ref is None:
+            self.t_ref = float(self._buf.t[0]) + 0.5 * self.dt
+        while self._known():
+            yield self._emit()
+
+    def flush(self) -> Iterator[Packet]:
+        """The stream has ended: yield the packets up to the last event (clipped at the end)."""
+        while self.t_ref is not None and len(self._buf) and self.t_ref <= self._buf.t[-1]:
+            yield self._emit()
+
+    def _known(self) -> bool:
+        """The packet around t_ref is final: N - N/2 events from the centre on, or events later than t_ref + W
+        (then the full packet would span more than W anyway)."""
+        buf, t_ref = self._buf, self.t_ref
+        if len(buf) == 0:
+            return False
+        c = int(buf.index_at(t_ref))
+        enough = len(buf) - c >= self.n - self.n // 2 and buf.t[-1] >= t_ref + 0.5 * self.min_span
+        return enough or buf.t[-1] > t_ref + self.window
+
+    def _emit(self) -> Packet:
+        buf, t_ref, half = self._buf, self.t_ref, self.n // 2
+        c = int(buf.index_at(t_ref))
+        i0, i1 = max(0, c - half), min(len(buf), c + self.n - half)
+        if self.min_span > 0:  # high event rates: take every event of the minimum span
+            i0 = min(i0, int(buf.index_at(t_ref - 0.5 * self.min_span)))
+            i1 = max(i1, int(buf.index_at(t_ref + 0.5 * self.min_span)))
+        packet = buf[i0:i1]
+        span = packet.duration
+        still = False
+        if span > self.window:
+            if self.rule == "paper":
                 still = True
-            yield Packet(t_ref, Events.empty() if still else packet, span, still)
-            # drop what no later packet can use: the next packet starts at or after index c_next - N/2
-            t_ref += self.dt
-            drop = max(0, min(int(buf.index_at(t_ref)) - half, int(buf.index_at(t_ref - 0.5 * self.min_span))))
-            if drop > 0:
-                buf = buf[drop:]
+            else:
+                j0 = max(i0, int(buf.index_at(t_ref - 0.5 * self.window)))
+                j1 = min(i1, int(buf.index_at(t_ref + 0.5 * self.window, side="right")))
+                packet = buf[j0:j1]
+                span = packet.duration
+                still = len(packet) < self.min_events
+        if len(packet) < 2 or packet.duration <= 0:
+            still = True
+        # drop what no later packet can use: the next packet starts at or after index c_next - N/2
+        self.t_ref = t_ref + self.dt
+        drop = max(0, min(int(buf.index_at(self.t_ref)) - half, int(buf.index_at(self.t_ref - 0.5 * self.min_span))))
+        if drop > 0:
+            self._buf = buf[drop:]
+        return Packet(t_ref, Events.empty() if still else packet, span, still)
 
 
 # ------------------------------------------------------------------------------------------------

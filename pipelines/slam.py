@@ -3,9 +3,10 @@
 events -> packets around equispaced times -> omega per packet (front-end) -> integrated source poses ->
 sliding-window BA on the panoramic IWE (back-end) -> continuous trajectory + panoramic map.
 
-``run_slam`` is online: each event chunk is read once, feeds the front-end's slicer and the back-end's
-window buffer, and every window is refined as soon as the front-end has covered it, so memory is bounded by
-the chunk size plus one window. ``refine`` is the offline BA (Sec. IV-C2): the same back-end initialized from
+``OnlineSlam`` is the streaming form (push chunks from a live source, ask for poses at any time) and ``run_slam``
+a thin wrapper over it: each event chunk is read once, feeds the front-end's slicer and the back-end's window
+buffer, and every window is refined as soon as the front-end has covered it, so memory is bounded by the chunk
+size plus one window. ``refine`` is the offline BA (Sec. IV-C2): the same back-end initialized from
 any given trajectory (another method's output, IMU dead reckoning) instead of the front-end.
 """
 from __future__ import annotations
@@ -26,7 +27,7 @@ from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
 from .backend import SlidingWindowBackend
-from .frontend import FrontendResult, FrontendRunner, as_chunks, downsampled
+from .frontend import FrontendResult, FrontendRunner, Packet, as_chunks, every_qth
 from .sensor_defaults import derived_summary, resolve_config
 
 
@@ -59,18 +60,21 @@ class _BackendFeed:
         self.backend: SlidingWindowBackend | None = None
         self.events_read = 0
 
+    def push(self, chunk: Events) -> None:
+        if len(chunk) == 0:
+            return
+        if self.backend is None:
+            t0 = float(chunk.t[0])
+            self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0))
+        sub = every_qth(chunk, int(self.config.backend.backend_event_sample_rate), self.events_read)
+        self.events_read += len(chunk)
+        self.backend.push_events(sub.t, self.camera.bearings(sub.x, sub.y), complete_until=float(chunk.t[-1]))
+
     def __call__(self, chunks: Iterable[Events]) -> Iterator[Events]:
-        q = int(self.config.backend.backend_event_sample_rate)
         for chunk in chunks:
-            if len(chunk) == 0:
-                continue
-            if self.backend is None:
-                t0 = float(chunk.t[0])
-                self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0))
-            sub = chunk[(-self.events_read) % q::q] if q > 1 else chunk
-            self.events_read += len(chunk)
-            self.backend.push_events(sub.t, self.camera.bearings(sub.x, sub.y), complete_until=float(chunk.t[-1]))
-            yield chunk
+            if len(chunk):
+                self.push(chunk)
+                yield chunk
 
 
 def _backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
@@ -110,60 +114,319 @@ def _compile_backend(config: SlamConfig) -> float:
     return time.perf_counter() - tic
 
 
+class OnlineSlam:
+    """CMax-SLAM on a live stream: push time-ordered event chunks as they arrive, ask for poses at any time.
+
+    The computation of :func:`run_slam` (a thin wrapper over this class): each chunk feeds the back-end's window
+    buffer and the front-end's packet slicer; each packet's omega is integrated into the source poses, and every
+    window is refined as soon as the front-end has covered it. Chunks may have any size (a camera driver's
+    packets, a ROS message); the results do not depend on it. ``on_window(report)`` is called after every window
+    the back-end completes (a :class:`~ti_cmax.pipelines.backend.WindowReport`); ``close()`` ends the stream and
+    returns the :class:`SlamResult` that ``run_slam`` returns. The trajectory starts at the identity at the first
+    event (the world frame is the first camera frame).
+
+    ``backend_process=True`` runs the back-end in a worker process at the same time as the front-end (paper
+    Fig. 3). A thread would not help: Taichi 1.7 kernel launches hold the GIL (measured, see README). Bounded
+    queues connect the two; ``push`` blocks while the worker is a full queue behind (no event is dropped, no busy
+    waiting). The worker does the same operations in the same order, so results equal the sequential run
+    (bitwise with one Taichi thread per process). ``pose`` then uses the refined spline the worker last sent.
+    """
+
+    def __init__(self, camera: Camera, config: SlamConfig = SlamConfig(), *, on_window=None,
+                 backend_process: bool = False, queue_size: int = 16):
+        self._wall0 = time.perf_counter()
+        self.derived = derived_summary(config, camera)
+        self.config = config = resolve_config(config, camera)
+        self.on_window = on_window
+        self.runner = FrontendRunner(camera, config.frontend)
+        self._worker = _BackendProcess(camera, config, queue_size) if backend_process else None
+        cpu0 = time.process_time()
+        self.compile_seconds = self.runner.compile() + (0.0 if backend_process else _compile_backend(config))
+        # what the process paid before the first event: imports, ti.init, kernel preparation (CPU seconds, which
+        # a loaded machine does not inflate, unlike wall time); the worker's own start-up runs meanwhile
+        self.startup = {"compile_seconds": self.compile_seconds,
+                        "compile_cpu_seconds": time.process_time() - cpu0,
+                        "process_cpu_seconds": time.process_time()}
+        # sequential: the back-end itself; with a worker: a shadow fed with the source poses and the worker's
+        # refined splines, for pose() only (it never refines)
+        self._feed = _BackendFeed(camera, config, lambda t0: np.eye(3))
+        self._q_front = int(config.frontend.frontend_event_sample_rate)
+        self._r_src = np.eye(3)
+        self._t_prev: float | None = None
+        self._w_prev: np.ndarray | None = None
+        self.t_last: float | None = None  # time of the last event pushed
+        self.events_read = 0
+        self.backend_seconds = 0.0  # steady-state time in the back-end (windows), callbacks excluded
+        self._result: SlamResult | None = None
+
+    # ---- input ---------------------------------------------------------------------------------------------------
+    def push(self, events: Events) -> None:
+        """Process a time-ordered chunk (continuing the previous ones): every packet and window it completes."""
+        if self._result is not None:
+            raise RuntimeError("push() after close()")
+        if not isinstance(events, Events):
+            raise InputError(f"expected Events chunks, got {type(events).__name__}")
+        if len(events) == 0:
+            return
+        if self.t_last is not None and events.t[0] < self.t_last:
+            raise InputError(f"event chunks are not in time order (t={events.t[0]!r} after {self.t_last!r})")
+        offset = self.events_read
+        if self._worker is None:
+            self._feed.push(events)
+        else:
+            if self._feed.backend is None:
+                self._feed.backend = SlidingWindowBackend(self.config.backend, float(events.t[0]), np.eye(3))
+            self._worker.send(("events", events))
+        self.events_read += len(events)
+        self.t_last = float(events.t[-1])
+        for packet in self.runner.slicer.push(every_qth(events, self._q_front, offset)):
+            self._packet(packet)
+        self._receive()
+
+    def close(self) -> SlamResult:
+        """End of the stream: process the last packets and windows; the same result as ``run_slam``."""
+        if self._result is not None:
+            return self._result
+        for packet in self.runner.slicer.flush():
+            self._packet(packet)
+        if self._feed.backend is None:
+            if self._worker is not None:
+                self._worker.stop()
+            raise InputError("no events to process")
+        if self._worker is not None:
+            self._worker.send(("finish",))
+            done = self._receive(until_done=True)
+            self._worker.stop()
+            self.backend_seconds = done["seconds"]
+            self._result = self._assemble(done["report"], done["spline"], done["map"], done["windows"], done)
+            return self._result
+        backend = self._feed.backend
+        done = len(backend.windows)
+        tic = time.perf_counter()
+        backend.finish()
+        self.backend_seconds += time.perf_counter() - tic
+        for report in backend.windows[done:]:
+            self._notify(report)
+        self._result = self._assemble(_backend_report(backend, self.backend_seconds), backend.spline,
+                                      backend.map.raw, backend.windows, None)
+        return self._result
+
+    # ---- estimates so far ----------------------------------------------------------------------------------------
+    @property
+    def frontend_until(self) -> float | None:
+        """Centre time of the last front-end packet (its integrated pose is known up to there)."""
+        return self._t_prev
+
+    @property
+    def refined_until(self) -> float | None:
+        """Windows are done (events settled into the map) up to this time; None before the first event."""
+        backend = self._feed.backend
+        if backend is None:
+            return None
+        return backend.window_start if backend.windows else backend.t_start
+
+    def pose(self, t) -> np.ndarray:
+        """R_world_from_camera (M, 3, 3) at times t: the refined spline where windows are done, the integrated
+        front-end beyond (extrapolated at the last angular velocity past the last packet)."""
+        backend = self._feed.backend
+        if backend is None:
+            return np.broadcast_to(np.eye(3), (np.size(t), 3, 3)).copy()
+        return backend.pose_at(t)
+
+    def latest(self) -> tuple[float, np.ndarray]:
+        """(time of the last event pushed, the best estimate of R there)."""
+        if self.t_last is None:
+            raise RuntimeError("no events pushed yet")
+        return self.t_last, self.pose(self.t_last)[0]
+
+    def map(self) -> np.ndarray:
+        """Copy of the panoramic map I_G of the events settled so far, (h, w) float32 (with a worker process:
+        empty until close(); the map stays in the worker)."""
+        backend = self._feed.backend
+        if self._result is not None:
+            return self._result.map.copy()
+        if backend is None or self._worker is not None:
+            w, h = self.config.backend.pano_size
+            return np.zeros((h, w), np.float32)
+        return backend.map.raw.copy()
+
+    # ---- internals -----------------------------------------------------------------------------------------------
+    def _packet(self, packet: Packet) -> None:
+        omega = self.runner.process(packet)
+        if self._t_prev is not None:
+            self._r_src = self._r_src @ so3.exp(0.5 * (self._w_prev + omega) * (packet.t_ref - self._t_prev))
+        self._t_prev, self._w_prev = packet.t_ref, omega
+        backend = self._feed.backend
+        backend.push_source_poses([packet.t_ref], self._r_src[None])
+        if self._worker is not None:
+            self._worker.send(("pose", packet.t_ref, self._r_src))
+            return
+        while backend.ready():
+            tic = time.perf_counter()
+            report = backend.step()
+            self.backend_seconds += time.perf_counter() - tic
+            self._notify(report)
+
+    def _receive(self, until_done: bool = False):
+        """Apply the worker's window messages to the shadow back-end (and call on_window); with ``until_done``
+        wait for its final message and return it."""
+        if self._worker is None:
+            return None
+        for kind, *args in self._worker.messages(until_done):
+            if kind == "window":
+                report, first, tail, anchor, window_start, shape = args
+                shadow = self._feed.backend
+                if shadow.spline is None:
+                    shadow.spline = SO3Spline(*shape, tail)
+                else:
+                    shadow.spline.control_R = np.concatenate([shadow.spline.control_R[:first], tail])
+                shadow._anchor, shadow.window_start = anchor, window_start
+                shadow.windows.append(report)
+                self._notify(report)
+            elif kind == "done":
+                return args[0]
+        return None
+
+    def _notify(self, report) -> None:
+        if self.on_window is not None:
+            self.on_window(report)
+
+    def _assemble(self, backend_report: dict, spline, global_map, windows, worker) -> SlamResult:
+        config, runner = self.config, self.runner
+        frontend = runner.result()
+        n = max(self.events_read, 1)
+        report = {
+            "status": frontend.status,
+            "method": "cmax-slam",
+            "events_processed": int(self.events_read),
+            "wall_seconds": time.perf_counter() - self._wall0,
+            "compile_seconds": self.compile_seconds,
+            "startup": self.startup,
+            "frontend": frontend.summary(),
+            "backend": backend_report,
+            # per event of the input stream, steady state (compilation apart)
+            "us_per_event": {"frontend": runner.seconds * 1e6 / n, "backend": self.backend_seconds * 1e6 / n},
+            "parameters": config_to_dict(config),
+            "derived_parameters": self.derived,
+        }
+        if worker is not None:
+            report["backend_process"] = {"compile_seconds": worker["compile_seconds"],
+                                         "cpu_seconds": worker["cpu_seconds"],
+                                         "push_blocked_seconds": self._worker.blocked_seconds}
+        trajectory = worker["trajectory"] if worker is not None else \
+            self._feed.backend.trajectory(config.output.trajectory_rate)
+        return SlamResult(spline, trajectory, global_map, report, frontend, windows)
+
+
+class _BackendProcess:
+    """The back-end in a spawned worker process (a forked one would hang after ti.init), connected by a bounded
+    queue of inputs (``send`` blocks while it is full: back-pressure, nothing dropped) and a queue of results."""
+
+    def __init__(self, camera: Camera, config: SlamConfig, queue_size: int):
+        import multiprocessing as mp
+
+        from ti_cmax.kernels import runtime
+
+        ctx = mp.get_context("spawn")
+        self.inbox, self.outbox = ctx.Queue(max(1, queue_size)), ctx.Queue()
+        self.inbox.cancel_join_thread()  # never hang at exit on a worker that stopped reading (it failed)
+        self.proc = ctx.Process(target=_backend_worker, daemon=True,
+                                args=(camera, config, runtime.num_threads(), self.inbox, self.outbox))
+        self.proc.start()
+        self.blocked_seconds = 0.0
+
+    def send(self, message) -> None:
+        tic = time.perf_counter()
+        self.inbox.put(message)
+        self.blocked_seconds += time.perf_counter() - tic
+
+    def messages(self, until_done: bool):
+        """Messages ready now; with ``until_done`` block (1 s timeouts, to notice a dead worker) until "done"."""
+        import queue
+
+        while True:
+            try:
+                msg = self.outbox.get(timeout=1.0) if until_done else self.outbox.get_nowait()
+            except queue.Empty:
+                if not until_done:
+                    return
+                if not self.proc.is_alive():
+                    raise RuntimeError(f"the back-end process ended without a result (exit {self.proc.exitcode})")
+                continue
+            if msg[0] == "error":
+                self.proc.terminate()
+                raise RuntimeError(f"back-end process: {msg[1]}")
+            yield msg
+            if msg[0] == "done":
+                return
+
+    def stop(self) -> None:
+        self.proc.join(timeout=10)
+        if self.proc.is_alive():
+            self.proc.terminate()
+
+
+def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox) -> None:
+    """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R), ("finish",)."""
+    try:
+        from ti_cmax.kernels import runtime
+
+        runtime.set_num_threads(threads)
+        cpu0 = time.process_time()
+        compile_s = _compile_backend(config)
+        feed = _BackendFeed(camera, config, lambda t0: np.eye(3))
+        seconds = 0.0
+        while True:
+            kind, *args = inbox.get()
+            if kind == "events":
+                feed.push(args[0])
+                continue
+            backend = feed.backend
+            tic = time.perf_counter()
+            if kind == "pose":
+                backend.push_source_poses([args[0]], args[1][None])
+                new = len(backend.windows)
+                while backend.ready():
+                    backend.step()
+            else:
+                new = len(backend.windows)
+                backend.finish()
+            seconds += time.perf_counter() - tic
+            spline = backend.spline
+            for report in backend.windows[new:]:
+                # control poses before the window's first free one (minus one) did not change
+                first = max(0, int(np.floor((report.t_start - spline.t0) / spline.dt)) - 1)
+                outbox.put(("window", report, first, spline.control_R[first:].copy(), backend._anchor,
+                            backend.window_start, (spline.degree, spline.t0, spline.dt)))
+            if kind == "finish":
+                outbox.put(("done", {
+                    "report": _backend_report(backend, seconds), "spline": spline, "map": backend.map.raw,
+                    "windows": backend.windows, "trajectory": backend.trajectory(config.output.trajectory_rate),
+                    "seconds": seconds, "compile_seconds": compile_s, "cpu_seconds": time.process_time() - cpu0}))
+                return
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
+        outbox.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
 def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig(), *,
-             progress_total: float | None = None) -> SlamResult:
+             progress_total: float | None = None, backend_process: bool = False) -> SlamResult:
     """CMax-SLAM on an ``Events`` object, an iterable of time-ordered chunks, or a dataset (``iter_events``).
 
     The trajectory starts at the identity at the first event (the world frame is the first camera frame).
+    ``backend_process``: run the back-end in a worker process at the same time as the front-end (OnlineSlam).
     """
-    wall0 = time.perf_counter()
-    derived = derived_summary(config, camera)
-    config = resolve_config(config, camera)
-    runner = FrontendRunner(camera, config.frontend)
-    compile_s = runner.compile() + _compile_backend(config)
-    feed = _BackendFeed(camera, config, lambda t0: np.eye(3))
-    chunks = feed(as_chunks(events_or_chunks))
-    r_src = np.eye(3)
-    t_prev, w_prev = None, None
-    backend_seconds = 0.0
+    online = OnlineSlam(camera, config, backend_process=backend_process)
     bar = progress(total=progress_total, desc="slam", unit="s")
     try:
-        for packet in runner.slicer(downsampled(chunks, int(config.frontend.frontend_event_sample_rate))):
-            omega = runner.process(packet)
-            if t_prev is not None:
-                r_src = r_src @ so3.exp(0.5 * (w_prev + omega) * (packet.t_ref - t_prev))
-                bar.update(packet.t_ref - t_prev)
-            t_prev, w_prev = packet.t_ref, omega
-            feed.backend.push_source_poses([packet.t_ref], r_src[None])
-            tic = time.perf_counter()
-            while feed.backend.ready():
-                feed.backend.step()
-            backend_seconds += time.perf_counter() - tic
-        if feed.backend is None:
-            raise InputError("no events to process")
-        tic = time.perf_counter()
-        feed.backend.finish()
-        backend_seconds += time.perf_counter() - tic
+        shown = None
+        for chunk in as_chunks(events_or_chunks):
+            online.push(chunk)
+            if online.frontend_until is not None:
+                bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
+                shown = online.frontend_until
+        return online.close()
     finally:
         bar.close()
-    backend = feed.backend
-    frontend = runner.result()
-    n = max(feed.events_read, 1)
-    report = {
-        "status": frontend.status,
-        "method": "cmax-slam",
-        "events_processed": int(feed.events_read),
-        "wall_seconds": time.perf_counter() - wall0,
-        "compile_seconds": compile_s,
-        "frontend": frontend.summary(),
-        "backend": _backend_report(backend, backend_seconds),
-        # per event of the input stream, steady state (compilation apart)
-        "us_per_event": {"frontend": runner.seconds * 1e6 / n, "backend": backend_seconds * 1e6 / n},
-        "parameters": config_to_dict(config),
-        "derived_parameters": derived,
-    }
-    trajectory = backend.trajectory(config.output.trajectory_rate)
-    return SlamResult(backend.spline, trajectory, backend.map.raw, report, frontend, backend.windows)
 
 
 def _at_frontend_rate(trajectory: Trajectory, dt: float) -> Trajectory:

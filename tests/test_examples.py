@@ -90,3 +90,14 @@ def test_profile_cpu_example(tmp_path):
     out = proc.stdout
     assert "compile + warm-up" in out and "us/event" in out
     assert "Taichi kernels (steady state)" in out and re.search(r"k_\w+|vote|project", out), out[-2000:]
+
+
+def test_live_source_example(tmp_path, monkeypatch, capsys, ti_runtime):
+    out = _run_example("live_source.py", ["--duration", "0.6", "--packet-us", "700", "--out", tmp_path / "live"],
+                       monkeypatch, capsys)
+    assert len(re.findall(r"events, refined$", out, re.M)) >= 4, out
+    m = re.search(r"latest\(\) pose error while streaming: mean ([0-9.]+) deg, max ([0-9.]+) deg", out)
+    assert m and float(m.group(2)) < 3.0, out
+    final = re.search(r"final trajectory abs RMSE ([0-9.]+) deg", out)
+    assert final and float(final.group(1)) < 1.0, out
+    assert (tmp_path / "live" / "trajectory.txt").stat().st_size > 0

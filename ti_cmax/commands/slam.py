@@ -13,6 +13,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--spline", choices=("linear", "cubic"), default=None,
                         help="trajectory model (default: spline_degree of the config, cubic)")
+    parser.add_argument("--parallel", action="store_true",
+                        help="run the back-end in a worker process at the same time as the front-end")
 
 
 def spline_override(args) -> list[str]:
@@ -65,7 +67,8 @@ def run(args) -> int:
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     camera = dataset.camera
     t0, t1 = dataset.time_range()
-    result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0)
+    result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
+                      backend_process=args.parallel)
     with OutputDir(args.out) as out:
         write_result(out, result, cfg, camera)
     us = result.report["us_per_event"]

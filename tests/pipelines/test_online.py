@@ -1,0 +1,112 @@
+"""Streaming API (OnlineSlam): same result as run_slam for any chunking, a pose for every time pushed, a source
+that stops mid-window."""
+import numpy as np
+import pytest
+
+from ti_cmax import so3
+from ti_cmax.errors import InputError
+from ti_cmax.config import SlamConfig
+from ti_cmax.pipelines.slam import OnlineSlam, run_slam
+
+
+@pytest.fixture(scope="module")
+def half_second(short_sequence):
+    seq = short_sequence
+    return seq, seq.events.slice_time(seq.events.t[0], seq.events.t[0] + 0.5)
+
+
+def _random_chunks(ev, rng, max_size):
+    i = 0
+    while i < len(ev):
+        n = int(rng.integers(1, max_size))
+        yield ev[i:i + n]
+        i += n
+
+
+def test_online_equals_run_slam_for_any_chunking(half_second):
+    seq, ev = half_second
+    offline = run_slam(ev, seq.camera, SlamConfig())
+    windows = []
+    online = OnlineSlam(seq.camera, SlamConfig(), on_window=windows.append)
+    for chunk in _random_chunks(ev, np.random.default_rng(0), 40_000):
+        online.push(chunk)
+    result = online.close()
+    assert online.close() is result  # idempotent
+    assert len(windows) == len(offline.windows) == len(result.windows) >= 3
+    assert [w.t_start for w in windows] == [w.t_start for w in offline.windows]
+    np.testing.assert_allclose(result.frontend.omega, offline.frontend.omega, atol=1e-6)
+    np.testing.assert_allclose(result.trajectory.t, offline.trajectory.t)
+    assert np.max(so3.geodesic_angle(result.trajectory.R, offline.trajectory.R)) < 1e-5
+    np.testing.assert_allclose(result.map, offline.map, rtol=1e-4, atol=1e-4)
+    assert result.report["events_processed"] == offline.report["events_processed"] == len(ev)
+    with pytest.raises(RuntimeError):
+        online.push(ev[:10])
+
+
+def test_pose_is_available_for_every_time_pushed(half_second):
+    seq, ev = half_second
+    online = OnlineSlam(seq.camera, SlamConfig())
+    t0 = float(ev.t[0])
+    assert np.allclose(online.pose([t0, t0 + 1.0]), np.eye(3))  # nothing pushed yet: the world frame
+    gt0 = seq.groundtruth.at(t0)[0]
+    early = []  # (t, pose then) for times already refined, to compare with the final spline
+    worst = 0.0
+    for chunk in _random_chunks(ev, np.random.default_rng(1), 30_000):
+        online.push(chunk)
+        t_last, r_last = online.latest()
+        assert t_last == chunk.t[-1]
+        times = np.linspace(t0, t_last, 7)
+        poses = online.pose(times)
+        assert poses.shape == (7, 3, 3) and np.allclose(poses @ poses.transpose(0, 2, 1), np.eye(3), atol=1e-6)
+        truth = gt0.T @ seq.groundtruth.at(times)
+        worst = max(worst, float(np.max(np.degrees(so3.geodesic_angle(poses, truth)))))
+        if online.refined_until is not None and online.refined_until > t0 + 0.15:
+            t_fixed = online.refined_until - 0.11  # older than the free control poses of a cubic spline
+            early.append((t_fixed, online.pose(t_fixed)[0]))
+    assert worst < 2.0  # the best estimate so far stays on the true motion, refined or front-end
+    result = online.close()
+    assert early
+    for t, r in early:
+        assert so3.geodesic_angle(r, result.rotation_at(t)[0]) < 1e-6
+
+
+def test_source_that_stops_mid_window_finishes_cleanly(half_second):
+    seq, ev = half_second
+    t0 = float(ev.t[0])
+    part = ev.slice_time(t0, t0 + 0.35)  # windows of 0.2 s every 0.1 s: stops inside [0.2, 0.4] and [0.3, 0.5]
+    online = OnlineSlam(seq.camera, SlamConfig())
+    for i in range(0, len(part), 25_000):
+        online.push(part[i:i + 25_000])
+    result = online.close()
+    assert result.report["status"] == "ok"
+    assert result.report["backend"]["events_settled"] == len(part)  # every event reached the map
+    assert result.windows[-1].t_end == pytest.approx(float(part.t[-1]), abs=0.02)
+    assert result.trajectory.t[-1] == pytest.approx(float(part.t[-1]), abs=0.02)
+    assert np.isfinite(result.map).all() and result.map.sum() > 0
+    with pytest.raises(InputError, match="no events"):
+        OnlineSlam(seq.camera, SlamConfig()).close()
+    with pytest.raises(InputError, match="time order"):
+        online2 = OnlineSlam(seq.camera, SlamConfig())
+        online2.push(part[1000:2000])
+        online2.push(part[:10])
+
+
+def test_backend_process_equals_the_sequential_run(half_second):
+    """The back-end in a worker process (concurrent with the front-end) gives the sequential result; pose() follows
+    the worker's refined spline; a small input queue only makes push() wait (no event lost)."""
+    seq, ev = half_second
+    ev = ev.slice_time(ev.t[0], ev.t[0] + 0.35)
+    sequential = run_slam(ev, seq.camera, SlamConfig())
+    windows = []
+    online = OnlineSlam(seq.camera, SlamConfig(), on_window=windows.append, backend_process=True, queue_size=2)
+    for i in range(0, len(ev), 20_000):
+        online.push(ev[i:i + 20_000])
+    result = online.close()
+    assert len(windows) == len(sequential.windows)
+    assert result.report["events_processed"] == len(ev)
+    assert result.report["backend"]["events_settled"] == sequential.report["backend"]["events_settled"]
+    assert np.max(so3.geodesic_angle(result.trajectory.R, sequential.trajectory.R)) < 1e-5
+    np.testing.assert_allclose(result.map, sequential.map, rtol=1e-4, atol=1e-4)
+    t_mid = float(ev.t[0]) + 0.1
+    assert so3.geodesic_angle(online.pose(t_mid)[0], sequential.rotation_at(t_mid)[0]) < 1e-5
+    assert result.report["backend_process"]["cpu_seconds"] > 0
