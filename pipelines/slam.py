@@ -27,6 +27,7 @@ from ti_cmax.trajectory import Trajectory
 
 from .backend import SlidingWindowBackend
 from .frontend import FrontendResult, FrontendRunner, as_chunks, downsampled
+from .loop_closure import LoopCloser
 
 
 @dataclass
@@ -66,6 +67,8 @@ class _BackendFeed:
             if self.backend is None:
                 t0 = float(chunk.t[0])
                 self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0))
+                if self.config.loop.loop_closure:  # loop closure on revisits (pipelines/loop_closure.py)
+                    self.backend.loop = LoopCloser(self.config.loop, self.backend)
             sub = chunk[(-self.events_read) % q::q] if q > 1 else chunk
             self.events_read += len(chunk)
             self.backend.push_events(sub.t, self.camera.bearings(sub.x, sub.y), complete_until=float(chunk.t[-1]))
@@ -86,6 +89,7 @@ def _backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
         "map_size": [int(backend.width), int(backend.height)],
         "spline_degree": int(backend.cfg.spline_degree),
         "control_poses": int(backend.spline.num_control) if backend.spline is not None else 0,
+        **({"loop_closure": backend.loop.summary()} if backend.loop is not None else {}),
     }
 
 
@@ -153,6 +157,7 @@ def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig()
         # per event of the input stream, steady state (compilation apart)
         "us_per_event": {"frontend": runner.seconds * 1e6 / n, "backend": backend_seconds * 1e6 / n},
         "parameters": config_to_dict(config),
+        **({"loops": backend.loop.loops} if backend.loop is not None else {}),
     }
     trajectory = backend.trajectory(config.output.trajectory_rate)
     return SlamResult(backend.spline, trajectory, backend.map.raw, report, frontend, backend.windows)
@@ -212,6 +217,7 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
         "backend": _backend_report(backend, backend_seconds),
         "us_per_event": {"backend": backend_seconds * 1e6 / max(events_read, 1)},
         "parameters": config_to_dict(config),
+        **({"loops": backend.loop.loops} if backend.loop is not None else {}),
     }
     return SlamResult(backend.spline, backend.trajectory(config.output.trajectory_rate), backend.map.raw,
                       report, None, backend.windows)

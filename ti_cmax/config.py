@@ -92,6 +92,25 @@ class BackendConfig:
 
 
 @dataclass(frozen=True)
+class LoopClosureConfig:
+    """Loop closure on revisits (pipelines/loop_closure.py): the recent events are registered against the map
+    regions last observed long ago; an accepted correction is spread over the trajectory since that visit and
+    the global map is rebuilt from stored event subsamples."""
+
+    loop_closure: bool = False  # false: no loop closure (the back-end's output is bitwise unchanged)
+    loop_min_age: float = 3.0  # s since a map region was last observed for it to count as old (a revisit)
+    loop_recent_time: float = 1.0  # s of recent events registered against the old map; also the check interval
+    loop_min_overlap: float = 0.15  # fraction of the recent events that must fall on old observed map regions
+    loop_min_confidence: float = 0.3  # correlation of the registered recent map with the old map, at least
+    loop_min_peak_ratio: float = 1.5  # that correlation over its best value 4-8 map pixels away, at least (unique)
+    loop_max_correction: float = 0.1  # rad; larger registrations are rejected as false loops
+    loop_min_correction_px: float = 0.25  # corrections below this many map pixels are not applied (nothing to do)
+    loop_registration_events: int = 30000  # recent events used for the registration at most (thinned 1 of k)
+    loop_stored_event_rate: float = 200000.0  # events/s kept (1 of k per stride) to rebuild the map after a loop
+    loop_max_stored_events: int = 4000000  # all strides are thinned by 2 when the store exceeds this (memory)
+
+
+@dataclass(frozen=True)
 class DatasetConfig:
     """How to open a DATASET (``--set width=346 --set height=260 --set allow_default_calibration=true``)."""
 
@@ -114,6 +133,7 @@ class SlamConfig:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
+    loop: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
 
@@ -270,6 +290,6 @@ def save_config(cfg, path: str | os.PathLike) -> None:
 
 
 __all__ = [
-    "DatasetConfig", "FrontendConfig", "BackendConfig", "OutputConfig", "SlamConfig",
+    "DatasetConfig", "FrontendConfig", "BackendConfig", "LoopClosureConfig", "OutputConfig", "SlamConfig",
     "load_config", "update_config", "build_config", "save_config", "config_to_dict", "parse_overrides", "replace",
 ]

@@ -23,6 +23,8 @@ class SimulatorConfig:
     # motion ----------------------------------------------------------------------------------
     duration: float = 2.0  # s
     trajectory: str = "random"  # random (ECD-like ramp), pan (360 deg about vertical), constant
+    turns: float = 1.0  # full turns of trajectory=pan (2-3: the camera revisits the first turn's map)
+    pan_wobble: float = 0.0  # rad/s, peak of a seeded random wobble added to trajectory=pan (0: a pure pan)
     max_angular_velocity: float = 5.0  # rad/s, peak of the random trajectory (reached near the end)
     random_frequency_max: float = 1.5  # Hz, highest frequency of the random angular velocity
     constant_rate_deg: float = 4.0  # deg/s for trajectory=constant (star tracking)
@@ -56,13 +58,13 @@ class SimulatorConfig:
 
         if self.sensor not in SENSORS:
             raise InputError(f"unknown sensor {self.sensor!r} (expected one of {', '.join(SENSORS)})")
-        positive = ("duration", "contrast_threshold", "max_pixel_step", "max_render_dt", "imu_rate", "gt_rate",
+        positive = ("duration", "turns", "contrast_threshold", "max_pixel_step", "max_render_dt", "imu_rate", "gt_rate",
                     "integration_rate", "log_eps", "chunk_megabytes", "threshold_min")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be positive, got {getattr(self, name)}")
         nonneg = ("threshold_sigma", "refractory_period", "noise_rate", "time_resolution", "gyro_bias_std",
-                  "gyro_noise_std", "acc_noise_std", "blur_sigma_px", "pano_height", "max_angular_velocity")
+                  "gyro_noise_std", "acc_noise_std", "blur_sigma_px", "pano_height", "max_angular_velocity", "pan_wobble")
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
