@@ -17,9 +17,11 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    coarse to fine. The candidate is accepted when the registered maps correlate (normalized cross-correlation
    over the old regions >= ``loop_min_confidence``), the optimum is unique (that correlation over its best value
    4 and 8 map pixels away >= ``loop_min_peak_ratio``) and |C| <= ``loop_max_correction``;
-4. correction (when |C| >= ``loop_min_correction_px`` map pixels): C is spread over the control poses between the
+4. correction (when |C| >= ``loop_min_correction_px`` map pixels and the registration raised the correlation by
+   at least ``loop_min_gain``, i.e. the data support it): C is spread over the control poses between the
    old visit (or the last applied loop) and the recent events by the chain pose graph ``so3.spread_correction``
-   (weights: rotation travelled between control poses, as drift grows with motion); later poses get all of C.
+   (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of the recent events on the old
+   regions; later poses get all of C.
    The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
    spline, so later windows align to one consistent map.
 
@@ -41,6 +43,7 @@ from .optim import fletcher_reeves
 
 _CELL = 4  # map pixels per side of an age cell
 _RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's rotations from the optimum
+_CG_ITERS, _CG_LINE_EVALS = 10, 8  # per pyramid level: 3 unknowns, started near the optimum by the coarser level
 _TEXTURE = 3  # map pixels: scale of the local texture normalization of the confidence test
 
 
@@ -142,6 +145,8 @@ class LoopCloser:
         px = 2 * np.pi / self.backend.width
         if entry["accepted"] and entry["correction_deg"] < np.degrees(cfg.loop_min_correction_px * px):
             entry["applied"], entry["reason"] = False, "correction below loop_min_correction_px"
+        elif entry["accepted"] and entry["confidence"] - entry["confidence_before"] < cfg.loop_min_gain:
+            entry["applied"], entry["reason"] = False, "correlation gain below loop_min_gain"
         elif entry["accepted"]:
             entry.update(self._apply(t, b, old_cells, np.asarray(entry.pop("_phi")), t_now))
         entry.pop("_phi", None)
@@ -181,9 +186,9 @@ class LoopCloser:
                 return var * scale, so3.left_jacobian(x).T @ grad.sum(axis=0) * scale
 
             res = fletcher_reeves(objective, phi, maximize=True, init_step=2 * f * 2 * np.pi / w,
-                                  line_search_tol=bcfg.backend_cg_line_search_tol, max_iter=bcfg.backend_cg_max_iters,
+                                  line_search_tol=bcfg.backend_cg_line_search_tol, max_iter=_CG_ITERS,
                                   grad_tol=bcfg.backend_cg_grad_tol, rel_cost_tol=bcfg.backend_cg_rel_cost_tol,
-                                  max_line_evals=bcfg.backend_cg_max_line_evals)
+                                  max_line_evals=_CG_LINE_EVALS)
             phi = res.x
             if np.linalg.norm(phi) > cfg.loop_max_correction:  # a false loop: no need to refine it
                 return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
@@ -209,7 +214,7 @@ class LoopCloser:
             return float(a @ c) / den if den > 0 else 0.0
 
         conf = ncc(phi)
-        # uniqueness: rotations that shift the recent map by _RING map pixels in 8 directions around the optimum
+        # uniqueness: rotations that shift the recent map by _RING map pixels in 4 directions each around the optimum
         # (a second peak there: repeated texture, a false loop)
         xw = np.einsum("nij,nj->ni", so3.exp(phi) @ spline.evaluate_at(s, u)[:1], b[:1].astype(np.float64))
         d = xw[0] / np.linalg.norm(xw[0])
@@ -217,7 +222,7 @@ class LoopCloser:
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(d, e1)
         ring = [ncc(so3.log(so3.exp(r * 2 * np.pi / w * (math.cos(a) * e1 + math.sin(a) * e2)) @ so3.exp(phi)))
-                for r in _RING for a in np.arange(8) * np.pi / 4]
+                for r in _RING for a in np.arange(4) * np.pi / 2 + (np.pi / 4 if r > _RING[0] else 0.0)]
         best_ring = max(ring)
         peak = conf / best_ring if best_ring > 0 else np.inf
         corr = float(np.linalg.norm(phi))
@@ -240,10 +245,13 @@ class LoopCloser:
         corr = so3.exp(phi)
         _, rot = self._rotations(t, corr)
         cells = self._cells(b, rot)
-        seen = self.age.flat[cells[old_cells.flat[cells]]]
-        t_old = float(np.median(seen)) if len(seen) else float(t[0])
+        on_old = old_cells.flat[cells]
+        if not on_old.any():
+            return {"applied": False, "reason": "no recent event on the old map"}
+        # the correction was measured by the recent events on the old regions, against the last visit there
+        t_old = float(np.median(self.age.flat[cells[on_old]]))
+        t_ref = float(np.median(t[on_old]))
         t_a = max(t_old, self._closed_until)
-        t_ref = 0.5 * (float(t[0]) + float(t[-1]))
         if t_ref <= t_a:
             return {"applied": False, "reason": "old visit not before the recent events", "t_old": t_old}
         knots = spline.knot_times()
@@ -257,7 +265,7 @@ class LoopCloser:
         self._rebuild()
         backend._anchor_at(backend._anchor[0])
         self._closed_until = float(t[-1])
-        return {"applied": True, "reason": "accepted", "t_old": t_old, "t_spread_from": float(knots[i0])}
+        return {"applied": True, "reason": "accepted", "t_old": t_old, "t_ref": t_ref, "t_spread_from": float(knots[i0])}
 
     def _rebuild(self) -> None:
         """Global map, old map and age map from the stored subsamples along the (corrected) spline."""

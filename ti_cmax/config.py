@@ -105,7 +105,8 @@ class LoopClosureConfig:
     loop_min_peak_ratio: float = 1.5  # that correlation over its best value 4-8 map pixels away, at least (unique)
     loop_max_correction: float = 0.1  # rad; larger registrations are rejected as false loops
     loop_min_correction_px: float = 0.25  # corrections below this many map pixels are not applied (nothing to do)
-    loop_registration_events: int = 30000  # recent events used for the registration at most (thinned 1 of k)
+    loop_min_gain: float = 0.02  # ... nor those raising that correlation by less (not supported by the data)
+    loop_registration_events: int = 20000  # recent events used for the registration at most (thinned 1 of k)
     loop_stored_event_rate: float = 200000.0  # events/s kept (1 of k per stride) to rebuild the map after a loop
     loop_max_stored_events: int = 4000000  # all strides are thinned by 2 when the store exceeds this (memory)
 
