@@ -8,10 +8,10 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and, delayed
    by ``loop_recent_time``, votes them into an *old map* and a coarse map of the time each region was last
    observed;
-2. detection, every ``loop_recent_time``: the recent events (the last ``loop_recent_time`` seconds) at their
-   current poses are a revisit candidate when at least ``loop_min_overlap`` of them fall on regions observed, and
-   last observed at least ``loop_min_age`` s ago (regions without texture give no events, so they are never
-   observed);
+2. detection, after every window (at most one verification per ``loop_recent_time``): the recent events (the
+   last ``loop_recent_time`` seconds) at their current poses are a revisit candidate when at least
+   ``loop_min_overlap`` of them fall on regions observed, and last observed at least ``loop_min_age`` s ago
+   (regions without texture give no events, so they are never observed);
 3. verification: one rotation C (left, world frame) registers the recent events against the old map of those
    regions alone, with the back-end's machinery (``PanoIWE``: Var(B(I_recent) + alpha B(I_old)), Fletcher-Reeves CG),
    coarse to fine. The candidate is accepted when the registered maps correlate (normalized cross-correlation
@@ -89,9 +89,8 @@ class LoopCloser:
         while self._n_old < len(self.chunks) and self.chunks[self._n_old][0][-1] < t_now - recent:
             self._age_chunk(self.chunks[self._n_old])
             self._n_old += 1
-        if t_now >= self._next_check:
-            self._next_check = t_now + recent
-            self._check(t_now)
+        if t_now >= self._next_check:  # the overlap test runs after every window: catch a revisit before the
+            self._check(t_now)          # back-end's windows snap to the old map (that jump is the loop error)
         self.seconds += time.perf_counter() - tic
 
     # ---- detection and verification ----------------------------------------------------------------------------
@@ -139,6 +138,7 @@ class LoopCloser:
         overlap = float(np.mean(on_old))
         if overlap < cfg.loop_min_overlap:
             return
+        self._next_check = t_now + cfg.loop_recent_time  # one verification per recent block at most
         tic = time.perf_counter()
         entry = {"time": float(t_now), "overlap": overlap}
         entry.update(self.verify(t, b, old_cells))

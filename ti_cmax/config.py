@@ -99,7 +99,7 @@ class LoopClosureConfig:
 
     loop_closure: bool = False  # false: no loop closure (the back-end's output is bitwise unchanged)
     loop_min_age: float = 3.0  # s since a map region was last observed for it to count as old (a revisit)
-    loop_recent_time: float = 1.0  # s of recent events registered against the old map; also the check interval
+    loop_recent_time: float = 1.0  # s of recent events registered against the old map; at most one check per this
     loop_min_overlap: float = 0.15  # fraction of the recent events that must fall on old observed map regions
     loop_min_confidence: float = 0.3  # correlation of the registered recent map with the old map, at least
     loop_min_peak_ratio: float = 1.5  # that correlation over its best value 4-8 map pixels away, at least (unique)
