@@ -8,7 +8,8 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and, delayed
    by ``loop_recent_time``, votes them into an *old map* and a coarse map of the time each region was last
    observed;
-2. detection, after every window (at most one verification per ``loop_recent_time``): the recent events (the
+2. detection, after every window (at most one verification per ``loop_recent_time``, less often while a revisit
+   goes on without a correction to apply: the interval doubles up to ``loop_min_age``): the recent events (the
    last ``loop_recent_time`` seconds) at their current poses are a revisit candidate when at least
    ``loop_min_overlap`` of them fall on regions observed, and last observed at least ``loop_min_age`` s ago
    (regions without texture give no events, so they are never observed);
@@ -20,9 +21,8 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
 4. correction (when |C| >= ``loop_min_correction_px`` map pixels and the registration raised the correlation by
    at least ``loop_min_gain``, i.e. the data support it): C is spread over the control poses between the
    old visit (or the last applied loop) and the recent events by the chain pose graph ``so3.spread_correction``
-   (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of the recent events on the old
-   regions; later poses get all of C.
-   The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
+   (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of
+   the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
    spline, so later windows align to one consistent map.
 
 Every candidate goes into ``loops`` (time, correction, confidence, accepted, applied, reason) for report.json.
@@ -39,6 +39,7 @@ from ti_cmax.config import LoopClosureConfig
 from ti_cmax.metrics import local_texture
 from ti_cmax.kernels.pano import PanoIWE, batch_mid_times, equirect_numpy, event_density, vote_map
 
+from .backend import GlobalMap
 from .optim import fletcher_reeves
 
 _CELL = 4  # map pixels per side of an age cell
@@ -51,8 +52,6 @@ class LoopCloser:
     """Loop detection, verification and correction for one ``SlidingWindowBackend`` (module docstring)."""
 
     def __init__(self, config: LoopClosureConfig, backend):
-        from .backend import GlobalMap  # the back-end imports this module's owner, not this module
-
         self.cfg, self.backend = config, backend
         self._new_map = lambda sigma: GlobalMap(backend.width, backend.height, sigma, backend.cfg.lambda0,
                                                 backend.map.max_update_time if sigma > 0 else None)
@@ -63,6 +62,7 @@ class LoopCloser:
         self._n_old = 0  # chunks already voted into the old map and the age map
         self._stored = 0
         self._next_check = backend.t_start + config.loop_min_age + config.loop_recent_time
+        self._interval = config.loop_recent_time  # time from one verification to the next check
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
         self.loops: list[dict] = []
         self.seconds = 0.0
@@ -137,8 +137,8 @@ class LoopCloser:
         on_old = old_cells.flat[self._cells(b, rot)]
         overlap = float(np.mean(on_old))
         if overlap < cfg.loop_min_overlap:
+            self._interval = cfg.loop_recent_time
             return
-        self._next_check = t_now + cfg.loop_recent_time  # one verification per recent block at most
         tic = time.perf_counter()
         entry = {"time": float(t_now), "overlap": overlap}
         entry.update(self.verify(t, b, old_cells))
@@ -150,6 +150,11 @@ class LoopCloser:
         elif entry["accepted"]:
             entry.update(self._apply(t, b, old_cells, np.asarray(entry.pop("_phi")), t_now))
         entry.pop("_phi", None)
+        # while the revisit goes on and the map stays consistent, verify less and less often (up to once per
+        # loop_min_age): the cost of a long revisit stays bounded; an applied loop starts again at loop_recent_time
+        recent = cfg.loop_recent_time
+        self._interval = recent if entry.get("applied") else min(2 * self._interval, max(cfg.loop_min_age, recent))
+        self._next_check = t_now + self._interval
         entry["seconds"] = time.perf_counter() - tic
         self.loops.append(entry)
 
@@ -265,7 +270,8 @@ class LoopCloser:
         self._rebuild()
         backend._anchor_at(backend._anchor[0])
         self._closed_until = float(t[-1])
-        return {"applied": True, "reason": "accepted", "t_old": t_old, "t_ref": t_ref, "t_spread_from": float(knots[i0])}
+        return {"applied": True, "reason": "accepted", "t_old": t_old, "t_ref": t_ref,
+                "t_spread_from": float(knots[i0])}
 
     def _rebuild(self) -> None:
         """Global map, old map and age map from the stored subsamples along the (corrected) spline."""

@@ -64,7 +64,8 @@ class SimulatorConfig:
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be positive, got {getattr(self, name)}")
         nonneg = ("threshold_sigma", "refractory_period", "noise_rate", "time_resolution", "gyro_bias_std",
-                  "gyro_noise_std", "acc_noise_std", "blur_sigma_px", "pano_height", "max_angular_velocity", "pan_wobble")
+                  "gyro_noise_std", "acc_noise_std", "blur_sigma_px", "pano_height", "max_angular_velocity",
+                  "pan_wobble")
         for name in nonneg:
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
