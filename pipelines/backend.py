@@ -44,6 +44,7 @@ class WindowReport:
     num_events: int
     optimized: bool
     alpha: float
+    events_used: int = 0  # events the BA used (all, or an even sample of backend_max_window_events)
     iterations: int = 0
     evaluations: int = 0
     variance_before: float = 0.0
@@ -155,7 +156,10 @@ class SlidingWindowBackend:
     """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""
 
     def __init__(self, config: BackendConfig, t_start: float, r_start: np.ndarray | None = None):
+        """``config`` must be resolved for the camera (``sensor_defaults.resolve_backend``): no derived 0s."""
         check_line_search("backend", config.backend_cg_step_guess, config.backend_cg_max_line_evals)
+        if config.pano_height <= 0 or config.backend_max_window_events == 0 or config.backend_min_ev_rate <= 0:
+            raise ValueError("the back-end needs a config resolved for the camera (sensor_defaults.resolve_backend)")
         self.cfg = config
         self.width, self.height = config.pano_size
         self.t_start = float(t_start)
@@ -309,9 +313,20 @@ class SlidingWindowBackend:
     def _anchor_at(self, t: float) -> None:
         self._anchor = (t, self._source_at(t), self.spline.evaluate(t)[0])
 
+    def _sample(self, ev_t, ev_b):
+        """At most backend_max_window_events events, every (n / cap)-th: even in time, and over the image in
+        proportion to where the events are."""
+        cap, n = self.cfg.backend_max_window_events, len(ev_t)
+        if cap < 0 or n <= cap:
+            return ev_t, ev_b
+        idx = ((np.arange(cap) + 0.5) * (n / cap)).astype(np.int64)
+        return ev_t[idx], ev_b[idx]
+
     def _refine(self, ev_t, ev_b, t0, report: WindowReport) -> None:
         cfg = self.cfg
         spline = self.spline
+        ev_t, ev_b = self._sample(ev_t, ev_b)
+        report.events_used = len(ev_t)
         knots = spline.knot_times()
         first_free = int(np.searchsorted(knots, t0 - _TIME_EPS, side="left"))
         first_free = max(first_free, 1)  # the very first pose anchors the gauge (world frame)

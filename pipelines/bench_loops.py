@@ -59,6 +59,7 @@ def bench(dataset: Path, overrides: list[str]) -> list[dict]:
     from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
 
     from .panorama import render_panorama
+    from .sensor_defaults import resolve_config
     from .slam import run_slam
 
     ds = open_dataset(dataset)
@@ -69,7 +70,7 @@ def bench(dataset: Path, overrides: list[str]) -> list[dict]:
         res = run_slam(ds.iter_events(cfg.dataset.chunk_size), ds.camera, cfg)
         err = evaluate_rotations(gt, res.trajectory)
         short = _short_relative_errors(gt, res.trajectory)
-        w, h = cfg.backend.pano_size
+        w, h = resolve_config(cfg, ds.camera).backend.pano_size  # the map size the run used
         pano = render_panorama(ds.iter_events(cfg.dataset.chunk_size), ds.camera, res.trajectory, w, h,
                                batch_size=cfg.backend.event_batch_size)
         n = res.report["events_processed"]

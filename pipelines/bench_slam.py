@@ -20,11 +20,14 @@ import argparse
 import json
 import math
 import os
-import resource
 import sys
 import time
 
 import numpy as np
+
+from ti_cmax.outputs import peak_rss_mb
+
+from .sensor_defaults import pano_size
 
 METHODS = ("front-end (CMax-omega)", "SLAM linear", "SLAM cubic", "IMU dead reckoning", "IMU + offline BA")
 ROW_KEYS = ("method", "abs_rmse_deg", "rel_rmse_deg_per_s", "ea_percent", "gm", "map_events",
@@ -35,11 +38,6 @@ QUICK_OVERRIDES = {"pano_height": 256, "frontend_cg_max_iters": 20, "backend_cg_
 PAPER_TAB2 = {"abs_rmse_deg": (0.33, 0.80), "rel_rmse_deg_per_s": (0.41, 0.72)}  # synthetic CMax-SLAM
 PAPER_TAB6 = {"linear": (4.6, 11.2), "cubic": (7.6, 20.4)}  # back-end us/event
 TARGETS = {"abs_rmse_deg": 0.3, "rel_rmse_deg_per_s": 0.3, "backend_linear": 1.0, "backend_cubic": 1.5}
-
-
-def peak_rss_mb() -> float:
-    """Peak resident set size of this process so far (Linux reports ru_maxrss in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _map_figures(image: np.ndarray, lambda0: float) -> tuple[float, float]:
@@ -92,7 +90,7 @@ def bench_sequence(sensor: str, scene: str, duration: float, overrides: dict | N
     linear = update_config(base, {"spline_degree": 1})
     cubic = update_config(base, {"spline_degree": 3})
     refine_cfg = update_config(base, {"spline_degree": int(refine_degree)})
-    width, height = base.backend.pano_size
+    width, height = pano_size(base.backend, seq.camera)
     lam, batch = base.backend.lambda0, base.backend.event_batch_size
     gt = seq.groundtruth
 

@@ -183,7 +183,7 @@ def _simulator_config(spec: SequenceSpec, settings: BenchmarkSettings):
     from ti_cmax.simulate import SimulatorConfig
 
     return SimulatorConfig(scene=spec.scene, sensor=spec.sensor, duration=settings.duration or spec.duration,
-                           seed=settings.seed + spec.seed)
+                           seed=settings.seed + spec.seed).resolved()  # as simulation.json records it
 
 
 def ensure_sequence(spec: SequenceSpec, settings: BenchmarkSettings, cache_dir, show_progress: bool = False):
@@ -601,7 +601,8 @@ def run_benchmark(cfg, sequences: list[SequenceSpec], methods: list[str], out_di
 def settings_line(cfg, quick: bool) -> str:
     b = cfg.backend
     s = cfg.benchmark
-    return (f"back-end map {b.pano_size[0]}x{b.pano_size[1]}, BA map height {s.ba_pano_height or b.pano_height}, "
+    size = f"{b.pano_size[0]}x{b.pano_size[1]}" if b.pano_height else "derived from the focal length"
+    return (f"back-end map {size}, BA map height {s.ba_pano_height or b.pano_height or 'derived'}, "
             f"BA degrees {','.join(map(str, s.degrees())) or 'none'}, frontend_cg_max_iters "
             f"{cfg.frontend.frontend_cg_max_iters}, backend_cg_max_iters {b.backend_cg_max_iters}, seed {s.seed}"
             + (" [quick]" if quick else ""))

@@ -10,9 +10,11 @@ Slicing (``frontend_slicing``):
   fixed N this fails when the event rate swings (slow phases give omega = 0 and the trajectory drifts).
 - ``"bounded"`` (default): the same N-event packet, but when it spans more than W it is shrunk to the
   events inside the window [t_j - W/2, t_j + W/2]. Still (omega = 0) only when that window holds fewer
-  than ``frontend_min_event_rate * W`` events (an event-rate floor: 1000 events per 0.1 s by default)
+  than ``frontend_min_event_rate * W`` events (an event-rate floor: 1000 events per 0.1 s on a DAVIS240C)
   or none at all. No per-sequence tuning of N is needed: slow phases keep a 100 ms window of events.
-Both rules clip packets at the ends of the stream. ``frontend_event_sample_rate`` Q keeps 1 event of Q
+Both rules clip packets at the ends of the stream. N, the thinning cap below and the rate floor default to
+values derived from the sensor's pixel count (``sensor_defaults``: the IWE holds as many events per pixel on a
+VGA or HD sensor as the reference's 10 000 on a DAVIS240C). ``frontend_event_sample_rate`` Q keeps 1 event of Q
 (systematic, over the whole stream) before slicing.
 
 Speed (bounded cost per packet at any event rate): a packet holding more than
@@ -22,6 +24,11 @@ The CG starts from the linear prediction 2 omega_{j-1} - omega_{j-2} (``frontend
 fraction of a pixel from the optimum, and uses the "secant" first trial step with a loose line search
 (tolerance 0.5, at most 4 evaluations): about 4-5 evaluations per packet instead of 13-16 with the
 reference's strict line search, for the same accuracy (pipelines/bench_frontend.py).
+
+Suspect packets: after the optimisation the contrast at omega = 0 is evaluated once more; a solution that moves
+the packet's farthest event by >= 1 px but raises the contrast by less than ``frontend_min_contrast_gain`` is
+flagged (the events do not constrain omega: e.g. packets far too small for the sensor). Most packets suspect:
+the run's status is "suspect" instead of "ok".
 
 Scaling (so that the reference's tolerances mean the same across packet sizes and resolutions): the
 optimiser sees x = omega * s with s = f * max_k |dt_k| (f: mean focal length), i.e. x is roughly the
@@ -46,6 +53,7 @@ from ti_cmax.kernels.iwe import IWEWorkspace, measure_id
 from ti_cmax.trajectory import Trajectory
 
 from .optim import check_line_search, fletcher_reeves
+from .sensor_defaults import resolve_frontend
 
 SLICING_RULES = ("bounded", "paper")
 WARM_STARTS = ("previous", "linear")
@@ -63,11 +71,20 @@ class FrontendResult:
     evaluations: np.ndarray  # (M,) contrast+gradient evaluations
     still: np.ndarray  # (M,) bool, omega set to 0 by the still-camera rule
     cost: np.ndarray  # (M,) normalised contrast at the solution (nan when still)
+    gain: np.ndarray  # (M,) contrast at the solution over the contrast at omega = 0 (nan when still)
+    suspect: np.ndarray  # (M,) bool: the solution moves events by >= 1 px but barely sharpens the IWE
     timing: dict = field(default_factory=dict)  # compile_seconds, wall_seconds, us_per_event, ...
     config: FrontendConfig = field(default_factory=FrontendConfig)
 
     def __len__(self) -> int:
         return len(self.t)
+
+    @property
+    def status(self) -> str:
+        """"suspect" when most moving packets are suspect (the IWE does not constrain omega: e.g. packets far too
+        small for the sensor), else "ok"."""
+        moving = int(np.count_nonzero(~self.still))
+        return "suspect" if moving and np.count_nonzero(self.suspect) > 0.5 * moving else "ok"
 
     def trajectory(self) -> Trajectory:
         """Integrate omega (midpoint rule on SO(3)) to R_world_from_camera at the packet times, R(t_0) = I."""
@@ -80,6 +97,8 @@ class FrontendResult:
         return {
             "packets": int(len(self.t)),
             "still_packets": int(np.count_nonzero(self.still)),
+            "suspect_packets": int(np.count_nonzero(self.suspect)),
+            "median_contrast_gain": float(np.nanmedian(self.gain)) if np.any(~self.still) else 0.0,
             "mean_iterations": float(np.mean(self.iterations)) if len(self.t) else 0.0,
             "mean_evaluations": float(np.mean(self.evaluations)) if len(self.t) else 0.0,
             "mean_packet_events": float(np.mean(self.num_events[~self.still])) if np.any(~self.still) else 0.0,
@@ -96,8 +115,11 @@ def check_config(config: FrontendConfig) -> None:
         measure_id(config.contrast_measure)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    if config.num_events_per_packet < 2:
-        raise InputError(f"num_events_per_packet must be >= 2, got {config.num_events_per_packet}")
+    if config.num_events_per_packet < 0 or config.num_events_per_packet == 1:
+        raise InputError(f"num_events_per_packet must be 0 (derived from the sensor) or >= 2, got "
+                         f"{config.num_events_per_packet}")
+    if config.frontend_min_event_rate < 0:
+        raise InputError(f"frontend_min_event_rate must be 0 (derived) or > 0, got {config.frontend_min_event_rate}")
     if not config.dt_ang_vel > 0:
         raise InputError(f"dt_ang_vel must be > 0, got {config.dt_ang_vel}")
     if config.frontend_event_sample_rate < 1:
@@ -106,8 +128,9 @@ def check_config(config: FrontendConfig) -> None:
         raise InputError(f"still_span_factor must be > 0, got {config.still_span_factor}")
     if config.frontend_blur_sigma < 0:
         raise InputError(f"frontend_blur_sigma must be >= 0, got {config.frontend_blur_sigma}")
-    if config.frontend_max_packet_events < 0 or 0 < config.frontend_max_packet_events < 2:
-        raise InputError(f"frontend_max_packet_events must be 0 (off) or >= 2, got {config.frontend_max_packet_events}")
+    if config.frontend_max_packet_events < -1 or config.frontend_max_packet_events == 1:
+        raise InputError(f"frontend_max_packet_events must be -1 (off), 0 (derived from the sensor) or >= 2, got "
+                         f"{config.frontend_max_packet_events}")
     check_line_search("frontend", config.frontend_cg_step_guess, config.frontend_cg_max_line_evals)
     if config.frontend_warm_start not in WARM_STARTS:
         raise InputError(f"frontend_warm_start must be one of {', '.join(WARM_STARTS)}, got "
@@ -204,6 +227,9 @@ class PacketSlicer:
     """
 
     def __init__(self, config: FrontendConfig):
+        """``config`` must be resolved for the camera (``sensor_defaults.resolve_frontend``): no derived 0s."""
+        if config.num_events_per_packet <= 0 or config.frontend_min_event_rate <= 0:
+            raise ValueError("the slicer needs a front-end config resolved for the camera (resolve_frontend)")
         self.n = int(config.num_events_per_packet)
         self.dt = float(config.dt_ang_vel)
         self.window = float(config.still_span_factor) * self.dt
@@ -285,6 +311,7 @@ class AngularVelocityEstimator:
 
     def __init__(self, camera: Camera, config: FrontendConfig = FrontendConfig(), dtype=np.float32):
         check_config(config)
+        config = resolve_frontend(config, camera)
         self.camera, self.config = camera, config
         self.K = camera.K
         self.focal = 0.5 * (camera.fx + camera.fy)
@@ -337,7 +364,7 @@ class AngularVelocityEstimator:
         if not s > 0:
             raise InputError("packet has no time extent")
         mu0 = n / float(self.camera.width * self.camera.height)
-        scale = 1.0 / (mu0 * mu0)
+        scale = self._scale = 1.0 / (mu0 * mu0)
         measure = self.config.contrast_measure
 
         def fun(x):
@@ -361,7 +388,14 @@ class AngularVelocityEstimator:
         w0 = self.warm_start() if omega0 is None else np.asarray(omega0, float)
         res = self._maximize(fun, w0 * s)
         self.omega_prev, self.omega = self.omega, res.x / s
-        self.event_evaluations += n * res.evaluations
+        # how much the solution sharpens the IWE compared with no motion (one cost-only evaluation)
+        c_zero = self.ws.evaluate(np.zeros(3), self.K, self.config.contrast_measure, with_grad=False)[0] * self._scale
+        self.last_gain = float(res.fun / c_zero) if c_zero > 0 else np.inf
+        # x is the displacement in pixels of the packet's farthest-in-time event: a motion of >= 1 px that gains
+        # less than frontend_min_contrast_gain is not seen in the events (noise-dominated IWE, false optimum)
+        self.last_suspect = bool(np.linalg.norm(res.x) >= 1.0
+                                 and self.last_gain < 1.0 + self.config.frontend_min_contrast_gain)
+        self.event_evaluations += n * (res.evaluations + 1)
         return self.omega.copy(), res, res.fun
 
     def contrast_ratio(self, events: Events, t_ref: float, omega) -> tuple[float, np.ndarray]:
@@ -389,6 +423,7 @@ class FrontendRunner:
 
     def __init__(self, camera: Camera, config: FrontendConfig = FrontendConfig(), dtype=np.float32):
         check_config(config)
+        config = resolve_frontend(config, camera)
         self.config = config
         self.estimator = AngularVelocityEstimator(camera, config, dtype)
         self.slicer = PacketSlicer(config)
@@ -411,19 +446,19 @@ class FrontendRunner:
         cpu_tic = time.process_time()
         if packet.still:
             self.estimator.reset()
-            self.rows.append((packet.t_ref, 0.0, 0.0, 0.0, 0, packet.span, 0, 0, True, np.nan))
+            self.rows.append((packet.t_ref, 0.0, 0.0, 0.0, 0, packet.span, 0, 0, True, np.nan, np.nan, False))
             omega = np.zeros(3)
         else:
             omega, res, cost = self.estimator.estimate(packet.events, packet.t_ref)
             self.events_processed += len(packet.events)
             self.rows.append((packet.t_ref, *omega, len(packet.events), packet.span, res.iterations,
-                              res.evaluations, False, cost))
+                              res.evaluations, False, cost, self.estimator.last_gain, self.estimator.last_suspect))
         self.seconds += time.perf_counter() - tic
         self.cpu_seconds += time.process_time() - cpu_tic
         return omega
 
     def result(self) -> FrontendResult:
-        arr = list(zip(*self.rows)) if self.rows else [()] * 10
+        arr = list(zip(*self.rows)) if self.rows else [()] * 12
         evals = np.asarray(arr[7], dtype=int)
         processed = self.events_processed
         evaluated = self.estimator.event_evaluations
@@ -448,6 +483,8 @@ class FrontendRunner:
             evaluations=evals,
             still=np.asarray(arr[8], bool),
             cost=np.asarray(arr[9], float),
+            gain=np.asarray(arr[10], float),
+            suspect=np.asarray(arr[11], bool),
             timing=timing,
             config=self.config,
         )

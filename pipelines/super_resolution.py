@@ -15,7 +15,6 @@ run one at a time and each size's map is handed to the caller (``on_size``) and 
 from __future__ import annotations
 
 import resource
-import sys
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
@@ -26,6 +25,7 @@ from ti_cmax.camera import Camera
 from ti_cmax.config import SlamConfig, update_config
 from ti_cmax.errors import InputError
 from ti_cmax.metrics import event_area_percent, gradient_magnitude
+from ti_cmax.outputs import peak_rss_mb
 from ti_cmax.trajectory import Trajectory
 
 from .panorama import render_panorama
@@ -52,12 +52,6 @@ def parse_sizes(text: str) -> list[tuple[int, int]]:
     if not sizes:
         raise InputError("--sizes is empty")
     return sizes
-
-
-def peak_rss_mb() -> float:
-    """Peak resident set size of this process so far (MB)."""
-    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return r / (1024.0 * 1024.0) if sys.platform == "darwin" else r / 1024.0
 
 
 def current_rss_mb() -> float:

@@ -121,10 +121,13 @@ class Camera:
         }
 
 
-# Sensors the simulator and the reader know by name.
+# Sensors the simulator and the reader know by name (width, height). "DVXplorer" (iniVation) and "VGA" (a
+# generic 640x480 camera, kept for existing configs) share a size; "HD" is a Prophesee IMX636 / EVK4 sensor.
 SENSORS = {
     "DAVIS240C": (240, 180),
     "DVS128": (128, 128),
     "DAVIS346": (346, 260),
     "VGA": (640, 480),
+    "DVXplorer": (640, 480),
+    "HD": (1280, 720),
 }

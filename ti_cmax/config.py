@@ -24,20 +24,25 @@ class FrontendConfig:
     contrast_measure: str = "variance"  # "variance" or "mean_square"
     frontend_blur_sigma: float = 1.0
     frontend_event_sample_rate: int = 1  # keep 1 of Q events
-    num_events_per_packet: int = 10000
+    # 0 (or auto): derived from the sensor (pipelines/sensor_defaults.py: 10000 x max(1, pixels / 43200))
+    num_events_per_packet: int = 0
     dt_ang_vel: float = 0.01  # 1/f, packet centre spacing (s)
     still_span_factor: float = 10.0  # a packet spanning more than factor*dt_ang_vel means a still camera
     # "bounded" (default): a packet spanning more than W = still_span_factor*dt_ang_vel is shrunk to the
     # events within t_ref +- W/2, and omega = 0 only if fewer than frontend_min_event_rate*W remain.
     # "paper": the reference rule (omega = 0 as soon as the N events span more than W).
     frontend_slicing: str = "bounded"
-    frontend_min_event_rate: float = 10000.0  # events/s floor of the "bounded" rule
+    frontend_min_event_rate: float = 0.0  # events/s floor of the "bounded" rule; 0: 10000 x pixels / 43200
     # packets take at least every event within t_ref +- span/2 (high event rates: N events would cover too
     # little motion to measure); 0 disables (the reference's fixed N)
     frontend_min_packet_span: float = 0.04
     # packets holding more events than this are thinned uniformly (1 of k, k = ceil(n / max)) before the
-    # optimisation: the span (motion) is kept, the cost per packet is bounded at high event rates; 0 disables
-    frontend_max_packet_events: int = 20000
+    # optimisation: the span (motion) is kept, the cost per packet is bounded at high event rates;
+    # 0 (or auto): derived, 20000 x max(1, pixels / 43200); -1 disables
+    frontend_max_packet_events: int = 0
+    # a packet whose solution moves its events by >= 1 px but raises the contrast by less than this fraction over
+    # omega = 0 is "suspect" (report.json counts them; most packets suspect: status "suspect")
+    frontend_min_contrast_gain: float = 0.02
     # warm start of packet j: "previous" (omega_{j-1}) or "linear" (2 omega_{j-1} - omega_{j-2}, when both exist)
     frontend_warm_start: str = "linear"
     # Fletcher-Reeves CG
@@ -67,9 +72,15 @@ class BackendConfig:
     # simulated sequence we ran (rel RMSE 0.12-0.30 vs 0.25-0.36 deg/s, abs 0.07-0.18 vs 0.09-0.21 deg)
     spline_degree: int = 3
     dt_knots: float = 0.05  # control-pose spacing (s)
-    pano_height: int = 512
+    # 0 (or auto): derived from the focal length, width = 2 pi f x pano_pixels_per_sensor_pixel rounded up to a
+    # multiple of 256 (pipelines/sensor_defaults.py)
+    pano_height: int = 0
     pano_width: int = 0  # 0 means 2 * pano_height
-    backend_min_ev_rate: float = 10000.0  # events/s; below: camera treated as still, no BA
+    pano_pixels_per_sensor_pixel: float = 1.5  # map pixels per sensor pixel at the image centre (derived size)
+    backend_min_ev_rate: float = 0.0  # events/s; below: camera treated as still, no BA; 0: 10000 x pixels / 43200
+    # a window with more events is sampled evenly to this many for the BA (all events still go into the map);
+    # 0 (or auto): 5 x pixels x backend_time_window_size / 0.2 s; -1: every event
+    backend_max_window_events: int = 0
     freeze_pixels: bool = False
     max_update_time: float = 10.0  # s a map pixel stays updatable once observed (if freeze_pixels)
     lambda0: float = 1.0
@@ -87,7 +98,10 @@ class BackendConfig:
 
     @property
     def pano_size(self) -> tuple[int, int]:
-        """(width, height) of the panoramic map."""
+        """(width, height) of the panoramic map (resolve a derived size with the camera first)."""
+        if self.pano_height <= 0:
+            raise ValueError("pano_height is derived from the camera: resolve the config first "
+                             "(ti_cmax.pipelines.sensor_defaults.resolve_config)")
         return (self.pano_width or 2 * self.pano_height, self.pano_height)
 
 
@@ -157,8 +171,15 @@ def _leaf_paths(cls, prefix=()) -> dict[str, tuple[str, ...]]:
     return out
 
 
+# keys whose 0 means "derived from the sensor" (pipelines/sensor_defaults.py); "auto" is accepted for them
+DERIVED_KEYS = frozenset({"num_events_per_packet", "frontend_max_packet_events", "frontend_min_event_rate",
+                          "pano_height", "backend_min_ev_rate", "backend_max_window_events"})
+
+
 def _convert(value, typ, key: str, source: str):
     origin = typing.get_origin(typ)
+    if isinstance(value, str) and value.strip().lower() == "auto" and key.split(".")[-1] in DERIVED_KEYS:
+        return typ(0)
     try:
         if typ is bool:
             if isinstance(value, str):

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import resource
+import sys
 import shutil
 import tempfile
 from pathlib import Path
@@ -58,3 +60,9 @@ class OutputDir:
                 p = self.path / name
                 shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
         return False
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far (MB; ru_maxrss is KiB on Linux, bytes on macOS)."""
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / (1024.0 * 1024.0) if sys.platform == "darwin" else r / 1024.0

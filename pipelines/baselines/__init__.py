@@ -90,13 +90,14 @@ def run_imu(events_or_chunks, camera, config: BaselineConfig = BaselineConfig(),
     """IMU dead reckoning (gyro integration from the identity) and the panoramic IWE of the events along it."""
     from ti_cmax.pipelines.imu import dead_reckoning
     from ti_cmax.pipelines.panorama import render_panorama
+    from ti_cmax.pipelines.sensor_defaults import pano_size
 
     if imu is None:
         raise InputError("the imu baseline needs IMU data (imu.txt in the dataset folder)")
     tic = time.perf_counter()
     traj = dead_reckoning(imu.t, imu.gyro)
     chunks = CountedChunks(events_or_chunks)
-    w, h = config.backend.pano_size
+    w, h = pano_size(config.backend, camera)
     pano = render_panorama(chunks, camera, traj, w, h)
     if chunks.count == 0:
         raise InputError("no events to process")

@@ -38,7 +38,7 @@ class MotionConsistencyCheck:
                  checks: int, frontend: FrontendConfig = FrontendConfig()):
         self.estimator = AngularVelocityEstimator(camera, frontend)
         self.interval, self.half, self.min_ratio = float(interval), 0.5 * float(span), float(min_ratio)
-        self.min_events = max(int(frontend.frontend_min_event_rate * span), 100)
+        self.min_events = max(int(self.estimator.config.frontend_min_event_rate * span), 100)
         self.next_centre = float(t_start) + self.half
         self.recent: deque = deque(maxlen=max(int(checks), 1))
         self.ratios: list[float] = []

@@ -306,6 +306,8 @@ def test_sensor_size_inference():
     assert infer_sensor_size(100, 100, "e", principal_point=(132.2, 110.7)) == (240, 180)  # ECD calib
     assert infer_sensor_size(239, 100, "e") == (240, 180)
     assert infer_sensor_size(300, 100, "e") == (346, 260)
-    assert infer_sensor_size(600, 400, "e") == (640, 480)
+    assert infer_sensor_size(600, 400, "e") == (640, 480)  # VGA / DVXplorer
+    assert infer_sensor_size(1279, 719, "e") == (1280, 720)  # HD (Prophesee IMX636)
+    assert infer_sensor_size(700, 100, "e") == (1280, 720)
     with pytest.raises(Exception, match="cannot infer the sensor size"):
-        infer_sensor_size(1279, 719, "e")
+        infer_sensor_size(1280, 719, "e")

@@ -200,7 +200,7 @@ def test_config_validation_and_loading(tmp_path):
     with pytest.raises(InputError, match="sensor"):
         SimulatorConfig(sensor="DAVIS9000")
     with pytest.raises(InputError, match="contrast_threshold"):
-        SimulatorConfig(contrast_threshold=0)
+        SimulatorConfig(contrast_threshold=-0.1)
     cfg_file = tmp_path / "sim.yaml"
     cfg_file.write_text("scene: bay\nduration: 1.5\nrotation_axis: [0, 1, 0]\n")
     cfg = load_config(SimulatorConfig, cfg_file, ["contrast_threshold=0.25", "sensor=VGA"])
@@ -210,11 +210,51 @@ def test_config_validation_and_loading(tmp_path):
 
 def test_sensors():
     for name, size in (("DAVIS240C", (240, 180)), ("DVS128", (128, 128)), ("DAVIS346", (346, 260)),
-                       ("VGA", (640, 480))):
+                       ("VGA", (640, 480)), ("DVXplorer", (640, 480)), ("HD", (1280, 720))):
         cam = sensor_camera(name)
         assert cam.size == size
     davis = sensor_camera("DAVIS240C")
     assert davis.has_distortion and davis.dist[0] == pytest.approx(-0.368)
+    vga, dvx, hd = sensor_camera("VGA"), sensor_camera("DVXplorer"), sensor_camera("HD")
+    assert vga.fx == 440.0 and not vga.has_distortion  # unchanged for existing configs
+    assert (dvx.fx, dvx.fy, dvx.cx, dvx.cy) == (520.0, 520.0, 319.5, 239.5) and not dvx.has_distortion
+    # IMX636: 4.86 um pixels behind a 6 mm lens, 55 x 33 deg, mild barrel distortion
+    assert hd.fx == hd.fy == pytest.approx(6e-3 / 4.86e-6, rel=1e-3) and hd.dist[0] < 0
+    assert 2 * np.degrees(np.arctan(640 / hd.fx)) == pytest.approx(54.8, abs=0.1)
+    # per-sensor contrast threshold (their usual event rates), resolved once; a value the user gives wins
+    resolved = {s: SimulatorConfig(sensor=s).resolved().contrast_threshold for s in ("DAVIS240C", "DVXplorer", "HD")}
+    assert resolved == {"DAVIS240C": 0.2, "DVXplorer": 0.25, "HD": 0.35}
+    assert SimulatorConfig(sensor="HD", contrast_threshold=0.3).resolved().contrast_threshold == 0.3
+
+
+def test_hd_simulation_streams_in_bounded_chunks(tmp_path, monkeypatch):
+    """A short HD simulation renders in chunks whose buffer stays under chunk_megabytes and writes each chunk
+    as it comes (so 1 s of HD streams to disk in bounded memory)."""
+    from ti_cmax.io import EventsH5Writer, open_dataset
+    from ti_cmax.kernels import render as rk
+
+    buffers, appended = [], []
+    real_render, real_append = rk.render_and_count, EventsH5Writer.append
+
+    def render_and_count(*args, **kw):
+        lbuf, counts = real_render(*args, **kw)
+        buffers.append(lbuf.nbytes)
+        return lbuf, counts
+
+    def append(self, events):
+        appended.append(len(events))
+        return real_append(self, events)
+
+    monkeypatch.setattr(rk, "render_and_count", render_and_count)
+    monkeypatch.setattr(EventsH5Writer, "append", append)
+    cfg = SimulatorConfig(sensor="HD", duration=0.02, trajectory="constant", constant_rate_deg=12.0,
+                          rotation_axis=(0.3, 1.0, 0.1), pano_height=1024, chunk_megabytes=32.0)
+    info = simulate_to_folder(cfg, tmp_path / "hd", show_progress=False)
+    assert len(buffers) >= 3 and max(buffers) <= 32 * 2**20
+    assert len(appended) == len(buffers) and sum(appended) == info["num_events"] > 10_000
+    assert info["config"]["contrast_threshold"] == 0.35 and info["camera"]["width"] == 1280
+    ds = open_dataset(tmp_path / "hd")
+    assert ds.sensor_size == (1280, 720) and ds.camera.fx == sensor_camera("HD").fx
 
 
 # output folder and command line ------------------------------------------------------------------

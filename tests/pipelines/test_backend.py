@@ -37,7 +37,11 @@ def test_window_initialization_reaches_beyond_the_window_end():
     t_start = 0.06626499999999999
     src_t = 0.066265000000000004 + 0.01 * np.arange(60)
     src_R = so3.exp(np.outer(src_t, [0.3, -1.0, 0.5]))
-    be = SlidingWindowBackend(BackendConfig(), t_start, src_R[0])
+    from ti_cmax import Camera
+    from ti_cmax.pipelines.sensor_defaults import resolve_backend
+
+    be = SlidingWindowBackend(resolve_backend(BackendConfig(), Camera(240, 180, 200.0, 200.0, 119.5, 89.5)),
+                              t_start, src_R[0])
     be.push_source_poses(src_t, src_R)
     t_end = be.window_end
     assert np.any(np.abs(src_t - t_end) < 1e-12)  # the case: a sample at the window end, to rounding

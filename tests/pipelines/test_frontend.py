@@ -7,6 +7,7 @@ import pytest
 from ti_cmax import Camera, Events, FrontendConfig, so3
 from ti_cmax.config import replace
 from ti_cmax.pipelines.frontend import AngularVelocityEstimator, PacketSlicer, estimate_angular_velocity
+from ti_cmax.pipelines.sensor_defaults import resolve_frontend
 
 CAM = Camera(240, 180, 200.0, 200.0, 119.5, 89.5)
 
@@ -87,7 +88,7 @@ def _stream(rate_fn, t_end, seed=0):
 def test_slicing_rules_on_a_rate_swing():
     # 200 kev/s for 0.3 s, then 20 kev/s for 0.5 s: N = 10000 events span 0.5 s in the slow phase
     ev = _stream(lambda t: 2e5 if t < 0.3 else 2e4, 0.8)
-    cfg = FrontendConfig()
+    cfg = resolve_frontend(FrontendConfig(), CAM)
     paper = list(PacketSlicer(replace(cfg, frontend_slicing="paper"))([ev]))
     bounded = list(PacketSlicer(cfg)([ev]))
     assert len(paper) == len(bounded) == 80
@@ -100,7 +101,7 @@ def test_slicing_rules_on_a_rate_swing():
 
 
 def test_still_camera_too_few_events_and_empty_stream():
-    cfg = FrontendConfig()
+    cfg = resolve_frontend(FrontendConfig(), CAM)
     # 5 kev/s: a 0.1 s window holds about 500 < 1000 events -> still under both rules
     ev = _stream(lambda t: 5e3, 0.5, seed=3)
     for rule in ("bounded", "paper"):
@@ -161,7 +162,7 @@ def test_cli_writes_outputs(tmp_path, ti_runtime):
 def test_min_packet_span_takes_every_event_at_high_rates():
     """At high event rates the packet grows to every event within t_ref +- span/2 (not just N)."""
     ev = _stream(lambda t: 1e6, 0.1, seed=7)
-    cfg = FrontendConfig(num_events_per_packet=2000, frontend_min_packet_span=0.02)
+    cfg = resolve_frontend(FrontendConfig(num_events_per_packet=2000, frontend_min_packet_span=0.02), CAM)
     packets = list(PacketSlicer(cfg)([ev]))
     inner = [p for p in packets if p.t_ref - 0.01 >= ev.t[0] and p.t_ref + 0.01 <= ev.t[-1]]
     assert inner
@@ -182,7 +183,7 @@ def test_thinning_keeps_the_span_and_the_accuracy(ti_runtime):
     w, res, _ = est.estimate(ev, 0.005)
     assert est.events_evaluated == len(thin)
     assert np.linalg.norm(w - omega) < 0.02 * np.linalg.norm(omega), (w, res)
-    off = AngularVelocityEstimator(CAM, FrontendConfig(frontend_max_packet_events=0))
+    off = AngularVelocityEstimator(CAM, FrontendConfig(frontend_max_packet_events=-1))
     assert off.thin(ev) is ev
 
 
@@ -200,7 +201,8 @@ def test_linear_warm_start_and_reset():
 
 
 @pytest.mark.parametrize("key, value", [("frontend_warm_start", "quadratic"), ("frontend_cg_step_guess", "newton"),
-                                        ("frontend_max_packet_events", 1), ("frontend_cg_max_line_evals", 0)])
+                                        ("frontend_max_packet_events", 1), ("frontend_max_packet_events", -2),
+                                        ("num_events_per_packet", 1), ("frontend_cg_max_line_evals", 0)])
 def test_bad_speed_parameters_are_rejected(key, value):
     from ti_cmax.errors import InputError
     from ti_cmax.pipelines.frontend import check_config

@@ -80,7 +80,7 @@ def _run(t_ev, b_ev, trajectory, loop_cfg=LoopClosureConfig(loop_closure=True)):
     from ti_cmax.pipelines.backend import SlidingWindowBackend
     from ti_cmax.pipelines.loop_closure import LoopCloser
 
-    cfg = BackendConfig(pano_height=256)
+    cfg = BackendConfig(pano_height=256, backend_min_ev_rate=10000.0, backend_max_window_events=-1)
     ts = np.arange(0, DURATION + 1e-9, 0.01)
     be = SlidingWindowBackend(cfg, 0.0)
     be.spline = _spline(trajectory)

@@ -12,6 +12,7 @@ from ti_cmax.pipelines.backend import SlidingWindowBackend
 from ti_cmax.pipelines.imu import dead_reckoning
 from ti_cmax.pipelines.panorama import render_panorama
 from ti_cmax.pipelines.slam import refine, run_slam
+from ti_cmax.pipelines.sensor_defaults import resolve_backend
 from ti_cmax.metrics import event_area_percent
 
 
@@ -53,7 +54,7 @@ def test_refine_imu_dead_reckoning_cuts_error_and_sharpens_map(short_sequence):
     after = evaluate_rotations(gt, result.trajectory)
     assert before.abs_rmse_deg > 0.5  # the gyro bias makes dead reckoning drift
     assert after.abs_rmse_deg < 0.5 * before.abs_rmse_deg
-    w, h = SlamConfig().backend.pano_size
+    w, h = result.map.shape[1], result.map.shape[0]
     ea_before = event_area_percent(render_panorama([seq.events], seq.camera, imu, w, h).image)
     ea_after = event_area_percent(result.map)
     assert ea_after < ea_before
@@ -65,7 +66,7 @@ def test_backend_initialization_follows_the_source_without_refinement(short_sequ
     gt = seq.groundtruth
     cfg = BackendConfig(backend_min_ev_rate=1e12)  # never refine
     t0 = float(seq.events.t[0])
-    be = SlidingWindowBackend(cfg, t0, gt.at(t0)[0])
+    be = SlidingWindowBackend(resolve_backend(cfg, seq.camera), t0, gt.at(t0)[0])
     tt = np.arange(gt.t_start, gt.t_end, 0.01)
     be.push_source_poses(tt, gt.at(tt))
     be.push_events(seq.events.t, seq.camera.bearings(seq.events.x, seq.events.y), complete_until=seq.events.t[-1])

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "convert events (ECD txt, HDF5, ROS1 bag, AEDAT4) to HDF5 events/{t,x,y,p} (or ECD text for .txt)"
+HELP = "convert events (ECD txt, HDF5, ROS1 bag, AEDAT4, Prophesee RAW) to HDF5 events/{t,x,y,p} (or ECD text for .txt)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", metavar="INPUT", help="ECD-layout folder or events file (.txt .h5 .bag .aedat4)")
+    parser.add_argument("input", metavar="INPUT", help="ECD-layout folder or events file (.txt .h5 .bag .aedat4 .raw)")
     parser.add_argument("output", metavar="OUT.h5", help="output file (.h5/.hdf5; .txt writes ECD text)")
     parser.add_argument("--t-start", type=float, default=None, metavar="S", help="keep events with t >= S")
     parser.add_argument("--t-end", type=float, default=None, metavar="S", help="keep events with t < S")

@@ -24,6 +24,7 @@ def run(args) -> int:
     from ..metrics import evaluate_rotations
     from ..outputs import OutputDir
     from ..pipelines.panorama import render_panorama
+    from ..pipelines.sensor_defaults import pano_size
     from ..pipelines.slam import run_slam
     from ..plots import plot_error_distributions, plot_maps, plot_trajectories
     from ..simulate import SimulatorConfig, simulate_to_folder
@@ -55,7 +56,7 @@ def run(args) -> int:
         plot_trajectories(out / "trajectories.png", aligned, gt, title="demo: estimated vs ground truth")
         plot_error_distributions(out / "errors.png", {k: e.abs_errors_deg for k, e in errors.items()},
                                  {k: e.rel_errors_deg_per_s for k, e in errors.items()})
-        width, height = cfg.backend.pano_size
+        width, height = pano_size(cfg.backend, dataset.camera)
         maps = {name: render_panorama(dataset.iter_events(), dataset.camera, traj, width, height,
                                       cfg.backend.event_batch_size).image
                 for name, traj in (("front-end", aligned["CMax-omega (front-end)"]), ("CMax-SLAM", result.trajectory),

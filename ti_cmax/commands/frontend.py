@@ -19,6 +19,7 @@ def run(args) -> int:
     from ..io import open_dataset_from_config, write_angular_velocity, write_tum
     from ..outputs import OutputDir
     from ..pipelines.frontend import check_config, estimate_angular_velocity
+    from ..pipelines.sensor_defaults import derived_summary, describe, resolve_config
 
     tic = time.perf_counter()
     cfg = load_config(SlamConfig, args.config, args.overrides)
@@ -26,6 +27,8 @@ def run(args) -> int:
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     camera = dataset.camera
     t0, t1 = dataset.time_range()
+    derived = derived_summary(cfg, camera)
+    cfg = resolve_config(cfg, camera)
     result = estimate_angular_velocity(dataset.iter_events(), camera, cfg.frontend, progress_total=t1 - t0)
     with OutputDir(args.out) as out:
         write_angular_velocity(out / "angular_velocity.txt", result.t, result.omega)
@@ -33,7 +36,7 @@ def run(args) -> int:
         save_config(cfg, out / "config.yaml")
         timing = result.timing
         report = {
-            "status": "ok",
+            "status": result.status,
             "method": "cmax-omega",
             "events_processed": timing["events_processed"],
             "wall_seconds": time.perf_counter() - tic,
@@ -42,9 +45,12 @@ def run(args) -> int:
             "us_per_event": {"frontend": timing["us_per_event"], "backend": None},
             "summary": result.summary(),
             "parameters": config_to_dict(cfg.frontend),
+            "derived_parameters": {k: v for k, v in derived.items() if hasattr(cfg.frontend, k)},
             "camera": camera.to_dict(),
         }
         (out / "report.json").write_text(json.dumps(report, indent=2))
+    if derived:
+        print(f"derived from the sensor: {describe({k: v for k, v in derived.items() if hasattr(cfg.frontend, k)})}")
     print(f"{len(result)} angular velocities ({int(result.still.sum())} still), "
           f"{timing['events_processed']} events processed, {timing['us_per_event']:.3f} us/event -> {out}")
     return 0

@@ -12,7 +12,7 @@ HELP = "print what a dataset holds: events, duration, event rate, sensor size, c
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("dataset", metavar="DATASET", help="ECD-layout folder or events file (.txt .h5 .bag .aedat4)")
+    parser.add_argument("dataset", metavar="DATASET", help="ECD-layout folder or events file (.txt .h5 .bag .aedat4 .raw)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--width", type=int, default=None, help="sensor width (overrides what the files say)")
     parser.add_argument("--height", type=int, default=None, help="sensor height")

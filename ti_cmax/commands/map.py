@@ -37,11 +37,12 @@ def run(args) -> int:
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import atomic_path
     from ..pipelines.panorama import map_to_uint8, render_panorama
+    from ..pipelines.sensor_defaults import pano_size
 
     cfg = load_config(SlamConfig, args.config, args.overrides)
-    width, height = parse_size(args.size) if args.size else cfg.backend.pano_size
     gamma = cfg.output.gamma if args.gamma is None else args.gamma
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
+    width, height = parse_size(args.size) if args.size else pano_size(cfg.backend, dataset.camera)
     trajectory = read_tum(args.trajectory)
     result = render_panorama(dataset.iter_events(cfg.dataset.chunk_size), dataset.camera, trajectory, width, height,
                              cfg.backend.event_batch_size, args.t_start, args.t_end)

@@ -20,7 +20,7 @@ def run(args) -> int:
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import OutputDir
     from ..pipelines.slam import refine
-    from .slam import spline_override, write_result
+    from .slam import print_derived, spline_override, write_result
 
     cfg = load_config(SlamConfig, args.config, list(args.overrides) + spline_override(args)
                       + (["loop_closure=true"] if args.loop_closure else []))
@@ -32,6 +32,7 @@ def run(args) -> int:
                     camera, initial, cfg, progress_total=min(t1, initial.t_end) - max(t0, initial.t_start))
     with OutputDir(args.out) as out:
         write_result(out, result, cfg, camera)
+    print_derived(result.report)
     print(f"refined {len(result.trajectory)} poses over {result.trajectory.t_end - result.trajectory.t_start:.3f} s, "
           f"back-end {result.report['us_per_event']['backend']:.3f} us/event -> {out}")
     return 0

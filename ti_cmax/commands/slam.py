@@ -24,9 +24,14 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
     import imageio.v3 as iio
     import numpy as np
 
-    from ..config import save_config
+    from ..config import SlamConfig, save_config
     from ..io import write_angular_velocity, write_tum
+    from ..outputs import peak_rss_mb
     from ..pipelines.panorama import PanoramaResult, map_to_uint8
+    from ..pipelines.sensor_defaults import resolve_config
+
+    if isinstance(cfg, SlamConfig) and camera is not None:
+        cfg = resolve_config(cfg, camera)  # derived values are written as numbers: a rerun with it is exact
 
     write_tum(out / "trajectory.txt", result.trajectory)
     if result.frontend is not None and len(result.frontend):
@@ -37,8 +42,17 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
     report["map"] = PanoramaResult(result.map, int(round(float(result.map.sum())))).figures(cfg.backend.lambda0)
     if camera is not None:
         report["camera"] = camera.to_dict()
+    report["peak_rss_mb"] = peak_rss_mb()  # of the whole process so far
     (out / "report.json").write_text(json.dumps(report, indent=2, default=float))
     save_config(cfg, out / "config.yaml")
+
+
+def print_derived(report: dict) -> None:
+    """The parameters the sensor rules set (pipelines/sensor_defaults.py), for the command's summary."""
+    from ..pipelines.sensor_defaults import describe
+
+    if report.get("derived_parameters"):
+        print(f"derived from the sensor: {describe(report['derived_parameters'])}")
 
 
 def run(args) -> int:
@@ -55,6 +69,7 @@ def run(args) -> int:
     with OutputDir(args.out) as out:
         write_result(out, result, cfg, camera)
     us = result.report["us_per_event"]
+    print_derived(result.report)
     print(f"CMax-SLAM: {result.report['events_processed']} events, {len(result.trajectory)} poses, "
           f"front-end {us['frontend']:.3f} us/event, back-end {us['backend']:.3f} us/event "
           f"(compile {result.report['compile_seconds']:.1f} s apart) -> {out}")

@@ -41,6 +41,54 @@ def grouped_blocks(arrays, block: int, make_events) -> Iterator[Block]:
         yield Block(make_events(np.concatenate(parts)), None, first)
 
 
+class NoCompanions:
+    """Reader mixin: the events file carries no intrinsics, IMU or ground truth."""
+
+    def camera(self):
+        return None
+
+    def imu(self):
+        return None
+
+    def groundtruth(self):
+        return None
+
+
+class ScannedSource(NoCompanions):
+    """Base of the readers of files without an index (AEDAT4, Prophesee RAW): ``_arrays()`` yields record
+    arrays (field ``t`` in microseconds); time range and event count come from one pass over them, cached."""
+
+    _summary = None
+
+    def _arrays(self) -> Iterator[np.ndarray]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @staticmethod
+    def _events(a: np.ndarray) -> Events:
+        """Records with fields t (us), x, y, on (bool) -> Events."""
+        return Events(a["t"].astype(np.float64) * 1e-6, a["x"], a["y"], np.where(a["on"], 1, -1).astype(np.int8))
+
+    def _scan(self):
+        if self._summary is None:
+            n, t0, t1 = 0, None, None
+            for a in self._arrays():
+                if len(a):
+                    t0 = a["t"][0] if t0 is None else t0
+                    t1 = a["t"][-1]
+                    n += len(a)
+            self._summary = (n, t0, t1)
+        return self._summary
+
+    def time_range(self):
+        n, t0, t1 = self._scan()
+        if n == 0:
+            raise InputError("the file holds no events", source=self.source)
+        return float(t0) * 1e-6, float(t1) * 1e-6
+
+    def num_events(self) -> int:
+        return self._scan()[0]
+
+
 def _where(block: Block, i: int) -> dict:
     if block.lines is not None:
         return {"line": int(block.lines[i])}

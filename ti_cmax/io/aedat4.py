@@ -11,8 +11,7 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import InputError
-from ..events import Events
-from ._common import Block, grouped_blocks
+from ._common import Block, ScannedSource, grouped_blocks
 from .text import ImuData
 
 G = 9.80665
@@ -30,7 +29,7 @@ def _decoder(path: Path):
         raise InputError(f"cannot open AEDAT4 file: {exc}", source=str(path)) from None
 
 
-class Aedat4Source:
+class Aedat4Source(ScannedSource):
     kind = "AEDAT4"
 
     def __init__(self, path: Path, block: int = 1 << 20):
@@ -43,7 +42,6 @@ class Aedat4Source:
             raise InputError("no event stream in the AEDAT4 file", source=self.source)
         self.stream_id, s = ev[0]
         self.sensor_size = (int(s["width"]), int(s["height"])) if "width" in s else None
-        self._summary = None
 
     def _packets(self):
         try:
@@ -53,41 +51,11 @@ class Aedat4Source:
         except Exception as exc:
             raise InputError(f"cannot decode AEDAT4 data (truncated or corrupt?): {exc}", source=self.source) from None
 
+    def _arrays(self):
+        return (pk["events"] for pk in self._packets() if pk.get("stream_id") == self.stream_id and "events" in pk)
+
     def iter_blocks(self, t_start=None) -> Iterator[Block]:
-        arrays = (pk["events"] for pk in self._packets()
-                  if pk.get("stream_id") == self.stream_id and "events" in pk)
-        return grouped_blocks(arrays, self.block, self._events)
-
-    @staticmethod
-    def _events(a) -> Events:
-        return Events(a["t"].astype(np.float64) * 1e-6, a["x"], a["y"], np.where(a["on"], 1, -1).astype(np.int8))
-
-    def _scan(self):
-        if self._summary is None:
-            n, t0, t1 = 0, None, None
-            for pk in self._packets():
-                if pk.get("stream_id") == self.stream_id and "events" in pk and len(pk["events"]):
-                    a = pk["events"]
-                    t0 = a["t"][0] if t0 is None else t0
-                    t1 = a["t"][-1]
-                    n += len(a)
-            self._summary = (n, t0, t1)
-        return self._summary
-
-    def time_range(self):
-        n, t0, t1 = self._scan()
-        if n == 0:
-            raise InputError("the file holds no events", source=self.source)
-        return float(t0) * 1e-6, float(t1) * 1e-6
-
-    def num_events(self) -> int:
-        return self._scan()[0]
-
-    def camera(self):
-        return None
-
-    def groundtruth(self):
-        return None
+        return grouped_blocks(self._arrays(), self.block, self._events)
 
     def imu(self) -> ImuData | None:
         parts = [pk["imus"] for pk in self._packets() if "imus" in pk and len(pk["imus"])]

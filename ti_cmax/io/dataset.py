@@ -2,15 +2,15 @@
 
 A DATASET is either a folder in ECD layout (events.h5/.hdf5 or events.txt, the HDF5 preferred when both exist
 as it reads faster; calib.txt or a camera_info YAML; optional groundtruth.txt and imu.txt; a folder holding a
-single .bag, .aedat4 or .h5 file also works) or a single
-events file (.txt, .h5/.hdf5, .bag, .aedat4). A single file named ``events.*`` is read with the calibration,
+single .bag, .aedat4, .raw or .h5 file also works) or a single
+events file (.txt, .h5/.hdf5, .bag, .aedat4, .raw). A single file named ``events.*`` is read with the calibration,
 groundtruth.txt and imu.txt beside it (it is the events file of an ECD folder); any other single file only with
 what it carries itself (so an unrelated calib.txt in the same folder is never picked up by accident).
 
 Sensor size, first match wins: the ``width``/``height`` arguments; the calibration YAML; the events file
-(HDF5 attributes, bag message width/height, AEDAT4 stream); otherwise it is inferred from the largest x, y of
+(HDF5 attributes, bag message width/height, AEDAT4 stream, Prophesee RAW header); otherwise it is inferred from the largest x, y of
 the first chunk, snapped to the smallest sensor of ``ti_cmax.camera.SENSORS`` containing them (by pixel count:
-DVS128, DAVIS240C, DAVIS346, VGA) whose central half holds calib.txt's principal point. A recording whose
+DVS128, DAVIS240C, DAVIS346, VGA / DVXplorer, HD) whose central half holds calib.txt's principal point. A recording whose
 first chunk never reaches the far border of a bigger sensor could still be mis-sized: give width and height
 (or a camera_info YAML) then.
 
@@ -31,7 +31,7 @@ from ..config import DatasetConfig
 from ..errors import InputError
 from ..events import Events
 from ..trajectory import Trajectory
-from ._common import infer_sensor_size, validated_chunks
+from ._common import NoCompanions, infer_sensor_size, validated_chunks
 from .calib import read_calib_txt_params, read_camera_info_yaml
 from .text import ImuData, read_imu_txt, read_tum
 
@@ -40,13 +40,13 @@ def open_dataset_from_config(path, cfg: DatasetConfig) -> "Dataset":
                         allow_default_calibration=cfg.allow_default_calibration, topic=cfg.topic or None)
 
 
-EVENT_FILE_SUFFIXES = (".txt", ".h5", ".hdf5", ".bag", ".aedat4")
+EVENT_FILE_SUFFIXES = (".txt", ".h5", ".hdf5", ".bag", ".aedat4", ".raw")
 _EVENT_NAMES = ("events.h5", "events.hdf5", "events.txt")
 _CALIB_NAMES = ("calib.txt", "camera_info.yaml", "camera_info.yml", "calib.yaml", "calib.yml")
 DEFAULT_FOV_DEG = 60.0
 
 
-class TxtSource:
+class TxtSource(NoCompanions):
     """ECD events.txt."""
 
     kind = "ECD text"
@@ -69,15 +69,6 @@ class TxtSource:
     def num_events(self):
         return self._txt.txt_count_lines(self.path)
 
-    def camera(self):
-        return None
-
-    def imu(self):
-        return None
-
-    def groundtruth(self):
-        return None
-
 
 class H5Source:
     kind = "HDF5"
@@ -89,6 +80,8 @@ class H5Source:
         self.source = str(path)
         self._h5 = H5Events(path)
         self.sensor_size = self._h5.sensor_size
+        if self._h5.compound:
+            self.kind = "Metavision HDF5"
 
     def iter_blocks(self, t_start=None):
         return self._h5.iter_blocks(t_start=t_start)
@@ -123,6 +116,10 @@ def _make_source(path: Path, topic: str | None):
         from .aedat4 import Aedat4Source
 
         return Aedat4Source(path)
+    if suffix == ".raw":
+        from .prophesee import RawSource
+
+        return RawSource(path)
     raise InputError(f"unsupported events file type {suffix!r} (supported: {', '.join(EVENT_FILE_SUFFIXES)})",
                      source=str(path))
 
@@ -131,12 +128,12 @@ def _find_events_file(folder: Path) -> Path:
     for name in _EVENT_NAMES:
         if (folder / name).is_file():
             return folder / name
-    others = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".bag", ".aedat4", ".h5", ".hdf5"))
+    others = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".bag", ".aedat4", ".raw", ".h5", ".hdf5"))
     if len(others) == 1:
         return others[0]
     if others:
         raise InputError(f"several event files, choose one: {', '.join(p.name for p in others)}", source=str(folder))
-    raise InputError("no events found: expected events.txt or events.h5 (or one .bag / .aedat4 file)",
+    raise InputError("no events found: expected events.txt or events.h5 (or one .bag / .aedat4 / .raw file)",
                      source=str(folder))
 
 

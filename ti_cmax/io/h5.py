@@ -6,7 +6,12 @@ Layouts read (first match wins):
   ``t_offset`` (microseconds, DSEC) is added. ``ms_to_idx`` (DSEC) speeds up seeking.
 - ``events/{ts,xs,ys,ps}`` (E2VID-era): same time rules; root attribute ``sensor_resolution`` = (height, width).
 - ``t,x,y,p`` at the root.
-Sensor size comes from attributes ``width``/``height`` (root or ``events`` group) or ``sensor_resolution``.
+- ``CD/events`` (Prophesee Metavision HDF5): one compound dataset (x, y, p, t in microseconds); sensor size from
+  the root attribute ``geometry`` ("1280x720"). Metavision compresses it with Prophesee's ECF codec (HDF5 filter
+  0x8ECF), which no PyPI package provides: such a file opens when that plugin is installed (HDF5_PLUGIN_PATH),
+  else it is refused at open with that advice; an uncompressed (or gzip) one always reads.
+Sensor size comes from attributes ``width``/``height`` (root or ``events`` group), ``sensor_resolution`` or
+``geometry``.
 Intrinsics (``fx fy cx cy dist``), when our writer stored them, become the dataset's camera.
 Data is always read in slices; ``import hdf5plugin`` is attempted so Blosc/ZSTD-compressed files open.
 """
@@ -33,6 +38,8 @@ import h5py
 BLOCK_EVENTS = 1 << 20  # events per slice read
 _UNITS = {"s": 1.0, "sec": 1.0, "seconds": 1.0, "ms": 1e-3, "us": 1e-6, "microseconds": 1e-6, "ns": 1e-9}
 _LAYOUTS = (("events", ("t", "x", "y", "p")), ("events", ("ts", "xs", "ys", "ps")), ("", ("t", "x", "y", "p")))
+METAVISION_EVENTS = "CD/events"
+ECF_FILTER = 0x8ECF  # Prophesee's Event Compression Format, as an HDF5 filter id
 
 
 def _open(path) -> h5py.File:
@@ -42,6 +49,15 @@ def _open(path) -> h5py.File:
         raise InputError("file not found", source=str(path)) from None
     except OSError as exc:
         raise InputError(f"cannot open as HDF5 (truncated or not an HDF5 file): {exc}", source=str(path)) from None
+
+
+def _geometry(value, source: str) -> tuple[int, int]:
+    text = value.decode() if isinstance(value, bytes) else str(value)
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"attribute geometry={text!r}, expected WIDTHxHEIGHT", source=source) from None
+    return w, h
 
 
 def _attr(obj, *names):
@@ -61,12 +77,39 @@ class H5Events:
         with _open(self.path) as f:
             try:
                 self._detect(f)
+            except InputError:
+                raise
             except (KeyError, OSError, ValueError) as exc:  # h5py's errors for damaged object headers
                 raise InputError(f"cannot read the HDF5 structure (truncated or corrupt file): {exc}",
                                  source=self.source) from None
 
+    def _columns(self, f: h5py.File) -> list:
+        """The t, x, y, p columns as sliceable objects (datasets, or fields of the Metavision compound)."""
+        if self.compound:
+            ds = f[METAVISION_EVENTS]
+            return [ds.fields(k) for k in ("t", "x", "y", "p")]
+        return [f[n] for n in self._names]
+
+    def _detect_metavision(self, f: h5py.File) -> bool:
+        ds = f.get(METAVISION_EVENTS)
+        if not isinstance(ds, h5py.Dataset) or ds.dtype.names is None:
+            return False
+        if not {"t", "x", "y", "p"} <= set(ds.dtype.names):
+            raise InputError(f"{METAVISION_EVENTS} has fields {ds.dtype.names}, expected x, y, p, t", source=self.source)
+        plist = ds.id.get_create_plist()
+        if any(plist.get_filter(i)[0] == ECF_FILTER for i in range(plist.get_nfilters())) \
+                and not h5py.h5z.filter_avail(ECF_FILTER):
+            raise InputError("this Metavision HDF5 file is compressed with Prophesee's ECF codec, which is not "
+                             "installed: install the hdf5_ecf plugin and set HDF5_PLUGIN_PATH, or record/convert "
+                             "to RAW (.raw reads with pip install ti-cmax[prophesee])", source=self.source)
+        self._names = [f"{METAVISION_EVENTS}/{k}" for k in ("t", "x", "y", "p")]
+        return True
+
     def _detect(self, f: h5py.File):
+        self.compound = self._detect_metavision(f)
         for group, names in _LAYOUTS:
+            if self.compound:
+                break
             if group and not isinstance(f.get(group), h5py.Group):
                 continue
             g = f[group] if group else f
@@ -76,22 +119,22 @@ class H5Events:
         else:
             raise InputError("no events found: expected datasets events/{t,x,y,p}, events/{ts,xs,ys,ps} "
                              "or t,x,y,p at the root", source=self.source)
-        dsets = [f[n] for n in self._names]
+        dsets = self._columns(f)
         lengths = {d.shape[0] if d.shape else -1 for d in dsets}
         if len(lengths) != 1 or any(len(d.shape) != 1 for d in dsets):
             raise InputError(f"event datasets {self._names} must be 1-D and of the same length", source=self.source)
         self.n = lengths.pop()
-        tds = dsets[0]
-        if np.issubdtype(tds.dtype, np.floating):
+        tds = f[METAVISION_EVENTS] if self.compound else dsets[0]  # units attribute, if any
+        if np.issubdtype(dsets[0].dtype, np.floating):
             unit = _attr(tds, "units", "unit")
             self.t_scale = _UNITS.get(str(unit).lower(), 1.0) if unit is not None else 1.0
-        elif np.issubdtype(tds.dtype, np.integer):
+        elif np.issubdtype(dsets[0].dtype, np.integer):
             unit = _attr(tds, "units", "unit")
             if unit is not None and str(unit).lower() not in _UNITS:
                 raise InputError(f"unknown time unit {unit!r} on {self._names[0]}", source=self.source)
             self.t_scale = _UNITS[str(unit).lower()] if unit is not None else 1e-6
         else:
-            raise InputError(f"{self._names[0]} has dtype {tds.dtype}, expected numbers", source=self.source)
+            raise InputError(f"{self._names[0]} has dtype {dsets[0].dtype}, expected numbers", source=self.source)
         off = 0
         if "t_offset" in f and isinstance(f["t_offset"], h5py.Dataset):
             off = int(np.asarray(f["t_offset"][()]).reshape(-1)[0])
@@ -107,6 +150,8 @@ class H5Events:
             if w is None and "sensor_resolution" in g.attrs:
                 res = np.asarray(g.attrs["sensor_resolution"]).reshape(-1)
                 h, w = int(res[0]), int(res[1])
+            if w is None and "geometry" in g.attrs:  # Metavision: "WIDTHxHEIGHT"
+                w, h = _geometry(g.attrs["geometry"], self.source)
         self.sensor_size = (w, h) if w is not None else None
         self.intrinsics = None
         for g in groups:
@@ -114,7 +159,7 @@ class H5Events:
                 dist = tuple(np.asarray(g.attrs["dist"], dtype=float).ravel()) if "dist" in g.attrs else ()
                 self.intrinsics = tuple(float(g.attrs[k]) for k in ("fx", "fy", "cx", "cy")) + (dist,)
                 break
-        self.integer_xy = all(np.issubdtype(f[n].dtype, np.integer) for n in self._names[1:3])
+        self.integer_xy = all(np.issubdtype(d.dtype, np.integer) for d in dsets[1:3])
 
     # ------------------------------------------------------------------------------------------
     def _times(self, raw: np.ndarray) -> np.ndarray:
@@ -135,7 +180,7 @@ class H5Events:
         if self.n == 0:
             raise InputError("the file holds no events", source=self.source)
         with _open(self.path) as f, self._read_errors():
-            ds = f[self._names[0]]
+            ds = self._columns(f)[0]
             return float(self._times(ds[0:1])[0]), float(self._times(ds[self.n - 1:self.n])[0])
 
     @contextlib.contextmanager
@@ -148,7 +193,7 @@ class H5Events:
 
     def _index_of_time(self, f, t: float) -> int:
         """First index with time >= t: binary search on single-element reads (data is sorted)."""
-        ds = f[self._names[0]]
+        ds = self._columns(f)[0]
         lo, hi = 0, self.n
         if self.has_ms_to_idx and self.t_scale == 1e-6:
             ms = np.asarray(f["ms_to_idx"][()])
@@ -168,7 +213,7 @@ class H5Events:
     def iter_blocks(self, block: int | None = None, t_start: float | None = None) -> Iterator[Block]:
         block = block or BLOCK_EVENTS
         with _open(self.path) as f, self._read_errors():
-            dt, dx, dy, dp = (f[n] for n in self._names)
+            dt, dx, dy, dp = self._columns(f)
             i = self._index_of_time(f, t_start) if t_start is not None else 0
             # start at a small margin before the cut so order across the border is still checked
             i = max(0, i - 1)

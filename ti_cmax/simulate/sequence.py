@@ -54,7 +54,7 @@ class _Setup:
 
 def _as_config(config: SimulatorConfig | None, overrides: dict) -> SimulatorConfig:
     config = config or SimulatorConfig()
-    return dataclasses.replace(config, **overrides) if overrides else config
+    return (dataclasses.replace(config, **overrides) if overrides else config).resolved()
 
 
 def _setup(config: SimulatorConfig) -> _Setup:
@@ -64,7 +64,8 @@ def _setup(config: SimulatorConfig) -> _Setup:
     pano = make_panorama(config, 1.0 / max(camera.fx, camera.fy))
     motion = make_motion(config.trajectory, config.duration, seed=config.seed,
                          max_angular_velocity=config.max_angular_velocity,
-                         frequency_max=config.random_frequency_max, constant_rate_deg=config.constant_rate_deg,
+                         frequency_max=config.random_frequency_max, ramp_start=config.random_ramp_start,
+                         constant_rate_deg=config.constant_rate_deg,
                          axis=config.rotation_axis, integration_rate=config.integration_rate,
                          turns=config.turns, wobble=config.pan_wobble)
     times = render_times(motion, camera, config.max_pixel_step, config.max_render_dt)

@@ -94,7 +94,7 @@ def _omega(kind: str, p: dict, duration: float, t: np.ndarray) -> np.ndarray:
 
 
 def make_motion(kind: str, duration: float, *, seed: int = 0, max_angular_velocity: float = 5.0,
-                frequency_max: float = 1.5, constant_rate_deg: float = 4.0, axis=(),
+                frequency_max: float = 1.5, ramp_start: float = 0.1, constant_rate_deg: float = 4.0, axis=(),
                 integration_rate: float = 10000.0, turns: float = 1.0, wobble: float = 0.0) -> RotationalMotion:
     """Build and integrate a seeded motion of the given kind starting at R(0) = identity."""
     rng = np.random.default_rng([seed, 11])
@@ -104,7 +104,7 @@ def make_motion(kind: str, duration: float, *, seed: int = 0, max_angular_veloci
             "amplitudes": rng.uniform(0.3, 1.0, (3, m)).tolist(),
             "frequencies": rng.uniform(0.15, frequency_max, (3, m)).tolist(),
             "phases": rng.uniform(0, 2 * np.pi, (3, m)).tolist(),
-            "ramp_start": 0.1,
+            "ramp_start": float(ramp_start),
             "scale": 1.0,
         }
         # normalise so the peak |omega| over the sequence equals max_angular_velocity

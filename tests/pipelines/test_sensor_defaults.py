@@ -1,0 +1,122 @@
+"""Defaults derived from the sensor (pipelines/sensor_defaults.py): the documented rule per preset, user values
+win and are written back as numbers, and a VGA / HD packet recovers a known omega with the derived packet size."""
+import numpy as np
+import pytest
+import yaml
+
+from ti_cmax import Camera, Events, so3
+from ti_cmax.config import SlamConfig, load_config
+from ti_cmax.pipelines.frontend import AngularVelocityEstimator
+from ti_cmax.pipelines.sensor_defaults import derived_summary, resolve_config
+
+DAVIS240C = Camera(240, 180, 199.1, 198.9, 132.2, 110.7)
+DVS128 = Camera(128, 128, 110.0, 110.0, 63.5, 63.5)
+VGA = Camera(640, 480, 520.0, 520.0, 319.5, 239.5)
+HD = Camera(1280, 720, 1235.0, 1235.0, 639.5, 359.5)
+
+
+@pytest.mark.parametrize("sensor, packet, cap, rate, map_w, window_cap", [
+    ("DVS128", 10000, 20000, 3792.6, 1280, 82000),   # smaller sensor: packets stay at the reference's size
+    ("DAVIS240C", 10000, 20000, 10000.0, 2048, 216000),
+    ("DAVIS346", 21000, 42000, 20824.1, 2560, 450000),
+    ("DVXplorer", 71000, 142000, 71111.1, 5120, 1536000),
+    ("HD", 213000, 427000, 213333.3, 8192, 4608000),  # map width at its cap
+])
+def test_derived_values_follow_the_documented_rules(sensor, packet, cap, rate, map_w, window_cap):
+    from ti_cmax.simulate import sensor_camera
+
+    camera = sensor_camera(sensor)
+    cfg = resolve_config(SlamConfig(), camera)
+    f, b = cfg.frontend, cfg.backend
+    assert (f.num_events_per_packet, f.frontend_max_packet_events) == (packet, cap)
+    assert f.frontend_min_event_rate == pytest.approx(rate, abs=0.1) and b.backend_min_ev_rate == f.frontend_min_event_rate
+    assert b.pano_size == (map_w, map_w // 2)
+    # about 1.5 map pixels per sensor pixel at the image centre (at most 8192 wide), never coarser than the sensor
+    ratio = map_w / (2 * np.pi * 0.5 * (camera.fx + camera.fy))
+    assert 1.5 <= ratio < 1.5 + 256 / (2 * np.pi * camera.fx) or (map_w == 8192 and ratio >= 1.0)
+    assert b.backend_max_window_events == window_cap
+    assert resolve_config(cfg, camera) == cfg  # idempotent: resolved values are plain numbers
+
+
+def test_user_values_win_and_are_written_back(tmp_path):
+    from ti_cmax.config import save_config
+
+    cfg = load_config(SlamConfig, None, ["num_events_per_packet=30000", "pano_height=auto"])
+    assert cfg.backend.pano_height == 0
+    resolved = resolve_config(cfg, VGA)
+    assert resolved.frontend.num_events_per_packet == 30000 and resolved.backend.pano_height == 2560
+    assert "num_events_per_packet" not in derived_summary(cfg, VGA) and derived_summary(cfg, VGA)["pano_height"] == 2560
+    save_config(resolved, tmp_path / "config.yaml")
+    text = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    assert text["backend"]["pano_height"] == 2560 and text["frontend"]["frontend_max_packet_events"] == 142000
+    assert load_config(SlamConfig, tmp_path / "config.yaml") == resolved  # a rerun with that file is exact
+
+
+def test_unresolved_map_size_is_a_clear_error():
+    with pytest.raises(ValueError, match="resolve"):
+        SlamConfig().backend.pano_size
+
+
+def _packet(camera, omega, n, seed):
+    """n events of random scene edges seen by a camera rotating at omega during 10 ms around t = 0.005."""
+    rng = np.random.default_rng(seed)
+    hx, hy = camera.width / (2 * camera.fx), camera.height / (2 * camera.fy)
+    centres = np.column_stack([rng.uniform(-hx, hx, 3000), rng.uniform(-hy, hy, 3000), np.ones(3000)])
+    dirs = rng.normal(size=(3000, 3)) * [1, 1, 0]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    s = np.linspace(-0.01, 0.01, 10)
+    pts = (centres[:, None] + s[None, :, None] * dirs[:, None]).reshape(-1, 3)
+    t = np.sort(rng.uniform(0.0, 0.01, 2 * n))
+    x = pts[rng.integers(0, len(pts), len(t))]
+    cam_dirs = np.einsum("kji,kj->ki", so3.exp(np.asarray(omega)[None] * (t - 0.005)[:, None]), x)
+    pix = camera.project(cam_dirs)
+    ok = (pix[:, 0] >= 0) & (pix[:, 0] <= camera.width - 1) & (pix[:, 1] >= 0) & (pix[:, 1] <= camera.height - 1)
+    idx = np.sort(rng.choice(np.flatnonzero(ok), n, replace=False))
+    return Events(t[idx], pix[idx, 0].astype(np.float32), pix[idx, 1].astype(np.float32), np.ones(n))
+
+
+@pytest.mark.parametrize("camera", [VGA, HD], ids=["VGA", "HD"])
+def test_large_sensor_packet_recovers_omega_with_derived_size(ti_runtime, camera):
+    omega = np.array([0.9, -1.3, 0.5])
+    est = AngularVelocityEstimator(camera, SlamConfig().frontend)
+    n = est.config.num_events_per_packet
+    w, res, _ = est.estimate(_packet(camera, omega, n, seed=5), 0.005)
+    assert np.linalg.norm(w - omega) < 0.02 * np.linalg.norm(omega), (w, res)
+    assert not est.last_suspect and est.last_gain > 1.5
+
+
+def test_noise_packet_far_from_the_warm_start_is_suspect(ti_runtime):
+    """A packet whose IWE does not constrain omega (uniform noise, as an HD IWE of far too few events looks): the
+    solution stays pixels away from omega = 0 without sharpening anything, and is flagged; its run is
+    "suspect"."""
+    from ti_cmax.pipelines.frontend import FrontendRunner, Packet
+
+    rng = np.random.default_rng(3)
+    n = 20000
+    noise = Events(np.sort(rng.uniform(0, 0.01, n)), rng.integers(0, HD.width, n).astype(np.uint16),
+                   rng.integers(0, HD.height, n).astype(np.uint16), np.ones(n))
+    runner = FrontendRunner(HD, SlamConfig().frontend)
+    for k in range(3):
+        runner.estimator.omega = np.array([1.5, -1.0, 0.5])  # the motion of the packets before
+        runner.process(Packet(0.005 + 0.01 * k, noise, 0.01, False))
+    res = runner.result()
+    assert res.suspect.all() and np.all(res.gain < 1.02) and res.status == "suspect"
+    assert res.summary()["suspect_packets"] == 3
+
+
+@pytest.mark.slow
+def test_fast_start_is_as_good_as_the_rest(ti_runtime):
+    """Fast motion from the first 5 % on (random_ramp_start=1: the map is empty while the camera already turns at
+    up to 2 rad/s): the first windows fix the offset of the whole trajectory, so the error in the first 0.3 s must
+    be no worse than in the rest, and the whole run accurate."""
+    from ti_cmax.metrics import evaluate_rotations
+    from ti_cmax.pipelines.slam import run_slam
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
+
+    seq = simulate_sequence(SimulatorConfig(scene="city", duration=1.0, max_angular_velocity=2.0,
+                                            random_ramp_start=1.0, random_frequency_max=3.0, seed=6))
+    res = run_slam(seq.events, seq.camera, SlamConfig())
+    err = evaluate_rotations(seq.groundtruth, res.trajectory)
+    t = err.abs_times
+    early, rest = err.abs_errors_deg[t < t[0] + 0.3], err.abs_errors_deg[t >= t[0] + 0.3]
+    assert err.abs_rmse_deg < 0.3 and early.max() < max(0.3, 2.0 * rest.max()), (early.max(), rest.max())
