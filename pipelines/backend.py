@@ -123,13 +123,17 @@ class GlobalMap:
         area = self._area(votes)
         return float(votes.sum(dtype=np.float64)) / area if area > 0 else 0.0
 
-    def add(self, bearings, rotations, batch_size: int, t_now: float, moving: bool = True) -> None:
-        """Vote events (per-batch rotations) into I_G and update B(I_G), the sums and the density."""
+    def add(self, bearings, rotations, batch_size: int, t_now: float, moving: bool = True,
+            weight: float = 1.0) -> None:
+        """Vote events (per-batch rotations) into I_G and update B(I_G), the sums and the density. ``weight``
+        scales the votes (a subsample standing for more events, as when loop closure rebuilds the map)."""
         region = self._vote_scratch(bearings, rotations, batch_size, blur_radius(self.sigma))
         if region is None:
             return
         rows, cols = region
         votes = self._scratch[rows][:, cols]
+        if weight != 1.0:
+            votes *= np.float32(weight)
         self._scratch[rows.start:rows.stop, cols] = 0
         if self.first_seen is not None:
             seen = self.first_seen[rows][:, cols]
@@ -172,6 +176,7 @@ class SlidingWindowBackend:
         self.events_settled = 0
         self.events_optimized = 0  # event-window pairs that went through BA
         self._last_correction: float | None = None  # |x| of the last window's CG solution
+        self.loop = None  # loop closure hook (pipelines/loop_closure.LoopCloser), attached by its owner
 
     # ---- input streams -------------------------------------------------------------------------------------------
     def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
@@ -223,6 +228,8 @@ class SlidingWindowBackend:
         settle_end = t1 + 1.0 if final else t0 + cfg.backend_sliding_window_stride
         self._settle(t0, settle_end, still=not report.optimized)
         self.window_start = t0 + cfg.backend_sliding_window_stride
+        if self.loop is not None:  # loop closure: may correct the spline and rebuild the map
+            self.loop.after_window(self.window_start)
         report.seconds = time.perf_counter() - tic
         self.windows.append(report)
         return report
@@ -409,4 +416,6 @@ class SlidingWindowBackend:
             mids = np.clip(batch_mid_times(ev_t, cfg.event_batch_size), start, end)
             self.map.add(ev_b, self.spline.evaluate(mids), cfg.event_batch_size, t0, moving=not still)
             self.events_settled += len(ev_t)
+            if self.loop is not None:  # loop closure keeps a subsample of the settled events
+                self.loop.store(ev_t, ev_b, t0, not still)
         self.events.drop_before(t1)

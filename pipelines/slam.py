@@ -28,6 +28,7 @@ from ti_cmax.trajectory import Trajectory
 
 from .backend import SlidingWindowBackend
 from .frontend import FrontendResult, FrontendRunner, Packet, as_chunks, every_qth
+from .loop_closure import LoopCloser
 from .sensor_defaults import derived_summary, resolve_config
 
 
@@ -66,6 +67,8 @@ class _BackendFeed:
         if self.backend is None:
             t0 = float(chunk.t[0])
             self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0))
+            if self.config.loop.loop_closure:  # loop closure on revisits (pipelines/loop_closure.py)
+                self.backend.loop = LoopCloser(self.config.loop, self.backend)
         sub = every_qth(chunk, int(self.config.backend.backend_event_sample_rate), self.events_read)
         self.events_read += len(chunk)
         self.backend.push_events(sub.t, self.camera.bearings(sub.x, sub.y), complete_until=float(chunk.t[-1]))
@@ -95,6 +98,7 @@ def _backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
         "map_size": [int(backend.width), int(backend.height)],
         "spline_degree": int(backend.cfg.spline_degree),
         "control_poses": int(backend.spline.num_control) if backend.spline is not None else 0,
+        **({"loop_closure": backend.loop.summary()} if backend.loop is not None else {}),
     }
 
 
@@ -309,6 +313,10 @@ class OnlineSlam:
             "parameters": config_to_dict(config),
             "derived_parameters": self.derived,
         }
+        loops = worker["loops"] if worker is not None else \
+            (self._feed.backend.loop.loops if self._feed.backend.loop is not None else None)
+        if loops is not None:
+            report["loops"] = loops
         if worker is not None:
             report["backend_process"] = {"compile_seconds": worker["compile_seconds"],
                                          "cpu_seconds": worker["cpu_seconds"],
@@ -402,7 +410,8 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
                 outbox.put(("done", {
                     "report": _backend_report(backend, seconds), "spline": spline, "map": backend.map.raw,
                     "windows": backend.windows, "trajectory": backend.trajectory(config.output.trajectory_rate),
-                    "seconds": seconds, "compile_seconds": compile_s, "cpu_seconds": time.process_time() - cpu0}))
+                    "seconds": seconds, "compile_seconds": compile_s, "cpu_seconds": time.process_time() - cpu0,
+                    "loops": backend.loop.loops if backend.loop is not None else None}))
                 return
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
@@ -486,6 +495,7 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
         "us_per_event": {"backend": backend_seconds * 1e6 / max(events_read, 1)},
         "parameters": config_to_dict(config),
         "derived_parameters": derived,
+        **({"loops": backend.loop.loops} if backend.loop is not None else {}),
     }
     return SlamResult(backend.spline, backend.trajectory(config.output.trajectory_rate), backend.map.raw,
                       report, None, backend.windows)

@@ -236,6 +236,34 @@ class BackendConfig(Params):
 
 
 @dataclass(frozen=True)
+class LoopClosureConfig(Params):
+    """Loop closure on revisits (pipelines/loop_closure.py): the recent events are registered against the map
+    regions last observed long ago; an accepted correction is spread over the trajectory since that visit and
+    the global map is rebuilt from stored event subsamples."""
+
+    loop_closure: bool = param(False, "loop closure on revisits (false: the back-end's output is bitwise unchanged)")
+    loop_min_age: float = param(3.0, "time since a map region was last observed for it to count as old", unit="s",
+                                gt=0)
+    loop_recent_time: float = param(1.0, "recent events registered against the old map; at most one check per this",
+                                    unit="s", gt=0)
+    loop_min_overlap: float = param(0.15, "fraction of the recent events that must fall on old observed regions",
+                                    gt=0, le=1)
+    loop_min_confidence: float = param(0.3, "local-texture correlation of the registered recent map with the old "
+                                            "map, at least", ge=0)
+    loop_min_peak_ratio: float = param(1.5, "that correlation over its best value 4-8 map px away, at least",
+                                       ge=1)
+    loop_max_correction: float = param(0.1, "larger registrations are rejected as false loops", unit="rad", gt=0)
+    loop_min_correction_px: float = param(0.25, "corrections below this are not applied", unit="map px", ge=0)
+    loop_min_gain: float = param(0.02, "corrections raising the correlation by less are not applied", ge=0)
+    loop_registration_events: int = param(20000, "recent events used for the registration at most (thinned)",
+                                          unit="events", ge=100)
+    loop_stored_event_rate: float = param(200000.0, "events kept per second to rebuild the map after a loop",
+                                          unit="events/s", gt=0)
+    loop_max_stored_events: int = param(4000000, "stored events at most (all strides thinned by 2 beyond)",
+                                        unit="events", ge=1000)
+
+
+@dataclass(frozen=True)
 class DatasetConfig(Params):
     """How to open a DATASET (``--set width=346 --set height=260 --set allow_default_calibration=true``)."""
 
@@ -266,6 +294,7 @@ class SlamConfig(Params):
     dataset: DatasetConfig = param(help="opening the dataset", factory=DatasetConfig)
     frontend: FrontendConfig = param(help="CMax-omega front-end", factory=FrontendConfig)
     backend: BackendConfig = param(help="sliding-window BA and the panoramic map", factory=BackendConfig)
+    loop: LoopClosureConfig = param(help="loop closure on revisits", factory=LoopClosureConfig)
     output: OutputConfig = param(help="outputs", factory=OutputConfig)
 
 
@@ -432,6 +461,7 @@ def save_config(cfg, path: str | os.PathLike) -> None:
 
 __all__ = [
     "param", "Params", "iter_params", "check_field", "rule_text", "field_default",
-    "CONTRAST_MEASURES", "SLICING_RULES", "WARM_STARTS", "STEP_GUESSES", "DatasetConfig", "FrontendConfig", "BackendConfig", "OutputConfig", "SlamConfig",
+    "CONTRAST_MEASURES", "SLICING_RULES", "WARM_STARTS", "STEP_GUESSES", "DatasetConfig", "FrontendConfig",
+    "BackendConfig", "LoopClosureConfig", "OutputConfig", "SlamConfig",
     "load_config", "update_config", "build_config", "save_config", "config_to_dict", "parse_overrides", "replace",
 ]

@@ -290,6 +290,17 @@ def event_area_percent(image: np.ndarray, lambda0: float = 1.0) -> float:
     return float(100.0 * np.mean(-np.expm1(-h / lambda0)))
 
 
+def local_texture(image: np.ndarray, sigma: float, wrap_columns: bool = True) -> np.ndarray:
+    """Band-pass texture of an image, normalized by its local RMS: (H - G_s H) / sqrt(G_s (H - G_s H)^2), G_s a
+    Gaussian of std ``sigma`` px (columns wrap for panoramas). Correlating two such images compares structure, not
+    exposure: a map region observed for longer, or only partly, does not lower the correlation."""
+    img = np.asarray(image, dtype=np.float64)
+    mode = ("constant", "wrap" if wrap_columns else "constant")
+    hp = img - ndimage.gaussian_filter(img, sigma, mode=mode)
+    rms = np.sqrt(np.maximum(ndimage.gaussian_filter(hp * hp, sigma, mode=mode), 0.0))
+    return hp / (rms + 1e-3 * float(rms.max()) + 1e-300)
+
+
 def image_gradient(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(I_x, I_y) by Sobel, divided by 8 so that a ramp of slope 1 per pixel gives 1; borders replicated."""
     img = np.asarray(image, dtype=np.float64)

@@ -92,6 +92,20 @@ def geodesic_angle(r_a: np.ndarray, r_b: np.ndarray) -> np.ndarray:
     return np.linalg.norm(log(rel), axis=-1)
 
 
+def spread_correction(step_weights: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Left corrections (n + 1, 3, 3) that spread a loop's rotation error phi along a chain of n + 1 poses.
+
+    They solve the linearized SO(3) pose graph of the chain: left increments x_0 .. x_n minimizing
+    sum_k |x_{k+1} - x_k|^2 / w_k (the smoothness priors: relative rotations are kept, an edge of weight w_k
+    may absorb more error) with x_0 = 0 (the first visit) and x_n = phi (the loop constraint). The minimizer is
+    x_k = s_k phi with s_k = sum_{j<k} w_j / sum_j w_j; the corrections are exp(x_k).
+    """
+    w = np.asarray(step_weights, dtype=float).reshape(-1)
+    total = float(w.sum())
+    s = np.concatenate([[0.0], np.cumsum(w)]) / total if total > 0 else np.linspace(0.0, 1.0, len(w) + 1)
+    return exp(s[:, None] * np.asarray(phi, dtype=float)[None, :])
+
+
 def to_quat_xyzw(r: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(np.asarray(r).reshape(-1, 3, 3)).as_quat()
 

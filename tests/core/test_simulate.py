@@ -130,6 +130,18 @@ def test_pan_and_constant_trajectories():
     assert np.linalg.norm(rnd_axis.omega(0.5)) == pytest.approx(np.radians(4.0))
 
 
+def test_multi_turn_pan_with_wobble():
+    """--trajectory pan --turns N: N full turns about the vertical (loop closure benchmarks); the wobble is seeded
+    and vanishes at both ends, so the pan still ends N turns round."""
+    pan = make_motion("pan", 4.0, turns=2.5)
+    np.testing.assert_allclose(pan.rotation([4.0])[0], so3.exp([0, np.pi, 0]), atol=1e-7)  # 2.5 turns
+    assert np.linalg.norm(pan.omega(2.0)) == pytest.approx(2 * 2 * np.pi * 2.5 / 4.0)  # peak rate mid-way
+    wob = make_motion("pan", 4.0, turns=2.0, wobble=0.4, seed=5)
+    dev = wob.omega(np.linspace(0, 4, 401)) - pan.omega(np.linspace(0, 4, 401)) * 2.0 / 2.5
+    assert 0.05 < np.abs(dev).max() <= 0.4 + 1e-9 and np.abs(dev[[0, -1]]).max() < 1e-12
+    np.testing.assert_array_equal(wob.omega([1.3]), make_motion("pan", 4.0, turns=2.0, wobble=0.4, seed=5).omega([1.3]))
+
+
 def test_render_times_bound_pixel_motion():
     cam = sensor_camera("DAVIS240C")
     motion = make_motion("random", 1.0, seed=1, max_angular_velocity=5.0)

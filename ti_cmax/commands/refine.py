@@ -11,6 +11,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trajectory", required=True, metavar="TRAJ.txt", help="initial trajectory (TUM)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--spline", choices=("linear", "cubic"), default=None, help="trajectory model")
+    parser.add_argument("--loop-closure", action="store_true",
+                        help="close loops on revisits (same as --set loop_closure=true; report.json lists them)")
 
 
 def run(args) -> int:
@@ -20,7 +22,8 @@ def run(args) -> int:
     from ..pipelines.slam import refine
     from .slam import print_derived, spline_override, write_result
 
-    cfg = load_config(SlamConfig, args.config, list(args.overrides) + spline_override(args))
+    cfg = load_config(SlamConfig, args.config, list(args.overrides) + spline_override(args)
+                      + (["loop_closure=true"] if args.loop_closure else []))
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     camera = dataset.camera
     initial = read_tum(args.trajectory)

@@ -15,7 +15,7 @@ HELP = "simulate a purely rotating event camera looking at a panorama; writes an
 _OPTIONS = {
     "scene": str, "image": str, "sensor": str, "duration": float, "trajectory": str,
     "contrast_threshold": float, "noise_rate": float, "refractory_period": float, "seed": int,
-    "max_angular_velocity": float, "pano_height": int,
+    "max_angular_velocity": float, "pano_height": int, "turns": float, "pan_wobble": float,
 }
 
 
@@ -33,6 +33,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--contrast-threshold", type=float, metavar="C", help="log-intensity threshold (default: the sensor's)")
     parser.add_argument("--noise-rate", type=float, metavar="HZ", help="background events per pixel per second")
     parser.add_argument("--refractory-period", type=float, metavar="S", help="per-pixel refractory period")
+    parser.add_argument("--turns", type=float, metavar="N", help="turns of --trajectory pan (default 1)")
+    parser.add_argument("--pan-wobble", type=float, metavar="RAD_S", help="random wobble added to the pan (default 0)")
     parser.add_argument("--max-angular-velocity", type=float, metavar="RAD_S", help="peak of the random motion")
     parser.add_argument("--pano-height", type=int, metavar="H", help="panorama height (0: automatic)")
     parser.add_argument("--seed", type=int, help="random seed (default 0)")

@@ -28,6 +28,9 @@ class SimulatorConfig(Params):
     duration: float = param(2.0, "length of the sequence", unit="s", gt=0)
     trajectory: str = param("random", "motion: random (ECD-like ramp), pan (360 deg about vertical), constant",
                             choices=TRAJECTORIES)
+    turns: float = param(1.0, "full turns of trajectory=pan (2-3: the camera revisits the first turn's map)", gt=0)
+    pan_wobble: float = param(0.0, "peak of a seeded random wobble added to trajectory=pan (0: a pure pan)",
+                              unit="rad/s", ge=0)
     max_angular_velocity: float = param(5.0, "peak of the random trajectory (reached near the end)", unit="rad/s",
                                         ge=0)
     random_frequency_max: float = param(1.5, "highest frequency of the random angular velocity", unit="Hz", gt=0)

@@ -68,7 +68,8 @@ def _setup(config: SimulatorConfig) -> _Setup:
                          max_angular_velocity=config.max_angular_velocity,
                          frequency_max=config.random_frequency_max, ramp_start=config.random_ramp_start,
                          constant_rate_deg=config.constant_rate_deg,
-                         axis=config.rotation_axis, integration_rate=config.integration_rate)
+                         axis=config.rotation_axis, integration_rate=config.integration_rate,
+                         turns=config.turns, wobble=config.pan_wobble)
     times = render_times(motion, camera, config.max_pixel_step, config.max_render_dt)
     t, acc, gyro, bias = simulate_imu(motion, config.imu_rate, gyro_bias_std=config.gyro_bias_std,
                                       gyro_noise_std=config.gyro_noise_std, acc_noise_std=config.acc_noise_std,

@@ -9,8 +9,10 @@ from the previous grid point (not Slerp), so the renderer and the ground truth a
 Kinds:
 - ``random``: sum of seeded sinusoids per axis times a ramp envelope (slow start, growing to the
   peak angular velocity near the end), like the ECD rotation sequences.
-- ``pan``: one full turn about the world vertical axis (y, pointing down) with a smooth
-  velocity profile 2 pi / T (1 - cos(2 pi t / T)) (zero rate at both ends).
+- ``pan``: ``turns`` full turns (default 1) about the world vertical axis (y, pointing down) with a smooth
+  velocity profile 2 pi turns / T (1 - cos(2 pi t / T)) (zero rate at both ends), plus an optional seeded
+  ``wobble`` (rad/s peak, sum of sinusoids per camera axis, zero at both ends): multi-turn pans revisit
+  the first turn's map (loop closure).
 - ``constant``: a constant rate about a fixed camera-frame axis (star tracking, 4 deg/s).
 """
 from __future__ import annotations
@@ -78,8 +80,14 @@ def _omega(kind: str, p: dict, duration: float, t: np.ndarray) -> np.ndarray:
         waves = np.sum(amp[None] * np.sin(2 * np.pi * freq[None] * t[:, None, None] + phase[None]), axis=2)
         return waves * p["scale"] * _ramp(t, duration, p["ramp_start"])[:, None]
     if kind == "pan":
-        rate = 2 * np.pi / duration * (1 - np.cos(2 * np.pi * np.clip(t, 0, duration) / duration))
-        return rate[:, None] * np.asarray(p["axis"])[None, :]
+        tc = np.clip(t, 0, duration)
+        rate = 2 * np.pi * p.get("turns", 1.0) / duration * (1 - np.cos(2 * np.pi * tc / duration))
+        omega = rate[:, None] * np.asarray(p["axis"])[None, :]
+        if p.get("wobble", 0.0) > 0:
+            amp, freq, phase = (np.asarray(p[k]) for k in ("wobble_amplitudes", "wobble_frequencies", "wobble_phases"))
+            waves = np.sum(amp[None] * np.sin(2 * np.pi * freq[None] * tc[:, None, None] + phase[None]), axis=2)
+            omega = omega + p["wobble"] * waves * np.sin(np.pi * tc / duration)[:, None]
+        return omega
     if kind == "constant":
         return np.broadcast_to(np.asarray(p["omega"]), (len(t), 3)).copy()
     raise ValueError(f"unknown trajectory kind {kind!r}")
@@ -87,7 +95,7 @@ def _omega(kind: str, p: dict, duration: float, t: np.ndarray) -> np.ndarray:
 
 def make_motion(kind: str, duration: float, *, seed: int = 0, max_angular_velocity: float = 5.0,
                 frequency_max: float = 1.5, ramp_start: float = 0.1, constant_rate_deg: float = 4.0, axis=(),
-                integration_rate: float = 10000.0) -> RotationalMotion:
+                integration_rate: float = 10000.0, turns: float = 1.0, wobble: float = 0.0) -> RotationalMotion:
     """Build and integrate a seeded motion of the given kind starting at R(0) = identity."""
     rng = np.random.default_rng([seed, 11])
     if kind == "random":
@@ -105,6 +113,14 @@ def make_motion(kind: str, duration: float, *, seed: int = 0, max_angular_veloci
         params["scale"] = float(max_angular_velocity / peak) if peak > 0 else 0.0
     elif kind == "pan":
         params = {"axis": [0.0, 1.0, 0.0]}
+        if turns != 1.0:
+            params["turns"] = float(turns)
+        if wobble > 0:  # amplitudes normalised so that the wobble's sinusoids peak at about `wobble` rad/s
+            m = 3
+            amp = rng.uniform(0.3, 1.0, (3, m))
+            params.update(wobble=float(wobble), wobble_amplitudes=(amp / amp.sum(axis=1, keepdims=True)).tolist(),
+                          wobble_frequencies=rng.uniform(0.1, frequency_max, (3, m)).tolist(),
+                          wobble_phases=rng.uniform(0, 2 * np.pi, (3, m)).tolist())
     elif kind == "constant":
         ax = np.asarray(axis, dtype=float) if len(axis) else rng.normal(size=3)
         ax = ax / np.linalg.norm(ax)

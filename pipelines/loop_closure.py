@@ -1,0 +1,294 @@
+"""Loop closure on revisits for the sliding-window back-end (beyond the paper, Sec. VI names it as missing).
+
+Without it, drift builds up over a 360-degree pan until the camera sees the first turn's map again; the global map
+then pulls the new windows back, so the trajectory carries the drift and a jump. ``LoopCloser`` hooks into
+``SlidingWindowBackend`` (``backend.loop``), and after every window:
+
+1. keeps a subsample of the settled events (at most ``loop_stored_event_rate`` per second, each stride 1 of k with
+   weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and, delayed
+   by ``loop_recent_time``, votes them into an *old map* and a coarse map of the time each region was last
+   observed;
+2. detection, after every window (at most one verification per ``loop_recent_time``, less often while a revisit
+   goes on without a correction to apply: the interval doubles up to ``loop_min_age``): the recent events (the
+   last ``loop_recent_time`` seconds) at their current poses are a revisit candidate when at least
+   ``loop_min_overlap`` of them fall on regions observed, and last observed at least ``loop_min_age`` s ago
+   (regions without texture give no events, so they are never observed);
+3. verification: one rotation C (left, world frame) registers the recent events against the old map of those
+   regions alone, with the back-end's machinery (``PanoIWE``: Var(B(I_recent) + alpha B(I_old)), Fletcher-Reeves CG),
+   coarse to fine. The candidate is accepted when the registered maps correlate (normalized cross-correlation
+   over the old regions >= ``loop_min_confidence``), the optimum is unique (that correlation over its best value
+   4 and 8 map pixels away >= ``loop_min_peak_ratio``) and |C| <= ``loop_max_correction``;
+4. correction (when |C| >= ``loop_min_correction_px`` map pixels and the registration raised the correlation by
+   at least ``loop_min_gain``, i.e. the data support it): C is spread over the control poses between the
+   old visit (or the last applied loop) and the recent events by the chain pose graph ``so3.spread_correction``
+   (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of
+   the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
+   spline, so later windows align to one consistent map.
+
+Every candidate goes into ``loops`` (time, correction, confidence, accepted, applied, reason) for report.json.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ti_cmax import so3
+from ti_cmax.config import LoopClosureConfig
+from ti_cmax.metrics import local_texture
+from ti_cmax.kernels.pano import PanoIWE, batch_mid_times, equirect_numpy, event_density, vote_map
+
+from .backend import GlobalMap
+from .optim import fletcher_reeves
+
+_CELL = 4  # map pixels per side of an age cell
+_RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's rotations from the optimum
+_CG_ITERS, _CG_LINE_EVALS = 10, 8  # per pyramid level: 3 unknowns, started near the optimum by the coarser level
+_TEXTURE = 3  # map pixels: scale of the local texture normalization of the confidence test
+
+
+class LoopCloser:
+    """Loop detection, verification and correction for one ``SlidingWindowBackend`` (module docstring)."""
+
+    def __init__(self, config: LoopClosureConfig, backend):
+        self.cfg, self.backend = config, backend
+        self._new_map = lambda sigma: GlobalMap(backend.width, backend.height, sigma, backend.cfg.lambda0,
+                                                backend.map.max_update_time if sigma > 0 else None)
+        w, h = backend.width, backend.height
+        self.age = np.full((-(-h // _CELL), -(-w // _CELL)), -np.inf)  # last observed (delayed); -inf: never
+        self.old = self._new_map(0.0)  # raw map of the stored events older than the recent block
+        self.chunks: list[tuple[np.ndarray, np.ndarray, float, float, bool]] = []  # (t, b, weight, t0, moving)
+        self._n_old = 0  # chunks already voted into the old map and the age map
+        self._stored = 0
+        self._next_check = backend.t_start + config.loop_min_age + config.loop_recent_time
+        self._interval = config.loop_recent_time  # time from one verification to the next check
+        self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
+        self.loops: list[dict] = []
+        self.seconds = 0.0
+
+    # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
+    def store(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
+        """Keep a subsample of one settled stride (1 of k, weight k)."""
+        tic = time.perf_counter()
+        n = len(ev_t)
+        cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * self.backend.cfg.backend_sliding_window_stride)), 1)
+        k = max(int(math.ceil(n / cap)), 1)
+        t, b = ev_t[::k].copy(), ev_b[::k].copy()
+        self.chunks.append((t, b, n / len(t), float(t0), bool(moving)))
+        self._stored += len(t)
+        if self._stored > self.cfg.loop_max_stored_events:
+            self.chunks = [(c[0][::2], c[1][::2], c[2] * len(c[0]) / len(c[0][::2]), c[3], c[4]) for c in self.chunks]
+            self._stored = sum(len(c[0]) for c in self.chunks)
+        self.seconds += time.perf_counter() - tic
+
+    def after_window(self, t_now: float) -> None:
+        """Age the stored events into the old map; every loop_recent_time, look for a revisit and close it."""
+        tic = time.perf_counter()
+        recent = self.cfg.loop_recent_time
+        while self._n_old < len(self.chunks) and self.chunks[self._n_old][0][-1] < t_now - recent:
+            self._age_chunk(self.chunks[self._n_old])
+            self._n_old += 1
+        if t_now >= self._next_check:  # the overlap test runs after every window: catch a revisit before the
+            self._check(t_now)          # back-end's windows snap to the old map (that jump is the loop error)
+        self.seconds += time.perf_counter() - tic
+
+    # ---- detection and verification ----------------------------------------------------------------------------
+    def _rotations(self, t: np.ndarray, ctrl_left: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(batch mid-times clipped to the spline, per-batch rotations) of events at times t."""
+        spline = self.backend.spline
+        start, end = spline.valid_time_range()
+        mids = np.clip(batch_mid_times(t, self.backend.cfg.event_batch_size), start, end)
+        rot = spline.evaluate(mids)
+        return mids, rot if ctrl_left is None else ctrl_left @ rot
+
+    def _cells(self, b: np.ndarray, rot: np.ndarray) -> np.ndarray:
+        """Flat age-cell index of each event."""
+        bs = self.backend.cfg.event_batch_size
+        xw = np.einsum("nij,nj->ni", np.repeat(rot, bs, axis=0)[: len(b)], b.astype(np.float64))
+        u, v = equirect_numpy(xw, self.backend.width, self.backend.height)
+        ci = np.clip((v // _CELL).astype(np.int64), 0, self.age.shape[0] - 1)
+        cj = (u // _CELL).astype(np.int64) % self.age.shape[1]
+        return ci * self.age.shape[1] + cj
+
+    def _age_chunk(self, chunk) -> None:
+        t, b, weight, t0, moving = chunk
+        _, rot = self._rotations(t)
+        self.old.add(b, rot, self.backend.cfg.event_batch_size, t0, moving, weight=weight)
+        cells = np.unique(self._cells(b, rot))
+        self.age.flat[cells] = np.maximum(self.age.flat[cells], float(t[-1]))
+
+    def _recent_events(self) -> tuple[np.ndarray, np.ndarray]:
+        parts = self.chunks[self._n_old:]
+        if not parts:
+            return np.zeros(0), np.zeros((0, 3), np.float32)
+        t = np.concatenate([c[0] for c in parts])
+        b = np.concatenate([c[1] for c in parts])
+        k = max(int(math.ceil(len(t) / max(self.cfg.loop_registration_events, 1))), 1)
+        return t[::k], b[::k]
+
+    def _check(self, t_now: float) -> None:
+        cfg = self.cfg
+        t, b = self._recent_events()
+        if len(t) < 2 * self.backend.cfg.event_batch_size:
+            return
+        old_cells = (self.age > -np.inf) & (self.age < t_now - cfg.loop_min_age)
+        _, rot = self._rotations(t)
+        on_old = old_cells.flat[self._cells(b, rot)]
+        overlap = float(np.mean(on_old))
+        if overlap < cfg.loop_min_overlap:
+            self._interval = cfg.loop_recent_time
+            return
+        tic = time.perf_counter()
+        entry = {"time": float(t_now), "overlap": overlap}
+        entry.update(self.verify(t, b, old_cells))
+        px = 2 * np.pi / self.backend.width
+        if entry["accepted"] and entry["correction_deg"] < np.degrees(cfg.loop_min_correction_px * px):
+            entry["applied"], entry["reason"] = False, "correction below loop_min_correction_px"
+        elif entry["accepted"] and entry["confidence"] - entry["confidence_before"] < cfg.loop_min_gain:
+            entry["applied"], entry["reason"] = False, "correlation gain below loop_min_gain"
+        elif entry["accepted"]:
+            entry.update(self._apply(t, b, old_cells, np.asarray(entry.pop("_phi")), t_now))
+        entry.pop("_phi", None)
+        # while the revisit goes on and the map stays consistent, verify less and less often (up to once per
+        # loop_min_age): the cost of a long revisit stays bounded; an applied loop starts again at loop_recent_time
+        recent = cfg.loop_recent_time
+        self._interval = recent if entry.get("applied") else min(2 * self._interval, max(cfg.loop_min_age, recent))
+        self._next_check = t_now + self._interval
+        entry["seconds"] = time.perf_counter() - tic
+        self.loops.append(entry)
+
+    def verify(self, t: np.ndarray, b: np.ndarray, old_cells: np.ndarray) -> dict:
+        """Register events (times t, bearings b) against the old map on ``old_cells`` alone; the decision.
+
+        Returns correction_deg, confidence (correlation at the optimum), confidence_before (at no correction),
+        peak_ratio, accepted, reason and ``_phi`` (the correction's rotation vector, world frame, left).
+        """
+        cfg, bcfg, spline = self.cfg, self.backend.cfg, self.backend.spline
+        w, h = self.backend.width, self.backend.height
+        mask = np.repeat(np.repeat(old_cells, _CELL, axis=0), _CELL, axis=1)[:h, :w]
+        g_raw = np.where(mask, self.old.raw, np.float32(0))
+        mids, _ = self._rotations(t)
+        s, u = spline.support(mids)
+        base = spline.control_R.copy()
+        phi = np.zeros(3)
+        levels = [f for f in (4, 2, 1) if w % f == 0 and h % f == 0 and (w // f >= 256 or f == 1)]
+        problem = None
+        for f in levels:
+            g = g_raw.reshape(h // f, f, w // f, f).sum(axis=(1, 3)) if f > 1 else g_raw
+            local = vote_map(b, so3.exp(phi) @ spline.evaluate_at(s, u), w // f, h // f,
+                             batch_size=bcfg.event_batch_size)
+            rho_g = event_density(g, bcfg.lambda0)
+            alpha = event_density(local, bcfg.lambda0) / rho_g if rho_g > 0 else 0.0
+            problem = PanoIWE(b, s, u, bcfg.spline_degree, w // f, h // f, sigma=bcfg.backend_blur_sigma,
+                              global_map=g, alpha=alpha, batch_size=bcfg.event_batch_size)
+            var0 = problem.cost(so3.exp(phi) @ base)
+            scale = 1.0 / var0 if var0 > 0 else 1.0
+
+            def objective(x, problem=problem, scale=scale):
+                var, grad = problem.cost_and_grad(so3.exp(x) @ base)
+                # one common left increment of every control pose moves the whole trajectory by it
+                return var * scale, so3.left_jacobian(x).T @ grad.sum(axis=0) * scale
+
+            res = fletcher_reeves(objective, phi, maximize=True, init_step=2 * f * 2 * np.pi / w,
+                                  line_search_tol=bcfg.backend_cg_line_search_tol, max_iter=_CG_ITERS,
+                                  grad_tol=bcfg.backend_cg_grad_tol, rel_cost_tol=bcfg.backend_cg_rel_cost_tol,
+                                  max_line_evals=_CG_LINE_EVALS)
+            phi = res.x
+            if np.linalg.norm(phi) > cfg.loop_max_correction:  # a false loop: no need to refine it
+                return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
+                        "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
+                        "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
+        # correlation of the registered recent map with the old map over the old regions, on local texture
+        rows = np.flatnonzero(mask.any(axis=1))
+        if len(rows) == 0:
+            return {"correction_deg": 0.0, "confidence": 0.0, "confidence_before": 0.0, "peak_ratio": 0.0,
+                    "accepted": False, "applied": False, "reason": "no old map region", "_phi": [0.0, 0.0, 0.0]}
+        band = slice(max(int(rows[0]) - 4 * _TEXTURE, 0), min(int(rows[-1]) + 4 * _TEXTURE + 1, h))
+        g_tex = local_texture(problem.gmap[band], _TEXTURE)
+        m_band = mask[band]
+
+        def ncc(x):
+            lmap = problem.local_map(so3.exp(x) @ base)[band]
+            sel = m_band & (lmap > 1e-3 * float(lmap.max()))
+            if sel.sum() < 16:
+                return 0.0
+            a, c = local_texture(lmap, _TEXTURE)[sel], g_tex[sel]
+            a, c = a - a.mean(), c - c.mean()
+            den = math.sqrt(float(a @ a) * float(c @ c))
+            return float(a @ c) / den if den > 0 else 0.0
+
+        conf = ncc(phi)
+        # uniqueness: rotations that shift the recent map by _RING map pixels in 4 directions each around the optimum
+        # (a second peak there: repeated texture, a false loop)
+        xw = np.einsum("nij,nj->ni", so3.exp(phi) @ spline.evaluate_at(s, u)[:1], b[:1].astype(np.float64))
+        d = xw[0] / np.linalg.norm(xw[0])
+        e1 = np.cross(d, [0.0, 1.0, 0.0] if abs(d[1]) < 0.9 else [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(d, e1)
+        ring = [ncc(so3.log(so3.exp(r * 2 * np.pi / w * (math.cos(a) * e1 + math.sin(a) * e2)) @ so3.exp(phi)))
+                for r in _RING for a in np.arange(4) * np.pi / 2 + (np.pi / 4 if r > _RING[0] else 0.0)]
+        best_ring = max(ring)
+        peak = conf / best_ring if best_ring > 0 else np.inf
+        corr = float(np.linalg.norm(phi))
+        if conf < cfg.loop_min_confidence:
+            ok, reason = False, "confidence below loop_min_confidence"
+        elif peak < cfg.loop_min_peak_ratio:
+            ok, reason = False, "optimum not unique (peak ratio below loop_min_peak_ratio)"
+        elif corr > cfg.loop_max_correction:
+            ok, reason = False, "correction above loop_max_correction"
+        else:
+            ok, reason = True, "accepted"
+        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": ncc(np.zeros(3)),
+                "peak_ratio": float(peak), "accepted": ok, "applied": False, "reason": reason, "_phi": phi.tolist()}
+
+    # ---- correction ----------------------------------------------------------------------------------------------
+    def _apply(self, t, b, old_cells, phi, t_now) -> dict:
+        """Spread the correction over the control poses since the old visit; rebuild the maps."""
+        backend = self.backend
+        spline = backend.spline
+        corr = so3.exp(phi)
+        _, rot = self._rotations(t, corr)
+        cells = self._cells(b, rot)
+        on_old = old_cells.flat[cells]
+        if not on_old.any():
+            return {"applied": False, "reason": "no recent event on the old map"}
+        # the correction was measured by the recent events on the old regions, against the last visit there
+        t_old = float(np.median(self.age.flat[cells[on_old]]))
+        t_ref = float(np.median(t[on_old]))
+        t_a = max(t_old, self._closed_until)
+        if t_ref <= t_a:
+            return {"applied": False, "reason": "old visit not before the recent events", "t_old": t_old}
+        knots = spline.knot_times()
+        i0 = max(int(np.searchsorted(knots, t_a, side="right")) - 1, 0)
+        i1 = min(int(np.searchsorted(knots, t_ref, side="left")), len(knots) - 1)
+        ctrl = spline.control_R
+        # edge weights of the chain pose graph: rotation travelled, plus a little time (drift while nearly still)
+        steps = so3.geodesic_angle(ctrl[i0:i1], ctrl[i0 + 1:i1 + 1]) + 0.01 * spline.dt
+        ctrl[i0:i1 + 1] = so3.spread_correction(steps, phi) @ ctrl[i0:i1 + 1]
+        ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
+        self._rebuild()
+        backend._anchor_at(backend._anchor[0])
+        self._closed_until = float(t[-1])
+        return {"applied": True, "reason": "accepted", "t_old": t_old, "t_ref": t_ref,
+                "t_spread_from": float(knots[i0])}
+
+    def _rebuild(self) -> None:
+        """Global map, old map and age map from the stored subsamples along the (corrected) spline."""
+        backend = self.backend
+        bs = backend.cfg.event_batch_size
+        backend.map = self._new_map(backend.cfg.backend_blur_sigma)
+        self.old = self._new_map(0.0)
+        self.age[:] = -np.inf
+        for i, chunk in enumerate(self.chunks):
+            t, b, weight, t0, moving = chunk
+            _, rot = self._rotations(t)
+            backend.map.add(b, rot, bs, t0, moving, weight=weight)
+            if i < self._n_old:
+                self._age_chunk(chunk)
+
+    # ---- report ----------------------------------------------------------------------------------------------------
+    def summary(self) -> dict:
+        return {"candidates": len(self.loops), "accepted": sum(e["accepted"] for e in self.loops),
+                "applied": sum(bool(e.get("applied")) for e in self.loops), "seconds": self.seconds,
+                "stored_events": int(self._stored)}

@@ -1,0 +1,190 @@
+"""Loop closure (pipelines/loop_closure.py): an injected drift over a revisit is found and removed, false revisits
+(another region with similar texture, a textureless region) are rejected, loop_closure=false changes nothing."""
+import numpy as np
+import pytest
+
+from ti_cmax import so3
+from ti_cmax.config import BackendConfig, LoopClosureConfig
+from ti_cmax.spline import SO3Spline
+
+DURATION, TURNS, RATE = 5.0, 1.3, 120_000  # s, pan turns, events/s
+DRIFT = np.radians(4.0)  # injected drift at the end (grows linearly from 0), about DRIFT_AXIS (world frame)
+DRIFT_AXIS = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
+
+
+def _pan(t):
+    yaw = 2 * np.pi * TURNS * np.asarray(t) / DURATION
+    return so3.exp(np.outer(yaw, [0.0, 1.0, 0.0]))
+
+
+def _features(rng, n, yaw_range=(-np.pi, np.pi)):
+    """n point features in clusters (blobs of 0.3-2 deg): texture at several scales, like a natural scene."""
+    centers = n // 10
+    lon = rng.uniform(*yaw_range, centers)
+    lat = rng.uniform(-0.45, 0.45, centers)
+    size = np.radians(rng.uniform(0.3, 2.0, centers))
+    k = rng.integers(0, centers, n)
+    lon, lat = lon[k] + rng.normal(0, 1, n) * size[k], lat[k] + rng.normal(0, 1, n) * size[k]
+    return np.column_stack([np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon)])
+
+
+def _events(seed=0, second_visit="same"):
+    """Unit-depth bearings of a camera (60 x 45 deg field of view) panning over point features (one event = one
+    feature seen at one time, 0.15 deg jitter). ``second_visit``: "same" scene; "other": after the first turn the
+    camera sees a different random scene of the same density (similar texture); "textureless": the revisited
+    sector [-90, 150] deg of longitude holds no features, only background-noise events, at both visits."""
+    rng = np.random.default_rng(seed)
+    feats = _features(rng, 20000)
+    other = _features(rng, 20000)
+    n = int(RATE * DURATION * 3)
+    t = np.sort(rng.uniform(0, DURATION, n))
+    idx = rng.integers(0, len(feats), n)
+    d = feats[idx].copy()
+    if second_visit == "other":
+        late = t > DURATION / TURNS * 0.9
+        d[late] = other[idx[late]]
+    if second_visit == "textureless":
+        lon = np.arctan2(d[:, 0], d[:, 2])
+        quiet = (lon > np.radians(-90)) & (lon < np.radians(150))
+        m = int(quiet.sum())  # background noise: uniform directions, no structure
+        lon_q, lat_q = rng.uniform(np.radians(-90), np.radians(150), m), rng.uniform(-0.45, 0.45, m)
+        d[quiet] = np.column_stack([np.cos(lat_q) * np.sin(lon_q), np.sin(lat_q), np.cos(lat_q) * np.cos(lon_q)])
+        keep = ~quiet | (rng.uniform(size=n) < 0.1)
+        t, d = t[keep], d[keep]
+    d = d + rng.normal(0, np.radians(0.15), d.shape)
+    b = np.einsum("nji,nj->ni", _pan(t), d)  # R^T d
+    vis = (b[:, 2] > 0.1) & (np.abs(b[:, 0] / b[:, 2]) < np.tan(np.radians(30))) & \
+        (np.abs(b[:, 1] / b[:, 2]) < np.tan(np.radians(22.5)))
+    t, b = t[vis], b[vis] / b[vis, 2:3]
+    return t, b.astype(np.float32)
+
+
+def _drifted(t):
+    return so3.exp(np.outer(DRIFT * np.asarray(t) / DURATION, DRIFT_AXIS)) @ _pan(t)
+
+
+def _spline(trajectory, dt=0.05):
+    """Cubic spline fitted to the trajectory segment by segment, as the back-end grows it (a single lift of more
+    than half a turn would wrap)."""
+    spline = SO3Spline(3, -dt, dt, np.broadcast_to(trajectory([0.0])[0], (4, 3, 3)).copy())
+    for t0 in np.arange(0, DURATION - 1e-9, 0.5):
+        ts = np.linspace(t0, t0 + 0.5, 51)
+        first_free = int(np.searchsorted(spline.knot_times(), t0 + 1e-9, side="right"))
+        spline.fit_new_segment(ts, trajectory(ts), first_free=max(first_free, 1), refine_iters=1)
+    return spline
+
+
+def _run(t_ev, b_ev, trajectory, loop_cfg=LoopClosureConfig(loop_closure=True)):
+    """Settle every stride of the events along the given trajectory (a spline fitted to it, no BA) with a loop
+    closer attached, as the back-end does after each window."""
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+    from ti_cmax.pipelines.loop_closure import LoopCloser
+
+    cfg = BackendConfig(pano_height=256, backend_min_ev_rate=10000.0, backend_max_window_events=-1)
+    ts = np.arange(0, DURATION + 1e-9, 0.01)
+    be = SlidingWindowBackend(cfg, 0.0)
+    be.spline = _spline(trajectory)
+    be.push_source_poses(ts, trajectory(ts))
+    be._anchor_at(DURATION - 0.2)
+    be.loop = LoopCloser(loop_cfg, be)
+    be.push_events(t_ev, b_ev)
+    stride = cfg.backend_sliding_window_stride
+    for k in range(int(round((DURATION - 0.2) / stride))):
+        be._settle(k * stride, (k + 1) * stride, still=False)
+        be.loop.after_window((k + 1) * stride)
+    return be
+
+
+def _error(be, t):
+    return np.degrees(so3.geodesic_angle(be.spline.evaluate(t), _pan(t)))
+
+
+def test_injected_drift_over_a_revisit_is_found_and_removed(ti_runtime):
+    t_ev, b_ev = _events()
+    be = _run(t_ev, b_ev, _drifted)
+    applied = [e for e in be.loop.loops if e["applied"]]
+    assert applied, be.loop.loops
+    first = applied[0]
+    # the drift between the old visit and the recent events is what the registration finds
+    t_ref = first["t_ref"]  # when the recent events on the old map were seen
+    expected = np.degrees(DRIFT) * (t_ref - first["t_old"]) / DURATION
+    assert first["correction_deg"] == pytest.approx(expected, rel=0.1)
+    assert first["confidence"] > first["confidence_before"]  # the registration improved the agreement
+    # ... and removed: the error left at the recent events is within 10 % of the injected drift there (the old
+    # visit's own drift stays: the old map is the reference)
+    before = np.degrees(so3.geodesic_angle(_drifted([t_ref]), _pan([t_ref])))[0]
+    t_old = first["t_old"]
+    assert abs(_error(be, np.array([t_ref]))[0] - np.degrees(DRIFT) * t_old / DURATION) < 0.1 * before
+    # the correction was spread between the visits: no jump, halfway the error is about halved too
+    mid = 0.5 * (t_old + t_ref)
+    assert _error(be, np.array([mid]))[0] < 0.6 * np.degrees(DRIFT) * mid / DURATION
+    # the global map was rebuilt along the corrected trajectory: sharper than the drifted one
+    ref = _run(t_ev, b_ev, _drifted, LoopClosureConfig(loop_closure=True, loop_min_confidence=2.0))
+    assert not any(e["applied"] for e in ref.loop.loops)
+    from ti_cmax.metrics import event_area_percent
+
+    assert event_area_percent(be.map.raw) < event_area_percent(ref.map.raw)
+
+
+@pytest.mark.parametrize("second_visit", ["other", "textureless"])
+def test_false_revisits_are_rejected(ti_runtime, second_visit):
+    t_ev, b_ev = _events(1, second_visit)
+    be = _run(t_ev, b_ev, _pan)
+    before = _spline(_pan)
+    assert not any(e["accepted"] for e in be.loop.loops), be.loop.loops
+    np.testing.assert_array_equal(be.spline.control_R, before.control_R)
+    if second_visit == "other":  # the candidate was seen and judged, not missed
+        assert be.loop.loops and all(e["confidence"] < LoopClosureConfig().loop_min_confidence
+                                     for e in be.loop.loops)
+
+
+def test_chain_pose_graph_spread_matches_least_squares():
+    """so3.spread_correction is the minimizer of the linearized chain pose graph."""
+    rng = np.random.default_rng(2)
+    w = rng.uniform(0.1, 2.0, 7)
+    phi = np.array([0.01, -0.02, 0.005])
+    # unknowns x_1 .. x_6 (x_0 = 0, x_7 = phi): minimize sum (x_{k+1} - x_k)^2 / w_k, per axis
+    n = len(w) - 1
+    a = np.zeros((len(w), n))
+    rhs = np.zeros((len(w), 3))
+    for k in range(len(w)):
+        if k < n:
+            a[k, k] = 1.0
+        if k > 0:
+            a[k, k - 1] = -1.0
+        if k == n:
+            rhs[k] = -phi  # residual phi - x_n
+    sw = 1 / np.sqrt(w)[:, None]
+    x = np.linalg.lstsq(a * sw, rhs * sw, rcond=None)[0]
+    got = so3.log(so3.spread_correction(w, phi))
+    np.testing.assert_allclose(got[1:-1], x, atol=1e-12)
+    np.testing.assert_allclose(got[0], 0, atol=1e-15)
+    np.testing.assert_allclose(got[-1], phi, atol=1e-12)
+
+
+def test_loop_closure_false_is_todays_output_and_refine_cli_reports_loops(short_sequence, short_dataset, tmp_path):
+    """Without a revisit the loop closer changes nothing (bitwise); loop_closure=false attaches none, and
+    `refine --loop-closure` writes the "loops" list."""
+    import json
+
+    from ti_cmax.cli import main
+    from ti_cmax.config import SlamConfig, load_config
+    from ti_cmax.pipelines.slam import refine
+
+    from ti_cmax.io import write_tum
+
+    seq = short_sequence
+    gt = seq.groundtruth.slice_time(0.0, 0.6)  # the first 0.6 s suffice (refine uses the events inside it)
+    events = seq.events.slice_time(0.0, 0.6)
+    runs = {on: refine(events, seq.camera, gt, load_config(SlamConfig, None, [f"loop_closure={on}", "pano_height=256"]))
+            for on in ("false", "true")}
+    off, on = runs["false"], runs["true"]
+    assert "loops" not in off.report and on.report["loops"] == []
+    np.testing.assert_array_equal(off.trajectory.R, on.trajectory.R)
+    np.testing.assert_array_equal(off.map, on.map)
+    out = tmp_path / "ref"
+    write_tum(tmp_path / "gt.txt", gt)
+    assert main(["refine", str(short_dataset), "--trajectory", str(tmp_path / "gt.txt"), "--out", str(out),
+                 "--loop-closure", "--quiet", "--set", "pano_height=256"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["loops"] == [] and report["parameters"]["loop"]["loop_closure"] is True
