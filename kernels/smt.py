@@ -12,7 +12,9 @@ Reference selection (:func:`select_references`, decided once per batch under a s
 the segment becomes a measurement once |dp| >= ``min_disp_px`` (and the event becomes the new reference);
 shorter segments accumulate (n grows); a polarity change restarts the segment at the previous event (an
 extremum of M lies between them: the linear model cannot describe it); |dp| > ``outlier_px`` or a reference
-in the same batch (same pose: no displacement) restarts it at the current event without a measurement. With
+in the same batch (same pose: no displacement) restarts it at the current event without a measurement, and so
+does a segment with an end beyond ``max_lat_deg`` of latitude: the equirectangular chart is singular at the poles
+(u stretches by 1 / cos(lat)), where map-pixel segments, gradients and their linearization are meaningless. With
 ``min_disp_px`` below the map resolution this is the per-event model of [12] (previous event at the pixel).
 Why a minimum segment of about one map pixel: the map holds pixel-averaged gradients; a shorter segment
 samples the gradient below the map's resolution and, since events fire where the gradient is steep, its
@@ -80,12 +82,17 @@ def _project_jacobian_numpy(xw, width, height):
     return du, dv
 
 
+def _v_band(height, max_lat_deg):
+    """Largest |v - h/2| (map rows) of a map point within max_lat_deg of the equator."""
+    return 0.5 * height * min(float(max_lat_deg), 90.0) / 90.0
+
+
 def _wrap(du, width):
     return np.where(du > 0.5 * width, du - width, np.where(du <= -0.5 * width, du + width, du))
 
 
 def select_references_numpy(hist, sel_R, b0, b1, batch_size, bearings, pix, pol, state, width, height,
-                            outlier_px, min_disp_px, ref_uv, ref_n):
+                            outlier_px, min_disp_px, max_lat_deg, ref_uv, ref_n):
     """Twin of :func:`select_references` (float64, event by event): fills ref_uv / ref_n of the events of batches
     b0..b1-1 (batch b's events start at b * batch_size; selection pose sel_R[b - b0]) and updates ``state``."""
     rb_, lb_, lp_, cn_ = state["ref_b"], state["last_b"], state["last_p"], state["count"]
@@ -107,7 +114,8 @@ def select_references_numpy(hist, sel_R, b0, b1, batch_size, bearings, pix, pol,
                     (u0, u1), (v0, v1) = equirect_numpy(np.stack([x0, x1]), width, height)
                     du, dv = float(_wrap(u1 - u0, width)), v1 - v0
                     d2 = du * du + dv * dv
-                    if d2 > outlier_px ** 2:
+                    band = _v_band(height, max_lat_deg)
+                    if d2 > outlier_px ** 2 or abs(v0 - 0.5 * height) > band or abs(v1 - 0.5 * height) > band:
                         rb_[k], cn_[k] = b, 0
                     elif d2 >= min_disp_px ** 2:
                         ref_uv[e] = u0, v0
@@ -203,7 +211,7 @@ def _kernels(dtype):
     @ti.func
     def select_event(e, b, R_sel, hist: ti.template(), bearings: ti.template(), pix: ti.template(),
                      pol: ti.template(), ref_b: ti.template(), last_b: ti.template(), last_p: ti.template(),
-                     count: ti.template(), width, height, su, sv, outlier2, min2, ref_uv: ti.template(),
+                     count: ti.template(), width, height, su, sv, outlier2, min2, v_band, ref_uv: ti.template(),
                      ref_n: ti.template()):
         """Reference of event e (batch b) under the selection pose R_sel; updates the pixel's state."""
         k = pix[e]
@@ -224,7 +232,8 @@ def _kernels(dtype):
                 du = wrap(u1 - u0, width)
                 dv = v1 - v0
                 d2 = du * du + dv * dv
-                if d2 > outlier2:
+                half_h = ti.cast(0.5 * height, dtype)
+                if d2 > outlier2 or ti.abs(v0 - half_h) > v_band or ti.abs(v1 - half_h) > v_band:
                     ref_b[k] = b
                     count[k] = 0
                 elif d2 >= min2:
@@ -275,14 +284,14 @@ def _kernels(dtype):
                  pix: ti.types.ndarray(dtype=i32, ndim=1), pol: ti.types.ndarray(dtype=ti.i8, ndim=1),
                  ref_b: ti.types.ndarray(dtype=i32, ndim=1), last_b: ti.types.ndarray(dtype=i32, ndim=1),
                  last_p: ti.types.ndarray(dtype=ti.i8, ndim=1), count: ti.types.ndarray(dtype=i32, ndim=1),
-                 width: i32, height: i32, su: dtype, sv: dtype, outlier2: dtype, min2: dtype,
+                 width: i32, height: i32, su: dtype, sv: dtype, outlier2: dtype, min2: dtype, v_band: dtype,
                  ref_uv: ti.types.ndarray(dtype=dtype, ndim=2), ref_n: ti.types.ndarray(dtype=i32, ndim=1)):
         n = bearings.shape[0]
         ti.loop_config(serialize=True)
         for b in range(b0, b1):
             for e in range(b * batch_size, ti.min((b + 1) * batch_size, n)):
                 select_event(e, b, sel_R[b - b0], hist, bearings, pix, pol, ref_b, last_b, last_p, count, width,
-                             height, su, sv, outlier2, min2, ref_uv, ref_n)
+                             height, su, sv, outlier2, min2, v_band, ref_uv, ref_n)
 
     @ti.kernel
     def k_accumulate(R: ti.types.ndarray(dtype=mat3, ndim=1), bearings: ti.types.ndarray(dtype=vec3, ndim=1),
@@ -359,7 +368,7 @@ def _kernels(dtype):
                     ref_n: ti.types.ndarray(dtype=i32, ndim=1), grad: ti.types.ndarray(dtype=dtype, ndim=3),
                     cov: ti.types.ndarray(dtype=dtype, ndim=3), updates: ti.types.ndarray(dtype=ti.i32, ndim=2),
                     width: ti.i32, height: ti.i32, su: dtype, sv: dtype, contrast: dtype, sigma2: dtype,
-                    outlier2: dtype, min2: dtype, huber: dtype, q_rate: f64, q_min: f64, q_acc: f64,
+                    outlier2: dtype, min2: dtype, v_band: dtype, huber: dtype, q_rate: f64, q_min: f64, q_acc: f64,
                     iterations: ti.i32, state_R: ti.types.ndarray(dtype=mat3d, ndim=1),
                     state_w: ti.types.ndarray(dtype=vec3d, ndim=1), state_P: ti.types.ndarray(dtype=f64, ndim=3),
                     diag: ti.types.ndarray(dtype=f64, ndim=2)):
@@ -397,7 +406,7 @@ def _kernels(dtype):
             rp = ti.cast(R_pred, dtype)
             for e in range(b * batch_size, e_end):  # references, selected under the prediction
                 select_event(e, b, rp, hist, bearings, pix, pol, ref_b, last_b, last_p, count, width, height, su,
-                             sv, outlier2, min2, ref_uv, ref_n)
+                             sv, outlier2, min2, v_band, ref_uv, ref_n)
             for it in range(iterations):
                 rd = ti.cast(R, dtype)
                 hh = mat3d(0)
@@ -468,7 +477,8 @@ def _c(a, dtype):
 
 
 def select_references(hist, sel_R, b0: int, b1: int, batch_size: int, bearings, pix, pol, state: dict,
-                      width: int, height: int, outlier_px: float, min_disp_px: float, ref_uv, ref_n) -> None:
+                      width: int, height: int, outlier_px: float, min_disp_px: float, max_lat_deg: float, ref_uv,
+                      ref_n) -> None:
     """References of the events of batches b0..b1-1 (see module doc): batch b's events start at b * batch_size
     in ``bearings`` / ``pix`` / ``pol``, its selection pose is sel_R[b - b0], reference poses come from ``hist``
     (nb, 3, 3); fills ``ref_uv`` (n, 2) and ``ref_n`` (n,) int32 (0: no measurement) for those events and updates
@@ -480,7 +490,7 @@ def select_references(hist, sel_R, b0: int, b1: int, batch_size: int, bearings, 
         k(hist, _c(np.asarray(sel_R).reshape(-1, 3, 3), dtype), int(b0), int(b1), int(batch_size), bearings, pix,
           pol, state["ref_b"], state["last_b"], state["last_p"], state["count"], int(width), int(height),
           float(width / (2 * np.pi)), float(height / np.pi), float(outlier_px) ** 2, float(min_disp_px) ** 2,
-          ref_uv, ref_n)
+          _v_band(height, max_lat_deg), ref_uv, ref_n)
 
 
 def ekf_accumulate(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast: float, sigma: float,
@@ -520,8 +530,9 @@ def pf_loglik(particles, bearings, ref_uv, ref_n, pol, grad, cov, updates, contr
 
 
 def ekf_track(hist, hist64, mids, b0: int, b1: int, batch_size: int, bearings, pix, pol, state: dict, ref_uv, ref_n,
-              grad, cov, updates, contrast: float, sigma: float, outlier_px: float, min_disp_px: float, huber: float,
-              q_rate: float, q_min: float, q_acc: float, iterations: int, state_R, state_w, state_P) -> np.ndarray:
+              grad, cov, updates, contrast: float, sigma: float, outlier_px: float, min_disp_px: float,
+              max_lat_deg: float, huber: float, q_rate: float, q_min: float, q_acc: float, iterations: int, state_R,
+              state_w, state_P) -> np.ndarray:
     """EKF-SMT on batches b0..b1-1 in one launch (see module doc and ``ekf_track_numpy``).
 
     ``hist`` (nb, 3, 3) in the map dtype and ``hist64`` (float64) receive the poses; ``state`` (per-pixel
@@ -541,7 +552,8 @@ def ekf_track(hist, hist64, mids, b0: int, b1: int, batch_size: int, bearings, p
         k(hist, hist64, mids, int(b0), int(b1), int(batch_size), bearings, pix, pol, state["ref_b"],
           state["last_b"], state["last_p"], state["count"], ref_uv, ref_n, grad, cov, updates, int(w), int(h),
           float(w / (2 * np.pi)), float(h / np.pi), float(contrast), float(sigma) ** 2, float(outlier_px) ** 2,
-          float(min_disp_px) ** 2, float(huber), float(q_rate), float(q_min), float(q_acc), int(iterations),
+          float(min_disp_px) ** 2, _v_band(h, max_lat_deg), float(huber), float(q_rate), float(q_min), float(q_acc),
+          int(iterations),
           state_R, state_w, state_P, diag)
     return diag
 
@@ -559,8 +571,8 @@ def ekf_predict_numpy(R, w, P, dt, q_rate, q_min, q_acc):
 
 
 def ekf_track_numpy(hist, hist64, mids, b0, b1, batch_size, bearings, pix, pol, state, ref_uv, ref_n, grad, cov,
-                    updates, contrast, sigma, outlier_px, min_disp_px, huber, q_rate, q_min, q_acc, iterations,
-                    state_R, state_w, state_P):
+                    updates, contrast, sigma, outlier_px, min_disp_px, max_lat_deg, huber, q_rate, q_min, q_acc,
+                    iterations, state_R, state_w, state_P):
     """float64 twin of :func:`ekf_track` (same in/out arrays). The update is the iterated EKF (Gauss-Newton on
     prior + batch) for measurements of the pose only, x = P[:, :3] (I + Lam P_dd)^-1 (b + Lam d): equal to
     (P^-1 + E Lam E^T)^-1 (E b + E Lam d) with E = [I; 0] (tested), and defined when P is singular (the
@@ -577,7 +589,7 @@ def ekf_track_numpy(hist, hist64, mids, b0, b1, batch_size, bearings, pix, pol, 
         R, lam = R_pred, np.zeros((3, 3))
         e0, e1 = b * batch_size, min((b + 1) * batch_size, n)
         select_references_numpy(hist, R_pred[None], b, b + 1, batch_size, bearings, pix, pol, state, w, h,
-                                outlier_px, min_disp_px, ref_uv, ref_n)
+                                outlier_px, min_disp_px, max_lat_deg, ref_uv, ref_n)
         acc = np.zeros(N_ACC)
         for _ in range(iterations):
             acc = ekf_accumulate_numpy(R, bearings[e0:e1], ref_uv[e0:e1], ref_n[e0:e1], pol[e0:e1], grad, cov,

@@ -2,29 +2,48 @@
 and tracking with a particle-filter (PF-SMT) or an error-state EKF (EKF-SMT) tracker.
 
 Mapping: :class:`~ti_cmax.pipelines.mapping.GrayscaleMapper` (per-pixel EKF on the log-intensity gradient,
-outliers beyond 10 map px, 5 visits cap; Poisson M only for the output map). Tracking: events in batches of
-``batch_size`` sharing one pose R (world_from_camera). Each event's brightness increment since the previous event at
-its sensor pixel is predicted from the GRADIENT map, z_hat = g(p_mid) . dp (kernels/smt.py), and compared with
-p_k C. Why the gradient map and not a periodically refreshed Poisson M: it is what the mapping EKFs estimate (the
-same linearized model, Eq. 38, so tracker and mapper agree on the sign and scale of g), it is current after every
-map update (no Poisson solve, no refresh lag, no smoothing-in of unmapped areas), and it carries a covariance, so
-measurements on unmapped or unconverged pixels weigh little by themselves (S = sigma^2 + dp^T P_g dp). The cost
-is the linearization over |dp| <= 10 px, which the mapper assumes anyway.
+Eq. 38, outliers beyond 10 map px, 5 visits cap; Poisson M only for the output map), fed the tracked poses in
+chunks of ``map_update_events`` events, lagging the tracker (parallel tracking and mapping). Tracking: events
+in batches of ``batch_size`` sharing one pose R (world_from_camera); the brightness increment of a sensor pixel
+along its map segment is predicted from the GRADIENT map, z_hat = g(p_mid) . dp, and compared with p n C
+(kernels/smt.py). Bootstrap: for the first ``bootstrap_seconds`` the poses come from IMU dead reckoning (started
+at the ground-truth pose when it is known) or from ground truth when there is no IMU. C: App. B's values (0.2
+synthetic: the simulator's from simulation.json; 0.22 real).
 
-* EKF-SMT: state R, error d with R = exp(d) R_hat; random-walk prediction P += (sigma_w dt)^2 I; update with
-  Huber-weighted normal equations of the batch (iterated ``ekf_iterations`` times).
+Where this departs from App. B / [12], [57] and why (each measured on the simulated suite of ``ti-cmax
+benchmark`` with ground truth, 1024 x 512 map):
+
+* Gradient map instead of a refreshed Poisson M in the measurement: it is what the mapping EKFs estimate (same
+  sign and scale of g), current after every map update (no solve, no refresh lag, no smoothing-in of unmapped
+  areas), and it carries a covariance, so unmapped or unconverged pixels weigh little (S = n sigma^2 +
+  dp^T P_g dp).
+* Constant-velocity EKF (state R and camera-frame w, ``motion_model``), not a random walk on R. Each event
+  measures the motion since an earlier event of its pixel, relative to the pose estimated then: a random-walk
+  prior, which says "no motion since the last batch", shrinks every weakly observed velocity component toward
+  zero, and the relative measurements never undo the lag. Roll about the optical axis carries 6-10x less
+  information per batch than pan and tilt (measured), so its prior dominated: even on a map built from
+  ground-truth poses the random-walk EKF drifted in roll until it failed (DVS128 playroom at 2.34 s; with the
+  constant-velocity model 0.1-0.2 deg to the end). ``motion_model=random_walk`` keeps the original.
+* Reference segments of at least ``min_displacement_px`` (1 map px) instead of the previous event: the map
+  holds pixel-averaged gradients and events fire where the gradient is steep, so segments shorter than a pixel
+  had their increment under-predicted by 20-60 % (residuals at ground truth); the tracker reads that as a motion
+  scale error, and +-10 % of scale multiplied the drift by 5-10. The events of a short segment are summed
+  (n C), nothing is dropped.
+* No measurements beyond ``max_latitude_deg`` (70 deg): the equirectangular chart is singular at the poles; the
+  simulated trajectories that look up there (bicycle at 3.1 s, city at 4.1 s) lost track as the field of view
+  reached latitude 90.
+* Map gain: at the end of the bootstrap (known poses) the ratio k of the observed increments p n C to the
+  predicted g . dp is measured and C, sigma are divided by it (:func:`_calibrate_gain`; k = 1.05-1.3 on the
+  simulated sequences). The mapping EKF and the tracker read g differently (nearest pixel of each event's
+  midpoint vs bilinear along longer segments); without it EKF-SMT drifted several times faster.
+* The motion-consistency loss check below (the paper reports failures by inspection).
+
+* EKF-SMT: error-state EKF, update with Huber-weighted normal equations of the batch (iterated
+  ``ekf_iterations`` times), see kernels/smt.py.
 * PF-SMT: ``num_particles`` poses, random walk exp(n) R with n ~ N(0, (sigma_w dt)^2 I), weights times
   prod_k (N(r_k; 0, S_k) + floor), systematic resampling when the effective sample size drops below
-  ``pf_resample_ess`` N; estimate = weighted mean on SO(3); numpy Generator seeded by ``seed``.
-
-Map gain: at the end of the bootstrap (known poses) the ratio k of the observed increments p C to the predicted
-g . dp is measured and C, sigma are divided by it (see :func:`_calibrate_gain`; k ~ 1.2 on DAVIS240C data at
-1024 x 512). Without it EKF-SMT drifts several times faster on the simulated sequences.
-
-The tracker keeps its own per-sensor-pixel memory (index of the batch pose of the previous event), so the mapper
-can be updated in chunks of ``map_update_events`` events, lagging the tracker (as in a parallel tracking-and-mapping
-system). Bootstrapping: for the first ``bootstrap_seconds`` the poses come from IMU dead reckoning (started at the
-ground-truth pose when it is known) or from ground truth when there is no IMU.
+  ``pf_resample_ess`` N; estimate = weighted mean on SO(3); numpy Generator seeded by ``seed``; references
+  selected under the previous estimate.
 
 Tracking loss, judged over a sliding window of ``loss_window`` s once tracking started: too few measurements land
 on mapped pixels (map support), the predicted increments agree in sign with the polarities barely more often than
@@ -72,6 +91,7 @@ class SmtConfig:
     bootstrap_seconds: float = 0.5  # poses from IMU dead reckoning (or ground truth) at the start
     measurement_sigma: float = 0.1  # std of z = p C around the predicted increment (log intensity)
     min_displacement_px: float = 1.0  # map px: shortest reference segment (module doc; < 0.05: per event)
+    max_latitude_deg: float = 70.0  # no measurements beyond this latitude (the map's chart is singular at the poles)
     motion_model: str = "constant_velocity"  # EKF: "constant_velocity" (state R, w) or "random_walk" (R only)
     angular_acceleration_std: float = 20.0  # constant_velocity: w random walk, std per batch = this * sqrt(dt)
     pose_noise_std: float = 0.0  # rad/s: constant_velocity: extra pose step std per batch = this * dt
@@ -119,7 +139,7 @@ class SmtConfig:
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be positive, got {getattr(self, name)}")
         for name in ("bootstrap_seconds", "min_displacement_px", "loss_min_measurements", "gain_calibration_seconds",
-                     "consistency_interval", "pose_noise_std", "initial_velocity_std"):
+                     "consistency_interval", "pose_noise_std", "initial_velocity_std", "max_latitude_deg"):
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("pf_resample_ess", "loss_min_support", "loss_min_agreement", "consistency_min_ratio"):
@@ -200,12 +220,14 @@ class _Context:
     sigma: float  # measurement_sigma / map gain
     batch_size: int
     min_disp: float
+    max_lat: float
 
     def select(self, b0: int, b1: int, sel_R: np.ndarray) -> None:
         """References of batches b0..b1-1 under the selection poses sel_R (one per batch)."""
         m = self.mapper
         ks.select_references(self.hist, sel_R, b0, b1, self.batch_size, self.bearings, self.pix, self.pol, self.refs,
-                             m.width, m.height, m.config.outlier_distance_px, self.min_disp, self.ref_uv, self.ref_n)
+                             m.width, m.height, m.config.outlier_distance_px, self.min_disp, self.max_lat,
+                             self.ref_uv, self.ref_n)
 
     def measure_args(self, b: int):
         e0, e1 = b * self.batch_size, min((b + 1) * self.batch_size, len(self.pol))
@@ -240,7 +262,7 @@ class EkfTracker:
         c, m = self.cfg, ctx.mapper
         diag = ks.ekf_track(ctx.hist, ctx.hist64, ctx.mids, b0, b1, ctx.batch_size, ctx.bearings, ctx.pix, ctx.pol,
                             ctx.refs, ctx.ref_uv, ctx.ref_n, m.gradient, m.covariance, m.updates, ctx.contrast,
-                            ctx.sigma, m.config.outlier_distance_px, ctx.min_disp, c.huber, *self.q,
+                            ctx.sigma, m.config.outlier_distance_px, ctx.min_disp, ctx.max_lat, c.huber, *self.q,
                             c.ekf_iterations, self.state_R, self.state_w, self.state_P)
         diag[:, 3] = np.degrees(np.sqrt(np.maximum(diag[:, 3], 0.0)))
         return diag
@@ -420,11 +442,12 @@ def _warm_up(dtype) -> float:
     bb = np.repeat(b, 2, axis=0)
     pix, pol = np.zeros(2, np.int32), np.ones(2, np.int8)
     uv, cnt = np.zeros((2, 2), dtype), np.zeros(2, np.int32)
-    ks.select_references(hist, hist[:1], 0, 1, 2, bb, pix, pol, ks.new_reference_state(1), 4, 2, 10.0, 0.0, uv, cnt)
+    ks.select_references(hist, hist[:1], 0, 1, 2, bb, pix, pol, ks.new_reference_state(1), 4, 2, 10.0, 0.0, 90.0, uv,
+                         cnt)
     ks.ekf_accumulate(np.eye(3), b, uv[:1], cnt[:1], pol[:1], grad, cov, upd, 0.2, 0.1, 2.0)
     ks.pf_loglik(np.eye(3)[None], b, uv[:1], cnt[:1], pol[:1], grad, cov, upd, 0.2, 0.1, 0.05)
     ks.ekf_track(hist, hist.astype(np.float64), np.array([0.0, 1e-3]), 1, 2, 1, bb, pix, pol,
-                 ks.new_reference_state(1), uv, cnt, grad, cov, upd, 0.2, 0.1, 10.0, 0.0, 2.0, 1.0, 1e-4, 1.0, 1,
+                 ks.new_reference_state(1), uv, cnt, grad, cov, upd, 0.2, 0.1, 10.0, 0.0, 90.0, 2.0, 1.0, 1e-4, 1.0, 1,
                  np.eye(3)[None].copy(), np.zeros((1, 3)), np.eye(6)[None] * 1e-4)
     return time.perf_counter() - start
 
@@ -517,7 +540,7 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
             hist64[1:1 + nbb] = boot.at(mids[1:1 + nbb])
         hist = hist64.astype(dtype)
         ctx = _Context(bearings, pix, pol, refs, np.zeros((bs + n, 2), dtype), np.zeros(bs + n, np.int32), mids,
-                       hist, hist64, mapper, c_eff, sigma_eff, bs, cfg.min_displacement_px)
+                       hist, hist64, mapper, c_eff, sigma_eff, bs, cfg.min_displacement_px, cfg.max_latitude_deg)
         mapped = 1  # local batches already given to the mapper
 
         def feed_mapper(upto: int):

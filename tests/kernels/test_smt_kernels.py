@@ -44,7 +44,7 @@ def _selected(s, dtype, impl="taichi", b1=None):
     uv, cnt = np.zeros((n, 2), dtype), np.zeros(n, np.int32)
     hist = np.ascontiguousarray(s["hist"], dtype)
     args = (hist, hist[1:b1], 1, b1, BS, np.ascontiguousarray(s["bearings"], dtype), s["pix"], s["pol"], state, W, H,
-            OUTLIER, MIN_DISP, uv, cnt)
+            OUTLIER, MIN_DISP, 90.0, uv, cnt)
     (ks.select_references_numpy if impl == "numpy" else ks.select_references)(*args)
     return uv, cnt, state
 
@@ -79,13 +79,18 @@ def test_selection_rules(ti_runtime):
     state = ks.new_reference_state(48)
     uv, cnt = np.zeros((nb, 2)), np.zeros(nb, np.int32)
     ks.select_references_numpy(hist, hist[1:], 1, nb, 1, np.repeat(b, nb, 0), pix, pol, state, W, H, OUTLIER, 1.0,
-                               uv, cnt)
+                               90.0, uv, cnt)
     # batch 1: first event (reference); 2: 0.4 px, 3: 0.8 px (accumulate); 4: 1.2 px -> n = 3, reference := 4;
     # 5, 6: accumulate; 7: polarity change -> reference := 6, 0.4 px; 8: 16.4 px -> outlier, reference := 8
     np.testing.assert_array_equal(cnt, [0, 0, 0, 0, 3, 0, 0, 0, 0])
     assert state["ref_b"][20] == 8 and state["count"][20] == 0 and state["last_p"][20] == -1
     ref_u = ks.equirect_numpy((hist[1] @ b[0])[None], W, H)[0][0]
     assert abs(uv[4, 0] - ref_u) < 1e-9
+    # the pixel looks 0.63 deg off the equator: with a 0.5 deg latitude band nothing is measured
+    cnt[:] = 0
+    ks.select_references_numpy(hist, hist[1:], 1, nb, 1, np.repeat(b, nb, 0), pix, pol, ks.new_reference_state(48), W,
+                               H, OUTLIER, 1.0, 0.5, uv, cnt)
+    assert not cnt.any()
 
 
 def _batch_args(s, dtype, b):
@@ -171,7 +176,7 @@ def test_ekf_track_matches_numpy(ti_runtime, scene, dtype):
         diag = fn(h if impl == "taichi" else h64, h64, np.arange(nb) * 1e-3, b_track, nb, BS,
                   np.ascontiguousarray(scene["bearings"], dt_), scene["pix"], scene["pol"], state, uv, cnt,
                   scene["grad"].astype(dt_), scene["cov"].astype(dt_), scene["updates"], C, SIGMA, OUTLIER, MIN_DISP,
-                  HUBER, 0.0, 0.0, 20.0, 2, sR, sw, sP)
+                  90.0, HUBER, 0.0, 0.0, 20.0, 2, sR, sw, sP)
         out[impl] = (h64[b_track:].copy(), diag, sP[0].copy(), sw[0].copy())
     tol = 1e-9 if dtype == np.float64 else 2e-4
     assert np.all(so3.geodesic_angle(out["numpy"][0], out["taichi"][0]) < tol)
