@@ -1,28 +1,48 @@
 """SMT trackers' hot loops (paper Sec. II-A, App. B), Taichi + numpy twins.
 
-Measurement of event k (Eq. 1, linearized on the mapping EKFs' gradient map, same sign convention as
-kernels/mapping.py): the map point of its sensor pixel moved from p_prev (previous event at that pixel, under the
-pose estimated then) to p = p(R b_k); the brightness increment is predicted as
+Measurement (Eq. 1, linearized on the mapping EKFs' gradient map, same sign convention as kernels/mapping.py).
+Each sensor pixel keeps a REFERENCE event: an earlier event of that pixel whose map point p_ref = p(R_ref b)
+(under the pose estimated for its batch) is remembered. A new event k at the pixel, whose map point under the
+pose being estimated is p = p(R b_k), measures the brightness change along the segment p_ref -> p:
 
-    z_hat = g(p_mid) . dp,   dp = p - p_prev (longitude wrapped),   p_mid = p_prev + dp / 2,
+    z = p_k n C,   z_hat = g(p_mid) . dp,   dp = p - p_ref (longitude wrapped),   p_mid = p_ref + dp / 2,
 
-with g (and its 2x2 covariance P_g) bilinearly interpolated at p_mid, and compared with z = p_k C. Residual
-r = p_k C - z_hat, variance S = sigma^2 + dp^T P_g dp (unmapped pixels keep the prior covariance, so they weigh
-little by themselves). Measurements with |dp| above ``outlier_px`` or below ``min_disp_px`` are skipped, as in the
-mapping EKF.
+n being the number of events of the pixel since the reference (the current one included; all of one polarity).
+Reference selection (:func:`select_references`, decided once per batch under a selection pose: the prediction):
+the segment becomes a measurement once |dp| >= ``min_disp_px`` (and the event becomes the new reference);
+shorter segments accumulate (n grows); a polarity change restarts the segment at the previous event (an
+extremum of M lies between them: the linear model cannot describe it); |dp| > ``outlier_px`` or a reference
+in the same batch (same pose: no displacement) restarts it at the current event without a measurement, and so
+does a segment with an end beyond ``max_lat_deg`` of latitude: the equirectangular chart is singular at the poles
+(u stretches by 1 / cos(lat)), where map-pixel segments, gradients and their linearization are meaningless. With
+``min_disp_px`` below the map resolution this is the per-event model of [12] (previous event at the pixel).
+Why a minimum segment of about one map pixel: the map holds pixel-averaged gradients; a shorter segment
+samples the gradient below the map's resolution and, since events fire where the gradient is steep, its
+increment is under-predicted (by 20-60 % below half a map pixel, measured at 1024 x 512 with ground-truth poses),
+a motion-scale error that the tracker integrates into drift.
+
+g (and its 2x2 covariance P_g) is bilinearly interpolated at p_mid. Residual r = z - z_hat, variance
+S = n sigma^2 + dp^T P_g dp (n independent per-event errors; unmapped pixels keep the prior covariance, so
+they weigh little by themselves).
 
 Left perturbation R <- exp(d) R (world frame, as the back-end): d z_hat / d d = (X' x g_X)^T with X' = R b,
 g_X = e_u du/dX' + e_v dv/dX' and e = d z_hat / d p = g(p_mid) + (1/2) (d g / d p_mid)^T dp (the bilinear map's
 slope included: it is what ties the pose to the map rather than only to the previous poses).
 
-* :func:`project_prev` -- p_prev of each event from a pose history (the tracker's per-pixel memory stores the
-  index of the pose of the previous event).
+* :func:`select_references` -- per batch, the reference (u, v, n) of each event and the per-pixel state update.
 * :func:`ekf_accumulate` -- one pose: Huber-weighted normal equations H^T W H (6 values), H^T W r (3) and
   diagnostics, summed over a batch (serialized loop: reproducible).
 * :func:`pf_loglik` -- many poses (particles): sum over the batch of log(N(r; 0, S) + floor) (parallel over
   particles, serial over events: reproducible).
+* :func:`ekf_track` -- EKF-SMT over many batches in one launch (selection included). State: pose R (error d,
+  R = exp(d) R_hat) and camera-frame angular velocity w (error dw), 6x6 covariance. Prediction R <- R exp(w dt),
+  F = [[I, R dt], [0, I]], noise max(q_rate dt, q_min)^2 on d and q_acc^2 dt on w; the batch measures only the
+  pose, so the iterated update x = P[:, d] (I + Lam P_dd)^-1 (b + Lam d_j) needs one 3x3 inverse
+  (Lam = H^T W H, b = H^T W r of the batch).
 
-Every kernel has a float64 numpy twin (``*_numpy``). f32 uses the polynomial atan2 of kernels/pano.
+Per-pixel state (``new_reference_state``): ref_b (batch of the reference's pose, -1: none), last_b and last_p
+(batch and polarity of the pixel's last event), count (events since the reference). Every kernel has a float64
+numpy twin (``*_numpy``). f32 uses the polynomial atan2 of kernels/pano.
 """
 
 import functools
@@ -37,9 +57,15 @@ from .so3 import so3_funcs as _so3_funcs
 
 # slots of the ekf_accumulate output
 ACC = ("h00", "h01", "h02", "h11", "h12", "h22", "b0", "b1", "b2",
-       "valid", "supported", "agree", "nis", "chi2", "ppred", "pred2")
+       "valid", "supported", "agree", "nis", "chi2", "ppred", "count")
 N_ACC = len(ACC)
 _SQRT_2PI = float(np.sqrt(2.0 * np.pi))
+
+
+def new_reference_state(num_pixels: int) -> dict:
+    """Per-sensor-pixel reference memory (see module doc): no reference yet anywhere."""
+    return {"ref_b": np.full(num_pixels, -1, np.int32), "last_b": np.full(num_pixels, -1, np.int32),
+            "last_p": np.zeros(num_pixels, np.int8), "count": np.zeros(num_pixels, np.int32)}
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -56,26 +82,68 @@ def _project_jacobian_numpy(xw, width, height):
     return du, dv
 
 
-def _measure_numpy(R, bearings, prev_uv, valid, pol, grad, cov, updates, contrast, sigma2, outlier_px,
-                   min_disp_px):
+def _v_band(height, max_lat_deg):
+    """Largest |v - h/2| (map rows) of a map point within max_lat_deg of the equator."""
+    return 0.5 * height * min(float(max_lat_deg), 90.0) / 90.0
+
+
+def _wrap(du, width):
+    return np.where(du > 0.5 * width, du - width, np.where(du <= -0.5 * width, du + width, du))
+
+
+def select_references_numpy(hist, sel_R, b0, b1, batch_size, bearings, pix, pol, state, width, height,
+                            outlier_px, min_disp_px, max_lat_deg, ref_uv, ref_n):
+    """Twin of :func:`select_references` (float64, event by event): fills ref_uv / ref_n of the events of batches
+    b0..b1-1 (batch b's events start at b * batch_size; selection pose sel_R[b - b0]) and updates ``state``."""
+    rb_, lb_, lp_, cn_ = state["ref_b"], state["last_b"], state["last_p"], state["count"]
+    n = len(pol)
+    for b in range(b0, b1):
+        for e in range(b * batch_size, min((b + 1) * batch_size, n)):
+            k, p = pix[e], int(pol[e])
+            ref_n[e] = 0
+            if rb_[k] < 0:
+                rb_[k], cn_[k] = b, 0
+            else:
+                if p != lp_[k] and lb_[k] != rb_[k]:  # polarity change: restart at the previous event
+                    rb_[k], cn_[k] = lb_[k], 0
+                if rb_[k] == b:
+                    cn_[k] += 1
+                else:
+                    x0 = np.asarray(hist[rb_[k]], np.float64) @ np.asarray(bearings[e], np.float64)
+                    x1 = np.asarray(sel_R[b - b0], np.float64) @ np.asarray(bearings[e], np.float64)
+                    (u0, u1), (v0, v1) = equirect_numpy(np.stack([x0, x1]), width, height)
+                    du, dv = float(_wrap(u1 - u0, width)), v1 - v0
+                    d2 = du * du + dv * dv
+                    band = _v_band(height, max_lat_deg)
+                    if d2 > outlier_px ** 2 or abs(v0 - 0.5 * height) > band or abs(v1 - 0.5 * height) > band:
+                        rb_[k], cn_[k] = b, 0
+                    elif d2 >= min_disp_px ** 2:
+                        ref_uv[e] = u0, v0
+                        ref_n[e] = cn_[k] + 1
+                        rb_[k], cn_[k] = b, 0
+                    else:
+                        cn_[k] += 1
+            lb_[k], lp_[k] = b, p
+
+
+def _measure_numpy(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast, sigma2):
     """Per-event (ok, r, S, H (n, 3), pred, support) for one pose R (float64)."""
     h, w = updates.shape
     xw = np.asarray(bearings, np.float64) @ np.asarray(R, np.float64).T
     u, v = equirect_numpy(xw, w, h)
-    du = u - prev_uv[:, 0]
-    dv = v - prev_uv[:, 1]
-    du = np.where(du > 0.5 * w, du - w, np.where(du <= -0.5 * w, du + w, du))
-    d2 = du * du + dv * dv
-    ok = (np.asarray(valid) != 0) & (d2 <= outlier_px ** 2) & (d2 >= min_disp_px ** 2)
-    mu = prev_uv[:, 0] + 0.5 * du
-    mv = prev_uv[:, 1] + 0.5 * dv
+    du = _wrap(u - ref_uv[:, 0], w)
+    dv = v - ref_uv[:, 1]
+    cnt = np.asarray(ref_n, np.float64)
+    ok = cnt > 0
+    mu = ref_uv[:, 0] + 0.5 * du
+    mv = ref_uv[:, 1] + 0.5 * dv
     # g, P and the mapped weight bilinear at (mu, mv) (longitude wrapped, rows outside the map contribute nothing)
     g, gdu, gdv = bilinear.sample_numpy(grad, mu, mv, wrap_u=True)
     P = bilinear.sample_numpy(cov, mu, mv, wrap_u=True)[0]
     sup = bilinear.sample_numpy(updates > 0, mu, mv, wrap_u=True)[0]
     pred = g[:, 0] * du + g[:, 1] * dv
-    S = sigma2 + du * du * P[:, 0] + 2 * du * dv * P[:, 1] + dv * dv * P[:, 2]
-    r = np.asarray(pol, np.float64) * contrast - pred
+    S = sigma2 * np.maximum(cnt, 1.0) + du * du * P[:, 0] + 2 * du * dv * P[:, 1] + dv * dv * P[:, 2]
+    r = np.asarray(pol, np.float64) * cnt * contrast - pred
     jdu, jdv = _project_jacobian_numpy(xw, w, h)
     # d z_hat / d p = g(p_mid) + (1/2) (d g / d p_mid)^T dp  (p_mid moves by half of p)
     eu = g[:, 0] + 0.5 * (du * gdu[:, 0] + dv * gdu[:, 1])
@@ -85,22 +153,10 @@ def _measure_numpy(R, bearings, prev_uv, valid, pol, grad, cov, updates, contras
     return ok, r, S, H, pred, sup
 
 
-def project_prev_numpy(poses, prev_idx, bearings, width, height):
-    """(n, 2) map point of each event's bearing under poses[prev_idx] (NaN where prev_idx < 0)."""
-    idx = np.asarray(prev_idx, np.int64)
-    out = np.full((len(idx), 2), np.nan)
-    ok = idx >= 0
-    if ok.any():
-        xw = np.einsum("nij,nj->ni", np.asarray(poses, np.float64)[idx[ok]], np.asarray(bearings, np.float64)[ok])
-        out[ok, 0], out[ok, 1] = equirect_numpy(xw, width, height)
-    return out
-
-
-def ekf_accumulate_numpy(R, bearings, prev_uv, valid, pol, grad, cov, updates, contrast, sigma, outlier_px,
-                         min_disp_px, huber):
+def ekf_accumulate_numpy(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast, sigma, huber):
     """Twin of :func:`ekf_accumulate` (float64): returns the N_ACC sums."""
-    ok, r, S, H, pred, sup = _measure_numpy(R, bearings, prev_uv, valid, pol, grad, cov, updates, contrast,
-                                            sigma * sigma, outlier_px, min_disp_px)
+    ok, r, S, H, pred, sup = _measure_numpy(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast,
+                                            sigma * sigma)
     out = np.zeros(N_ACC)
     nr = np.abs(r) / np.sqrt(S)
     wt = np.where(nr <= huber, 1.0, huber / np.maximum(nr, 1e-300)) / S
@@ -110,23 +166,23 @@ def ekf_accumulate_numpy(R, bearings, prev_uv, valid, pol, grad, cov, updates, c
     out[0:6] = hh[0, 0], hh[0, 1], hh[0, 2], hh[1, 1], hh[1, 2], hh[2, 2]
     out[6:9] = hw.T @ r
     supported = ok & (sup >= 0.5)
+    pp = pred * np.asarray(pol, np.float64)
     out[9] = ok.sum()
     out[10] = supported.sum()
-    out[11] = (supported & (pred * np.asarray(pol, np.float64) > 0)).sum()
+    out[11] = (supported & (pp > 0)).sum()
     out[12] = np.sum(np.where(supported, r * r / S, 0.0))
     out[13] = np.sum(np.where(ok, np.minimum(nr, huber) ** 2, 0.0))
-    out[14] = np.sum(np.where(supported, pred * np.asarray(pol, np.float64), 0.0))
-    out[15] = np.sum(np.where(supported, pred * pred, 0.0))
+    out[14] = np.sum(np.where(supported, pp, 0.0))
+    out[15] = np.sum(np.where(supported, np.asarray(ref_n, np.float64), 0.0))
     return out
 
 
-def pf_loglik_numpy(particles, bearings, prev_uv, valid, pol, grad, cov, updates, contrast, sigma, outlier_px,
-                    min_disp_px, floor):
+def pf_loglik_numpy(particles, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast, sigma, floor):
     """Twin of :func:`pf_loglik`: (N,) sum over events of log(N(r; 0, S) + floor) per particle (float64)."""
     out = np.zeros(len(particles))
     for i, R in enumerate(np.asarray(particles, np.float64)):
-        ok, r, S, _, _, _ = _measure_numpy(R, bearings, prev_uv, valid, pol, grad, cov, updates, contrast,
-                                           sigma * sigma, outlier_px, min_disp_px)
+        ok, r, S, _, _, _ = _measure_numpy(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast,
+                                           sigma * sigma)
         dens = np.exp(-0.5 * r * r / S) / (_SQRT_2PI * np.sqrt(S))
         out[i] = np.sum(np.where(ok, np.log(dens + floor), 0.0))
     return out
@@ -141,127 +197,160 @@ def _kernels(dtype):
     bl = bilinear_funcs(dtype)
     vec3 = ti.types.vector(3, dtype)
     mat3 = ti.types.matrix(3, 3, dtype)
+    i32 = ti.i32
 
     @ti.func
-    def measure(R, b, u0, v0, pol, grad: ti.template(), cov: ti.template(), updates: ti.template(),
-                width, height, su, sv, contrast, sigma2, outlier2, min2):
-        """(ok, r, S, H, pred, support) of one event under pose R (see module doc)."""
-        x = R @ b
-        pu, pv = project(x, width, height, su, sv)
+    def wrap(du, width):
         wf = ti.cast(width, dtype)
-        du = pu - u0
-        dv = pv - v0
         if du > ti.cast(0.5, dtype) * wf:
             du -= wf
         elif du <= -ti.cast(0.5, dtype) * wf:
             du += wf
-        d2 = du * du + dv * dv
-        ok = 0
-        r = ti.cast(0.0, dtype)
-        S = ti.cast(1.0, dtype)
-        H = vec3(0, 0, 0)
-        pred = ti.cast(0.0, dtype)
-        sup = ti.cast(0.0, dtype)
-        if d2 <= outlier2 and d2 >= min2:
-            ok = 1
-            mu = u0 + ti.cast(0.5, dtype) * du
-            mv = v0 + ti.cast(0.5, dtype) * dv
-            i0, j0, fu, fv = bl.split(mu, mv)
-            ia, ib = bl.wrap_cols(i0, width)  # mu in (-w/2, 3w/2)
-            gu, gu_u, gu_v = bl.interp(bl.gather(grad, 0, height, j0, ia, ib, 1, 1, 0), fu, fv)  # g_u, d/du, d/dv
-            gv, gv_u, gv_v = bl.interp(bl.gather(grad, 0, height, j0, ia, ib, 1, 1, 1), fu, fv)
-            p00, _, _ = bl.interp(bl.gather(cov, 0, height, j0, ia, ib, 1, 1, 0), fu, fv)
-            p01, _, _ = bl.interp(bl.gather(cov, 0, height, j0, ia, ib, 1, 1, 1), fu, fv)
-            p11, _, _ = bl.interp(bl.gather(cov, 0, height, j0, ia, ib, 1, 1, 2), fu, fv)
-            mapped = ti.cast(bl.gather(updates, 0, height, j0, ia, ib, 1, 1, -1) > 0, dtype)
-            sup, _, _ = bl.interp(mapped, fu, fv)
-            pred = gu * du + gv * dv
-            S = sigma2 + du * du * p00 + ti.cast(2.0, dtype) * du * dv * p01 + dv * dv * p11
-            r = ti.cast(pol, dtype) * contrast - pred
-            jdu, jdv = project_jacobian(x, su, sv)
-            eu = gu + ti.cast(0.5, dtype) * (du * gu_u + dv * gv_u)
-            ev = gv + ti.cast(0.5, dtype) * (du * gu_v + dv * gv_v)
-            gx = eu * jdu + ev * jdv
-            H = x.cross(gx)
-        return ok, r, S, H, pred, sup
+        return du
+
+    @ti.func
+    def select_event(e, b, R_sel, hist: ti.template(), bearings: ti.template(), pix: ti.template(),
+                     pol: ti.template(), ref_b: ti.template(), last_b: ti.template(), last_p: ti.template(),
+                     count: ti.template(), width, height, su, sv, outlier2, min2, v_band, ref_uv: ti.template(),
+                     ref_n: ti.template()):
+        """Reference of event e (batch b) under the selection pose R_sel; updates the pixel's state."""
+        k = pix[e]
+        p = ti.cast(pol[e], i32)
+        ref_n[e] = 0
+        if ref_b[k] < 0:
+            ref_b[k] = b
+            count[k] = 0
+        else:
+            if p != ti.cast(last_p[k], i32) and last_b[k] != ref_b[k]:
+                ref_b[k] = last_b[k]
+                count[k] = 0
+            if ref_b[k] == b:
+                count[k] += 1
+            else:
+                u0, v0 = project(hist[ref_b[k]] @ bearings[e], width, height, su, sv)
+                u1, v1 = project(R_sel @ bearings[e], width, height, su, sv)
+                du = wrap(u1 - u0, width)
+                dv = v1 - v0
+                d2 = du * du + dv * dv
+                half_h = ti.cast(0.5 * height, dtype)
+                if d2 > outlier2 or ti.abs(v0 - half_h) > v_band or ti.abs(v1 - half_h) > v_band:
+                    ref_b[k] = b
+                    count[k] = 0
+                elif d2 >= min2:
+                    ref_uv[e, 0] = u0
+                    ref_uv[e, 1] = v0
+                    ref_n[e] = count[k] + 1
+                    ref_b[k] = b
+                    count[k] = 0
+                else:
+                    count[k] += 1
+        last_b[k] = b
+        last_p[k] = pol[e]
+
+    @ti.func
+    def measure(R, b, u0, v0, cnt, pol, grad: ti.template(), cov: ti.template(), updates: ti.template(),
+                width, height, su, sv, contrast, sigma2):
+        """(r, S, H, pred, support) of one event with a reference (u0, v0) n = cnt events back (module doc)."""
+        x = R @ b
+        pu, pv = project(x, width, height, su, sv)
+        du = wrap(pu - u0, width)
+        dv = pv - v0
+        mu = u0 + ti.cast(0.5, dtype) * du
+        mv = v0 + ti.cast(0.5, dtype) * dv
+        i0, j0, fu, fv = bl.split(mu, mv)
+        ia, ib = bl.wrap_cols(i0, width)  # mu in (-w/2, 3w/2)
+        gu, gu_u, gu_v = bl.interp(bl.gather(grad, 0, height, j0, ia, ib, 1, 1, 0), fu, fv)  # g_u, d/du, d/dv
+        gv, gv_u, gv_v = bl.interp(bl.gather(grad, 0, height, j0, ia, ib, 1, 1, 1), fu, fv)
+        p00, _, _ = bl.interp(bl.gather(cov, 0, height, j0, ia, ib, 1, 1, 0), fu, fv)
+        p01, _, _ = bl.interp(bl.gather(cov, 0, height, j0, ia, ib, 1, 1, 1), fu, fv)
+        p11, _, _ = bl.interp(bl.gather(cov, 0, height, j0, ia, ib, 1, 1, 2), fu, fv)
+        mapped = ti.cast(bl.gather(updates, 0, height, j0, ia, ib, 1, 1, -1) > 0, dtype)
+        sup, _, _ = bl.interp(mapped, fu, fv)
+        pred = gu * du + gv * dv
+        nf = ti.cast(cnt, dtype)
+        S = sigma2 * nf + du * du * p00 + ti.cast(2.0, dtype) * du * dv * p01 + dv * dv * p11
+        z = ti.cast(pol, dtype) * nf * contrast
+        r = z - pred
+        jdu, jdv = project_jacobian(x, su, sv)
+        eu = gu + ti.cast(0.5, dtype) * (du * gu_u + dv * gv_u)
+        ev = gv + ti.cast(0.5, dtype) * (du * gu_v + dv * gv_v)
+        gx = eu * jdu + ev * jdv
+        H = x.cross(gx)
+        return r, S, H, pred * ti.cast(pol, dtype), sup
 
     @ti.kernel
-    def k_project_prev(poses: ti.types.ndarray(dtype=mat3, ndim=1),
-                       prev_idx: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                       bearings: ti.types.ndarray(dtype=vec3, ndim=1), width: ti.i32, height: ti.i32, su: dtype,
-                       sv: dtype, out: ti.types.ndarray(dtype=dtype, ndim=2)):
-        for e in range(bearings.shape[0]):
-            k = prev_idx[e]
-            if k >= 0:
-                pu, pv = project(poses[k] @ bearings[e], width, height, su, sv)
-                out[e, 0] = pu
-                out[e, 1] = pv
-            else:
-                out[e, 0] = ti.cast(0.0, dtype)
-                out[e, 1] = ti.cast(0.0, dtype)
+    def k_select(hist: ti.types.ndarray(dtype=mat3, ndim=1), sel_R: ti.types.ndarray(dtype=mat3, ndim=1),
+                 b0: i32, b1: i32, batch_size: i32, bearings: ti.types.ndarray(dtype=vec3, ndim=1),
+                 pix: ti.types.ndarray(dtype=i32, ndim=1), pol: ti.types.ndarray(dtype=ti.i8, ndim=1),
+                 ref_b: ti.types.ndarray(dtype=i32, ndim=1), last_b: ti.types.ndarray(dtype=i32, ndim=1),
+                 last_p: ti.types.ndarray(dtype=ti.i8, ndim=1), count: ti.types.ndarray(dtype=i32, ndim=1),
+                 width: i32, height: i32, su: dtype, sv: dtype, outlier2: dtype, min2: dtype, v_band: dtype,
+                 ref_uv: ti.types.ndarray(dtype=dtype, ndim=2), ref_n: ti.types.ndarray(dtype=i32, ndim=1)):
+        n = bearings.shape[0]
+        ti.loop_config(serialize=True)
+        for b in range(b0, b1):
+            for e in range(b * batch_size, ti.min((b + 1) * batch_size, n)):
+                select_event(e, b, sel_R[b - b0], hist, bearings, pix, pol, ref_b, last_b, last_p, count, width,
+                             height, su, sv, outlier2, min2, v_band, ref_uv, ref_n)
 
     @ti.kernel
     def k_accumulate(R: ti.types.ndarray(dtype=mat3, ndim=1), bearings: ti.types.ndarray(dtype=vec3, ndim=1),
-                     prev_uv: ti.types.ndarray(dtype=dtype, ndim=2), valid: ti.types.ndarray(dtype=ti.i8, ndim=1),
+                     ref_uv: ti.types.ndarray(dtype=dtype, ndim=2), ref_n: ti.types.ndarray(dtype=i32, ndim=1),
                      pol: ti.types.ndarray(dtype=ti.i8, ndim=1), grad: ti.types.ndarray(dtype=dtype, ndim=3),
-                     cov: ti.types.ndarray(dtype=dtype, ndim=3), updates: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                     width: ti.i32, height: ti.i32, su: dtype, sv: dtype, contrast: dtype, sigma2: dtype,
-                     outlier2: dtype, min2: dtype, huber: dtype, out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+                     cov: ti.types.ndarray(dtype=dtype, ndim=3), updates: ti.types.ndarray(dtype=i32, ndim=2),
+                     width: i32, height: i32, su: dtype, sv: dtype, contrast: dtype, sigma2: dtype,
+                     huber: dtype, out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
         rot = R[0]
         ti.loop_config(serialize=True)
         for e in range(bearings.shape[0]):
-            if valid[e] != 0:
-                ok, r, S, H, pred, sup = measure(rot, bearings[e], prev_uv[e, 0], prev_uv[e, 1], pol[e], grad, cov,
-                                                 updates, width, height, su, sv, contrast, sigma2, outlier2, min2)
-                if ok == 1:
-                    nr = ti.abs(r) / ti.sqrt(S)
-                    wt = ti.cast(1.0, dtype) / S
-                    if nr > huber:
-                        wt *= huber / nr
-                    h0 = ti.cast(H[0], ti.f64)
-                    h1 = ti.cast(H[1], ti.f64)
-                    h2 = ti.cast(H[2], ti.f64)
-                    w64 = ti.cast(wt, ti.f64)
-                    r64 = ti.cast(r, ti.f64)
-                    out[0] += w64 * h0 * h0
-                    out[1] += w64 * h0 * h1
-                    out[2] += w64 * h0 * h2
-                    out[3] += w64 * h1 * h1
-                    out[4] += w64 * h1 * h2
-                    out[5] += w64 * h2 * h2
-                    out[6] += w64 * h0 * r64
-                    out[7] += w64 * h1 * r64
-                    out[8] += w64 * h2 * r64
-                    out[9] += 1.0
-                    out[13] += ti.cast(ti.min(nr, huber) ** 2, ti.f64)
-                    if sup >= 0.5:
-                        out[10] += 1.0
-                        out[12] += ti.cast(r * r / S, ti.f64)
-                        out[14] += ti.cast(pred * ti.cast(pol[e], dtype), ti.f64)
-                        out[15] += ti.cast(pred * pred, ti.f64)
-                        if pred * ti.cast(pol[e], dtype) > 0:
-                            out[11] += 1.0
+            if ref_n[e] > 0:
+                r, S, H, agree, sup = measure(rot, bearings[e], ref_uv[e, 0], ref_uv[e, 1], ref_n[e], pol[e], grad,
+                                              cov, updates, width, height, su, sv, contrast, sigma2)
+                nr = ti.abs(r) / ti.sqrt(S)
+                wt = ti.cast(1.0, dtype) / S
+                if nr > huber:
+                    wt *= huber / nr
+                h0 = ti.cast(H[0], ti.f64)
+                h1 = ti.cast(H[1], ti.f64)
+                h2 = ti.cast(H[2], ti.f64)
+                w64 = ti.cast(wt, ti.f64)
+                r64 = ti.cast(r, ti.f64)
+                out[0] += w64 * h0 * h0
+                out[1] += w64 * h0 * h1
+                out[2] += w64 * h0 * h2
+                out[3] += w64 * h1 * h1
+                out[4] += w64 * h1 * h2
+                out[5] += w64 * h2 * h2
+                out[6] += w64 * h0 * r64
+                out[7] += w64 * h1 * r64
+                out[8] += w64 * h2 * r64
+                out[9] += 1.0
+                out[13] += ti.cast(ti.min(nr, huber) ** 2, ti.f64)
+                if sup >= 0.5:
+                    out[10] += 1.0
+                    out[12] += ti.cast(r * r / S, ti.f64)
+                    out[14] += ti.cast(agree, ti.f64)
+                    out[15] += ti.cast(ref_n[e], ti.f64)
+                    if agree > 0:
+                        out[11] += 1.0
 
     @ti.kernel
     def k_loglik(particles: ti.types.ndarray(dtype=mat3, ndim=1), bearings: ti.types.ndarray(dtype=vec3, ndim=1),
-                 prev_uv: ti.types.ndarray(dtype=dtype, ndim=2), valid: ti.types.ndarray(dtype=ti.i8, ndim=1),
+                 ref_uv: ti.types.ndarray(dtype=dtype, ndim=2), ref_n: ti.types.ndarray(dtype=i32, ndim=1),
                  pol: ti.types.ndarray(dtype=ti.i8, ndim=1), grad: ti.types.ndarray(dtype=dtype, ndim=3),
-                 cov: ti.types.ndarray(dtype=dtype, ndim=3), updates: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                 width: ti.i32, height: ti.i32, su: dtype, sv: dtype, contrast: dtype, sigma2: dtype,
-                 outlier2: dtype, min2: dtype, floor: dtype, inv_sqrt_2pi: dtype,
-                 out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+                 cov: ti.types.ndarray(dtype=dtype, ndim=3), updates: ti.types.ndarray(dtype=i32, ndim=2),
+                 width: i32, height: i32, su: dtype, sv: dtype, contrast: dtype, sigma2: dtype,
+                 floor: dtype, inv_sqrt_2pi: dtype, out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
         ti.loop_config(block_dim=4)  # few, heavy iterations: spread them over the threads
         for i in range(particles.shape[0]):
             rot = particles[i]
             acc = ti.cast(0.0, ti.f64)
             for e in range(bearings.shape[0]):
-                if valid[e] != 0:
-                    ok, r, S, H, pred, sup = measure(rot, bearings[e], prev_uv[e, 0], prev_uv[e, 1], pol[e], grad,
-                                                     cov, updates, width, height, su, sv, contrast, sigma2,
-                                                     outlier2, min2)
-                    if ok == 1:
-                        dens = ti.exp(-ti.cast(0.5, dtype) * r * r / S) * inv_sqrt_2pi / ti.sqrt(S)
-                        acc += ti.cast(ti.log(dens + floor), ti.f64)
+                if ref_n[e] > 0:
+                    r, S, H, agree, sup = measure(rot, bearings[e], ref_uv[e, 0], ref_uv[e, 1], ref_n[e], pol[e],
+                                                  grad, cov, updates, width, height, su, sv, contrast, sigma2)
+                    dens = ti.exp(-ti.cast(0.5, dtype) * r * r / S) * inv_sqrt_2pi / ti.sqrt(S)
+                    acc += ti.cast(ti.log(dens + floor), ti.f64)
             out[i] = acc
 
     f64 = ti.f64
@@ -272,31 +361,52 @@ def _kernels(dtype):
     @ti.kernel
     def k_ekf_track(hist: ti.types.ndarray(dtype=mat3, ndim=1), hist64: ti.types.ndarray(dtype=mat3d, ndim=1),
                     mids: ti.types.ndarray(dtype=f64, ndim=1), b0: ti.i32, b1: ti.i32, batch_size: ti.i32,
-                    bearings: ti.types.ndarray(dtype=vec3, ndim=1),
-                    prev_batch: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                    pol: ti.types.ndarray(dtype=ti.i8, ndim=1), grad: ti.types.ndarray(dtype=dtype, ndim=3),
+                    bearings: ti.types.ndarray(dtype=vec3, ndim=1), pix: ti.types.ndarray(dtype=i32, ndim=1),
+                    pol: ti.types.ndarray(dtype=ti.i8, ndim=1), ref_b: ti.types.ndarray(dtype=i32, ndim=1),
+                    last_b: ti.types.ndarray(dtype=i32, ndim=1), last_p: ti.types.ndarray(dtype=ti.i8, ndim=1),
+                    count: ti.types.ndarray(dtype=i32, ndim=1), ref_uv: ti.types.ndarray(dtype=dtype, ndim=2),
+                    ref_n: ti.types.ndarray(dtype=i32, ndim=1), grad: ti.types.ndarray(dtype=dtype, ndim=3),
                     cov: ti.types.ndarray(dtype=dtype, ndim=3), updates: ti.types.ndarray(dtype=ti.i32, ndim=2),
                     width: ti.i32, height: ti.i32, su: dtype, sv: dtype, contrast: dtype, sigma2: dtype,
-                    outlier2: dtype, min2: dtype, huber: dtype, q_rate: f64, q_min: f64, iterations: ti.i32,
-                    state_R: ti.types.ndarray(dtype=mat3d, ndim=1), state_P: ti.types.ndarray(dtype=mat3d, ndim=1),
+                    outlier2: dtype, min2: dtype, v_band: dtype, huber: dtype, q_rate: f64, q_min: f64, q_acc: f64,
+                    iterations: ti.i32, state_R: ti.types.ndarray(dtype=mat3d, ndim=1),
+                    state_w: ti.types.ndarray(dtype=vec3d, ndim=1), state_P: ti.types.ndarray(dtype=f64, ndim=3),
                     diag: ti.types.ndarray(dtype=f64, ndim=2)):
-        """EKF-SMT over batches b0..b1-1 in one launch (serial): random-walk prediction, iterated batched
+        """EKF-SMT over batches b0..b1-1 in one launch (serial): constant-velocity prediction, iterated batched
         update, poses written to hist/hist64 (read back as the previous poses of later events)."""
         n = bearings.shape[0]
+        eye = ti.Matrix.identity(f64, 3)
         ti.loop_config(serialize=True)
         for b in range(b0, b1):
-            R = state_R[0]
-            P = state_P[0]
+            pdd = mat3d(0)
+            pdw = mat3d(0)
+            pww = mat3d(0)
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                pdd[i, j] = state_P[0, i, j]
+                pdw[i, j] = state_P[0, i, j + 3]
+                pww[i, j] = state_P[0, i + 3, j + 3]
             dt = mids[b] - mids[b - 1]
+            # prediction: R <- R exp(w dt) (w in the camera frame), d <- d + R dw dt
+            w = state_w[0]
+            R_pred = state_R[0] @ so3d.exp(w * dt)
+            f = R_pred * dt
+            pdd = pdd + f @ pdw.transpose() + pdw @ f.transpose() + f @ pww @ f.transpose()
+            pdw = pdw + f @ pww
             q = ti.max(q_rate * dt, q_min)
-            P += q * q * ti.Matrix.identity(f64, 3)
-            p_inv = P.inverse()
-            a = p_inv
-            delta = vec3d(0, 0, 0)
+            pdd += q * q * eye
+            pww += q_acc * q_acc * dt * eye
+            R = R_pred
+            d = vec3d(0, 0, 0)  # pose deviation from the prediction (left, world frame)
+            lam = mat3d(0)
+            m = eye
             nv = 0.0
             ns = 0.0
             na = 0.0
             e_end = ti.min((b + 1) * batch_size, n)
+            rp = ti.cast(R_pred, dtype)
+            for e in range(b * batch_size, e_end):  # references, selected under the prediction
+                select_event(e, b, rp, hist, bearings, pix, pol, ref_b, last_b, last_p, count, width, height, su,
+                             sv, outlier2, min2, v_band, ref_uv, ref_n)
             for it in range(iterations):
                 rd = ti.cast(R, dtype)
                 hh = mat3d(0)
@@ -305,47 +415,57 @@ def _kernels(dtype):
                 ns = 0.0
                 na = 0.0
                 for e in range(b * batch_size, e_end):
-                    k = prev_batch[e]
-                    if k >= 0:
-                        u0, v0 = project(hist[k] @ bearings[e], width, height, su, sv)
-                        ok, r, S, H, pred, sup = measure(rd, bearings[e], u0, v0, pol[e], grad, cov, updates, width,
-                                                         height, su, sv, contrast, sigma2, outlier2, min2)
-                        if ok == 1:
-                            nr = ti.abs(r) / ti.sqrt(S)
-                            wt = ti.cast(1.0, dtype) / S
-                            if nr > huber:
-                                wt *= huber / nr
-                            h64 = ti.cast(H, f64)
-                            hh += ti.cast(wt, f64) * h64.outer_product(h64)
-                            hr += ti.cast(wt * r, f64) * h64
-                            nv += 1.0
-                            if sup >= 0.5:
-                                ns += 1.0
-                                if pred * ti.cast(pol[e], dtype) > 0:
-                                    na += 1.0
+                    if ref_n[e] > 0:
+                        r, S, H, agree, sup = measure(rd, bearings[e], ref_uv[e, 0], ref_uv[e, 1], ref_n[e], pol[e],
+                                                      grad, cov, updates, width, height, su, sv, contrast, sigma2)
+                        nr = ti.abs(r) / ti.sqrt(S)
+                        wt = ti.cast(1.0, dtype) / S
+                        if nr > huber:
+                            wt *= huber / nr
+                        h64 = ti.cast(H, f64)
+                        hh += ti.cast(wt, f64) * h64.outer_product(h64)
+                        hr += ti.cast(wt * r, f64) * h64
+                        nv += 1.0
+                        if sup >= 0.5:
+                            ns += 1.0
+                            if agree > 0:
+                                na += 1.0
                 if nv > 0:
-                    a = p_inv + hh
-                    step = a.inverse() @ (hr - p_inv @ delta)
-                    delta += step
-                    R = so3d.exp(step) @ R
+                    # iterated EKF step for a measurement of the pose only: x = P[:, d] (I + Lam Pdd)^-1 (b + Lam d)
+                    lam = hh
+                    m = (eye + lam @ pdd).inverse()
+                    v = m @ (hr + lam @ d)
+                    d = pdd @ v
+                    w = state_w[0] + pdw.transpose() @ v
+                    R = so3d.exp(d) @ R_pred
             # re-orthonormalize (Gram-Schmidt on the columns)
             c0 = vec3d(R[0, 0], R[1, 0], R[2, 0]).normalized()
             c1 = vec3d(R[0, 1], R[1, 1], R[2, 1])
             c1 = (c1 - c0.dot(c1) * c0).normalized()
             c2 = c0.cross(c1)
             R = ti.Matrix.cols([c0, c1, c2])
-            P = a.inverse()
-            P = 0.5 * (P + P.transpose())
+            # posterior covariance: P - P[:, d] (I + Lam Pdd)^-1 Lam P[d, :]
+            ml = m @ lam
+            pdd_new = pdd - pdd @ ml @ pdd
+            pdw_new = pdw - pdd @ ml @ pdw
+            pww_new = pww - pdw.transpose() @ ml @ pdw
+            pdd_new = 0.5 * (pdd_new + pdd_new.transpose())
+            pww_new = 0.5 * (pww_new + pww_new.transpose())
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                state_P[0, i, j] = pdd_new[i, j]
+                state_P[0, i, j + 3] = pdw_new[i, j]
+                state_P[0, j + 3, i] = pdw_new[i, j]
+                state_P[0, i + 3, j + 3] = pww_new[i, j]
             state_R[0] = R
-            state_P[0] = P
+            state_w[0] = w
             hist64[b] = R
             hist[b] = ti.cast(R, dtype)
             diag[b - b0, 0] = nv
             diag[b - b0, 1] = ns
             diag[b - b0, 2] = na
-            diag[b - b0, 3] = ti.max(P[0, 0], ti.max(P[1, 1], P[2, 2]))
+            diag[b - b0, 3] = ti.max(pdd_new[0, 0], ti.max(pdd_new[1, 1], pdd_new[2, 2]))
 
-    return k_project_prev, k_accumulate, k_loglik, k_ekf_track
+    return k_select, k_accumulate, k_loglik, k_ekf_track
 
 
 def _tdt(np_dtype):
@@ -356,26 +476,30 @@ def _c(a, dtype):
     return np.ascontiguousarray(a, dtype=dtype)
 
 
-def project_prev(poses, prev_idx, bearings, width: int, height: int, dtype=np.float32) -> np.ndarray:
-    """Taichi twin of :func:`project_prev_numpy` (rows with prev_idx < 0 are 0, not NaN)."""
+def select_references(hist, sel_R, b0: int, b1: int, batch_size: int, bearings, pix, pol, state: dict,
+                      width: int, height: int, outlier_px: float, min_disp_px: float, max_lat_deg: float, ref_uv,
+                      ref_n) -> None:
+    """References of the events of batches b0..b1-1 (see module doc): batch b's events start at b * batch_size
+    in ``bearings`` / ``pix`` / ``pol``, its selection pose is sel_R[b - b0], reference poses come from ``hist``
+    (nb, 3, 3); fills ``ref_uv`` (n, 2) and ``ref_n`` (n,) int32 (0: no measurement) for those events and updates
+    ``state`` (:func:`new_reference_state`). All arrays in the dtype of ``ref_uv`` (f32 or f64), C-contiguous."""
     ensure_init()
+    dtype = ref_uv.dtype
     k = _kernels(_tdt(dtype))[0]
-    n = len(prev_idx)
-    out = np.zeros((n, 2), dtype)
-    if n:
-        k(_c(np.asarray(poses).reshape(-1, 3, 3), dtype), _c(prev_idx, np.int32),
-          _c(np.asarray(bearings).reshape(-1, 3), dtype), int(width), int(height), float(width / (2 * np.pi)),
-          float(height / np.pi), out)
-    return out
+    if b1 > b0:
+        k(hist, _c(np.asarray(sel_R).reshape(-1, 3, 3), dtype), int(b0), int(b1), int(batch_size), bearings, pix,
+          pol, state["ref_b"], state["last_b"], state["last_p"], state["count"], int(width), int(height),
+          float(width / (2 * np.pi)), float(height / np.pi), float(outlier_px) ** 2, float(min_disp_px) ** 2,
+          _v_band(height, max_lat_deg), ref_uv, ref_n)
 
 
-def ekf_accumulate(R, bearings, prev_uv, valid, pol, grad, cov, updates, contrast: float, sigma: float,
-                   outlier_px: float, min_disp_px: float, huber: float) -> np.ndarray:
+def ekf_accumulate(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast: float, sigma: float,
+                   huber: float) -> np.ndarray:
     """Huber-weighted normal equations of one pose over a batch; the dtype of ``grad`` selects f32/f64.
 
     Returns N_ACC float64 sums (see ACC): H^T W H upper triangle, H^T W r, counts of valid / supported
     (bilinear weight of mapped pixels >= 1/2) / polarity-agreeing supported measurements, sum of r^2/S over
-    supported ones, sum of clipped squared normalized residuals, sums of p z_hat and z_hat^2 over supported ones.
+    supported ones, sum of clipped squared normalized residuals, sums of p z_hat and of n over supported ones.
     """
     ensure_init()
     dtype = grad.dtype
@@ -384,14 +508,13 @@ def ekf_accumulate(R, bearings, prev_uv, valid, pol, grad, cov, updates, contras
     h, w = updates.shape
     if len(pol):
         k(_c(np.asarray(R).reshape(1, 3, 3), dtype), _c(np.asarray(bearings).reshape(-1, 3), dtype),
-          _c(prev_uv, dtype), _c(valid, np.int8), _c(pol, np.int8), grad, cov, updates, int(w), int(h),
-          float(w / (2 * np.pi)), float(h / np.pi), float(contrast), float(sigma) ** 2, float(outlier_px) ** 2,
-          float(min_disp_px) ** 2, float(huber), out)
+          _c(ref_uv, dtype), _c(ref_n, np.int32), _c(pol, np.int8), grad, cov, updates, int(w), int(h),
+          float(w / (2 * np.pi)), float(h / np.pi), float(contrast), float(sigma) ** 2, float(huber), out)
     return out
 
 
-def pf_loglik(particles, bearings, prev_uv, valid, pol, grad, cov, updates, contrast: float, sigma: float,
-              outlier_px: float, min_disp_px: float, floor: float) -> np.ndarray:
+def pf_loglik(particles, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast: float, sigma: float,
+              floor: float) -> np.ndarray:
     """(N,) float64 log-likelihood of a batch for each particle pose (N, 3, 3); dtype of ``grad`` selects f32/f64."""
     ensure_init()
     dtype = grad.dtype
@@ -400,21 +523,25 @@ def pf_loglik(particles, bearings, prev_uv, valid, pol, grad, cov, updates, cont
     out = np.zeros(len(parts), np.float64)
     h, w = updates.shape
     if len(pol):
-        k(parts, _c(np.asarray(bearings).reshape(-1, 3), dtype), _c(prev_uv, dtype), _c(valid, np.int8),
+        k(parts, _c(np.asarray(bearings).reshape(-1, 3), dtype), _c(ref_uv, dtype), _c(ref_n, np.int32),
           _c(pol, np.int8), grad, cov, updates, int(w), int(h), float(w / (2 * np.pi)), float(h / np.pi),
-          float(contrast), float(sigma) ** 2, float(outlier_px) ** 2, float(min_disp_px) ** 2, float(floor),
-          1.0 / _SQRT_2PI, out)
+          float(contrast), float(sigma) ** 2, float(floor), 1.0 / _SQRT_2PI, out)
     return out
 
 
-def ekf_track(hist, hist64, mids, b0: int, b1: int, batch_size: int, bearings, prev_batch, pol, grad, cov, updates,
-              contrast: float, sigma: float, outlier_px: float, min_disp_px: float, huber: float, q_rate: float,
-              q_min: float, iterations: int, state_R, state_P) -> np.ndarray:
+def ekf_track(hist, hist64, mids, b0: int, b1: int, batch_size: int, bearings, pix, pol, state: dict, ref_uv, ref_n,
+              grad, cov, updates, contrast: float, sigma: float, outlier_px: float, min_disp_px: float,
+              max_lat_deg: float, huber: float, q_rate: float, q_min: float, q_acc: float, iterations: int, state_R,
+              state_w, state_P) -> np.ndarray:
     """EKF-SMT on batches b0..b1-1 in one launch (see module doc and ``ekf_track_numpy``).
 
-    ``hist`` (nb, 3, 3) in the map dtype and ``hist64`` (float64) receive the poses; ``state_R`` / ``state_P``
-    ((1, 3, 3) float64) carry the filter between calls. Returns (b1 - b0, 4) diagnostics per batch: valid,
-    supported and polarity-agreeing measurements, largest diagonal entry of P (rad^2).
+    ``hist`` (nb, 3, 3) in the map dtype and ``hist64`` (float64) receive the poses; ``state`` (per-pixel
+    references), ``ref_uv`` / ``ref_n`` (per-event scratch, filled) as in :func:`select_references`;
+    ``state_R`` ((1, 3, 3)), ``state_w`` ((1, 3), camera-frame angular velocity) and ``state_P`` ((1, 6, 6): pose
+    error, velocity error), all float64, carry the filter between calls. Process noise per batch of duration dt:
+    pose std max(q_rate dt, q_min), velocity std q_acc sqrt(dt) (q_acc = 0 with w = 0 and a zero velocity
+    covariance: the random-walk model). Returns (b1 - b0, 4) diagnostics per batch: valid, supported and
+    polarity-agreeing measurements, largest diagonal entry of the pose covariance (rad^2).
     """
     ensure_init()
     dtype = grad.dtype
@@ -422,50 +549,68 @@ def ekf_track(hist, hist64, mids, b0: int, b1: int, batch_size: int, bearings, p
     diag = np.zeros((max(b1 - b0, 0), 4), np.float64)
     if b1 > b0:
         h, w = updates.shape
-        k(hist, hist64, mids, int(b0), int(b1), int(batch_size), bearings, prev_batch, pol, grad, cov, updates,
-          int(w), int(h), float(w / (2 * np.pi)), float(h / np.pi), float(contrast), float(sigma) ** 2,
-          float(outlier_px) ** 2, float(min_disp_px) ** 2, float(huber), float(q_rate), float(q_min),
-          int(iterations), state_R, state_P, diag)
+        k(hist, hist64, mids, int(b0), int(b1), int(batch_size), bearings, pix, pol, state["ref_b"],
+          state["last_b"], state["last_p"], state["count"], ref_uv, ref_n, grad, cov, updates, int(w), int(h),
+          float(w / (2 * np.pi)), float(h / np.pi), float(contrast), float(sigma) ** 2, float(outlier_px) ** 2,
+          float(min_disp_px) ** 2, _v_band(h, max_lat_deg), float(huber), float(q_rate), float(q_min), float(q_acc),
+          int(iterations),
+          state_R, state_w, state_P, diag)
     return diag
 
 
-def ekf_track_numpy(hist, hist64, mids, b0, b1, batch_size, bearings, prev_batch, pol, grad, cov, updates, contrast,
-                    sigma, outlier_px, min_disp_px, huber, q_rate, q_min, iterations, state_R, state_P):
-    """float64 twin of :func:`ekf_track` (same in/out arrays)."""
+def ekf_predict_numpy(R, w, P, dt, q_rate, q_min, q_acc):
+    """Constant-velocity prediction (float64): R exp(w dt), and P through F = [[I, R dt], [0, I]] plus noise."""
+    from ti_cmax import so3
+
+    R_pred = R @ so3.exp(w * dt)
+    F = np.eye(6)
+    F[:3, 3:] = R_pred * dt
+    q = max(q_rate * dt, q_min)
+    P = F @ P @ F.T + np.diag([q * q] * 3 + [q_acc * q_acc * dt] * 3)
+    return R_pred, P
+
+
+def ekf_track_numpy(hist, hist64, mids, b0, b1, batch_size, bearings, pix, pol, state, ref_uv, ref_n, grad, cov,
+                    updates, contrast, sigma, outlier_px, min_disp_px, max_lat_deg, huber, q_rate, q_min, q_acc,
+                    iterations, state_R, state_w, state_P):
+    """float64 twin of :func:`ekf_track` (same in/out arrays). The update is the iterated EKF (Gauss-Newton on
+    prior + batch) for measurements of the pose only, x = P[:, :3] (I + Lam P_dd)^-1 (b + Lam d): equal to
+    (P^-1 + E Lam E^T)^-1 (E b + E Lam d) with E = [I; 0] (tested), and defined when P is singular (the
+    random-walk model has no velocity covariance)."""
     from ti_cmax import so3
 
     h, w = updates.shape
     n = len(pol)
     diag = np.zeros((max(b1 - b0, 0), 4))
     for b in range(b0, b1):
-        R, P = state_R[0].copy(), state_P[0].copy()
-        q = max(q_rate * (mids[b] - mids[b - 1]), q_min)
-        P = P + q * q * np.eye(3)
-        p_inv = np.linalg.inv(P)
-        a, delta = p_inv, np.zeros(3)
+        R_pred, P = ekf_predict_numpy(state_R[0], state_w[0], state_P[0], mids[b] - mids[b - 1], q_rate, q_min,
+                                      q_acc)
+        x = np.zeros(6)
+        R, lam = R_pred, np.zeros((3, 3))
         e0, e1 = b * batch_size, min((b + 1) * batch_size, n)
-        pb = prev_batch[e0:e1]
-        uv = np.nan_to_num(project_prev_numpy(hist, pb, bearings[e0:e1], w, h))
-        acc = None
+        select_references_numpy(hist, R_pred[None], b, b + 1, batch_size, bearings, pix, pol, state, w, h,
+                                outlier_px, min_disp_px, max_lat_deg, ref_uv, ref_n)
+        acc = np.zeros(N_ACC)
         for _ in range(iterations):
-            acc = ekf_accumulate_numpy(R, bearings[e0:e1], uv, pb >= 0, pol[e0:e1], grad, cov, updates, contrast,
-                                       sigma, outlier_px, min_disp_px, huber)
+            acc = ekf_accumulate_numpy(R, bearings[e0:e1], ref_uv[e0:e1], ref_n[e0:e1], pol[e0:e1], grad, cov,
+                                       updates, contrast, sigma, huber)
             if acc[9] > 0:
-                hh = np.array([[acc[0], acc[1], acc[2]], [acc[1], acc[3], acc[4]], [acc[2], acc[4], acc[5]]])
-                a = p_inv + hh
-                step = np.linalg.solve(a, acc[6:9] - p_inv @ delta)
-                delta = delta + step
-                R = so3.exp(step) @ R
+                lam = np.array([[acc[0], acc[1], acc[2]], [acc[1], acc[3], acc[4]], [acc[2], acc[4], acc[5]]])
+                x = P[:, :3] @ np.linalg.solve(np.eye(3) + lam @ P[:3, :3], acc[6:9] + lam @ x[:3])
+                R = so3.exp(x[:3]) @ R_pred
         u, _, vt = np.linalg.svd(R)
         R = u @ vt
-        P = np.linalg.inv(a)
+        E = np.zeros((6, 3))
+        E[:3] = np.eye(3)
+        P = P - P @ E @ np.linalg.solve(np.eye(3) + lam @ P[:3, :3], lam) @ E.T @ P
         P = 0.5 * (P + P.T)
-        state_R[0], state_P[0] = R, P
+        state_R[0], state_w[0], state_P[0] = R, state_w[0] + x[3:], P
         hist64[b] = R
         hist[b] = R
-        diag[b - b0] = acc[9], acc[10], acc[11], np.max(np.diag(P))
+        diag[b - b0] = acc[9], acc[10], acc[11], np.max(np.diag(P)[:3])
     return diag
 
 
-__all__ = ["ekf_track", "ekf_track_numpy", "ACC", "N_ACC", "project_prev", "project_prev_numpy", "ekf_accumulate",
-           "ekf_accumulate_numpy", "pf_loglik", "pf_loglik_numpy"]
+__all__ = ["ACC", "N_ACC", "new_reference_state", "select_references", "select_references_numpy", "ekf_accumulate",
+           "ekf_accumulate_numpy", "pf_loglik", "pf_loglik_numpy", "ekf_track", "ekf_track_numpy",
+           "ekf_predict_numpy"]

@@ -238,12 +238,13 @@ def _us(report: dict, part: str = "frontend") -> float | None:
     return None if v is None else float(v)
 
 
-def _run_baseline(key, events, camera, cfg, imu) -> MethodRun:
+def _run_baseline(key, events, camera, cfg, imu, contrast_threshold=None) -> MethodRun:
     label = LABELS[key]
     if key not in BASELINES:
         why = BASELINES_IMPORT_ERROR or f"{key!r} is not in the baselines registry"
         return MethodRun(key, label, "front-end", "not implemented", note=why)
-    res = BASELINES[key](events, camera, baseline_config(cfg), imu)
+    extra = {"contrast_threshold": contrast_threshold} if key.startswith("smt") and contrast_threshold else {}
+    res = BASELINES[key](events, camera, baseline_config(cfg), imu, **extra)
     rep = res.report
     status = rep.get("status", "ok")
     lost_at = rep.get("lost_at")
@@ -257,8 +258,10 @@ def _run_baseline(key, events, camera, cfg, imu) -> MethodRun:
     return run
 
 
-def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[str], on_row=None) -> list[MethodRun]:
-    """Run every selected method (and the BA of each front-end that kept track) on one sequence."""
+def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[str], on_row=None,
+                         contrast_threshold=None) -> list[MethodRun]:
+    """Run every selected method (and the BA of each front-end that kept track) on one sequence
+    (``contrast_threshold``: the sequence's C for SMT, App. B: the simulator's value on synthetic data)."""
     from .imu import dead_reckoning
     from .slam import refine, run_slam
 
@@ -317,7 +320,8 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
                                  wall_s=time.perf_counter() - tic)
             run = guarded("imu", LABELS["imu"], "front-end", imu_run)
         else:
-            run = guarded(key, LABELS[key], "front-end", lambda k=key: _run_baseline(k, events, camera, cfg, imu))
+            run = guarded(key, LABELS[key], "front-end", lambda k=key: _run_baseline(k, events, camera, cfg, imu,
+                                                                                  contrast_threshold))
         frontends.append(run)
         add(run)
     for fe_run in frontends:
@@ -408,7 +412,10 @@ def bench_sequence(spec: SequenceSpec, cfg, methods: list[str], cache_dir, *, pl
             wall = f", {run.wall_s:.1f} s" if run.wall_s is not None else ""
             log(f"  {spec.name}: {run.method}: {run.status}{wall}{extra}")
 
-    for run in run_sequence_methods(events, camera, gt, imu, cfg, methods, on_row):
+    from ti_cmax.pipelines.mapping import resolve_contrast
+
+    smt_c = resolve_contrast(cfg.smt.mapping, folder) if hasattr(cfg, "smt") else None
+    for run in run_sequence_methods(events, camera, gt, imu, cfg, methods, on_row, smt_c):
         row, arr = score(run, gt, events, camera, cfg)
         rows.append({**row, **base})
         arrays[run.method] = arr

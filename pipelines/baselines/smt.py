@@ -2,29 +2,49 @@
 and tracking with a particle-filter (PF-SMT) or an error-state EKF (EKF-SMT) tracker.
 
 Mapping: :class:`~ti_cmax.pipelines.mapping.GrayscaleMapper` (per-pixel EKF on the log-intensity gradient,
-outliers beyond 10 map px, 5 visits cap; Poisson M only for the output map). Tracking: events in batches of
-``batch_size`` sharing one pose R (world_from_camera). Each event's brightness increment since the previous event at
-its sensor pixel is predicted from the GRADIENT map, z_hat = g(p_mid) . dp (kernels/smt.py), and compared with
-p_k C. Why the gradient map and not a periodically refreshed Poisson M: it is what the mapping EKFs estimate (the
-same linearized model, Eq. 38, so tracker and mapper agree on the sign and scale of g), it is current after every
-map update (no Poisson solve, no refresh lag, no smoothing-in of unmapped areas), and it carries a covariance, so
-measurements on unmapped or unconverged pixels weigh little by themselves (S = sigma^2 + dp^T P_g dp). The cost
-is the linearization over |dp| <= 10 px, which the mapper assumes anyway.
+Eq. 38, outliers beyond 10 map px, 5 visits cap; Poisson M only for the output map), fed the tracked poses in
+chunks of ``map_update_events`` events, lagging the tracker (parallel tracking and mapping). Tracking: events
+in batches of ``batch_size`` sharing one pose R (world_from_camera); the brightness increment of a sensor pixel
+along its map segment is predicted from the GRADIENT map, z_hat = g(p_mid) . dp, and compared with p n C
+(kernels/smt.py). Bootstrap: for the first ``bootstrap_seconds`` the poses come from IMU dead reckoning (started
+at the ground-truth pose when it is known) or from ground truth when there is no IMU. C: App. B's values (0.2
+synthetic: the simulator's from simulation.json; 0.22 real).
 
-* EKF-SMT: state R, error d with R = exp(d) R_hat; random-walk prediction P += (sigma_w dt)^2 I; update with
-  Huber-weighted normal equations of the batch (iterated ``ekf_iterations`` times).
+Where this departs from App. B / [12], [57] and why (each measured on the simulated suite of ``ti-cmax
+benchmark`` with ground truth, 1024 x 512 map):
+
+* Gradient map instead of a refreshed Poisson M in the measurement: it is what the mapping EKFs estimate (same
+  sign and scale of g), current after every map update (no solve, no refresh lag, no smoothing-in of unmapped
+  areas), and it carries a covariance, so unmapped or unconverged pixels weigh little (S = n sigma^2 +
+  dp^T P_g dp).
+* Constant-velocity EKF (state R and camera-frame w, ``motion_model``), not a random walk on R. Each event
+  measures the motion since an earlier event of its pixel, relative to the pose estimated then: a random-walk
+  prior, which says "no motion since the last batch", shrinks every weakly observed velocity component toward
+  zero, and the relative measurements never undo the lag. Roll about the optical axis carries 6-10x less
+  information per batch than pan and tilt (measured), so its prior dominated: even on a map built from
+  ground-truth poses the random-walk EKF drifted in roll until it failed (DVS128 playroom at 2.34 s; with the
+  constant-velocity model 0.1-0.2 deg to the end). ``motion_model=random_walk`` keeps the original.
+* Reference segments of at least ``min_displacement_px`` (1 map px) instead of the previous event: the map
+  holds pixel-averaged gradients and events fire where the gradient is steep, so segments shorter than a pixel
+  had their increment under-predicted by 20-60 % (residuals at ground truth); the tracker reads that as a motion
+  scale error, and +-10 % of scale multiplied the drift by 5-10. The events of a short segment are summed
+  (n C), nothing is dropped.
+* No measurements beyond ``max_latitude_deg`` (70 deg): the equirectangular chart is singular at the poles
+  (u stretches by 1 / cos(lat)). Not enough: 4 of the 5 losses left on the benchmark suite and 3 held-out
+  sequences happen while the field of view reaches beyond 70 deg (city lost at 4.59 s instead of 4.14, bicycle
+  unchanged at 3.16 s; cuts at 60 / 80 deg were not better).
+* Map gain: at the end of the bootstrap (known poses) the ratio k of the observed increments p n C to the
+  predicted g . dp is measured and C, sigma are divided by it (:func:`_calibrate_gain`; k = 1.05-1.3 on the
+  simulated sequences). The mapping EKF and the tracker read g differently (nearest pixel of each event's
+  midpoint vs bilinear along longer segments); without it EKF-SMT drifted several times faster.
+* The motion-consistency loss check below (the paper reports failures by inspection).
+
+* EKF-SMT: error-state EKF, update with Huber-weighted normal equations of the batch (iterated
+  ``ekf_iterations`` times), see kernels/smt.py.
 * PF-SMT: ``num_particles`` poses, random walk exp(n) R with n ~ N(0, (sigma_w dt)^2 I), weights times
   prod_k (N(r_k; 0, S_k) + floor), systematic resampling when the effective sample size drops below
-  ``pf_resample_ess`` N; estimate = weighted mean on SO(3); numpy Generator seeded by ``seed``.
-
-Map gain: at the end of the bootstrap (known poses) the ratio k of the observed increments p C to the predicted
-g . dp is measured and C, sigma are divided by it (see :func:`_calibrate_gain`; k ~ 1.2 on DAVIS240C data at
-1024 x 512). Without it EKF-SMT drifts several times faster on the simulated sequences.
-
-The tracker keeps its own per-sensor-pixel memory (index of the batch pose of the previous event), so the mapper
-can be updated in chunks of ``map_update_events`` events, lagging the tracker (as in a parallel tracking-and-mapping
-system). Bootstrapping: for the first ``bootstrap_seconds`` the poses come from IMU dead reckoning (started at the
-ground-truth pose when it is known) or from ground truth when there is no IMU.
+  ``pf_resample_ess`` N; estimate = weighted mean on SO(3); numpy Generator seeded by ``seed``; references
+  selected under the previous estimate.
 
 Tracking loss, judged over a sliding window of ``loss_window`` s once tracking started: too few measurements land
 on mapped pixels (map support), the predicted increments agree in sign with the polarities barely more often than
@@ -60,6 +80,7 @@ from ..mapping import GrayscaleConfig, GrayscaleMapper, GrayscaleResult, resolve
 from .consistency import MotionConsistencyCheck
 
 TRACKERS = ("ekf", "pf")
+MOTION_MODELS = ("constant_velocity", "random_walk")
 
 
 @dataclass(frozen=True)
@@ -73,11 +94,21 @@ class SmtConfig(Params):
     bootstrap_seconds: float = param(0.5, "poses from IMU dead reckoning (or ground truth) at the start", unit="s",
                                      ge=0)
     measurement_sigma: float = param(0.1, "std of z = p C around the predicted increment (log intensity)", gt=0)
-    min_displacement_px: float = param(0.05, "map displacement below which an event says nothing about the pose",
-                                       unit="px", ge=0)
-    angular_velocity_std: float = param(4.0, "random-walk step std per batch = this x batch duration", unit="rad/s",
-                                        gt=0)
-    min_step_std: float = param(2e-4, "floor of that step std", unit="rad", gt=0)
+    min_displacement_px: float = param(1.0, "shortest reference segment (module doc; < 0.05: per event)",
+                                       unit="map px", ge=0)
+    max_latitude_deg: float = param(70.0, "no measurements beyond this latitude (the map's chart is singular at "
+                                          "the poles)", unit="deg", ge=0)
+    motion_model: str = param("constant_velocity", "EKF motion model: constant_velocity (state R, w) or random_walk "
+                              "(R only)", choices=MOTION_MODELS)
+    angular_acceleration_std: float = param(20.0, "constant_velocity: w random walk, std per batch = this x "
+                                                  "sqrt(dt)", gt=0)
+    pose_noise_std: float = param(0.0, "constant_velocity: extra pose step std per batch = this x dt",
+                                  unit="rad/s", ge=0)
+    initial_velocity_std: float = param(0.5, "std of w at the end of the bootstrap (constant_velocity)",
+                                        unit="rad/s", ge=0)
+    angular_velocity_std: float = param(4.0, "random-walk (and PF) step std per batch = this x batch duration",
+                                        unit="rad/s", gt=0)
+    min_step_std: float = param(2e-4, "floor of the pose step std (random walk, PF)", unit="rad", gt=0)
     initial_std_deg: float = param(0.3, "std of the pose at the end of the bootstrap", unit="deg", gt=0)
     ekf_iterations: int = param(2, "Gauss-Newton iterations of the EKF update per batch", ge=1)
     huber: float = param(2.0, "EKF: Huber threshold on normalized residuals", gt=0)
@@ -167,12 +198,16 @@ def systematic_resample(weights: np.ndarray, rng: np.random.Generator) -> np.nda
 # ------------------------------------------------------------------------------------------------------------
 @dataclass
 class _Context:
-    """Arrays shared by the trackers: events (bearings, polarity, batch of the previous event at the same sensor
-    pixel), batch mid-times, pose history (map dtype for the kernels, float64 for the output), the mapper."""
+    """Arrays shared by the trackers: events of the chunk (bearings, sensor pixel, polarity; batch b's events
+    start at b * batch_size), per-pixel references and per-event reference scratch, batch mid-times, pose history
+    (map dtype for the kernels, float64 for the output), the mapper."""
 
     bearings: np.ndarray
+    pix: np.ndarray
     pol: np.ndarray
-    prev_batch: np.ndarray
+    refs: dict  # per-pixel reference state (kernels/smt.new_reference_state), local batch indices
+    ref_uv: np.ndarray
+    ref_n: np.ndarray
     mids: np.ndarray
     hist: np.ndarray
     hist64: np.ndarray
@@ -180,14 +215,19 @@ class _Context:
     contrast: float  # C / map gain
     sigma: float  # measurement_sigma / map gain
     batch_size: int
+    min_disp: float
+    max_lat: float
+
+    def select(self, b0: int, b1: int, sel_R: np.ndarray) -> None:
+        """References of batches b0..b1-1 under the selection poses sel_R (one per batch)."""
+        m = self.mapper
+        ks.select_references(self.hist, sel_R, b0, b1, self.batch_size, self.bearings, self.pix, self.pol, self.refs,
+                             m.width, m.height, m.config.outlier_distance_px, self.min_disp, self.max_lat,
+                             self.ref_uv, self.ref_n)
 
     def measure_args(self, b: int):
-        bs, n = self.batch_size, len(self.pol)
-        e0, e1 = b * bs, min((b + 1) * bs, n)
-        pb = self.prev_batch[e0:e1]
-        m = self.mapper
-        uv = ks.project_prev(self.hist, pb, self.bearings[e0:e1], m.width, m.height, m.dtype)
-        return self.bearings[e0:e1], uv, (pb >= 0).astype(np.int8), self.pol[e0:e1]
+        e0, e1 = b * self.batch_size, min((b + 1) * self.batch_size, len(self.pol))
+        return self.bearings[e0:e1], self.ref_uv[e0:e1], self.ref_n[e0:e1], self.pol[e0:e1]
 
 
 class EkfTracker:
@@ -196,18 +236,30 @@ class EkfTracker:
 
     name = "ekf"
 
-    def __init__(self, r0: np.ndarray, cfg: SmtConfig, rng: np.random.Generator):
+    def __init__(self, r0: np.ndarray, cfg: SmtConfig, rng: np.random.Generator, w0=None):
         self.cfg = cfg
+        cv = cfg.motion_model == "constant_velocity"
         self.state_R = np.array(r0, np.float64).reshape(1, 3, 3).copy()
-        self.state_P = (np.eye(3) * np.radians(cfg.initial_std_deg) ** 2).reshape(1, 3, 3).copy()
+        self.state_w = np.zeros((1, 3))
+        if cv and w0 is not None:
+            self.state_w[0] = w0
+        p = np.zeros((1, 6, 6))
+        p[0, :3, :3] = np.eye(3) * np.radians(cfg.initial_std_deg) ** 2
+        if cv:
+            p[0, 3:, 3:] = np.eye(3) * cfg.initial_velocity_std ** 2
+        self.state_P = p
+        if cv:
+            self.q = (cfg.pose_noise_std, 0.0, cfg.angular_acceleration_std)
+        else:
+            self.q = (cfg.angular_velocity_std, cfg.min_step_std, 0.0)
 
     def run(self, b0: int, b1: int, ctx: _Context) -> np.ndarray:
         """Track batches b0..b1-1; returns (b1 - b0, 4): valid, supported, agreeing measurements, pose std (deg)."""
         c, m = self.cfg, ctx.mapper
-        diag = ks.ekf_track(ctx.hist, ctx.hist64, ctx.mids, b0, b1, ctx.batch_size, ctx.bearings, ctx.prev_batch,
-                            ctx.pol, m.gradient, m.covariance, m.updates, ctx.contrast, ctx.sigma,
-                            m.config.outlier_distance_px, c.min_displacement_px, c.huber, c.angular_velocity_std,
-                            c.min_step_std, c.ekf_iterations, self.state_R, self.state_P)
+        diag = ks.ekf_track(ctx.hist, ctx.hist64, ctx.mids, b0, b1, ctx.batch_size, ctx.bearings, ctx.pix, ctx.pol,
+                            ctx.refs, ctx.ref_uv, ctx.ref_n, m.gradient, m.covariance, m.updates, ctx.contrast,
+                            ctx.sigma, m.config.outlier_distance_px, ctx.min_disp, ctx.max_lat, c.huber, *self.q,
+                            c.ekf_iterations, self.state_R, self.state_w, self.state_P)
         diag[:, 3] = np.degrees(np.sqrt(np.maximum(diag[:, 3], 0.0)))
         return diag
 
@@ -217,7 +269,7 @@ class PfTracker:
 
     name = "pf"
 
-    def __init__(self, r0: np.ndarray, cfg: SmtConfig, rng: np.random.Generator):
+    def __init__(self, r0: np.ndarray, cfg: SmtConfig, rng: np.random.Generator, w0=None):
         self.cfg = cfg
         self.rng = rng
         n = cfg.num_particles
@@ -233,10 +285,10 @@ class PfTracker:
         n = len(self.particles)
         std = max(cfg.angular_velocity_std * dt, cfg.min_step_std)
         self.particles = so3.exp(self.rng.normal(scale=std, size=(n, 3))) @ self.particles
-        bear, uv, valid, pol = ctx.measure_args(b)
-        out = m.config.outlier_distance_px
-        ll = ks.pf_loglik(self.particles, bear, uv, valid, pol, m.gradient, m.covariance, m.updates, ctx.contrast,
-                          ctx.sigma, out, cfg.min_displacement_px, cfg.pf_outlier_density)
+        ctx.select(b, b + 1, self.R[None])  # references under the previous estimate (the random-walk prediction)
+        bear, uv, cnt, pol = ctx.measure_args(b)
+        ll = ks.pf_loglik(self.particles, bear, uv, cnt, pol, m.gradient, m.covariance, m.updates, ctx.contrast,
+                          ctx.sigma, cfg.pf_outlier_density)
         logw = self.logw + ll
         logw -= logw.max()
         w = np.exp(logw)
@@ -250,8 +302,8 @@ class PfTracker:
             self.resamples += 1
         else:
             self.logw = np.log(np.maximum(w, 1e-300))
-        acc = ks.ekf_accumulate(self.R, bear, uv, valid, pol, m.gradient, m.covariance, m.updates, ctx.contrast,
-                                ctx.sigma, out, cfg.min_displacement_px, cfg.huber)
+        acc = ks.ekf_accumulate(self.R, bear, uv, cnt, pol, m.gradient, m.covariance, m.updates, ctx.contrast,
+                                ctx.sigma, cfg.huber)
         return np.array([acc[9], acc[10], acc[11], spread])
 
     def run(self, b0: int, b1: int, ctx: _Context) -> np.ndarray:
@@ -275,6 +327,15 @@ def _bootstrap_trajectory(events: Events, imu, groundtruth: Trajectory | None, s
     if seconds > 0:
         raise InputError("SMT needs IMU data or ground truth to bootstrap (or bootstrap_seconds=0)")
     return Trajectory(np.array([events.t[0]]), np.eye(3)[None]), "identity"
+
+
+def _bootstrap_velocity(boot: Trajectory, t: float, span: float = 0.005) -> np.ndarray:
+    """Camera-frame angular velocity of the bootstrap trajectory over its last ``span`` s before ``t``."""
+    t0 = max(boot.t_start, t - span)
+    if t <= t0:
+        return np.zeros(3)
+    r = boot.at(np.array([t0, t]))
+    return so3.log(r[0].T @ r[1]) / (t - t0)
 
 
 def _aligned_chunks(chunks: Iterable[Events], batch_size: int, bootstrap_seconds: float,
@@ -313,56 +374,33 @@ def _aligned_chunks(chunks: Iterable[Events], batch_size: int, bootstrap_seconds
         yield Events.concatenate(pending) if len(pending) > 1 else pending[0]
 
 
-def _previous_batch(pix: np.ndarray, batch_size: int, carried: np.ndarray | None = None, offset: int = 0):
-    """Per event of a chunk, the local batch index (chunk batch j -> offset + j) of the previous event at its
-    sensor pixel; -1 when there is none or when it is in the same batch (that increment is split between events
-    sharing one pose: not a measurement). ``carried`` (per sensor pixel, -1: none) gives the previous event of
-    each pixel's first event in the chunk. Also returns (pixels, chunk batch of their last event in the chunk)."""
-    n = len(pix)
-    order = np.argsort(pix, kind="stable")
-    same = pix[order[1:]] == pix[order[:-1]]
-    prev = np.full(n, -1, np.int64)
-    prev[order[1:][same]] = order[:-1][same]
-    own = np.arange(n) // batch_size
-    pb = np.where(prev >= 0, prev // batch_size, -1)
-    pb[pb == own] = -1
-    pb[pb >= 0] += offset
-    if carried is not None and n:
-        firsts = order[np.concatenate([[True], ~same])]
-        pb[firsts] = carried[pix[firsts]]
-    lasts = order[np.concatenate([~same, [True]])] if n else order
-    return pb.astype(np.int32), pix[lasts], lasts // batch_size
+def _calibrate_gain(cfg: SmtConfig, ctx: _Context, contrast: float, b_first: int, b_end: int,
+                    max_batches: int = 400) -> float:
+    """Map gain k with p n C ~ k g . dp, from the bootstrap's last gain_calibration_seconds (known poses: local
+    batches b_first..b_end-1 of the first chunk, references already selected in ``ctx``).
 
-
-def _calibrate_gain(cfg: SmtConfig, mapper: GrayscaleMapper, contrast: float, pol, bearings, prev_batch,
-                    hist, mids, b_first: int, b_end: int, bs: int, max_batches: int = 400) -> float:
-    """Map gain k with p C ~ k g . dp, from the bootstrap's last gain_calibration_seconds (known poses: local
-    batches b_first..b_end-1 of the first chunk, whose events start at b * bs in ``pol`` / ``bearings``).
-
-    The mapping EKFs fit g per map pixel by least squares over events of every displacement, which weighs the
-    long displacements on an edge's shoulders most; most events, though, fire on the steep part with short
-    displacements, so g . dp under-predicts their increment (by ~20% on DAVIS240C data at 1024 x 512). Left
-    uncorrected, the tracker reads the missing increment as extra motion: a velocity bias that SMT's
-    relative measurements integrate into drift. k = mean(p C) / mean(p z_hat) over mapped measurements
-    (a ratio of means, unbiased by zero-mean noise in z_hat), clipped to [0.5, 2]; C and sigma are divided by k.
+    The mapping EKFs fit g per map pixel by least squares over events of every displacement, each assigned to
+    the pixel nearest its segment's midpoint; the tracker reads g bilinearly along its (longer) segments. The
+    two differ by a few percent to 30 % depending on the texture (measured 1.05-1.35 on the simulated
+    DAVIS240C / DVS128 sequences at 1024 x 512), and the tracker reads a wrong scale as extra or missing motion:
+    a velocity bias that SMT's relative measurements integrate into drift. k = sum(n C) / sum(p z_hat) over
+    mapped measurements (a ratio of sums, unbiased by zero-mean noise in z_hat), clipped to [0.5, 2]; C and
+    sigma are divided by k.
     """
+    mids = ctx.mids
     first = int(np.searchsorted(mids[:b_end], mids[b_end - 1] - cfg.gain_calibration_seconds, side="left"))
     batches = np.arange(max(first, b_first), b_end)
     if len(batches) > max_batches:
         batches = batches[np.linspace(0, len(batches) - 1, max_batches).astype(np.int64)]
-    n, tot = len(pol), np.zeros(ks.N_ACC)
-    w, h = mapper.width, mapper.height
+    tot = np.zeros(ks.N_ACC)
+    m = ctx.mapper
     for b in batches:
-        e0, e1 = b * bs, min((b + 1) * bs, n)
-        pb = prev_batch[e0:e1]
-        uv = ks.project_prev(hist, pb, bearings[e0:e1], w, h, mapper.dtype)
-        tot += ks.ekf_accumulate(hist[b], bearings[e0:e1], uv, (pb >= 0).astype(np.int8), pol[e0:e1],
-                                 mapper.gradient, mapper.covariance, mapper.updates, contrast,
-                                 cfg.measurement_sigma, mapper.config.outlier_distance_px,
-                                 cfg.min_displacement_px, cfg.huber)
+        bear, uv, cnt, pol = ctx.measure_args(b)
+        tot += ks.ekf_accumulate(ctx.hist[b], bear, uv, cnt, pol, m.gradient, m.covariance, m.updates, contrast,
+                                 cfg.measurement_sigma, cfg.huber)
     if tot[10] < 100 or tot[14] <= 0:
         return 1.0
-    return float(np.clip(contrast * tot[10] / tot[14], 0.5, 2.0))
+    return float(np.clip(contrast * tot[15] / tot[14], 0.5, 2.0))
 
 
 def _loss_reason(cfg: SmtConfig, std_deg: float, R_now, t_now: float, t_track0: float, window, sums) -> str:
@@ -396,14 +434,17 @@ def _warm_up(dtype) -> float:
     cov = np.ones((2, 4, 3), dtype)
     upd = np.zeros((2, 4), np.int32)
     b = np.array([[0.0, 0.0, 1.0]], dtype)
-    uv = ks.project_prev(np.eye(3)[None], np.zeros(1, np.int32), b, 4, 2, dtype)
-    one = np.ones(1, np.int8)
-    ks.ekf_accumulate(np.eye(3), b, uv, one, one, grad, cov, upd, 0.2, 0.1, 10.0, 0.0, 2.0)
-    ks.pf_loglik(np.eye(3)[None], b, uv, one, one, grad, cov, upd, 0.2, 0.1, 10.0, 0.0, 0.05)
     hist = np.repeat(np.eye(3, dtype=dtype)[None], 2, axis=0)
-    ks.ekf_track(hist, hist.astype(np.float64), np.array([0.0, 1e-3]), 1, 2, 1, np.repeat(b, 2, axis=0),
-                 np.array([-1, 0], np.int32), np.ones(2, np.int8), grad, cov, upd, 0.2, 0.1, 10.0, 0.0, 2.0, 1.0,
-                 1e-4, 1, np.eye(3)[None].copy(), np.eye(3)[None] * 1e-4)
+    bb = np.repeat(b, 2, axis=0)
+    pix, pol = np.zeros(2, np.int32), np.ones(2, np.int8)
+    uv, cnt = np.zeros((2, 2), dtype), np.zeros(2, np.int32)
+    ks.select_references(hist, hist[:1], 0, 1, 2, bb, pix, pol, ks.new_reference_state(1), 4, 2, 10.0, 0.0, 90.0, uv,
+                         cnt)
+    ks.ekf_accumulate(np.eye(3), b, uv[:1], cnt[:1], pol[:1], grad, cov, upd, 0.2, 0.1, 2.0)
+    ks.pf_loglik(np.eye(3)[None], b, uv[:1], cnt[:1], pol[:1], grad, cov, upd, 0.2, 0.1, 0.05)
+    ks.ekf_track(hist, hist.astype(np.float64), np.array([0.0, 1e-3]), 1, 2, 1, bb, pix, pol,
+                 ks.new_reference_state(1), uv, cnt, grad, cov, upd, 0.2, 0.1, 10.0, 0.0, 90.0, 2.0, 1.0, 1e-4, 1.0, 1,
+                 np.eye(3)[None].copy(), np.zeros((1, 3)), np.eye(6)[None] * 1e-4)
     return time.perf_counter() - start
 
 
@@ -436,8 +477,10 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
     map_batches = max(1, cfg.map_update_events // bs)
     rng = np.random.default_rng(cfg.seed)
 
-    # per sensor pixel: global batch of its last event (-1: none yet); the poses those batches had
-    last_batch = np.full(camera.width * camera.height, -1, np.int64)
+    # per sensor pixel: reference state (kernels/smt.py) with GLOBAL batch ids (-1: none); the poses they need
+    refs_g = ks.new_reference_state(camera.width * camera.height)
+    ref_gid = refs_g["ref_b"].astype(np.int64)
+    last_gid = refs_g["last_b"].astype(np.int64)
     store_ids = np.zeros(0, np.int64)  # sorted global batch ids kept (referenced + the last batch)
     store_R = np.zeros((0, 3, 3))
     store_t = np.zeros(0)
@@ -476,12 +519,14 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
             mids[0], hist64[0] = store_t[-1], store_R[-1]
         else:
             mids[0], hist64[0] = mids[1], np.eye(3)
-        carried = np.where(last_batch >= 0, 1 + nbc + np.searchsorted(store_ids, last_batch), -1)
-        pix = km.sensor_index(chunk.x, chunk.y, camera.width)
-        pb, last_pix, last_b = _previous_batch(pix, bs, carried, offset=1)
+        def to_local(g):
+            return np.where(g >= 0, 1 + nbc + np.searchsorted(store_ids, g), -1).astype(np.int32)
+
+        refs = {"ref_b": to_local(ref_gid), "last_b": to_local(last_gid), "last_p": refs_g["last_p"],
+                "count": refs_g["count"]}
         pad = lambda a: np.concatenate([np.zeros((bs,) + a.shape[1:], a.dtype), a])  # noqa: E731
+        pix = np.ascontiguousarray(pad(km.sensor_index(chunk.x, chunk.y, camera.width)))
         bearings = np.ascontiguousarray(pad(camera.bearings(chunk.x, chunk.y, dtype=dtype)))
-        prev_batch = np.ascontiguousarray(pad(pb) - (np.arange(bs + n) < bs).astype(np.int32))
         pol = np.ascontiguousarray(pad(np.asarray(chunk.p, np.int8)))
 
         # bootstrap batches: known poses
@@ -490,6 +535,8 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
             nbb = min(max(int(np.searchsorted(mids[1:1 + nbc], t_boot, side="left")), 1), nbc)
             hist64[1:1 + nbb] = boot.at(mids[1:1 + nbb])
         hist = hist64.astype(dtype)
+        ctx = _Context(bearings, pix, pol, refs, np.zeros((bs + n, 2), dtype), np.zeros(bs + n, np.int32), mids,
+                       hist, hist64, mapper, c_eff, sigma_eff, bs, cfg.min_displacement_px, cfg.max_latitude_deg)
         mapped = 1  # local batches already given to the mapper
 
         def feed_mapper(upto: int):
@@ -504,15 +551,17 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
         b_start = 1
         if t_track0 is None:
             feed_mapper(1 + nbb)
+            ctx.select(1, 1 + nbb, hist[1:1 + nbb])
             b_start = 1 + nbb
             bootstrap_end = float(mids[nbb])
             if b_start <= nbc:  # tracking starts in this chunk
                 t_track0 = bootstrap_end
                 if cfg.gain_calibration_seconds > 0:
-                    gain = _calibrate_gain(cfg, mapper, contrast, pol, bearings, prev_batch, hist, mids, 1,
-                                           1 + nbb, bs)
+                    gain = _calibrate_gain(cfg, ctx, contrast, 1, 1 + nbb)
                 c_eff, sigma_eff = contrast / gain, cfg.measurement_sigma / gain
-                trk = (EkfTracker if cfg.tracker == "ekf" else PfTracker)(hist64[nbb], cfg, rng)
+                ctx.contrast, ctx.sigma = c_eff, sigma_eff
+                trk = (EkfTracker if cfg.tracker == "ekf" else PfTracker)(hist64[nbb], cfg, rng,
+                                                                          _bootstrap_velocity(boot, t_track0))
                 if cfg.consistency_interval > 0:
                     checker = MotionConsistencyCheck(camera, t_track0, cfg.consistency_interval,
                                                      cfg.consistency_span, cfg.consistency_min_ratio,
@@ -524,7 +573,6 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
         tic = time.perf_counter()
         end = 1 + nbc  # local batches kept in the output
         if trk is not None:
-            ctx = _Context(bearings, pol, prev_batch, mids, hist, hist64, mapper, c_eff, sigma_eff, bs)
             b0 = b_start
             while b0 <= nbc and status == "ok":
                 b1 = min(b0 + map_batches, 1 + nbc)
@@ -566,9 +614,16 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
         n_total += min((end - 1) * bs, n)
         if status != "ok":
             break
-        # keep the poses that pixels will refer to, and the last batch
-        last_batch[last_pix] = g0 + last_b
-        ids = np.union1d(last_batch[last_batch >= 0], [g0 + nbc - 1])
+        # back to global batch ids; keep the poses that pixels will refer to, and the last batch
+        def to_global(loc):
+            out = np.full(len(loc), -1, np.int64)
+            cur, old = (loc >= 1) & (loc <= nbc), loc > nbc
+            out[cur] = g0 + loc[cur] - 1
+            out[old] = store_ids[loc[old] - 1 - nbc]
+            return out
+
+        ref_gid, last_gid = to_global(refs["ref_b"]), to_global(refs["last_b"])
+        ids = np.union1d(np.union1d(ref_gid[ref_gid >= 0], last_gid[last_gid >= 0]), [g0 + nbc - 1])
         in_chunk = ids >= g0
         old_pos = np.searchsorted(store_ids, ids[~in_chunk])
         new_R = np.empty((len(ids), 3, 3))

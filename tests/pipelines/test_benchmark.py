@@ -90,7 +90,7 @@ def test_lost_front_end_and_cache(tmp_path, monkeypatch):
         return BaselineResult(Trajectory(t, np.repeat(np.eye(3)[None], 5, axis=0)), np.zeros((4, 8)),
                               {"status": "lost", "lost_at": 0.2, "us_per_event": {"frontend": 1.0}})
 
-    def broken_method(events, camera, config, imu):
+    def broken_method(events, camera, config, imu, **extra):  # SMT entries also take contrast_threshold
         raise RuntimeError("boom")
 
     monkeypatch.setitem(B.BASELINES, "cmax-gae", lost_method)

@@ -29,21 +29,21 @@ def _run(seq, tracker, config=None, events=None):
 
 
 def test_ekf_smt_tracks_with_imu_bootstrap(city):
-    """The tracker itself, without the motion consistency check (tested below on declared seeds): with the check
-    this run is declared lost at 1.39 s (mean ratio 0.90 over 1.29-1.39 s; 1.5 deg RMSE up to there, the error
-    grows after it: 2.6 deg over the whole run)."""
-    res = run_smt_ekf(city.events, city.camera, SmtConfig(consistency_interval=0), imu=city.imu,
-                      groundtruth=city.groundtruth, contrast_threshold=0.2)
+    """Defaults, loss checks on (the fixture was declared by an earlier session; with the random-walk EKF and
+    per-event measurements this run was declared lost at 1.39 s, 1.5 deg up to there, 2.6 deg over the whole run
+    without the check)."""
+    res = run_smt_ekf(city.events, city.camera, SmtConfig(), imu=city.imu, groundtruth=city.groundtruth,
+                      contrast_threshold=0.2)
     rep = res.report
     assert rep["status"] == "ok" and rep["lost_at"] is None
     assert rep["bootstrap_source"] == "imu" and rep["events_processed"] == len(city.events)
     # the map gain is calibrated on the bootstrap's last 0.1 s (it was silently 1 when the bootstrap filled the
     # first streamed piece: EKF-SMT then drifted 2-20 times more on the benchmark sequences)
-    assert 1.05 < rep["map_gain"] < 1.6, rep["map_gain"]
+    assert 1.02 < rep["map_gain"] < 1.6, rep["map_gain"]
     assert rep["us_per_event"] > 0 and rep["parameters"]["tracker"] == "ekf"
     assert res.trajectory.t_end > 1.45
     err = evaluate_rotations(city.groundtruth, res.trajectory)
-    assert err.abs_rmse_deg < 3.0, err.abs_rmse_deg
+    assert err.abs_rmse_deg < 3.0, err.abs_rmse_deg  # 1.48 measured
     # the grayscale map is an 8-bit image with content
     img = res.map.to_uint8()
     assert img.shape == (512, 1024) and img.max() > img.min()
@@ -86,6 +86,36 @@ def test_ekf_smt_never_returns_a_silently_bad_trajectory(ti_runtime, scene, seed
     if res.trajectory.t_end - res.trajectory.t_start > 0.55:  # enough poses to score (1 s relative pairs aside)
         err = evaluate_rotations(seq.groundtruth, res.trajectory)
         assert err.abs_rmse_deg < 3.0, (err.abs_rmse_deg, rep["status"], rep["lost_at"])
+
+
+def test_textureless_stretch_is_reported_lost(ti_runtime, tmp_path):
+    """DVS128 panning one full turn in 3 s over a panorama that is flat over 60 deg of longitude (behind the
+    start), with background noise: while the field of view crosses the flat part nothing tells the motion, so
+    EKF-SMT must end with status "lost" and a lost_at before the far side of the stretch; what it returns
+    before is accurate. Declared before the first run."""
+    import imageio.v3 as iio
+    from scipy.ndimage import gaussian_filter
+
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
+
+    rng = np.random.default_rng(5)
+    img = gaussian_filter(rng.random((256, 512)), 3.0)
+    img = (img - img.min()) / (img.max() - img.min())
+    lon = (np.arange(512) + 0.5) / 512 * 360.0 - 180.0
+    img[:, np.abs(lon) > 150.0] = 0.5  # flat around the back (longitude 180)
+    path = tmp_path / "pano.png"
+    iio.imwrite(path, (img * 255).astype(np.uint8))
+    seq = simulate_sequence(SimulatorConfig(image=str(path), sensor="DVS128", trajectory="pan", duration=3.0,
+                                            noise_rate=1.0, seed=3))
+    res = _run(seq, "ekf")
+    rep = res.report
+    assert rep["status"] == "lost" and rep["lost_reason"], rep
+    # the flat stretch is in view from about 1.2 s; the far side of it leaves the view at about 1.8 s
+    assert rep["bootstrap_end"] <= rep["lost_at"] < 1.8, rep["lost_at"]
+    assert res.trajectory.t_end <= rep["lost_at"] + 1e-9
+    if res.trajectory.t_end - res.trajectory.t_start > 0.55:
+        err = evaluate_rotations(seq.groundtruth, res.trajectory)
+        assert err.abs_rmse_deg < 3.0, err.abs_rmse_deg
 
 
 def test_pure_noise_is_reported_lost_not_raised(ti_runtime):
