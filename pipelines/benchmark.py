@@ -214,6 +214,11 @@ def _simulator_config(spec: SequenceSpec, settings: BenchmarkSettings):
                            trajectory=spec.trajectory, seed=settings.seed + spec.seed, **dict(spec.options))
 
 
+def sequence_folder(spec: SequenceSpec, settings: BenchmarkSettings, cache_dir) -> Path:
+    sim = _simulator_config(spec, settings)
+    return Path(cache_dir) / f"{spec.name}-{sim.sensor}-{sim.scene}-{sim.duration:g}s-seed{sim.seed}"
+
+
 def ensure_sequence(spec: SequenceSpec, settings: BenchmarkSettings, cache_dir, show_progress: bool = False):
     """Folder of the simulated sequence (simulated now unless a complete one with the same config is cached).
 
@@ -221,7 +226,7 @@ def ensure_sequence(spec: SequenceSpec, settings: BenchmarkSettings, cache_dir, 
     from ti_cmax.simulate import simulate_to_folder
 
     sim = _simulator_config(spec, settings)
-    folder = Path(cache_dir) / f"{spec.name}-{sim.sensor}-{sim.scene}-{sim.duration:g}s-seed{sim.seed}"
+    folder = sequence_folder(spec, settings, cache_dir)
     meta = folder / "simulation.json"
     wanted = json.loads(json.dumps(dataclasses.asdict(sim)))
     if meta.is_file():
@@ -483,6 +488,14 @@ def prepare_sequences(sequences: list[SequenceSpec], settings: BenchmarkSettings
     from .tasks import run_calls
 
     Path(cache_dir).mkdir(parents=True, exist_ok=True)
+
+    def remove_incomplete():  # after Ctrl-C stopped the workers: a folder without simulation.json is partial
+        for spec in sequences:
+            folder = sequence_folder(spec, settings, cache_dir)
+            if folder.is_dir() and not (folder / "simulation.json").is_file():
+                shutil.rmtree(folder, ignore_errors=True)
+
+    executor.on_interrupt = remove_incomplete
     outs = run_calls(executor, ensure_sequence, [(spec, settings, str(cache_dir)) for spec in sequences],
                      desc="simulate", quiet=quiet)
     return {spec.name: (value if ok else str(value)) for spec, (ok, value) in zip(sequences, outs)}

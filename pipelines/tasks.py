@@ -275,15 +275,13 @@ class LocalExecutor:
 
     def _serial(self, fn, args_list):
         for i, args in enumerate(args_list):
-            self.running = 1
             try:
                 value = call_in_worker(fn, args, self.threads)
+                ok = True
             except Exception as exc:  # noqa: BLE001
-                self.running = 0
-                yield i, False, _error_text(exc)
-                continue
-            self.running = 0
-            yield i, True, value
+                value, ok = _error_text(exc), False
+            self.running = int(i + 1 < len(args_list))  # the next one starts when this result is taken
+            yield i, ok, value
 
     def _new_pool(self):
         import multiprocessing
@@ -321,10 +319,10 @@ class LocalExecutor:
                             yield i, False, "worker process died (crash or out of memory), twice"
                         continue
                     except Exception as exc:  # noqa: BLE001
-                        self.running = len(inflight)
+                        self.running = min(len(inflight) + len(queue), self.jobs)
                         yield i, False, _error_text(exc)
                         continue
-                    self.running = len(inflight)
+                    self.running = min(len(inflight) + len(queue), self.jobs)
                     yield i, True, value
                 if broken:
                     for fut, i in list(inflight.items()):  # the pool is gone: these were running too
