@@ -260,6 +260,9 @@ class LocalExecutor:
         threads = self.threads or runtime.num_threads()
         return f"local, {self.jobs} job{'s' if self.jobs > 1 else ''} x {threads} thread{'s' if threads > 1 else ''}"
 
+    def close(self) -> None:
+        pass
+
     def _in_process(self) -> bool:
         """One job runs here unless this process's Taichi already runs with another thread count."""
         from ti_cmax.kernels import runtime
@@ -380,19 +383,24 @@ class DaskExecutor:
             from ti_cmax.errors import InputError
 
             raise InputError("--scheduler dask needs --address tcp://HOST:PORT")
-        self.address, self.threads, self._client = address, threads or 1, client
+        self.address, self.threads = address, threads or 1
+        self._owned = client is None
+        self._client = client if client is not None else self._connect()  # fail now, before any output
         self.running = 0
+
+    def close(self) -> None:
+        if self._owned:
+            with contextlib.suppress(Exception):
+                self._client.close()
 
     def describe(self) -> str:
         return f"dask at {self.address or 'a given client'}, {self.threads} thread(s) per worker"
 
     def _connect(self):
-        if self._client is not None:
-            return self._client, False
         from distributed import Client
 
         try:
-            return Client(self.address, timeout="20s"), True
+            return Client(self.address, timeout="20s")
         except (OSError, TimeoutError) as exc:
             from ti_cmax.errors import InputError
 
@@ -401,7 +409,7 @@ class DaskExecutor:
     def results(self, fn, args_list):
         from distributed import as_completed
 
-        client, owned = self._connect()
+        client = self._client
         futures = []
         try:
             slots = max(1, sum(client.nthreads().values()))
@@ -429,9 +437,6 @@ class DaskExecutor:
             raise
         finally:
             self.running = 0
-            if owned:
-                with contextlib.suppress(Exception):
-                    client.close()
 
 
 # ------------------------------------------------------------------------------------------------------------

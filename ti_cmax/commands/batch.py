@@ -187,25 +187,35 @@ def tasks_line(groups: list[dict], wall: float) -> str:
 
 
 def run(args) -> int:
-    import json
-    import os
     import time
     from pathlib import Path
 
-    from ..config import parse_overrides, save_config
-    from ..kernels import runtime
-    from ..outputs import atomic_path
-    from ..pipelines import benchmark as B
-    from ..pipelines.tasks import run_tasks
+    from ..config import parse_overrides
 
     tic = time.perf_counter()
     datasets, methods, configs, base_cfg = load_suite(args.suite, parse_overrides(args.overrides))
-    executor = executor_from_args(args)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         from ..errors import InputError
 
         raise InputError("output path exists and is not a folder", source=str(out))
+    executor = executor_from_args(args)
+    try:
+        return _run(args, tic, datasets, methods, configs, base_cfg, out, executor)
+    finally:
+        executor.close()
+
+
+def _run(args, tic, datasets, methods, configs, base_cfg, out, executor) -> int:
+    import json
+    import os
+    import time
+
+    from ..config import save_config
+    from ..kernels import runtime
+    from ..outputs import atomic_path
+    from ..pipelines import benchmark as B
+    from ..pipelines.tasks import run_tasks
 
     def log(msg: str) -> None:
         if not args.quiet:

@@ -65,8 +65,11 @@ def run(args) -> int:
 
     log(f"{len(sequences)} sequences x {len(methods)} methods on {executor.describe()}")
     # sequences and finished tasks outlive an interrupted or failed run: a rerun goes on from there
-    results = B.run_benchmark(cfg, sequences, methods, out, executor=executor, log=log, plots=not args.no_plots,
-                              quiet=args.quiet)
+    try:
+        results = B.run_benchmark(cfg, sequences, methods, out, executor=executor, log=log,
+                                  plots=not args.no_plots, quiet=args.quiet)
+    finally:
+        executor.close()
     total = time.perf_counter() - tic
     meta = {"map_height": cfg.benchmark.map_height, "settings_line": B.settings_line(cfg, args.quick),
             "threads_line": f"{executor.describe()}, cpu count {os.cpu_count()}, total wall {total:.1f} s."}

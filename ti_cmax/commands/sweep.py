@@ -25,22 +25,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    import csv
-    import json
     from pathlib import Path
 
-    from ..config import SlamConfig, load_config, save_config
+    from ..config import SlamConfig, load_config
     from ..errors import InputError
-    from ..outputs import atomic_path
-    from ..pipelines.benchmark import json_ready
-    from ..pipelines.sensitivity import SWEEPS, plot_sweep, rows_to_dicts, rows_to_markdown, run_sweep
+    from ..pipelines.sensitivity import SWEEPS
 
     cfg = load_config(SlamConfig, args.config, args.overrides)
     params = [p.strip() for p in args.parameters.split(",") if p.strip()]
     unknown = [p for p in params if p not in SWEEPS]
     if unknown:
         raise InputError(f"--parameters: unknown {', '.join(unknown)} (expected some of {', '.join(SWEEPS)})")
-    executor = executor_from_args(args)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError("output path exists and is not a folder", source=str(out))
@@ -49,6 +44,25 @@ def run(args) -> int:
 
         if open_dataset_from_config(args.dataset, cfg.dataset).groundtruth is None:
             raise InputError("the sweep needs ground truth (groundtruth.txt)", source=str(args.dataset))
+    executor = executor_from_args(args)
+    try:
+        return _run(args, cfg, params, out, executor)
+    finally:
+        executor.close()
+
+
+def _run(args, cfg, params, out, executor) -> int:
+    import csv
+    import json
+    from pathlib import Path
+
+    from ..config import save_config
+    from ..errors import InputError
+    from ..outputs import atomic_path
+    from ..pipelines.benchmark import json_ready
+    from ..pipelines.sensitivity import plot_sweep, rows_to_dicts, rows_to_markdown, run_sweep
+
+    if args.dataset:
         dataset, name = args.dataset, Path(args.dataset).name
     else:
         from ..pipelines.benchmark import BenchmarkSettings, SequenceSpec, prepare_sequences
