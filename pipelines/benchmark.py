@@ -29,7 +29,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import shutil
 import time
 import typing
@@ -41,7 +40,7 @@ import numpy as np
 from ti_cmax.config import SlamConfig, config_to_dict, update_config
 from ti_cmax.errors import InputError
 
-from .bench_slam import PAPER_TAB2, PAPER_TAB6, _fmt, _slam_extra, peak_rss_mb
+from .bench_slam import PAPER_TAB2, PAPER_TAB6, _fmt, _slam_extra
 
 try:  # the baselines are written concurrently: an unimportable registry means "not implemented" rows
     from .baselines import BASELINES, BaselineConfig
@@ -504,8 +503,6 @@ def prepare_sequences(sequences: list[SequenceSpec], settings: BenchmarkSettings
 def suite_tasks(datasets: list[tuple[str, str, dict]], methods: list[str], configs: dict) -> list:
     """Tasks for datasets x parameter sets x methods. ``datasets``: (name, path, labels); ``configs``: parameter
     set name -> BenchmarkConfig ("" for a single unnamed set)."""
-    from ti_cmax.config import config_to_dict
-
     from .tasks import Task, dataset_fingerprint, task_id
 
     tasks = []
