@@ -1,6 +1,7 @@
 """The paper's benchmark tables (Tab. II, IV, VI) on a suite of simulated sequences (``ti-cmax benchmark``).
 
-Suite (modelled on the paper's synthetic sequences): ``playroom``, a 2.5 s DVS128 sequence (scene "town", indoor-like
+Suites (``SUITES``, data: sensor, scene, duration, trajectory, seed per sequence). "paper" (modelled on the paper's
+synthetic sequences): ``playroom``, a 2.5 s DVS128 sequence (scene "town", indoor-like
 large shapes), and 5 s DAVIS240C sequences with the textures ``bicycle``, ``city``, ``street``, ``town``, ``bay``.
 Each sequence (its own seed: its own motion, scene layout and gyro bias) is simulated once into ``DIR/sequences/<name>-<sensor>-<scene>-<duration>s-seed<seed>`` (ECD layout,
 :func:`ti_cmax.simulate.simulate_to_folder`; simulation.json is written last and marks a complete folder) and read
@@ -9,10 +10,14 @@ back from there, so a re-run skips simulation.
 Per sequence, methods (``--methods`` keys in :data:`METHOD_KEYS`):
 
 * front-ends: EKF-SMT, PF-SMT, RTPT, CMax-GAE (the baselines registry ``pipelines.baselines.BASELINES``), CMax-omega
-  (the front-end of the CMax-SLAM linear run, integrated) and IMU dead reckoning;
+  (the front-end of CMax-SLAM alone, integrated) and IMU dead reckoning;
 * the offline BA (``refine``, linear and/or cubic: ``ba_degrees``) of every front-end trajectory that did not lose
   track; the BA of a lost front-end is a row with status "skipped";
 * CMax-SLAM linear and cubic.
+
+Each method on each sequence is a task (``pipelines.tasks``: one process or machine runs it, writes its own files
+in ``DIR/tasks/<sequence>-<method>/``, a rerun skips it); so is each sequence's ground-truth map. The tables are
+built from the tasks' files.
 
 A baseline missing from the registry (or a registry that fails to import) gives rows with status "not implemented";
 a method that raises gives a row with status "error" and the message: no method is silently dropped.
@@ -24,7 +29,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import shutil
 import time
 import typing
@@ -36,7 +40,7 @@ import numpy as np
 from ti_cmax.config import Params, SlamConfig, config_to_dict, param, update_config
 from ti_cmax.errors import InputError
 
-from .bench_slam import PAPER_TAB2, PAPER_TAB6, _fmt, _slam_extra, peak_rss_mb
+from .bench_slam import PAPER_TAB2, PAPER_TAB6, _fmt, _slam_extra
 
 try:  # the baselines are written concurrently: an unimportable registry means "not implemented" rows
     from .baselines import BASELINES, BaselineConfig
@@ -48,21 +52,33 @@ except Exception as exc:  # noqa: BLE001 - any failure of the registry only remo
 
 @dataclass(frozen=True)
 class SequenceSpec:
+    """One simulated sequence of a suite, as data: what the simulator is given."""
+
     name: str
     sensor: str
     scene: str
     duration: float
     seed: int  # added to benchmark.seed: each sequence has its own motion, scene layout and gyro bias
+    trajectory: str = "random"
+    options: tuple = ()  # further SimulatorConfig fields as (name, value) pairs, e.g. (("max_angular_velocity", 3.0),)
 
 
-SUITE = {s.name: s for s in (
-    SequenceSpec("playroom", "DVS128", "town", 2.5, 0),
-    SequenceSpec("bicycle", "DAVIS240C", "bicycle", 5.0, 1),
-    SequenceSpec("city", "DAVIS240C", "city", 5.0, 2),
-    SequenceSpec("street", "DAVIS240C", "street", 5.0, 3),
-    SequenceSpec("town", "DAVIS240C", "town", 5.0, 4),
-    SequenceSpec("bay", "DAVIS240C", "bay", 5.0, 5),
-)}
+def make_suite(*specs: SequenceSpec) -> dict[str, SequenceSpec]:
+    return {s.name: s for s in specs}
+
+
+# Suites of simulated sequences (``--suite NAME``); a new suite is one more entry here.
+SUITES = {
+    "paper": make_suite(
+        SequenceSpec("playroom", "DVS128", "town", 2.5, 0),
+        SequenceSpec("bicycle", "DAVIS240C", "bicycle", 5.0, 1),
+        SequenceSpec("city", "DAVIS240C", "city", 5.0, 2),
+        SequenceSpec("street", "DAVIS240C", "street", 5.0, 3),
+        SequenceSpec("town", "DAVIS240C", "town", 5.0, 4),
+        SequenceSpec("bay", "DAVIS240C", "bay", 5.0, 5),
+    ),
+}
+SUITE = SUITES["paper"]
 
 # front-end keys in the paper's table order; "cmax-slam" adds the two SLAM rows
 FRONTENDS = ("smt-ekf", "smt-pf", "rtpt", "cmax-gae", "cmax-omega", "imu")
@@ -70,12 +86,15 @@ METHOD_KEYS = FRONTENDS + ("cmax-slam",)
 LABELS = {"smt-ekf": "EKF-SMT", "smt-pf": "PF-SMT", "rtpt": "RTPT", "cmax-gae": "CMax-GAE",
           "cmax-omega": "CMax-omega", "imu": "IMU dead reckoning", "cmax-slam": "CMax-SLAM", "gt": "ground truth"}
 DEGREE_NAMES = {1: "linear", 3: "cubic"}
-STATUS = ("ok", "lost", "not implemented", "skipped", "error")
+STATUS = ("ok", "lost", "not implemented", "skipped", "error", "failed")  # failed: the task itself failed
 
 # --quick: two short sequences, linear BA only, at a 512x256 map for the SLAM and BA rows, capped CG iterations
 QUICK_SEQUENCES = ("playroom", "city")
 QUICK_SETTINGS = {"duration": 1.5, "ba_degrees": "1", "ba_pano_height": 256}
-QUICK_OVERRIDES = {"pano_height": 256, "frontend_cg_max_iters": 20, "backend_cg_max_iters": 10}
+# the flat "pano_height" resolves to smt.mapping.pano_height in BenchmarkConfig (ambiguous name): the back-end's is
+# named in full
+QUICK_OVERRIDES = {"pano_height": 256, "backend.pano_height": 256, "frontend_cg_max_iters": 20,
+                   "backend_cg_max_iters": 10}
 
 ROW_FIELDS = ("sequence", "sensor", "scene", "duration_s", "events", "method", "key", "kind", "source",
               "spline_degree", "status", "note", "lost_at", "abs_rmse_deg", "rel_rmse_deg_per_s", "abs_max_deg",
@@ -98,17 +117,21 @@ class BenchmarkSettings(Params):
     # (measured, city 5 s, cubic BA: 195 s from RTPT's poses vs 13-17 s from CMax-omega's 100 Hz); 0: as given
     ba_source_rate: float = param(200.0, "denser BA sources are resampled to this rate", unit="Hz", gt=0,
                                   zero="as given")
+    slam_degrees: str = param("1,3", "spline degrees of the CMax-SLAM rows (the sweep runs one)")
 
     def _relations(self) -> None:
         self.degrees()
+        self.degrees("slam_degrees")
 
-    def degrees(self) -> tuple[int, ...]:
+    def degrees(self, name: str = "ba_degrees") -> tuple[int, ...]:
+        """Spline degrees listed in ``ba_degrees`` (or ``slam_degrees``)."""
+        text = getattr(self, name)
         out = []
-        for s in str(self.ba_degrees).replace(" ", "").split(","):
+        for s in str(text).replace(" ", "").split(","):
             if not s:
                 continue
             if s not in ("1", "3"):
-                raise InputError(f"benchmark.ba_degrees: expected 1 and/or 3, got {self.ba_degrees!r}")
+                raise InputError(f"benchmark.{name}: expected 1 and/or 3, got {text!r}")
             out.append(int(s))
         return tuple(dict.fromkeys(out))
 
@@ -163,12 +186,16 @@ def quick_overrides() -> dict:
 # sequences
 # ------------------------------------------------------------------------------------------------------------
 
-def resolve_sequences(names: list[str] | None, quick: bool = False) -> list[SequenceSpec]:
-    names = list(names) if names else list(QUICK_SEQUENCES if quick else SUITE)
-    unknown = [n for n in names if n not in SUITE]
+def resolve_sequences(names: list[str] | None, quick: bool = False, suite: str = "paper") -> list[SequenceSpec]:
+    """Sequences of ``suite`` by name (default: all of it; ``quick``: QUICK_SEQUENCES of the paper suite)."""
+    if suite not in SUITES:
+        raise InputError(f"--suite: unknown {suite!r} (expected one of {', '.join(SUITES)})")
+    specs = SUITES[suite]
+    names = list(names) if names else list(QUICK_SEQUENCES if quick and suite == "paper" else specs)
+    unknown = [n for n in names if n not in specs]
     if unknown:
-        raise InputError(f"--sequences: unknown {', '.join(unknown)} (expected some of {', '.join(SUITE)})")
-    return [SUITE[n] for n in dict.fromkeys(names)]
+        raise InputError(f"--sequences: unknown {', '.join(unknown)} (expected some of {', '.join(specs)})")
+    return [specs[n] for n in dict.fromkeys(names)]
 
 
 def resolve_methods(keys: list[str] | None) -> list[str]:
@@ -183,7 +210,13 @@ def _simulator_config(spec: SequenceSpec, settings: BenchmarkSettings):
     from ti_cmax.simulate import SimulatorConfig
 
     return SimulatorConfig(scene=spec.scene, sensor=spec.sensor, duration=settings.duration or spec.duration,
-                           seed=settings.seed + spec.seed).resolved()  # as simulation.json records it
+                           trajectory=spec.trajectory, seed=settings.seed + spec.seed,
+                           **dict(spec.options)).resolved()  # as simulation.json records it
+
+
+def sequence_folder(spec: SequenceSpec, settings: BenchmarkSettings, cache_dir) -> Path:
+    sim = _simulator_config(spec, settings)
+    return Path(cache_dir) / f"{spec.name}-{sim.sensor}-{sim.scene}-{sim.duration:g}s-seed{sim.seed}"
 
 
 def ensure_sequence(spec: SequenceSpec, settings: BenchmarkSettings, cache_dir, show_progress: bool = False):
@@ -193,7 +226,7 @@ def ensure_sequence(spec: SequenceSpec, settings: BenchmarkSettings, cache_dir, 
     from ti_cmax.simulate import simulate_to_folder
 
     sim = _simulator_config(spec, settings)
-    folder = Path(cache_dir) / f"{spec.name}-{sim.sensor}-{sim.scene}-{sim.duration:g}s-seed{sim.seed}"
+    folder = sequence_folder(spec, settings, cache_dir)
     meta = folder / "simulation.json"
     wanted = json.loads(json.dumps(dataclasses.asdict(sim)))
     if meta.is_file():
@@ -258,10 +291,18 @@ def _run_baseline(key, events, camera, cfg, imu, contrast_threshold=None) -> Met
     return run
 
 
+def _chunks(events):
+    """Fresh input for one run: ``events`` is an ``Events`` object or a zero-argument callable returning an
+    iterable of chunks (a dataset read again for each run, so memory does not grow with the file)."""
+    return events() if callable(events) else events
+
+
 def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[str], on_row=None,
                          contrast_threshold=None) -> list[MethodRun]:
-    """Run every selected method (and the BA of each front-end that kept track) on one sequence
-    (``contrast_threshold``: the sequence's C for SMT, App. B: the simulator's value on synthetic data)."""
+    """Run every selected method (and the BA of each front-end that kept track) on one sequence; "gt" in
+    ``methods`` adds the ground-truth row (its map: the reference of Tab. IV). ``contrast_threshold``: the
+    sequence's C for SMT (App. B: the simulator's value on synthetic data)."""
+    from .frontend import estimate_angular_velocity
     from .imu import dead_reckoning
     from .slam import refine, run_slam
 
@@ -284,32 +325,21 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
             run.wall_s = time.perf_counter() - tic
         return run
 
-    add(MethodRun("gt", LABELS["gt"], "reference", "ok", trajectory=groundtruth))
-    slam = {}
-    if "cmax-slam" in methods or "cmax-omega" in methods:
-        wanted = (1, 3) if "cmax-slam" in methods else (1,)
-        for d in wanted:
-            tic = time.perf_counter()
-            try:
-                slam[d] = run_slam(events, camera, slam_config(cfg, d))
-            except Exception as exc:  # noqa: BLE001
-                slam[d] = exc
-            if isinstance(slam[d], Exception):
-                slam[d] = (slam[d], time.perf_counter() - tic)
+    if "gt" in methods:
+        add(MethodRun("gt", LABELS["gt"], "reference", "ok" if groundtruth is not None else "skipped",
+                      trajectory=groundtruth, note="" if groundtruth is not None else "no ground truth"))
     frontends: list[MethodRun] = []
     for key in FRONTENDS:
         if key not in methods:
             continue
-        if key == "cmax-omega":
-            res = slam[1]
-            if isinstance(res, tuple):
-                run = MethodRun(key, LABELS[key], "front-end", "error", wall_s=res[1],
-                                note=f"{type(res[0]).__name__}: {res[0]}"[:300])
-            else:
-                fe = res.frontend
-                run = MethodRun(key, LABELS[key], "front-end", "ok", trajectory=fe.trajectory(),
-                                frontend_us=_us(res.report, "frontend"), compile_s=fe.timing.get("compile_seconds"),
-                                wall_s=fe.timing.get("wall_seconds"), extra={"packets": len(fe)})
+        if key == "cmax-omega":  # the front-end of CMax-SLAM alone (the same packets as in its SLAM runs)
+            def omega_run():
+                res = estimate_angular_velocity(_chunks(events), camera, slam_config(cfg).frontend)
+                t = res.timing
+                return MethodRun("cmax-omega", LABELS["cmax-omega"], "front-end", "ok", trajectory=res.trajectory(),
+                                 frontend_us=t["us_per_event"], compile_s=t.get("compile_seconds"),
+                                 wall_s=t.get("wall_seconds"), extra={"packets": len(res)})
+            run = guarded(key, LABELS[key], "front-end", omega_run)
         elif key == "imu":
             def imu_run():
                 if imu is None:
@@ -320,8 +350,9 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
                                  wall_s=time.perf_counter() - tic)
             run = guarded("imu", LABELS["imu"], "front-end", imu_run)
         else:
-            run = guarded(key, LABELS[key], "front-end", lambda k=key: _run_baseline(k, events, camera, cfg, imu,
-                                                                                  contrast_threshold))
+            run = guarded(key, LABELS[key], "front-end",
+                          lambda k=key: _run_baseline(k, _chunks(events), camera, cfg, imu,
+                                                        contrast_threshold))
         frontends.append(run)
         add(run)
     for fe_run in frontends:
@@ -335,7 +366,7 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
                 continue
 
             def ba_run(traj=fe_run.trajectory, d=d, key=key, name=name, src=fe_run.key):
-                res = refine(events, camera, ba_source(traj, settings.ba_source_rate),
+                res = refine(_chunks(events), camera, ba_source(traj, settings.ba_source_rate),
                              slam_config(cfg, d, settings.ba_pano_height))
                 rep = res.report
                 return MethodRun(key, name, "ba", "ok", trajectory=res.trajectory, source=src, spline_degree=d,
@@ -343,24 +374,24 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
                                  wall_s=rep["wall_seconds"], extra=_slam_extra(rep))
             add(guarded(key, name, "ba", ba_run, source=fe_run.key, spline_degree=d))
     if "cmax-slam" in methods:
-        for d in (1, 3):
-            res = slam[d]
-            name = f"CMax-SLAM ({DEGREE_NAMES[d]})"
-            if isinstance(res, tuple):
-                add(MethodRun(f"cmax-slam{d}", name, "slam", "error", spline_degree=d, wall_s=res[1],
-                              note=f"{type(res[0]).__name__}: {res[0]}"[:300]))
-                continue
-            rep = res.report
-            add(MethodRun(f"cmax-slam{d}", name, "slam", "ok", trajectory=res.trajectory, spline_degree=d,
-                          frontend_us=_us(rep, "frontend"), backend_us=_us(rep, "backend"),
-                          compile_s=rep["compile_seconds"], wall_s=rep["wall_seconds"], extra=_slam_extra(rep)))
+        for d in settings.degrees("slam_degrees"):
+            def slam_run(d=d):
+                res = run_slam(_chunks(events), camera, slam_config(cfg, d))
+                rep = res.report
+                return MethodRun(f"cmax-slam{d}", f"CMax-SLAM ({DEGREE_NAMES[d]})", "slam", "ok",
+                                 trajectory=res.trajectory, spline_degree=d, frontend_us=_us(rep, "frontend"),
+                                 backend_us=_us(rep, "backend"), compile_s=rep["compile_seconds"],
+                                 wall_s=rep["wall_seconds"], extra=_slam_extra(rep))
+            add(guarded(f"cmax-slam{d}", f"CMax-SLAM ({DEGREE_NAMES[d]})", "slam", slam_run, spline_degree=d))
     return runs
 
 
 def score(run: MethodRun, groundtruth, events, camera, cfg) -> tuple[dict, dict]:
-    """Row dict of a run (errors vs ground truth, EA/GM of its panoramic IWE) and its per-sample arrays + map."""
+    """Row dict of a run (errors vs ground truth if any, EA/GM of its panoramic IWE) and its per-sample arrays +
+    map. ``events`` as in :func:`run_sequence_methods`."""
     from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
 
+    from .frontend import as_chunks
     from .panorama import render_panorama
 
     row = {k: None for k in ROW_FIELDS}
@@ -374,7 +405,7 @@ def score(run: MethodRun, groundtruth, events, camera, cfg) -> tuple[dict, dict]
     arrays = {}
     if run.trajectory is None or len(run.trajectory) < 2:
         return row, arrays
-    if run.kind != "reference":
+    if run.kind != "reference" and groundtruth is not None:
         err = evaluate_rotations(groundtruth, run.trajectory)
         prefix = "" if run.status == "ok" else "partial_"  # a lost method's figures stay out of the tables
         row.update({f"{prefix}abs_rmse_deg": err.abs_rmse_deg, f"{prefix}rel_rmse_deg_per_s": err.rel_rmse_deg_per_s,
@@ -384,50 +415,223 @@ def score(run: MethodRun, groundtruth, events, camera, cfg) -> tuple[dict, dict]
             arrays["abs"], arrays["rel"] = err.abs_errors_deg, err.rel_errors_deg_per_s
     if run.status == "ok":
         h = cfg.benchmark.map_height
-        pano = render_panorama([events], camera, run.trajectory, 2 * h, h, batch_size=cfg.backend.event_batch_size)
+        pano = render_panorama(as_chunks(_chunks(events)), camera, run.trajectory, 2 * h, h,
+                               batch_size=cfg.backend.event_batch_size)
         row.update(ea_percent=event_area_percent(pano.image, cfg.backend.lambda0),
                    gm=gradient_magnitude(pano.image), map_events=int(pano.events_used))
         arrays["map"] = pano.image
     return row, arrays
 
 
-def bench_sequence(spec: SequenceSpec, cfg, methods: list[str], cache_dir, *, plots_dir=None, log=None) -> dict:
-    """Simulate (or reuse) one sequence, run and score every method, optionally write its plots."""
-    from ti_cmax.io import open_dataset
+@dataclass
+class MethodOutput:
+    """What one task produces: scored rows, each row's trajectory (None for ground truth), the arrays of the plots
+    (keys "<row index>_<abs|rel|map|t|R>") and facts about the dataset."""
 
-    settings = cfg.benchmark
-    tic = time.perf_counter()
-    load0 = os.getloadavg()
-    folder, info, sim_s = ensure_sequence(spec, settings, cache_dir)
-    ds = open_dataset(folder)
-    events, camera, gt, imu = ds.read_events(), ds.camera, ds.groundtruth, ds.imu
-    duration = float(info["duration"])
-    base = {"sequence": spec.name, "sensor": spec.sensor, "scene": spec.scene, "duration_s": duration,
-            "events": int(len(events))}
-    rows, arrays = [], {}
+    rows: list
+    trajectories: list
+    arrays: dict
+    dataset_info: dict
+
+
+def run_method(dataset, cfg, method: str, log=None) -> MethodOutput:
+    """One task: ``method`` (a METHOD_KEYS key, or "gt") on the dataset at ``dataset``, scored. The events are
+    streamed from the dataset for each run and each map."""
+    from ti_cmax.io import open_dataset_from_config
+
+    ds = open_dataset_from_config(dataset, cfg.dataset)
+    t0, t1 = ds.time_range()
+    info = {"events": int(ds.num_events()), "duration_s": float(t1 - t0),
+            "camera_size": [int(ds.camera.width), int(ds.camera.height)]}
+
+    def events():
+        return ds.iter_events(cfg.dataset.chunk_size)
 
     def on_row(run: MethodRun):
-        if log and run.kind != "reference":
-            extra = f" ({run.note})" if run.note else ""
-            wall = f", {run.wall_s:.1f} s" if run.wall_s is not None else ""
-            log(f"  {spec.name}: {run.method}: {run.status}{wall}{extra}")
+        if log:
+            log(f"{run.method}: {run.status}" + (f", {run.wall_s:.1f} s" if run.wall_s is not None else "")
+                + (f" ({run.note})" if run.note else ""))
 
     from ti_cmax.pipelines.mapping import resolve_contrast
 
-    smt_c = resolve_contrast(cfg.smt.mapping, folder) if hasattr(cfg, "smt") else None
-    for run in run_sequence_methods(events, camera, gt, imu, cfg, methods, on_row, smt_c):
-        row, arr = score(run, gt, events, camera, cfg)
-        rows.append({**row, **base})
-        arrays[run.method] = arr
-    result = {
-        **base, "folder": str(folder), "event_rate_mev_s": len(events) / duration / 1e6,
-        "simulate_seconds": sim_s, "cached": sim_s == 0.0, "gyro_bias_deg_s": np.degrees(info["gyro_bias"]).tolist(),
-        "loadavg_start": list(load0), "loadavg_end": list(os.getloadavg()), "peak_rss_mb": peak_rss_mb(),
-        "wall_seconds": time.perf_counter() - tic, "rows": rows,
-    }
-    if plots_dir is not None:
-        result["plots"] = write_plots(plots_dir, spec.name, arrays, gt)
-    return result
+    smt_c = resolve_contrast(cfg.smt.mapping, dataset) if hasattr(cfg, "smt") else None
+    out = MethodOutput([], [], {}, info)
+    for run in run_sequence_methods(events, ds.camera, ds.groundtruth, ds.imu, cfg, [method], on_row, smt_c):
+        row, arr = score(run, ds.groundtruth, events, ds.camera, cfg)
+        i = len(out.rows)
+        out.rows.append(row)
+        out.trajectories.append(None if run.kind == "reference" else run.trajectory)
+        for k, v in arr.items():
+            if k == "trajectory_aligned":
+                out.arrays[f"{i}_t"], out.arrays[f"{i}_R"] = v.t, v.R
+            else:
+                out.arrays[f"{i}_{k}"] = v
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------------
+# a suite of tasks
+# ------------------------------------------------------------------------------------------------------------
+
+KIND_ORDER = {"reference": 0, "front-end": 1, "ba": 2, "slam": 3}
+
+
+def method_kind(key: str) -> str:
+    return "reference" if key == "gt" else "slam" if key == "cmax-slam" else "front-end"
+
+
+def failed_row(method: str, error: str) -> dict:
+    """The row of a task that failed as a whole (its exception, a lost worker)."""
+    row = {k: None for k in ROW_FIELDS}
+    row.update(method=LABELS.get(method, method), key=method, kind=method_kind(method), status="failed",
+               note=str(error)[:300])
+    return row
+
+
+def prepare_sequences(sequences: list[SequenceSpec], settings: BenchmarkSettings, cache_dir, executor, *,
+                      quiet: bool = True) -> dict:
+    """Simulate the sequences not cached yet (in parallel on ``executor``). Returns name -> (folder, info,
+    simulate seconds) or name -> error text for a sequence that could not be simulated."""
+    from .tasks import run_calls
+
+    Path(cache_dir).mkdir(parents=True, exist_ok=True)
+
+    def remove_incomplete():  # after Ctrl-C stopped the workers: a folder without simulation.json is partial
+        for spec in sequences:
+            folder = sequence_folder(spec, settings, cache_dir)
+            if folder.is_dir() and not (folder / "simulation.json").is_file():
+                shutil.rmtree(folder, ignore_errors=True)
+
+    executor.on_interrupt = remove_incomplete
+    outs = run_calls(executor, ensure_sequence, [(spec, settings, str(cache_dir)) for spec in sequences],
+                     desc="simulate", quiet=quiet)
+    return {spec.name: (value if ok else str(value)) for spec, (ok, value) in zip(sequences, outs)}
+
+
+def suite_tasks(datasets: list[tuple[str, str, dict]], methods: list[str], configs: dict) -> list:
+    """Tasks for datasets x parameter sets x methods. ``datasets``: (name, path, labels); ``configs``: parameter
+    set name -> BenchmarkConfig ("" for a single unnamed set)."""
+    from .tasks import Task, dataset_fingerprint, task_id
+
+    tasks = []
+    for name, path, labels in datasets:
+        fp = dataset_fingerprint(path)
+        for pname, cfg in configs.items():
+            cdict = config_to_dict(cfg)
+            for m in methods:
+                tasks.append(Task(task_id(pname, name, m), m, str(path), fp, cdict,
+                                  {"sequence": name, **labels, **({"parameters": pname} if pname else {})}))
+    return tasks
+
+
+def group_results(tasks, results, extra: dict | None = None) -> list[dict]:
+    """Per (parameter set, dataset), in task order: the fields :func:`format_tables` reads, rows in table order
+    (ground truth, front-ends, BA rows, SLAM rows; tasks in the given order within each)."""
+    groups: dict = {}
+    for task, res in zip(tasks, results):
+        key = (task.labels.get("parameters", ""), task.labels["sequence"])
+        g = groups.get(key)
+        if g is None:
+            g = groups[key] = {**{k: task.labels.get(k, "") for k in ("sequence", "sensor", "scene", "parameters")},
+                               "folder": task.dataset, "rows": [], "tasks": {"done": 0, "failed": 0},
+                               "task_ids": [], "wall_seconds": 0.0, "loadavg_start": None, "loadavg_end": None,
+                               "peak_rss_mb": 0.0, "events": 0, "duration_s": 0.0}
+        g["task_ids"].append(task.id)
+        if res.get("status") == "done":
+            g["tasks"]["done"] += 1
+            g["rows"] += [dict(r) for r in res["rows"]]
+            info = res.get("dataset_info") or {}
+            g["events"], g["duration_s"] = info.get("events", g["events"]), info.get("duration_s", g["duration_s"])
+            if not g["sensor"] and info.get("camera_size"):
+                g["sensor"] = "x".join(map(str, info["camera_size"]))
+        else:
+            g["tasks"]["failed"] += 1
+            g["rows"].append({**task.labels, **failed_row(task.method, res.get("error", "failed"))})
+        g["wall_seconds"] += res.get("wall_seconds") or 0.0
+        g["loadavg_start"] = g["loadavg_start"] or res.get("loadavg_start")
+        g["loadavg_end"] = res.get("loadavg_end") or g["loadavg_end"]
+        g["peak_rss_mb"] = max(g["peak_rss_mb"], res.get("peak_rss_mb") or 0.0)
+    out = []
+    for g in groups.values():
+        g.update((extra or {}).get(g["sequence"], {}))
+        for r in g["rows"]:
+            r.update(duration_s=g["duration_s"], events=g["events"])
+        order = {m: i for i, m in enumerate(dict.fromkeys(r["key"].split("+")[0] for r in g["rows"]))}
+        g["rows"].sort(key=lambda r: (KIND_ORDER.get(r["kind"], 9), order[r["key"].split("+")[0]]))
+        g["event_rate_mev_s"] = g["events"] / g["duration_s"] / 1e6 if g["duration_s"] else 0.0
+        g["loadavg_start"] = g["loadavg_start"] or [float("nan")] * 3
+        g["loadavg_end"] = g["loadavg_end"] or [float("nan")] * 3
+        out.append(g)
+    return out
+
+
+def plot_group(plots_dir, group: dict, out_dir, suffix: str = "") -> list[str]:
+    """The plots of one dataset from its tasks' arrays.npz (nothing without ground truth)."""
+    from ti_cmax.io import open_dataset
+    from ti_cmax.trajectory import Trajectory
+
+    from .tasks import TASKS_DIR
+
+    arrays: dict = {}
+    for tid in group["task_ids"]:
+        path = Path(out_dir) / TASKS_DIR / tid / "arrays.npz"
+        result = Path(out_dir) / TASKS_DIR / tid / "result.json"
+        if not path.is_file() or not result.is_file():
+            continue
+        rows = json.loads(result.read_text())["rows"]
+        with np.load(path) as npz:
+            for i, row in enumerate(rows):
+                a = {k: npz[f"{i}_{k}"] for k in ("abs", "rel", "map") if f"{i}_{k}" in npz}
+                if f"{i}_t" in npz:
+                    a["trajectory_aligned"] = Trajectory(npz[f"{i}_t"], npz[f"{i}_R"])
+                if a:
+                    arrays[row["method"]] = a
+    order = [r["method"] for r in group["rows"]]
+    arrays = {m: arrays[m] for m in order if m in arrays}
+    gt = open_dataset(group["folder"]).groundtruth
+    if not arrays or gt is None:
+        return []
+    return write_plots(plots_dir, group["sequence"] + suffix, arrays, gt)
+
+
+def run_benchmark(cfg, sequences: list[SequenceSpec], methods: list[str], out_dir, *, executor=None, log=None,
+                  plots: bool = True, quiet: bool = True) -> list[dict]:
+    """Run the suite as tasks (one per sequence and method, plus its ground-truth map) on ``executor`` (default:
+    in this process). Sequences are cached in out_dir/sequences, task results in out_dir/tasks (finished ones are
+    skipped on a rerun), plots go to out_dir/plots. Returns the per-sequence results."""
+    from .tasks import LocalExecutor, run_tasks
+
+    out_dir = Path(out_dir)
+    executor = executor or LocalExecutor()
+    methods = [k for k in METHOD_KEYS if k in methods]  # the tables' order
+    prepared = prepare_sequences(sequences, cfg.benchmark, out_dir / "sequences", executor, quiet=quiet)
+    ready = [s for s in sequences if isinstance(prepared[s.name], tuple)]
+    datasets = [(s.name, str(prepared[s.name][0]), {"sensor": s.sensor, "scene": s.scene}) for s in ready]
+    tasks = suite_tasks(datasets, ["gt", *methods], {"": cfg})
+    summary = run_tasks(tasks, out_dir, executor, quiet=quiet, log=log)
+    extra = {}
+    for s in ready:
+        folder, info, sim_s = prepared[s.name]
+        extra[s.name] = {"simulate_seconds": sim_s, "cached": sim_s == 0.0, "duration_s": float(info["duration"]),
+                         "gyro_bias_deg_s": np.degrees(info["gyro_bias"]).tolist()}
+    groups = {g["sequence"]: g for g in group_results(tasks, summary.results, extra)}
+    results = []
+    for s in sequences:
+        if s.name not in groups:  # simulation failed: every method of it failed
+            g = {"sequence": s.name, "sensor": s.sensor, "scene": s.scene, "duration_s": 0.0, "events": 0,
+                 "event_rate_mev_s": 0.0, "simulate_seconds": 0.0, "cached": False, "wall_seconds": 0.0,
+                 "loadavg_start": [float("nan")] * 3, "loadavg_end": [float("nan")] * 3, "peak_rss_mb": 0.0,
+                 "tasks": {"done": 0, "failed": len(methods) + 1},
+                 "rows": [failed_row(m, f"simulation failed: {prepared[s.name]}") for m in ["gt", *methods]]}
+            for r in g["rows"]:
+                r.update(sequence=s.name, sensor=s.sensor, scene=s.scene)
+        else:
+            g = groups[s.name]
+            if plots:
+                g["plots"] = plot_group(out_dir / "plots", g, out_dir)
+        g["tasks"]["skipped"] = sum(1 for t in tasks if t.labels["sequence"] == s.name and t.id in summary.skipped)
+        results.append(g)
+    return results
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -520,7 +724,7 @@ def _grid(results, kinds, keys_digits, sub_headers, notes, show_lost: bool = Fal
 def format_tables(results: list[dict], meta: dict) -> str:
     """tables.md: Tab. II (accuracy), Tab. IV (map sharpness), Tab. VI (runtime) and the runtime of every row."""
     notes = _Notes()
-    out = ["# CMax-SLAM benchmark (simulated suite)", ""]
+    out = [meta.get("title", "# CMax-SLAM benchmark (simulated suite)"), ""]
     out.append("Sequences: " + "; ".join(
         f"{r['sequence']} = {r['sensor']} {r['scene']} {r['duration_s']:g} s, {r['events']} events "
         f"({r['event_rate_mev_s']:.2f} Mev/s)" for r in results))
@@ -549,10 +753,10 @@ def format_tables(results: list[dict], meta: dict) -> str:
     out += _grid(results, ("front-end", "ba", "slam"), (("us_per_event", 2), ("wall_seconds", 1)),
                  ("us/ev", "wall s"), notes, show_lost=True)
     out += ["", "## Per sequence", "",
-            "| sequence | simulate s (0: cached) | benchmark wall s | load avg start / end (1 min) | peak RSS MB |",
+            "| sequence | simulate s (0: cached) | tasks wall s (sum) | load avg start / end (1 min) | peak RSS MB (max) |",
             "|---|---|---|---|---|"]
     for res in results:
-        out.append(f"| {res['sequence']} | {res['simulate_seconds']:.1f} | {res['wall_seconds']:.1f} | "
+        out.append(f"| {res['sequence']} | {res.get('simulate_seconds', 0.0):.1f} | {res['wall_seconds']:.1f} | "
                    f"{res['loadavg_start'][0]:.2f} / {res['loadavg_end'][0]:.2f} | {res['peak_rss_mb']:.0f} |")
     out += ["", "## Notes", ""]
     out += notes.lines() or ["(none)"]
@@ -563,7 +767,7 @@ def format_tables(results: list[dict], meta: dict) -> str:
                                                if BASELINES_IMPORT_ERROR else "") + ".",
             "- rel RMSE uses 1 s pairs every 0.1 s (nan if the sequence is shorter); errors at each estimate's own "
             "timestamps after alignment at t0 = start of the overlap + 0.1 s.",
-            "- CMax-omega is the front-end of the CMax-SLAM linear run (same packets), integrated from the identity.",
+            "- CMax-omega is the front-end of CMax-SLAM run alone (the same packets), integrated from the identity.",
             f"- Paper, synthetic: CMax-SLAM abs {PAPER_TAB2['abs_rmse_deg'][0]}-{PAPER_TAB2['abs_rmse_deg'][1]} deg, "
             f"rel {PAPER_TAB2['rel_rmse_deg_per_s'][0]}-{PAPER_TAB2['rel_rmse_deg_per_s'][1]} deg/s (Tab. II); "
             f"back-end {PAPER_TAB6['linear'][0]}-{PAPER_TAB6['linear'][1]} us/event linear, "
@@ -589,22 +793,6 @@ def json_ready(obj):
     return obj
 
 
-def run_benchmark(cfg, sequences: list[SequenceSpec], methods: list[str], out_dir, *, log=None,
-                  plots: bool = True) -> list[dict]:
-    """Run the suite; sequences are cached in out_dir/sequences, plots go to out_dir/plots. Returns the results."""
-    out_dir = Path(out_dir)
-    results = []
-    for spec in sequences:
-        if log:
-            log(f"{spec.name}: {spec.sensor} {spec.scene} {cfg.benchmark.duration or spec.duration:g} s")
-        res = bench_sequence(spec, cfg, methods, out_dir / "sequences",
-                             plots_dir=(out_dir / "plots") if plots else None, log=log)
-        results.append(res)
-        if log:
-            log(f"{spec.name}: done in {res['wall_seconds']:.1f} s (simulation {res['simulate_seconds']:.1f} s)")
-    return results
-
-
 def settings_line(cfg, quick: bool) -> str:
     b = cfg.backend
     s = cfg.benchmark
@@ -617,5 +805,6 @@ def settings_line(cfg, quick: bool) -> str:
 
 __all__ = ["SUITE", "SequenceSpec", "FRONTENDS", "METHOD_KEYS", "LABELS", "BenchmarkConfig", "BenchmarkSettings",
            "QUICK_SEQUENCES", "quick_overrides", "resolve_sequences", "resolve_methods", "ensure_sequence",
-           "run_sequence_methods", "score", "bench_sequence", "run_benchmark", "format_tables", "rows_for_csv",
-           "json_ready", "write_plots", "slam_config", "ROW_FIELDS"]
+           "run_sequence_methods", "score", "run_method", "suite_tasks", "group_results", "run_benchmark",
+           "format_tables", "rows_for_csv", "json_ready", "write_plots", "slam_config", "ROW_FIELDS", "SUITES",
+           "make_suite", "prepare_sequences", "plot_group", "failed_row"]

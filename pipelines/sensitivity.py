@@ -3,17 +3,16 @@
 One parameter varies at a time around the reference defaults, on one simulated sequence: control-pose frequency
 (1/dt_knots), time-window size (stride = half the window), panoramic map resolution, and event sampling rate
 (front-end and back-end both keep 1 of Q). Each run reports the absolute and relative rotation RMSE against
-ground truth and the runtime per input event (steady state, compilation apart).
+ground truth and the runtime per input event (steady state, compilation apart). Each run is a task
+(``pipelines.tasks``): runs go in parallel on a local pool or a Dask cluster and a rerun skips finished ones.
 """
 from __future__ import annotations
 
-import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from ti_cmax.config import SlamConfig, update_config
-from ti_cmax.metrics import evaluate_rotations
 
 # parameter -> (label, values, overrides builder)
 SWEEPS = {
@@ -43,35 +42,64 @@ class SweepRow:
     us_per_event_frontend: float
     us_per_event_backend: float
     wall_seconds: float
+    status: str = "ok"  # or "failed: <error>" (the run's task failed; figures nan)
 
 
-def run_sweep(sequence, base: SlamConfig = SlamConfig(), parameters=tuple(SWEEPS), quick: bool = False,
-              progress=None) -> list[SweepRow]:
-    """Run CMax-SLAM on ``sequence`` (a SimulatedSequence) once per parameter value."""
-    from .slam import run_slam
-
-    rows = []
+def sweep_configs(base: SlamConfig = SlamConfig(), parameters=tuple(SWEEPS), quick: bool = False) -> list:
+    """(run name, parameter, value, SlamConfig) per run: one parameter varied at a time around ``base``."""
+    runs = []
     for name in parameters:
         _, values, build = SWEEPS[name]
         for value in (QUICK_VALUES[name] if quick else values):
-            cfg = update_config(base, build(value))
-            tic = time.perf_counter()
-            res = run_slam(sequence.events, sequence.camera, cfg)
-            err = evaluate_rotations(sequence.groundtruth, res.trajectory)
-            us = res.report["us_per_event"]
-            rows.append(SweepRow(name, float(value), err.abs_rmse_deg, err.rel_rmse_deg_per_s,
-                                 us["frontend"], us["backend"], time.perf_counter() - tic))
-            if progress is not None:
-                progress(rows[-1])
+            runs.append((f"{name}={value:g}", name, float(value), update_config(base, build(value))))
+    return runs
+
+
+def as_task_config(cfg: SlamConfig):
+    """A SlamConfig as the task model's BenchmarkConfig: CMax-SLAM at its own spline degree only."""
+    from ti_cmax.config import build_config, config_to_dict
+
+    from .benchmark import BenchmarkConfig
+
+    values = {**config_to_dict(cfg), "benchmark": {"slam_degrees": str(cfg.backend.spline_degree)}}
+    return build_config(BenchmarkConfig, values, source="sweep")
+
+
+def run_sweep(dataset, name: str, base: SlamConfig = SlamConfig(), parameters=tuple(SWEEPS), quick: bool = False,
+              *, out_dir, executor=None, quiet: bool = True, log=None) -> list[SweepRow]:
+    """CMax-SLAM on the dataset at ``dataset`` (with ground truth) once per parameter value, each run a task
+    (``pipelines.tasks``) with its files in out_dir/tasks; finished runs are skipped on a rerun."""
+    from .benchmark import suite_tasks
+    from .tasks import LocalExecutor, run_tasks
+
+    runs = sweep_configs(base, parameters, quick)
+    tasks = suite_tasks([(name, str(dataset), {})], ["cmax-slam"], {r[0]: as_task_config(r[3]) for r in runs})
+    summary = run_tasks(tasks, out_dir, executor or LocalExecutor(), quiet=quiet, log=log)
+    rows = []
+    for (_, param, value, _), res in zip(runs, summary.results):
+        slam = [r for r in res.get("rows", []) if r["kind"] == "slam"]
+        r = slam[0] if slam else {}
+        status = "ok" if r.get("status") == "ok" else \
+            f"failed: {res.get('error') or r.get('note') or r.get('status')}"
+        nan = float("nan")
+        rows.append(SweepRow(param, value, _num(r.get("abs_rmse_deg")), _num(r.get("rel_rmse_deg_per_s")),
+                             _num(r.get("frontend_us_per_event")), _num(r.get("backend_us_per_event")),
+                             res.get("wall_seconds") or nan, status))
     return rows
+
+
+def _num(v) -> float:
+    return float("nan") if v is None else float(v)
 
 
 def rows_to_markdown(rows: list[SweepRow]) -> str:
     lines = ["| parameter | value | abs RMSE [deg] | rel RMSE [deg/s] | front-end [us/ev] | back-end [us/ev] |",
              "|---|---|---|---|---|---|"]
+    failed = [r for r in rows if r.status != "ok"]
     for r in rows:
         lines.append(f"| {SWEEPS[r.parameter][0]} | {r.value:g} | {r.abs_rmse_deg:.3f} | {r.rel_rmse_deg_per_s:.3f} "
                      f"| {r.us_per_event_frontend:.2f} | {r.us_per_event_backend:.2f} |")
+    lines += [""] + [f"- {r.parameter}={r.value:g}: {r.status}" for r in failed] if failed else []
     return "\n".join(lines)
 
 

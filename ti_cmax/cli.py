@@ -28,6 +28,7 @@ COMMANDS = {
     "demo": "demo",
     "benchmark": "benchmark",
     "sweep": "sweep",
+    "batch": "batch",
     "baseline": "baseline",
     "grayscale": "grayscale",
     "star-tracking": "star_tracking",
@@ -106,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.quiet:
         progress.set_quiet(True)
     threads = args.threads or configured_threads(args)
-    if threads:
+    # with --jobs N > 1 or --scheduler dask, --threads is for the worker processes
+    if threads and getattr(args, "jobs", 1) == 1 and getattr(args, "scheduler", "local") == "local":
         from .kernels import runtime
 
         runtime.set_num_threads(threads)

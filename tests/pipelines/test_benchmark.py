@@ -82,11 +82,13 @@ def test_lost_front_end_and_cache(tmp_path, monkeypatch):
     reuses the cached sequence."""
     from ti_cmax.pipelines.baselines import BaselineResult
 
-    def lost_method(events, camera, config, imu):
+    def lost_method(events, camera, config, imu):  # events: chunks streamed from the dataset
+        from ti_cmax.pipelines.frontend import as_chunks
         from ti_cmax.trajectory import Trajectory
         import numpy as np
 
-        t = np.linspace(events.t[0], events.t[0] + 0.2, 5)
+        t0 = next(iter(as_chunks(events))).t[0]
+        t = np.linspace(t0, t0 + 0.2, 5)
         return BaselineResult(Trajectory(t, np.repeat(np.eye(3)[None], 5, axis=0)), np.zeros((4, 8)),
                               {"status": "lost", "lost_at": 0.2, "us_per_event": {"frontend": 1.0}})
 

@@ -1,29 +1,37 @@
 """``ti-cmax benchmark --out DIR``: the paper's Tab. II (abs/rel RMSE), Tab. IV (EA, GM) and Tab. VI (us/event) on a
-suite of simulated sequences (playroom-like DVS128 2.5 s; bicycle, city, street, town, bay DAVIS240C 5 s).
+suite of simulated sequences (``--suite paper``: playroom-like DVS128 2.5 s; bicycle, city, street, town, bay
+DAVIS240C 5 s).
 
-Writes DIR/tables.md, DIR/results.csv (one row per sequence x method), DIR/results.json, DIR/plots/ (violins of the
-errors, trajectories per axis, maps side by side, per sequence) and DIR/config.yaml. Simulated sequences are cached
-in DIR/sequences (a re-run skips simulation). ``--quick``: 2 sequences of 1.5 s, linear BA only, 512x256 back-end
-maps and capped CG iterations (smoke runs; figures not comparable with the full suite).
+Each method on each sequence is a task (see ``ti-cmax batch``): ``--jobs N`` runs N at once in spawned processes,
+``--scheduler dask --address tcp://HOST:PORT`` on a Dask cluster; a rerun skips finished tasks (DIR/tasks) and
+simulated sequences (DIR/sequences). Writes DIR/tables.md, DIR/results.csv (one row per sequence x method),
+DIR/results.json, DIR/plots/ (violins of the errors, trajectories per axis, maps side by side, per sequence) and
+DIR/config.yaml. ``--quick``: 2 sequences of 1.5 s, linear BA only, 512x256 back-end maps and capped CG iterations
+(smoke runs; figures not comparable with the full suite).
 """
 from __future__ import annotations
 
 import argparse
 import sys
 
+from .batch import add_executor_arguments, executor_from_args, exit_code, tasks_line, write_tables
+
 HELP = "paper-style benchmark tables (Tab. II, IV, VI) on simulated sequences: tables.md, results.csv, plots"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..pipelines.benchmark import METHOD_KEYS, SUITES
+
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (sequences are cached in DIR/sequences)")
     parser.add_argument("--quick", action="store_true", help="2 short sequences, linear BA only, smaller maps")
+    parser.add_argument("--suite", default="paper", choices=tuple(SUITES), help="suite of simulated sequences")
     parser.add_argument("--sequences", default="", metavar="A,B",
-                        help="comma-separated subset of playroom,bicycle,city,street,town,bay (default: all; "
-                             "--quick: playroom,city)")
+                        help="comma-separated subset of the suite's sequences (paper: playroom,bicycle,city,street,"
+                             "town,bay; default: all; --quick: playroom,city)")
     parser.add_argument("--methods", default="", metavar="A,B",
-                        help="comma-separated subset of smt-ekf,smt-pf,rtpt,cmax-gae,cmax-omega,imu,cmax-slam "
-                             "(default: all)")
+                        help=f"comma-separated subset of {','.join(METHOD_KEYS)} (default: all)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    add_executor_arguments(parser)
 
 
 def _split(text: str) -> list[str]:
@@ -31,52 +39,46 @@ def _split(text: str) -> list[str]:
 
 
 def run(args) -> int:
-    import csv
-    import json
     import os
     import time
+    from pathlib import Path
 
     from ..config import load_config, parse_overrides, save_config
+    from ..errors import InputError
     from ..kernels import runtime
-    from ..outputs import OutputDir, atomic_path
+    from ..outputs import atomic_path
     from ..pipelines import benchmark as B
 
     overrides = {**(B.quick_overrides() if args.quick else {}), **parse_overrides(args.overrides)}
     cfg = load_config(B.BenchmarkConfig, args.config, overrides)
-    sequences = B.resolve_sequences(_split(args.sequences), quick=args.quick)
+    sequences = B.resolve_sequences(_split(args.sequences), quick=args.quick, suite=args.suite)
     methods = B.resolve_methods(_split(args.methods))
+    executor = executor_from_args(args)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", source=str(out))
     tic = time.perf_counter()
 
     def log(msg: str) -> None:
         if not args.quiet:
             print(msg, file=sys.stderr, flush=True)
 
-    from pathlib import Path
-
-    from .. import progress
-
-    progress.set_quiet(True)  # one log line per method instead of a bar per run
-    # the sequence cache outlives a failed run (OutputDir only removes what it created inside the folder)
-    (Path(args.out) / "sequences").mkdir(parents=True, exist_ok=True)
-    with OutputDir(args.out) as out:
-        results = B.run_benchmark(cfg, sequences, methods, out, log=log, plots=not args.no_plots)
-        total = time.perf_counter() - tic
-        meta = {"map_height": cfg.benchmark.map_height, "settings_line": B.settings_line(cfg, args.quick),
-                "threads_line": f"threads {runtime.num_threads()}, cpu count {os.cpu_count()}, "
-                                f"total wall {total:.1f} s."}
-        table = B.format_tables(results, meta)
-        with atomic_path(out / "tables.md") as p:
-            p.write_text(table)
-        with atomic_path(out / "results.csv") as p, open(p, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=list(B.ROW_FIELDS))
-            writer.writeheader()
-            writer.writerows(B.json_ready(B.rows_for_csv(results)))
-        doc = {"quick": bool(args.quick), "sequences": [s.name for s in sequences], "methods": methods,
-               "total_wall_seconds": total, "threads": runtime.num_threads(), "results": results}
-        with atomic_path(out / "results.json") as p:
-            p.write_text(json.dumps(B.json_ready(doc), indent=2) + "\n")
-        save_config(cfg, out / "config.yaml")
+    log(f"{len(sequences)} sequences x {len(methods)} methods on {executor.describe()}")
+    # sequences and finished tasks outlive an interrupted or failed run: a rerun goes on from there
+    try:
+        results = B.run_benchmark(cfg, sequences, methods, out, executor=executor, log=log,
+                                  plots=not args.no_plots, quiet=args.quiet)
+    finally:
+        executor.close()
+    total = time.perf_counter() - tic
+    meta = {"map_height": cfg.benchmark.map_height, "settings_line": B.settings_line(cfg, args.quick),
+            "threads_line": f"{executor.describe()}, cpu count {os.cpu_count()}, total wall {total:.1f} s."}
+    table = write_tables(out, results, meta, {
+        "quick": bool(args.quick), "suite": args.suite, "sequences": [s.name for s in sequences], "methods": methods,
+        "total_wall_seconds": total, "executor": executor.describe(), "threads": runtime.num_threads()})
+    with atomic_path(out / "config.yaml") as p:
+        save_config(cfg, p)
     print(table)
-    print(f"wrote {args.out}/tables.md, results.csv, results.json, config.yaml"
-          + ("" if args.no_plots else ", plots/") + f" in {total:.1f} s")
-    return 0
+    print(f"{tasks_line(results, total)}; wrote {args.out}/tables.md, results.csv, results.json, config.yaml"
+          + ("" if args.no_plots else ", plots/"))
+    return exit_code(results)

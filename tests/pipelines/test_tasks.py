@@ -1,0 +1,138 @@
+"""The task model and its executors: Dask (LocalCluster, processes) matches the serial run, a rerun skips finished
+tasks, a failing task or a dying worker is reported while the others finish."""
+import json
+import os
+
+import pytest
+
+from ti_cmax.config import update_config
+from ti_cmax.pipelines import benchmark as B
+from ti_cmax.pipelines import tasks as T
+
+TINY = {"benchmark.duration": 0.3, "backend.pano_height": 64, "benchmark.map_height": 64, "benchmark.ba_degrees": "",
+        "frontend_cg_max_iters": 10}
+FIGURES = ("abs_rmse_deg", "abs_max_deg", "ea_percent", "gm", "map_events", "status", "method")
+
+
+def _figures(results):
+    return [[{k: r[k] for k in FIGURES} for r in res["rows"]] for res in results]
+
+
+@pytest.fixture(scope="module")
+def tiny_cfg():
+    return update_config(B.BenchmarkConfig(), TINY)
+
+
+def test_dask_local_cluster_matches_serial(tmp_path, tiny_cfg, ti_runtime):
+    distributed = pytest.importorskip("distributed")
+    spec = [B.SUITE["playroom"]]
+    methods = ["cmax-omega", "imu"]
+    # serial, single-threaded (this process's Taichi may run more threads: then in one spawned process)
+    serial = B.run_benchmark(tiny_cfg, spec, methods, tmp_path / "serial", executor=T.LocalExecutor(1, threads=1),
+                             plots=False)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  worker_class=distributed.Nanny) as cluster, distributed.Client(cluster) as client:
+        executor = T.DaskExecutor(client=client, threads=1)
+        remote = B.run_benchmark(tiny_cfg, spec, methods, tmp_path / "dask", executor=executor, plots=False)
+        pids = {json.loads(p.read_text())["pid"] for p in (tmp_path / "dask" / "tasks").glob("*/result.json")}
+    assert os.getpid() not in pids  # the tasks ran in the workers
+    a, b = _figures(serial), _figures(remote)
+    assert [r["method"] for r in a[0]] == ["ground truth", "CMax-omega", "IMU dead reckoning"]
+    assert all(r["status"] == "ok" for r in a[0] + b[0])
+    assert a == b  # single-threaded Taichi in both: the same numbers, bit for bit
+
+
+def _tasks(tmp_path, cfg, broken=True):
+    folder, _, _ = B.ensure_sequence(B.SUITE["playroom"], cfg.benchmark, tmp_path / "sequences")
+    datasets = [("playroom", str(folder), {"sensor": "DVS128", "scene": "town"})]
+    if broken:  # a dataset folder without events: its task fails (InputError), the others must not
+        (tmp_path / "broken").mkdir(exist_ok=True)
+        datasets.append(("broken", str(tmp_path / "broken"), {}))
+    return B.suite_tasks(datasets, ["gt", "imu"], {"": cfg})
+
+
+def test_rerun_skips_finished_tasks_and_reports_failures(tmp_path, tiny_cfg, ti_runtime):
+    out = tmp_path / "out"
+    tasks = _tasks(tmp_path, tiny_cfg)
+    first = T.run_tasks(tasks, out, T.LocalExecutor(1), quiet=True)
+    status = {t.id: r["status"] for t, r in zip(tasks, first.results)}
+    assert status == {"playroom-gt": "done", "playroom-imu": "done", "broken-gt": "failed", "broken-imu": "failed"}
+    assert first.failed == 2 and not first.skipped
+    failed = json.loads((out / "tasks" / "broken-imu" / "result.json").read_text())
+    assert "InputError" in failed["error"] and "InputError" in (out / "tasks" / "broken-imu" / "task.log").read_text()
+    done = out / "tasks" / "playroom-imu"
+    assert (done / "trajectory_0.txt").is_file() and (done / "arrays.npz").is_file()
+    assert not [p for p in (out / "tasks").iterdir() if p.name.startswith(T.TMP_PREFIX)]
+    groups = B.group_results(tasks, first.results)
+    broken_rows = [r for g in groups for r in g["rows"] if g["sequence"] == "broken"]
+    assert [r["status"] for r in broken_rows] == ["failed", "failed"]
+    assert "dataset" in broken_rows[1]["note"] or "events" in broken_rows[1]["note"]
+    text = B.format_tables(groups, {"map_height": 64})
+    assert "IMU dead reckoning on broken: failed, InputError" in text
+
+    mtime = (done / "result.json").stat().st_mtime_ns
+    second = T.run_tasks(tasks, out, T.LocalExecutor(1), quiet=True)
+    assert second.skipped == {"playroom-gt", "playroom-imu"} and second.ran == 2  # the failed ones are retried
+    assert (done / "result.json").stat().st_mtime_ns == mtime
+    assert [r["rows"] for r in second.results[:2]] == [r["rows"] for r in first.results[:2]]
+
+    # another config (its hash) or another dataset content (its fingerprint) is another task
+    other = _tasks(tmp_path, update_config(tiny_cfg, {"benchmark.map_height": 32}), broken=False)
+    third = T.run_tasks(other, out, T.LocalExecutor(1), quiet=True)
+    assert not third.skipped and third.ran == 2
+    assert T.dataset_fingerprint(tasks[0].dataset) == tasks[0].fingerprint
+    (tmp_path / "broken" / "events.txt").write_text("0.1 1 1 1\n")
+    assert T.dataset_fingerprint(tmp_path / "broken") != tasks[2].fingerprint
+
+
+def _maybe_die(i):
+    if i == 1:
+        os._exit(3)  # a worker lost mid-task (crash, out of memory)
+    return i * 10
+
+
+def test_local_pool_survives_a_dying_worker():
+    ex = T.LocalExecutor(jobs=2, threads=1)
+    out = {i: (ok, v) for i, ok, v in ex.results(_maybe_die, [(0,), (1,), (2,), (3,)])}
+    assert out[0] == (True, 0) and out[2] == (True, 20) and out[3] == (True, 30)
+    assert out[1][0] is False and "worker process died" in out[1][1]
+
+
+def test_config_hash_ignores_key_order():
+    assert T.config_hash({"a": 1, "b": {"c": 2}}) == T.config_hash({"b": {"c": 2}, "a": 1})
+    assert T.config_hash({"a": 1}) != T.config_hash({"a": 2})
+
+
+def test_batch_cli_parameter_sets_on_a_process_pool(tmp_path):
+    from ti_cmax.cli import main
+
+    suite = tmp_path / "suite.yaml"
+    suite.write_text(
+        "datasets:\n  tiny: {simulate: {sensor: DVS128, scene: town, duration: 0.3, seed: 4}}\n"
+        "methods: [imu]\n"
+        "config: {benchmark.map_height: 32, benchmark.ba_degrees: ''}\n"
+        "parameters:\n  small: {}\n  large: {benchmark.map_height: 64}\n")
+    out = tmp_path / "out"
+    assert main(["batch", str(suite), "--out", str(out), "--jobs", "2", "--threads", "1", "--quiet", "--no-plots"]) == 0
+    assert sorted(p.name for p in (out / "tasks").iterdir()) == [
+        "large-tiny-gt", "large-tiny-imu", "small-tiny-gt", "small-tiny-imu"]
+    import csv
+
+    with open(out / "results.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["parameters"], r["method"]) for r in rows] == [
+        ("small", "ground truth"), ("small", "IMU dead reckoning"), ("large", "ground truth"),
+        ("large", "IMU dead reckoning")]
+    assert rows[1]["abs_rmse_deg"] == rows[3]["abs_rmse_deg"]  # the map size does not change the trajectory
+    assert rows[1]["ea_percent"] != rows[3]["ea_percent"]
+    text = (out / "tables.md").read_text()
+    assert "parameter set small" in text and "parameter set large" in text
+    pids = {json.loads(p.read_text())["pid"] for p in (out / "tasks").glob("*/result.json")}
+    assert os.getpid() not in pids
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("datasets:\n  x: {simulate: {sensor: DVS128, nonsense: 1}}\nmethods: [imu]\n")
+    assert main(["batch", str(bad), "--out", str(tmp_path / "bad_out"), "--quiet"]) == 2
+    bad.write_text("datasets: {x: /nowhere}\n")
+    assert main(["batch", str(bad), "--out", str(tmp_path / "bad_out"), "--quiet"]) == 2
+    assert not (tmp_path / "bad_out").exists()
