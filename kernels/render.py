@@ -12,7 +12,9 @@ Two kernels per chunk of renders (the time stepping runs inside the kernels, one
 Crossing model (ESIM): a pixel keeps a reference log intensity ``ref``. Between renders
 (t0, L0) and (t1, L1), while ``L1 - ref >= c_pos`` (or ``ref - L1 >= c_neg``) the reference moves by
 one threshold and an event is emitted at the time where the linear interpolation of L crosses the
-new reference. With a refractory period, an event closer than it to the pixel's previous emitted
+new reference; that fraction of the render interval is clamped to [0, 1] (in float32 a change L1 - L0 of a few ulps
+made it reach 4: an HD simulation had one event 9 us past its chunk's end, out of time order). With a refractory
+period, an event closer than it to the pixel's previous emitted
 event is dropped (the reference still moves, as in ESIM).
 
 Panorama projection follows CONVENTIONS.md: lon = atan2(X, Z), lat = asin(Y/|X|),
@@ -133,13 +135,13 @@ def _render_count_kernel(
                 dl = lcur - lprev
                 while lcur - r >= cp:
                     r += cp
-                    te = t0 + dt * ti.cast((r - lprev) / dl, ti.f64)
+                    te = t0 + dt * ti.cast(ti.min(ti.max((r - lprev) / dl, 0.0), 1.0), ti.f64)
                     if te - lt >= refractory:
                         cnt += 1
                         lt = te
                 while r - lcur >= cn:
                     r -= cn
-                    te = t0 + dt * ti.cast((r - lprev) / dl, ti.f64)
+                    te = t0 + dt * ti.cast(ti.min(ti.max((r - lprev) / dl, 0.0), 1.0), ti.f64)
                     if te - lt >= refractory:
                         cnt += 1
                         lt = te
@@ -172,7 +174,7 @@ def _write_kernel(
             dl = lcur - lprev
             while lcur - r >= cp:
                 r += cp
-                te = t0 + dt * ti.cast((r - lprev) / dl, ti.f64)
+                te = t0 + dt * ti.cast(ti.min(ti.max((r - lprev) / dl, 0.0), 1.0), ti.f64)
                 if te - lt >= refractory:
                     lt = te
                     if j < cap:
@@ -183,7 +185,7 @@ def _write_kernel(
                         j += 1
             while r - lcur >= cn:
                 r -= cn
-                te = t0 + dt * ti.cast((r - lprev) / dl, ti.f64)
+                te = t0 + dt * ti.cast(ti.min(ti.max((r - lprev) / dl, 0.0), 1.0), ti.f64)
                 if te - lt >= refractory:
                     lt = te
                     if j < cap:
@@ -290,7 +292,7 @@ def emit_numpy(lbuf, times, ref, cpos, cneg, last_t, refractory: float, width: i
             for pol in (1, -1):
                 while (l1 - r >= cp) if pol > 0 else (r - l1 >= cn):
                     r = f32(r + cp) if pol > 0 else f32(r - cn)
-                    te = t0 + dt * float(f32(f32(r - l0) / dl))
+                    te = t0 + dt * min(max(float(f32(f32(r - l0) / dl)), 0.0), 1.0)
                     if te - lt >= refractory:
                         lt = te
                         ts.append(te), xs.append(i % width), ys.append(i // width), ps.append(pol)

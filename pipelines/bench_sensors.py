@@ -2,7 +2,9 @@
 
     python -m ti_cmax.pipelines.bench_sensors --out DIR [--sensors DVS128,DAVIS240C,...] [--duration S]
 
-Each case is a simulated sequence (streamed to DIR/sequences/NAME, reused when its simulation.json matches) run
+The cases are ``pipelines.benchmark.SUITES["sensors"]`` (``ti-cmax benchmark --suite sensors`` runs the same
+sequences through the task model; this script adds per-case peak memory, the derived parameters and the cost per
+second of data). Each case is a simulated sequence (streamed to DIR/sequences/NAME, reused when its simulation.json matches) run
 by ``ti-cmax slam`` in a child process (so each case's peak memory is its own), then evaluated against ground
 truth: the front-end alone (integrated omega) and CMax-SLAM, abs / rel RMSE, the parameters the sensor rules
 derived, us per input event, wall time per second of data and peak RSS. Prints a markdown table (and writes
@@ -16,44 +18,23 @@ import os
 import subprocess
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 
-@dataclass(frozen=True)
-class SensorCase:
-    """One simulated sequence of the suite (contrast threshold 0: the sensor preset's; rates are measured)."""
-
-    name: str
-    sensor: str
-    scene: str = "city"
-    duration: float = 1.5
-    max_angular_velocity: float = 3.0
-    contrast_threshold: float = 0.0
-    seed: int = 0
-
-    def simulator_overrides(self) -> dict:
-        return {"sensor": self.sensor, "scene": self.scene, "duration": self.duration, "seed": self.seed,
-                "max_angular_velocity": self.max_angular_velocity, "contrast_threshold": self.contrast_threshold}
+def simulator_overrides(spec) -> dict:
+    """SimulatorConfig fields of a suite sequence (``pipelines.benchmark.SequenceSpec``)."""
+    return {"sensor": spec.sensor, "scene": spec.scene, "duration": spec.duration, "seed": spec.seed,
+            "trajectory": spec.trajectory, **dict(spec.options)}
 
 
-# From about 0.5 to about 30 M events/s (random motion up to the peak angular velocity; measured rates in the table)
-SUITE = (
-    SensorCase("dvs128", "DVS128", duration=2.0, max_angular_velocity=2.0),
-    SensorCase("davis240c", "DAVIS240C", duration=2.0),
-    SensorCase("davis346", "DAVIS346"),
-    SensorCase("dvxplorer", "DVXplorer"),
-    SensorCase("hd", "HD"),
-)
-
-
-def _simulate(case: SensorCase, folder: Path) -> dict:
+def _simulate(case, folder: Path) -> dict:
     """Simulate the case into folder unless a matching simulation is there already; returns simulation.json."""
     from ti_cmax.simulate import SimulatorConfig, simulate_to_folder
 
     info_path = folder / "simulation.json"
-    config = SimulatorConfig(**case.simulator_overrides()).resolved()
-    wanted = {k: getattr(config, k) for k in case.simulator_overrides()}
+    config = SimulatorConfig(**simulator_overrides(case)).resolved()
+    wanted = {k: getattr(config, k) for k in simulator_overrides(case)}
     if info_path.exists():
         info = json.loads(info_path.read_text())
         if all(info.get("config", {}).get(k) == v for k, v in wanted.items()):
@@ -75,7 +56,7 @@ def _run_slam(dataset: Path, out: Path, threads: int | None, overrides: list[str
     return time.perf_counter() - tic
 
 
-def evaluate_case(case: SensorCase, root: Path, threads: int | None = None, overrides: list[str] = ()) -> dict:
+def evaluate_case(case, root: Path, threads: int | None = None, overrides: list[str] = ()) -> dict:
     from ti_cmax.io import read_angular_velocity, read_tum
     from ti_cmax.metrics import evaluate_rotations
     from ti_cmax.so3 import integrate_angular_velocity
@@ -148,8 +129,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="slam override for every case")
     args = ap.parse_args(argv)
+    from .benchmark import SUITES
+
     wanted = {s.strip().lower() for s in args.sensors.split(",") if s.strip()}
-    cases = [c for c in SUITE if not wanted or c.name in wanted or c.sensor.lower() in wanted]
+    cases = [c for c in SUITES["sensors"].values() if not wanted or c.name in wanted or c.sensor.lower() in wanted]
     root = Path(args.out)
     root.mkdir(parents=True, exist_ok=True)
     rows = []

@@ -111,3 +111,26 @@ def test_chunks_continue_seamlessly(ti_runtime, pano):
 def _count(pano, bear, rots, times, ref, cpos, cneg, last_t):
     lbuf, counts = rk.render_and_count(pano, bear, rots, times, ref, cpos, cneg, last_t, 0.0)
     return lbuf, times, ref, cpos, cneg, last_t, 0.0, counts
+
+
+def test_crossing_time_stays_within_the_render_interval():
+    """A log intensity that crosses ref + c by one float32 ulp while ref + c rounds past it: the interpolated
+    crossing fraction (r - L0) / (L1 - L0) came out as 4 (found by search; it put one event of an HD simulation
+    9 us past its chunk's end, out of time order). Clamped, kernel and twin keep the event inside [t0, t1]."""
+    from ti_cmax.kernels import render as rk
+
+    f = np.float32
+    ref, cp = f(-0.433524), f(0.45610973)
+    l1 = f(0.022585714)
+    l0 = np.nextafter(l1, f(-1))
+    assert f(l1 - ref) >= cp and f(f(ref + cp) - l0) / f(l1 - l0) > 1.5  # the ill-conditioned case
+    lbuf = np.array([[l0, l1]], np.float32)
+    times = np.array([1.0, 1.00005])
+
+    def state():  # write_events updates ref and last_t in place
+        return np.array([ref]), np.array([cp]), np.array([cp]), np.full(1, -np.inf)
+
+    t, *_ = rk.write_events(lbuf, times, *state(), 0.0, np.ones(1, np.int32), 1)
+    tn, *_ = rk.emit_numpy(lbuf, times, *state(), 0.0, 1)
+    assert len(t) == len(tn) == 1
+    assert times[0] <= t[0] <= times[1] and times[0] <= tn[0] <= times[1]

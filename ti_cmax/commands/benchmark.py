@@ -1,6 +1,7 @@
 """``ti-cmax benchmark --out DIR``: the paper's Tab. II (abs/rel RMSE), Tab. IV (EA, GM) and Tab. VI (us/event) on a
 suite of simulated sequences (``--suite paper``: playroom-like DVS128 2.5 s; bicycle, city, street, town, bay
-DAVIS240C 5 s).
+DAVIS240C 5 s; ``--suite sensors``: DVS128, DAVIS240C, DAVIS346, DVXplorer and HD sequences of 1.5-2 s with the
+sensor-derived defaults, CMax-omega and CMax-SLAM only unless ``--methods`` says otherwise).
 
 Each method on each sequence is a task (see ``ti-cmax batch``): ``--jobs N`` runs N at once in spawned processes,
 ``--scheduler dask --address tcp://HOST:PORT`` on a Dask cluster; a rerun skips finished tasks (DIR/tasks) and
@@ -52,7 +53,7 @@ def run(args) -> int:
     overrides = {**(B.quick_overrides() if args.quick else {}), **parse_overrides(args.overrides)}
     cfg = load_config(B.BenchmarkConfig, args.config, overrides)
     sequences = B.resolve_sequences(_split(args.sequences), quick=args.quick, suite=args.suite)
-    methods = B.resolve_methods(_split(args.methods))
+    methods = B.resolve_methods(_split(args.methods), args.suite)
     executor = executor_from_args(args)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
