@@ -24,11 +24,15 @@ class PanoramaResult:
 
     def figures(self, lambda0: float = 1.0) -> dict:
         """EA% (lambda0), GM (Sobel, Eq. 24) and variance of the map (as MAP.json)."""
-        img = self.image.astype(np.float64)
+        from ti_cmax.metrics import row_blocks
+
+        img = self.image
+        mean = sum(float(np.sum(img[r], dtype=np.float64)) for r, _ in row_blocks(img.shape)) / img.size
+        var = sum(float(np.sum((img[r].astype(np.float64) - mean) ** 2)) for r, _ in row_blocks(img.shape)) / img.size
         return {
             "event_area_percent": float(event_area_percent(img, lambda0)),
             "gradient_magnitude": float(gradient_magnitude(img)),
-            "variance": float(img.var()),
+            "variance": var,
             "events": int(self.events_used),
             "width": int(img.shape[1]),
             "height": int(img.shape[0]),
@@ -77,4 +81,11 @@ def map_to_uint8(image: np.ndarray, gamma: float = 0.75) -> np.ndarray:
     """Display form of a map as in the paper's figures: gamma-corrected, more events = darker."""
     from ti_cmax.plots import map_display
 
-    return (np.clip(map_display(image, gamma), 0, 1) * 255 + 0.5).astype(np.uint8)
+    from ti_cmax.metrics import row_blocks
+
+    image = np.asarray(image)
+    out = np.empty(image.shape, np.uint8)
+    peak = float(image.max()) if image.size else 0.0
+    for rows, _ in row_blocks(image.shape):  # bounded float64 temporaries on large maps
+        out[rows] = (np.clip(map_display(image[rows], gamma, peak=peak), 0, 1) * 255 + 0.5).astype(np.uint8)
+    return out

@@ -282,12 +282,28 @@ def star_tracking_errors(groundtruth: Trajectory, estimate: Trajectory, window: 
 # map quality (Sec. IV-B3)
 # ------------------------------------------------------------------------------------------
 
+BLOCK_PIXELS = 1 << 21  # figures of large maps (an 8192x4096 HD map) are summed over row blocks of about this size
+
+
+def row_blocks(shape, halo: int = 0):
+    """(rows with halo, interior rows relative to them) covering an image by blocks of about BLOCK_PIXELS pixels:
+    float64 temporaries of an 8192x4096 map would be 270 MB each."""
+    h = shape[0]
+    step = max(1, BLOCK_PIXELS // max(1, int(np.prod(shape[1:]))))
+    for r0 in range(0, h, step):
+        r1 = min(h, r0 + step)
+        a, b = max(0, r0 - halo), min(h, r1 + halo)
+        yield slice(a, b), slice(r0 - a, r1 - a)
+
+
 def event_area_percent(image: np.ndarray, lambda0: float = 1.0) -> float:
     """EA% = 100 * sum(1 - exp(-H(x) / lambda0)) / number of pixels, for an image of warped events H >= 0."""
-    h = np.asarray(image, dtype=np.float64)
-    if h.size == 0:
+    image = np.asarray(image)
+    if image.size == 0:
         raise InputError("event area of an empty image")
-    return float(100.0 * np.mean(-np.expm1(-h / lambda0)))
+    total = sum(float(np.sum(-np.expm1(-np.asarray(image[rows], dtype=np.float64) / lambda0)))
+                for rows, _ in row_blocks(image.shape))
+    return 100.0 * total / image.size
 
 
 def local_texture(image: np.ndarray, sigma: float, wrap_columns: bool = True) -> np.ndarray:
@@ -308,11 +324,16 @@ def image_gradient(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def gradient_magnitude(image: np.ndarray) -> float:
-    """GM (Eq. 24) = sqrt(mean over pixels of |grad I|^2), gradient from :func:`image_gradient`."""
-    gx, gy = image_gradient(image)
-    if gx.size == 0:
+    """GM (Eq. 24) = sqrt(mean over pixels of |grad I|^2), gradient from :func:`image_gradient` (by row blocks with
+    a one-row halo: the same sum as on the whole image, in bounded memory)."""
+    image = np.asarray(image)
+    if image.size == 0:
         raise InputError("gradient magnitude of an empty image")
-    return float(np.sqrt(np.mean(gx * gx + gy * gy)))
+    total = 0.0
+    for rows, inner in row_blocks(image.shape, halo=1):
+        gx, gy = image_gradient(image[rows])
+        total += float(np.sum(gx[inner] ** 2 + gy[inner] ** 2))
+    return float(np.sqrt(total / image.size))
 
 
 __all__ = [

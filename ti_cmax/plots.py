@@ -141,11 +141,14 @@ def plot_errors_over_time(path: str | os.PathLike, errors: Mapping[str, "Rotatio
     _save(fig, path)
 
 
-def map_display(image: np.ndarray, gamma: float = 0.75, percentile: float | None = None) -> np.ndarray:
+def map_display(image: np.ndarray, gamma: float = 0.75, percentile: float | None = None,
+                peak: float | None = None) -> np.ndarray:
     """IWE -> [0, 1] for display: gamma-corrected (I / peak)^gamma clipped at 1, inverted so events are dark on
-    white. ``peak``: the maximum, or (contrast stretch) this percentile of the pixels that hold events."""
+    white. ``peak``: given (e.g. a whole map's, for one block of it), else the maximum, or (contrast stretch) this
+    percentile of the pixels that hold events."""
     h = np.clip(np.asarray(image, dtype=np.float64), 0, None)
-    peak = h.max() if h.size else 0.0
+    if peak is None:
+        peak = h.max() if h.size else 0.0
     if percentile is not None and peak > 0:
         peak = float(np.percentile(h[h > 0], percentile))
     norm = np.minimum(h / peak, 1.0) ** gamma if peak > 0 else np.zeros_like(h)
