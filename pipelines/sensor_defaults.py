@@ -7,8 +7,9 @@ config holds plain numbers and is what is written beside the outputs, so a rerun
 With P the sensor's pixel count, s = P / 43200 (DAVIS240C = 1) and f = (fx + fy) / 2 in pixels:
 
 - ``num_events_per_packet``     = 10 000 * max(1, s), rounded to 1000: the IWE holds the same events per pixel
-  (0.23) as the reference's 10 000 on a DAVIS240C; smaller sensors keep 10 000 (fewer events make the
-  variance noisy: a VGA IWE with 10-20k events has 0.05 events per pixel and the optimiser stops at once).
+  (0.23) as the reference's 10 000 on a DAVIS240C (a VGA IWE of 10-20k events holds 0.05 events per pixel: the
+  variance is noise and the optimiser stops at once); smaller sensors keep the reference's 10 000 (never fewer:
+  smaller packets were not measured).
 - ``frontend_max_packet_events`` = 20 000 * max(1, s), rounded to 1000 (the thinning cap, same scaling; -1: off).
 - ``frontend_min_event_rate``   = 10 000 * s events/s (still-camera floor): a smaller sensor sees fewer events
   for the same motion, a larger one more.
