@@ -21,11 +21,9 @@ else ``Dataset.camera`` raises InputError.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Iterator
-
 
 from ..camera import Camera
 from ..config import DatasetConfig
