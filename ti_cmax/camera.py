@@ -114,6 +114,10 @@ class Camera:
             idx += x
             out = (self.bearing_lut4 if columns == 4 else self.bearing_lut).take(idx, axis=0)
             return out if out.dtype == dtype else out.astype(dtype)
+        return self._unprojected(x, y, dtype, columns)
+
+    def _unprojected(self, x, y, dtype, columns: int) -> np.ndarray:
+        """:meth:`bearings` by direct undistortion (any coordinates)."""
         b = self.unproject(x, y)
         if columns == 3:
             return np.ascontiguousarray(b, dtype=dtype)
