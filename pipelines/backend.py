@@ -362,14 +362,19 @@ class SlidingWindowBackend:
         if n_free <= 0:
             return
 
-        var0 = problem.cost(base)
-        scale = 1.0 / var0 if var0 > 0 else 1.0  # tolerances act on the relative variance: scale-free
+        # tolerances act on the relative variance (scale-free): the cost is divided by var0, the variance at the
+        # initialization, which the optimiser's first evaluation (x = 0) gives
+        var0 = scale = None
 
         def objective(x: np.ndarray):
+            nonlocal var0, scale
             delta = x.reshape(-1, 3)
             ctrl = base.copy()
             ctrl[first_free:] = so3.exp(delta) @ base[first_free:]
             var, grad = problem.cost_and_grad(ctrl)
+            if scale is None:
+                var0 = var if not np.any(x) else problem.cost(base)
+                scale = 1.0 / var0 if var0 > 0 else 1.0
             # chain the left-perturbation gradient through exp: d/dx exp(x) R = Jl(x)
             g = np.einsum("nji,nj->ni", so3.left_jacobian(delta), grad[first_free:])
             return var * scale, g.reshape(-1) * scale
