@@ -350,13 +350,13 @@ class SlidingWindowBackend:
         first_free = max(first_free, 1)  # the very first pose anchors the gauge (world frame)
         mids = batch_mid_times(ev_t, cfg.event_batch_size)
         s, u = spline.support(mids)
-        # alpha from the event densities of the initial local map and the global map (Eq. 16-17)
+        # alpha from the event densities of the initial local map and the global map (Eq. 16-17): PanoIWE takes
+        # rho(I_L) from its first evaluation, the optimiser's start at the initialization
         rho_g = self.map.density
-        if rho_g > 0:
-            report.alpha = self.map.density_of(ev_b, spline.evaluate_at(s, u), cfg.event_batch_size) / rho_g
         problem = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=cfg.backend_blur_sigma,
-                          alpha=report.alpha, batch_size=cfg.event_batch_size,
-                          global_blurred=self.map.blurred, global_sums=(self.map.g_sum, self.map.g_sq))
+                          alpha=0.0, batch_size=cfg.event_batch_size,
+                          global_blurred=self.map.blurred, global_sums=(self.map.g_sum, self.map.g_sq),
+                          alpha_from_density=(rho_g, self.map.lambda0) if rho_g > 0 else None)
         base = spline.control_R.copy()
         n_free = len(base) - first_free
         if n_free <= 0:
@@ -394,6 +394,7 @@ class SlidingWindowBackend:
                 grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
                 max_line_evals=cfg.backend_cg_max_line_evals, step_guess=cfg.backend_cg_step_guess,
             )
+        report.alpha = problem.alpha  # set by the first evaluation
         # the correction is how far the optimum moves the trajectory where the window's events are, not how far
         # it moves control poses: with sparse knots (10 Hz) a pose that the events barely reach moves by degrees
         # while the trajectory it shapes does not
