@@ -113,17 +113,6 @@ class GlobalMap:
                  occupancy=self._occ)
         return touched_region(*self._occ, margin)
 
-    def density_of(self, bearings, rotations, batch_size) -> float:
-        """rho of the map the given events alone would make (the local map I_L for alpha, Eq. 17)."""
-        region = self._vote_scratch(bearings, rotations, batch_size, 0)
-        if region is None:
-            return 0.0
-        rows, cols = region
-        votes = self._scratch[rows][:, cols]
-        self._scratch[rows.start:rows.stop, cols] = 0
-        area = self._area(votes)
-        return float(votes.sum(dtype=np.float64)) / area if area > 0 else 0.0
-
     def add(self, bearings, rotations, batch_size: int, t_now: float, moving: bool = True,
             weight: float = 1.0) -> None:
         """Vote events (per-batch rotations) into I_G and update B(I_G), the sums and the density. ``weight``
