@@ -26,7 +26,7 @@ import numpy as np
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
 from ti_cmax.kernels.pano import (
-    PanoIWE, batch_mid_times, blur_radius, blur_region, event_area, touched_region, vote_map,
+    PanoIWE, batch_mid_times, blur_radius, blur_region, touched_region, vote_map,
 )
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
@@ -103,9 +103,6 @@ class GlobalMap:
         """rho(I_G) = N_e / area (Eq. 16); 0 while empty."""
         return self.n_events / self.area if self.area > 0 else 0.0
 
-    def _area(self, values: np.ndarray) -> float:
-        return event_area(values, self.lambda0)
-
     def _vote_scratch(self, bearings, rotations, batch_size, margin):
         for occ in self._occ:
             occ[:] = 0
@@ -135,7 +132,11 @@ class GlobalMap:
         new_raw = old_raw + votes
         self.raw[rows.start:rows.stop, cols] = new_raw
         self.n_events += float(votes.sum(dtype=np.float64))
-        self.area += self._area(new_raw) - self._area(old_raw)
+        # event area: only pixels that received votes change, sum of exp(-old / lambda0) - exp(-new / lambda0)
+        changed = np.flatnonzero(votes)
+        old_v = old_raw.reshape(-1)[changed].astype(np.float64) / -self.lambda0
+        new_v = new_raw.reshape(-1)[changed].astype(np.float64) / -self.lambda0
+        self.area += float(np.sum(np.exp(old_v) - np.exp(new_v)))
         old_blur = blur_region(self.raw, self.blurred, rows, cols, self.sigma).astype(np.float64)
         new_blur = self.blurred[rows][:, cols].astype(np.float64)
         self.g_sum += float(new_blur.sum() - old_blur.sum())
