@@ -24,9 +24,14 @@ bound M = ``realtime_max_lag``): degradation level l in 0..4:
 
 - L > T and L would not be back under T within 5 windows at its current rate of change (L - L_prev per window):
   l += 1; at l = 4, when L > M and would not be back under M within 5 windows: hand over only 1 of q events (q
-  doubles, at most 64) - the hard bound, for when even level 4 is slower than the sensor. (A falling lag is given time to drain: escalating on every late window
-  overshoots, since a backlog takes windows to clear even once the system is faster than the sensor.)
-- L < T / 2: first q halves, then (at q = 1, and at least 3 windows after the last change) l -= 1.
+  doubles, at most 16) - the hard bound, for when even level 4 is slower than the sensor. (A falling lag is given
+  time to drain: escalating on every late window overshoots, since a backlog takes windows to clear even once the
+  system is faster than the sensor.)
+- L > M: l = 4 at once;
+- L < T / 2 (and the front-end's lag too): first q halves, then (at q = 1, and at least 3 windows after the last
+  change) l -= 1.
+The front-end's lag (now - due(time of its last packet)), taken once per stride of its progress, is a second input
+to the escalating rules: when the front-end is the bottleneck, windows complete too rarely to react in time.
 Costs that do not scale with events (a front-end packet's optimisation, a window's BA) are cut first: levels 1-4 keep
 every event in the map; q (the hard bound) also cuts the per-event costs. Front-end packets are skipped because their
 cost is mostly per evaluation, not per event (thinning a packet's events saves little). report.json's "realtime"
@@ -51,7 +56,7 @@ from .sensor_defaults import resolve_config
 
 READ_EVENTS = 50_000  # events per read of the file: a few ms of data at 10 M events/s, so I/O never stalls long
 MAX_LEVEL = 4
-MAX_INPUT_THINNING = 64
+MAX_INPUT_THINNING = 16  # deeper thinning leaves front-end packets too sparse (their cost is per packet anyway)
 RELAX_WINDOWS = 3  # windows at a level before it may be lowered
 DRAIN_WINDOWS = 5  # a lag above target that falls back under it within this many windows needs no escalation
 # level -> (1 of k front-end packets, BA cap divisor; 0: BA skipped)
@@ -79,7 +84,9 @@ class RealtimeController:
         self.thinned_seconds = 0.0
         self.max_thinning = 1
         self._prev_end = None
-        self._prev_lag = None
+        self._prev_lag: dict[str, float] = {}  # last lag per source ("window", "frontend")
+        self._fe_tick = self._fe_lag = None
+        self._window_events = None
         self.ba_used = self.ba_offline = 0  # BA events used, and what the offline run would use
         self.windows_skipped = self.windows_sampled = 0
 
@@ -118,18 +125,32 @@ class RealtimeController:
             self.ba_used += report.events_used
             self.windows_skipped += int(report.skipped)
             self.windows_sampled += int(0 < report.events_used < offline)
-        self._control(lag, report.num_events)
+        self._window_events = report.num_events
+        self._control(lag)
 
-    def _control(self, lag: float, window_events: int) -> None:
+    def on_frontend(self, now: float, t: float | None) -> None:
+        """After every push: the front-end's lag (now - due(its last packet's time)), once per stride of its progress,
+        is the rule's second input (a slow front-end delays the windows, so they alone would react late). It only
+        escalates: relaxing waits for windows."""
+        if t is None or self.wall0 is None or (self._fe_tick is not None and t < self._fe_tick + self.stride):
+            return
+        self._fe_tick = t
+        self._fe_lag = now - self.due(t)
+        self._control(self._fe_lag, "frontend")
+
+    def _control(self, lag: float, source: str = "window") -> None:
         old = (self.level, self.thinning)
-        self._since_change += 1
-        change = lag - self._prev_lag if self._prev_lag is not None else 0.0
-        self._prev_lag = lag
-        if lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL:
+        self._since_change += source == "window"
+        prev = self._prev_lag.get(source)
+        change = lag - prev if prev is not None else 0.0  # per stride of sensor time (ticks come once per stride)
+        self._prev_lag[source] = lag
+        if lag > self.bound and self.level < MAX_LEVEL:
+            self.level = MAX_LEVEL  # beyond the hard bound: the last level at once
+        elif lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL:
             self.level += 1
         elif self.level == MAX_LEVEL and lag > self.bound and lag + DRAIN_WINDOWS * change > self.bound:
             self.thinning = min(MAX_INPUT_THINNING, 2 * self.thinning)
-        elif lag < 0.5 * self.target:
+        elif source == "window" and lag < 0.5 * self.target and (self._fe_lag or 0.0) < 0.5 * self.target:
             if self.thinning > 1:
                 self.thinning //= 2
             elif self.level > 0 and self._since_change >= RELAX_WINDOWS:
@@ -138,7 +159,7 @@ class RealtimeController:
         if (self.level, self.thinning) != old:
             self._since_change = 0
             if self.online is not None:
-                self.online.degrade(LEVELS[self.level][0], self.ba_cap(self.level, window_events))
+                self.online.degrade(LEVELS[self.level][0], self.ba_cap(self.level, self._window_events))
 
     def summary(self) -> dict:
         lags = np.asarray(self.lags) if self.lags else np.zeros(1)
@@ -219,6 +240,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
             handed += len(batch)
             if len(batch):
                 online.push(batch)
+                ctl.on_frontend(time.monotonic(), online.frontend_until)
                 if online.frontend_until is not None:
                     bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
                     shown = online.frontend_until

@@ -86,7 +86,8 @@ def derived_backend(camera: Camera, config: BackendConfig = BackendConfig()) -> 
 
 def derived_realtime(camera: Camera, backend: BackendConfig = BackendConfig()) -> dict:
     """The real-time controller's values for this camera (see the module docstring)."""
-    window = REALTIME_MIN_WINDOW_EVENTS_PER_PIXEL * camera.width * camera.height * backend.backend_time_window_size / 0.2
+    pixels = camera.width * camera.height
+    window = REALTIME_MIN_WINDOW_EVENTS_PER_PIXEL * pixels * backend.backend_time_window_size / 0.2
     return {"realtime_min_window_events": _round_to(window, 1000)}
 
 

@@ -133,7 +133,11 @@ class OnlineSlam:
     Fig. 3). A thread would not help: Taichi 1.7 kernel launches hold the GIL (measured, see README). Bounded
     queues connect the two; ``push`` blocks while the worker is a full queue behind (no event is dropped, no busy
     waiting). The worker does the same operations in the same order, so results equal the sequential run
-    (bitwise with one Taichi thread per process). ``pose`` then uses the refined spline the worker last sent.
+    (bitwise with one Taichi thread per process). ``pose`` then uses the refined spline the worker last sent;
+    ``max_backlog`` (sensor seconds) also makes ``push`` wait while it runs that far ahead of the worker's last window.
+
+    ``degrade`` (used by the real-time replay, pipelines/realtime.py) skips front-end packets and samples or skips
+    the BA from then on; by default nothing is degraded.
     """
 
     def __init__(self, camera: Camera, config: SlamConfig = SlamConfig(), *, on_window=None,
@@ -438,7 +442,8 @@ class _BackendProcess:
 
 
 def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, ba_cap) -> None:
-    """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R), ("finish",)."""
+    """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R), ("map",) (send a
+    copy of the map) and ("finish",); ``ba_cap`` is shared memory (OnlineSlam.degrade), read before each step."""
     try:
         from ti_cmax.kernels import runtime
 

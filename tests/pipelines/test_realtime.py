@@ -166,3 +166,21 @@ def test_slow_consumers_lose_no_events(short_sequence):
         assert result.report["backend"]["events_settled"] == len(ev)
         np.testing.assert_allclose(result.map, reference.map, rtol=1e-4, atol=1e-4)
     assert mid is not None and 0 < mid.sum() < bounded.map().sum()
+
+
+def test_controller_jumps_past_the_bound_and_hears_a_slow_front_end():
+    cfg = load_config(SlamConfig, None, ["backend_max_window_events=200000"])
+    ctl = R.RealtimeController(cfg, 1.0)
+    ctl.wall0, ctl.t0 = 100.0, 0.0
+    ctl.on_window(_report(0.2, 1.5, ctl))  # beyond the hard bound: the last level at once
+    assert ctl.level == R.MAX_LEVEL
+    slow = R.RealtimeController(cfg, 1.0)
+    slow.wall0, slow.t0 = 100.0, 0.0
+    slow.on_frontend(slow.due(0.05) + 0.5, 0.05)  # the front-end alone is late: escalate before any window
+    assert slow.level == 1
+    slow.on_frontend(slow.due(0.1) + 0.6, 0.1)  # less than a stride later: no new decision
+    assert slow.level == 1
+    slow.on_frontend(slow.due(0.16) + 0.7, 0.16)
+    assert slow.level == 2
+    slow.on_frontend(slow.due(0.3) + 0.05, 0.3)  # the front-end alone never relaxes
+    assert slow.level == 2
