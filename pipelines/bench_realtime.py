@@ -23,6 +23,8 @@ import shutil
 import sys
 from pathlib import Path
 
+from .bench_sensors import _f
+
 MODES = ("parallel", "sequential")
 
 
@@ -70,10 +72,6 @@ def evaluate_case(spec, root: Path, modes=("parallel",), threads: int | None = N
 
 def _ratio(a: float, b: float) -> float | None:
     return a / b if b > 0 else None
-
-
-def _f(v, digits=2) -> str:
-    return "-" if v is None else f"{v:.{digits}f}"
 
 
 def _degradation(rt: dict) -> str:
