@@ -12,7 +12,8 @@ For every window [T, T + backend_time_window_size] (T advancing by backend_slidi
 1. initialize the control poses that the window adds by lift-solve-retract on the re-anchored source poses;
 2. if the event rate is at least backend_min_ev_rate, maximize Var(B(I_L) + alpha B(I_G)) (Eq. 18) over the
    control poses with knot time >= T (earlier ones are fixed), with alpha = rho(I_L) / rho(I_G) (Eq. 16-17)
-   computed once from the initial I_L, by Fletcher-Reeves CG on left increments R_k <- exp(x_k) R_k^0;
+   computed once from the initial I_L, on left increments R_k <- exp(x_k) R_k^0, by BFGS whose inverse Hessian
+   carries over from the previous window (``backend_optimizer``; or the reference's Fletcher-Reeves CG);
 3. settle the events of [T, T + stride) into I_G with the refined poses (optionally freezing map pixels that
    have been observed for max_update_time seconds).
 """
@@ -30,7 +31,7 @@ from ti_cmax.kernels.pano import (
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
-from .optim import fletcher_reeves
+from .optim import bfgs, fletcher_reeves
 
 _TIME_EPS = 1e-9
 
@@ -178,6 +179,7 @@ class SlidingWindowBackend:
         self.events_settled = 0
         self.events_optimized = 0  # event-window pairs that went through BA
         self._last_correction: float | None = None  # |x| of the last window's CG solution
+        self._inv_hessian = None  # BFGS: (first free control pose, inverse Hessian) of the last window
         self.loop = None  # loop closure hook (pipelines/loop_closure.LoopCloser), attached by its owner
         # real-time degradation (pipelines/realtime.py): BA events per window at most instead of
         # backend_max_window_events (None: the config's); 0 skips the BA (the window keeps its initialization)
@@ -382,12 +384,21 @@ class SlidingWindowBackend:
             g = np.einsum("nji,nj->ni", so3.left_jacobian(delta), grad[first_free:])
             return var * scale, g.reshape(-1) * scale
 
-        result = fletcher_reeves(
-            objective, np.zeros(3 * n_free), maximize=True, init_step=self._init_step(),
-            line_search_tol=cfg.backend_cg_line_search_tol, max_iter=cfg.backend_cg_max_iters,
-            grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
-            max_line_evals=cfg.backend_cg_max_line_evals, step_guess=cfg.backend_cg_step_guess,
-        )
+        if cfg.backend_optimizer == "bfgs":
+            warm = self._carried_inv_hessian(first_free, n_free)
+            result, h = bfgs(
+                objective, np.zeros(3 * n_free), maximize=True, inv_hessian=warm,
+                init_step=self._init_step(), max_iter=cfg.backend_cg_max_iters, grad_tol=cfg.backend_cg_grad_tol,
+                rel_cost_tol=cfg.backend_cg_rel_cost_tol, max_step=cfg.backend_bfgs_max_step,
+                max_line_evals=cfg.backend_cg_max_line_evals)
+            self._inv_hessian = None if h is None else (first_free, h)
+        else:
+            result = fletcher_reeves(
+                objective, np.zeros(3 * n_free), maximize=True, init_step=self._init_step(),
+                line_search_tol=cfg.backend_cg_line_search_tol, max_iter=cfg.backend_cg_max_iters,
+                grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
+                max_line_evals=cfg.backend_cg_max_line_evals, step_guess=cfg.backend_cg_step_guess,
+            )
         # the correction is how far the optimum moves the trajectory where the window's events are, not how far
         # it moves control poses: with sparse knots (10 Hz) a pose that the events barely reach moves by degrees
         # while the trajectory it shapes does not
@@ -398,6 +409,7 @@ class SlidingWindowBackend:
             # a false maximum (e.g. a map too coarse for the sensor): keep the initialization for this window
             spline.control_R[:] = base
             report.rejected = True
+            self._inv_hessian = None  # the curvature of a false maximum
             return
         self._last_correction = float(np.linalg.norm(result.x))
         report.variance_before = var0
@@ -407,6 +419,21 @@ class SlidingWindowBackend:
         report.evaluations = result.evaluations
         self.events_optimized += len(ev_t)
         self._anchor_at(self._anchor[0])
+
+    def _carried_inv_hessian(self, first_free: int, n_free: int) -> np.ndarray | None:
+        """The last window's BFGS inverse Hessian re-indexed to this window's free control poses: the poses both
+        windows optimise keep their blocks (windows overlap, the cost changes little there), poses new to this
+        window start uncoupled with the mean diagonal. None when nothing is shared (a cold start)."""
+        if self._inv_hessian is None:
+            return None
+        prev_first, h_prev = self._inv_hessian
+        offset, n_prev = first_free - prev_first, len(h_prev) // 3
+        keep = min(n_prev - offset, n_free)
+        if offset < 0 or keep <= 0:
+            return None
+        h = np.diag(np.full(3 * n_free, float(np.mean(np.diag(h_prev)))))
+        h[:3 * keep, :3 * keep] = h_prev[3 * offset:3 * (offset + keep), 3 * offset:3 * (offset + keep)]
+        return h
 
     def _init_step(self) -> float:
         """First CG trial step: the size of the previous window's correction (windows overlap, so corrections
