@@ -132,8 +132,10 @@ def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path):
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
                             start_new_session=True)
     try:
-        line = proc.stderr.readline()  # the replay has started (both processes are working)
-        assert "replaying" in line, line
+        lines = []
+        while not lines or ("replaying" not in lines[-1] and lines[-1] and len(lines) < 50):
+            lines.append(proc.stderr.readline())  # until the replay has started (both processes are working)
+        assert "replaying" in lines[-1], lines
         time.sleep(0.3)
         os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
         stdout, stderr = proc.communicate(timeout=60)
