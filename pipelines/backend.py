@@ -53,6 +53,8 @@ class WindowReport:
     max_correction: float = 0.0  # largest change of the trajectory at the window's events (rad)
     rejected: bool = False  # the correction exceeded backend_max_correction and was not applied
     seconds: float = 0.0
+    skipped: bool = False  # BA skipped by the real-time controller (ba_cap = 0): front-end poses kept
+    done_at: float = 0.0  # time.monotonic() when the window completed (the same clock in every process)
 
 
 @dataclass
@@ -169,6 +171,9 @@ class SlidingWindowBackend:
         self._last_correction: float | None = None  # |x| of the last window's CG solution
         self._inv_hessian = None  # BFGS: (first free control pose, inverse Hessian) of the last window
         self.loop = None  # loop closure hook (pipelines/loop_closure.LoopCloser), attached by its owner
+        # real-time degradation (pipelines/realtime.py): BA events per window at most instead of
+        # backend_max_window_events (None: the config's); 0 skips the BA (the window keeps its initialization)
+        self.ba_cap: int | None = None
 
     # ---- input streams -------------------------------------------------------------------------------------------
     def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
@@ -216,13 +221,17 @@ class SlidingWindowBackend:
         rate = n / max(t1 - t0, 1e-9)
         report = WindowReport(t0, t1, n, optimized=False, alpha=0.0)
         if n >= 2 * cfg.event_batch_size and rate >= cfg.backend_min_ev_rate:
-            self._refine(ev_t, ev_b, t0, report)
+            if self.ba_cap == 0:
+                report.skipped = True
+            else:
+                self._refine(ev_t, ev_b, t0, report)
         settle_end = t1 + 1.0 if final else t0 + cfg.backend_sliding_window_stride
         self._settle(t0, settle_end, still=not report.optimized)
         self.window_start = t0 + cfg.backend_sliding_window_stride
         if self.loop is not None:  # loop closure: may correct the spline and rebuild the map
             self.loop.after_window(self.window_start)
         report.seconds = time.perf_counter() - tic
+        report.done_at = time.monotonic()
         self.windows.append(report)
         return report
 
@@ -324,7 +333,8 @@ class SlidingWindowBackend:
     def _sample(self, ev_t, ev_b):
         """At most backend_max_window_events events, every (n / cap)-th: even in time, and over the image in
         proportion to where the events are."""
-        cap, n = self.cfg.backend_max_window_events, len(ev_t)
+        cap = self.cfg.backend_max_window_events if self.ba_cap is None else self.ba_cap
+        n = len(ev_t)
         if cap < 0 or n <= cap:
             return ev_t, ev_b
         idx = ((np.arange(cap) + 0.5) * (n / cap)).astype(np.int64)

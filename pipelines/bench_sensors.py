@@ -42,9 +42,10 @@ def _simulate(case, folder: Path) -> dict:
     return simulate_to_folder(config, folder, show_progress=False)
 
 
-def _run_slam(dataset: Path, out: Path, threads: int | None, overrides: list[str]) -> float:
-    """``ti-cmax slam`` in a child process; returns its wall time (report.json holds the rest)."""
-    cmd = [sys.executable, "-m", "ti_cmax.cli", "slam", str(dataset), "--out", str(out), "--quiet"]
+def _run_slam(dataset: Path, out: Path, threads: int | None, overrides: list[str], flags: tuple = ()) -> float:
+    """``ti-cmax slam`` (with ``flags``, e.g. --realtime) in a child process; returns its wall time (report.json
+    holds the rest)."""
+    cmd = [sys.executable, "-m", "ti_cmax.cli", "slam", str(dataset), "--out", str(out), "--quiet", *flags]
     if threads:
         cmd += ["--threads", str(threads)]
     for item in overrides:

@@ -86,6 +86,20 @@ SUITES = {
         SequenceSpec("dvxplorer", "DVXplorer", "city", 1.5, 0, options=(("max_angular_velocity", 3.0),)),
         SequenceSpec("hd", "HD", "city", 1.5, 0, options=(("max_angular_velocity", 3.0),)),
     ),
+    # real-time replay (``ti-cmax benchmark --realtime``, pipelines/bench_realtime.py): steady random motion from the
+    # start (random_ramp_start 1) at about 1, 2 and 5 M events/s on a DAVIS240C and 12 M events/s on a VGA sensor
+    # (the motion's peak and the 5 M case's contrast threshold scaled from trial simulations of these seeds)
+    "realtime": make_suite(
+        SequenceSpec("davis240c-1m", "DAVIS240C", "city", 4.0, 21,
+                     options=(("max_angular_velocity", 1.43), ("random_ramp_start", 1.0))),
+        SequenceSpec("davis240c-2m", "DAVIS240C", "city", 4.0, 22,
+                     options=(("max_angular_velocity", 1.7), ("random_ramp_start", 1.0))),
+        SequenceSpec("davis240c-5m", "DAVIS240C", "city", 3.0, 23,
+                     options=(("max_angular_velocity", 3.9), ("random_ramp_start", 1.0),
+                              ("contrast_threshold", 0.15))),
+        SequenceSpec("vga-12m", "VGA", "city", 2.0, 24,
+                     options=(("max_angular_velocity", 1.48), ("random_ramp_start", 1.0))),
+    ),
 }
 SUITE = SUITES["paper"]
 
@@ -209,7 +223,7 @@ def resolve_sequences(names: list[str] | None, quick: bool = False, suite: str =
 
 # methods of a suite when --methods is not given (the sensor suite: the front-end and CMax-SLAM only; SMT or
 # RTPT on 30 M events/s of HD data would take hours)
-SUITE_METHODS = {"sensors": ("cmax-omega", "cmax-slam")}
+SUITE_METHODS = {"sensors": ("cmax-omega", "cmax-slam"), "realtime": ("cmax-omega", "cmax-slam")}
 
 
 def resolve_methods(keys: list[str] | None, suite: str = "paper") -> list[str]:

@@ -24,6 +24,9 @@ With P the sensor's pixel count, s = P / 43200 (DAVIS240C = 1) and f = (fx + fy)
   event still goes into the map. 5 events per pixel per 0.2 s window is about 1.1 M events/s on a DAVIS240C and
   7.7 M events/s on a VGA sensor; on a VGA sequence at 10.5 M events/s, sampling to it (66 % of the events) left
   the abs error unchanged (0.032 deg) and halved the back-end's work.
+- ``realtime_min_window_events`` = 1 * P * window / 0.2 s, rounded to 1000: the floor below which the real-time
+  controller (pipelines/realtime.py) never samples a window's BA (a fifth of the cap above; fewer events per
+  pixel leave the panoramic IWE too sparse for its variance to mean much).
 """
 from __future__ import annotations
 
@@ -38,6 +41,7 @@ REFERENCE_PACKET_EVENTS = 10_000
 REFERENCE_MAX_PACKET_EVENTS = 20_000
 REFERENCE_MIN_EVENT_RATE = 10_000.0  # events/s
 WINDOW_EVENTS_PER_PIXEL = 5.0  # per 0.2 s window
+REALTIME_MIN_WINDOW_EVENTS_PER_PIXEL = 1.0  # per 0.2 s window
 MAP_WIDTH_MULTIPLE = 256
 MAX_MAP_WIDTH = 8192  # 8192 x 4096: 33 M pixels, about 400 MB of map state (raw, blurred, scratch; float32)
 
@@ -80,6 +84,13 @@ def derived_backend(camera: Camera, config: BackendConfig = BackendConfig()) -> 
     }
 
 
+def derived_realtime(camera: Camera, backend: BackendConfig = BackendConfig()) -> dict:
+    """The real-time controller's values for this camera (see the module docstring)."""
+    pixels = camera.width * camera.height
+    window = REALTIME_MIN_WINDOW_EVENTS_PER_PIXEL * pixels * backend.backend_time_window_size / 0.2
+    return {"realtime_min_window_events": _round_to(window, 1000)}
+
+
 def _fill(section, values: dict):
     """Replace the fields left at 0 (derived) by the rule's value; user values stay."""
     return replace(section, **{k: v for k, v in values.items() if getattr(section, k) == 0})
@@ -101,7 +112,8 @@ def pano_size(config: BackendConfig, camera: Camera) -> tuple[int, int]:
 def resolve_config(config: SlamConfig, camera: Camera) -> SlamConfig:
     """The config with every derived (0) value replaced by its rule's number for this camera. Idempotent."""
     return replace(config, frontend=resolve_frontend(config.frontend, camera),
-                   backend=resolve_backend(config.backend, camera))
+                   backend=resolve_backend(config.backend, camera),
+                   realtime=_fill(config.realtime, derived_realtime(camera, config.backend)))
 
 
 def derived_summary(config: SlamConfig, camera: Camera) -> dict:
@@ -122,4 +134,4 @@ def describe(values: dict) -> str:
 
 
 __all__ = ["resolve_config", "resolve_frontend", "resolve_backend", "derived_frontend", "derived_backend",
-           "derived_summary", "describe", "map_width_for", "pano_size"]
+           "derived_summary", "describe", "map_width_for", "pano_size", "derived_realtime"]

@@ -133,11 +133,15 @@ class OnlineSlam:
     Fig. 3). A thread would not help: Taichi 1.7 kernel launches hold the GIL (measured, see README). Bounded
     queues connect the two; ``push`` blocks while the worker is a full queue behind (no event is dropped, no busy
     waiting). The worker does the same operations in the same order, so results equal the sequential run
-    (bitwise with one Taichi thread per process). ``pose`` then uses the refined spline the worker last sent.
+    (bitwise with one Taichi thread per process). ``pose`` then uses the refined spline the worker last sent;
+    ``max_backlog`` (sensor seconds) also makes ``push`` wait while it runs that far ahead of the worker's last window.
+
+    ``degrade`` (used by the real-time replay, pipelines/realtime.py) skips front-end packets and samples or skips
+    the BA from then on; by default nothing is degraded.
     """
 
     def __init__(self, camera: Camera, config: SlamConfig = SlamConfig(), *, on_window=None,
-                 backend_process: bool = False, queue_size: int = 16):
+                 backend_process: bool = False, queue_size: int = 16, max_backlog: float | None = None):
         self._wall0 = time.perf_counter()
         self.derived = derived_summary(config, camera)
         self.config = config = resolve_config(config, camera)
@@ -161,7 +165,16 @@ class OnlineSlam:
         self.t_last: float | None = None  # time of the last event pushed
         self.events_read = 0
         self.backend_seconds = 0.0  # steady-state time in the back-end (windows), callbacks excluded
+        self.backend_cpu_seconds = 0.0  # CPU time of this process in the back-end's windows (0 with a worker)
+        # real-time degradation (``degrade``, set by pipelines/realtime.py): the front-end processes 1 of
+        # frontend_keep packets (the others are skipped: integration goes on from the last processed one)
+        self.frontend_keep = 1
+        self._ba_cap: int | None = None  # the back-end's ba_cap (see SlidingWindowBackend)
+        self.packets_seen = self.packets_skipped = 0
         self._result: SlamResult | None = None
+        # with a worker: push() also waits while the events sent run more than this many sensor seconds ahead of
+        # the worker's last window (the queue's bound in messages is none in time when chunks are large)
+        self.max_backlog = max_backlog
 
     # ---- input ---------------------------------------------------------------------------------------------------
     def push(self, events: Events) -> None:
@@ -177,6 +190,7 @@ class OnlineSlam:
         offset = self.events_read
         if self._worker is None:
             self._feed.push(events)
+            self._feed.backend.ba_cap = self._ba_cap
         else:
             if self._feed.backend is None:
                 self._feed.backend = SlidingWindowBackend(self.config.backend, float(events.t[0]), np.eye(3))
@@ -186,6 +200,11 @@ class OnlineSlam:
         for packet in self.runner.slicer.push(every_qth(events, self._q_front, offset)):
             self._packet(packet)
         self._receive()
+        while self.max_backlog is not None and self._worker is not None and \
+                self.t_last - self.refined_until > self.max_backlog:
+            tic = time.perf_counter()
+            self._receive(until="window")
+            self._worker.blocked_seconds += time.perf_counter() - tic
 
     def close(self) -> SlamResult:
         """End of the stream: process the last packets and windows; the same result as ``run_slam``."""
@@ -199,21 +218,43 @@ class OnlineSlam:
             raise InputError("no events to process")
         if self._worker is not None:
             self._worker.send(("finish",))
-            done = self._receive(until_done=True)
+            done = self._receive(until="done")
             self._worker.stop()
-            self.backend_seconds = done["seconds"]
+            self.backend_seconds, self.backend_cpu_seconds = done["seconds"], done["step_cpu_seconds"]
             self._result = self._assemble(done["report"], done["spline"], done["map"], done["windows"], done)
             return self._result
         backend = self._feed.backend
         done = len(backend.windows)
-        tic = time.perf_counter()
+        tic, cpu = time.perf_counter(), time.process_time()
         backend.finish()
         self.backend_seconds += time.perf_counter() - tic
+        self.backend_cpu_seconds += time.process_time() - cpu
         for report in backend.windows[done:]:
             self._notify(report)
         self._result = self._assemble(_backend_report(backend, self.backend_seconds), backend.spline,
                                       backend.map.raw, backend.windows, None)
         return self._result
+
+    def degrade(self, frontend_keep: int = 1, ba_cap: int | None = None) -> None:
+        """Real-time degradation (pipelines/realtime.py): from now on the front-end processes 1 of
+        ``frontend_keep`` packets and the BA uses at most ``ba_cap`` events per window (None: the config's cap;
+        0: BA skipped, the window keeps the front-end's poses). ``degrade()`` restores the full computation."""
+        self.frontend_keep = max(1, int(frontend_keep))
+        self._ba_cap = ba_cap
+        if self._worker is not None:  # shared memory: acts at the worker's next window, not behind its queue
+            self._worker.ba_cap.value = -1 if ba_cap is None else int(ba_cap)
+        elif self._feed.backend is not None:
+            self._feed.backend.ba_cap = ba_cap
+
+    def wait_ready(self) -> None:
+        """With a worker process: wait until it has prepared its kernels (a live source starts after this)."""
+        if self._worker is not None and not self._worker.ready:
+            self._receive(until="ready")
+
+    def abort(self) -> None:
+        """Stop at once (Ctrl-C): end the back-end worker process, if any, without waiting for its results."""
+        if self._worker is not None and self._worker.proc.is_alive():
+            self._worker.proc.terminate()
 
     # ---- estimates so far ----------------------------------------------------------------------------------------
     @property
@@ -244,18 +285,27 @@ class OnlineSlam:
         return self.t_last, self.pose(self.t_last)[0]
 
     def map(self) -> np.ndarray:
-        """Copy of the panoramic map I_G of the events settled so far, (h, w) float32 (with a worker process:
-        empty until close(); the map stays in the worker)."""
+        """Copy of the panoramic map I_G of the events settled so far, (h, w) float32. With a worker process the
+        worker sends a copy once it has handled everything pushed before (this call waits for it)."""
         backend = self._feed.backend
         if self._result is not None:
             return self._result.map.copy()
-        if backend is None or self._worker is not None:
-            w, h = self.config.backend.pano_size
-            return np.zeros((h, w), np.float32)
-        return backend.map.raw.copy()
+        if backend is not None and self._worker is not None:
+            self._worker.send(("map",))
+            snapshot = self._receive(until="map")
+            if snapshot is not None:
+                return snapshot
+        elif backend is not None:
+            return backend.map.raw.copy()
+        w, h = self.config.backend.pano_size
+        return np.zeros((h, w), np.float32)
 
     # ---- internals -----------------------------------------------------------------------------------------------
     def _packet(self, packet: Packet) -> None:
+        self.packets_seen += 1
+        if self.frontend_keep > 1 and (self.packets_seen - 1) % self.frontend_keep:
+            self.packets_skipped += 1  # real-time thinning: no omega here, the next packet integrates across
+            return
         omega = self.runner.process(packet)
         if self._t_prev is not None:
             self._r_src = self._r_src @ so3.exp(0.5 * (self._w_prev + omega) * (packet.t_ref - self._t_prev))
@@ -266,17 +316,18 @@ class OnlineSlam:
             self._worker.send(("pose", packet.t_ref, self._r_src))
             return
         while backend.ready():
-            tic = time.perf_counter()
+            tic, cpu = time.perf_counter(), time.process_time()
             report = backend.step()
             self.backend_seconds += time.perf_counter() - tic
+            self.backend_cpu_seconds += time.process_time() - cpu
             self._notify(report)
 
-    def _receive(self, until_done: bool = False):
-        """Apply the worker's window messages to the shadow back-end (and call on_window); with ``until_done``
-        wait for its final message and return it."""
+    def _receive(self, until: str | None = None):
+        """Apply the worker's window messages to the shadow back-end (and call on_window); with ``until`` ("done",
+        "map") wait for that message and return its content."""
         if self._worker is None:
             return None
-        for kind, *args in self._worker.messages(until_done):
+        for kind, *args in self._worker.messages(until):
             if kind == "window":
                 report, first, tail, anchor, window_start, shape = args
                 shadow = self._feed.backend
@@ -287,7 +338,7 @@ class OnlineSlam:
                 shadow._anchor, shadow.window_start = anchor, window_start
                 shadow.windows.append(report)
                 self._notify(report)
-            elif kind == "done":
+            elif kind == until:
                 return args[0]
         return None
 
@@ -338,34 +389,50 @@ class _BackendProcess:
         ctx = mp.get_context("spawn")
         self.inbox, self.outbox = ctx.Queue(max(1, queue_size)), ctx.Queue()
         self.inbox.cancel_join_thread()  # never hang at exit on a worker that stopped reading (it failed)
+        self.ba_cap = ctx.Value("q", -1, lock=False)  # the back-end's ba_cap (-1: None), set by OnlineSlam.degrade
         self.proc = ctx.Process(target=_backend_worker, daemon=True,
-                                args=(camera, config, runtime.num_threads(), self.inbox, self.outbox))
+                                args=(camera, config, runtime.num_threads(), self.inbox, self.outbox, self.ba_cap))
         self.proc.start()
         self.blocked_seconds = 0.0
+        self.ready = False  # the worker has prepared its kernels
 
     def send(self, message) -> None:
+        """Put a message on the inbox, waiting while it is full (1 s timeouts, to notice a worker that ended)."""
+        import queue
+
         tic = time.perf_counter()
-        self.inbox.put(message)
+        while True:
+            try:
+                self.inbox.put(message, timeout=1.0)
+                break
+            except queue.Full:
+                if not self.proc.is_alive():
+                    for _ in self.messages(None):  # raises the worker's error, if it sent one
+                        pass
+                    raise RuntimeError(f"the back-end process ended (exit {self.proc.exitcode})") from None
         self.blocked_seconds += time.perf_counter() - tic
 
-    def messages(self, until_done: bool):
-        """Messages ready now; with ``until_done`` block (1 s timeouts, to notice a dead worker) until "done"."""
+    def messages(self, until: str | None):
+        """Messages ready now; with ``until`` (a message kind: "done", "map") block (1 s timeouts, to notice a dead
+        worker) until that message."""
         import queue
 
         while True:
             try:
-                msg = self.outbox.get(timeout=1.0) if until_done else self.outbox.get_nowait()
+                msg = self.outbox.get(timeout=1.0) if until else self.outbox.get_nowait()
             except queue.Empty:
-                if not until_done:
+                if not until:
                     return
                 if not self.proc.is_alive():
                     raise RuntimeError(f"the back-end process ended without a result (exit {self.proc.exitcode})")
                 continue
+            if msg[0] == "ready":
+                self.ready = True
             if msg[0] == "error":
                 self.proc.terminate()
                 raise RuntimeError(f"back-end process: {msg[1]}")
             yield msg
-            if msg[0] == "done":
+            if msg[0] == until:
                 return
 
     def stop(self) -> None:
@@ -374,23 +441,29 @@ class _BackendProcess:
             self.proc.terminate()
 
 
-def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox) -> None:
-    """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R), ("finish",)."""
+def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, ba_cap) -> None:
+    """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R), ("map",) (send a
+    copy of the map) and ("finish",); ``ba_cap`` is shared memory (OnlineSlam.degrade), read before each step."""
     try:
         from ti_cmax.kernels import runtime
 
         runtime.set_num_threads(threads)
         cpu0 = time.process_time()
         compile_s = _compile_backend(config)
+        outbox.put(("ready", compile_s))
         feed = _BackendFeed(camera, config, lambda t0: np.eye(3))
-        seconds = 0.0
+        seconds = step_cpu = 0.0
         while True:
             kind, *args = inbox.get()
             if kind == "events":
                 feed.push(args[0])
                 continue
             backend = feed.backend
-            tic = time.perf_counter()
+            if kind == "map":  # OnlineSlam.map(): a copy of the map of the events settled so far
+                outbox.put(("map", backend.map.raw.copy() if backend is not None else None))
+                continue
+            backend.ba_cap = None if ba_cap.value < 0 else int(ba_cap.value)  # OnlineSlam.degrade
+            tic, cpu = time.perf_counter(), time.process_time()
             if kind == "pose":
                 backend.push_source_poses([args[0]], args[1][None])
                 new = len(backend.windows)
@@ -400,6 +473,7 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
                 new = len(backend.windows)
                 backend.finish()
             seconds += time.perf_counter() - tic
+            step_cpu += time.process_time() - cpu
             spline = backend.spline
             for report in backend.windows[new:]:
                 # control poses before the window's first free one (minus one) did not change
@@ -410,7 +484,8 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
                 outbox.put(("done", {
                     "report": _backend_report(backend, seconds), "spline": spline, "map": backend.map.raw,
                     "windows": backend.windows, "trajectory": backend.trajectory(config.output.trajectory_rate),
-                    "seconds": seconds, "compile_seconds": compile_s, "cpu_seconds": time.process_time() - cpu0,
+                    "seconds": seconds, "step_cpu_seconds": step_cpu, "compile_seconds": compile_s,
+                    "cpu_seconds": time.process_time() - cpu0,
                     "loops": backend.loop.loops if backend.loop is not None else None}))
                 return
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it

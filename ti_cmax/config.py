@@ -279,6 +279,27 @@ class LoopClosureConfig(Params):
 
 
 @dataclass(frozen=True)
+class RealtimeConfig(Params):
+    """``ti-cmax slam --realtime``: replay in sensor time and the degradation controller (pipelines/realtime.py)."""
+
+    realtime_target_lag: float = param(0.3, "lag (wall time behind sensor time when a window completes) the "
+                                            "controller keeps below by degrading", unit="s", gt=0)
+    realtime_max_lag: float = param(1.0, "hard bound: above it (at the last degradation level) only 1 of q events is "
+                                         "handed over", unit="s", gt=0)
+    realtime_chunk: float = param(0.002, "sensor time handed over at once while keeping up", unit="s", gt=0)
+    realtime_min_window_events: int = param(0, "BA events per window never sampled below this when degrading; "
+                                               "derived: 1 x pixels x window / 0.2 s", unit="events", ge=200,
+                                            zero="derived")
+    realtime_speed: float = param(1.0, "replay speed: sensor seconds per wall second (above 1: a stress test)",
+                                  gt=0)
+
+    def _relations(self) -> None:
+        if self.realtime_max_lag < self.realtime_target_lag:
+            raise InputError(f"realtime_max_lag must be >= realtime_target_lag ({self.realtime_target_lag:g} s), "
+                             f"got {self.realtime_max_lag:g}")
+
+
+@dataclass(frozen=True)
 class DatasetConfig(Params):
     """How to open a DATASET (``--set width=346 --set height=260 --set allow_default_calibration=true``)."""
 
@@ -310,6 +331,7 @@ class SlamConfig(Params):
     frontend: FrontendConfig = param(help="CMax-omega front-end", factory=FrontendConfig)
     backend: BackendConfig = param(help="sliding-window BA and the panoramic map", factory=BackendConfig)
     loop: LoopClosureConfig = param(help="loop closure on revisits", factory=LoopClosureConfig)
+    realtime: RealtimeConfig = param(help="real-time replay and degradation (slam --realtime)", factory=RealtimeConfig)
     output: OutputConfig = param(help="outputs", factory=OutputConfig)
 
 
@@ -477,6 +499,6 @@ def save_config(cfg, path: str | os.PathLike) -> None:
 __all__ = [
     "param", "Params", "iter_params", "check_field", "rule_text", "field_default",
     "CONTRAST_MEASURES", "OPTIMIZERS", "SLICING_RULES", "WARM_STARTS", "STEP_GUESSES", "DatasetConfig", "FrontendConfig",
-    "BackendConfig", "LoopClosureConfig", "OutputConfig", "SlamConfig",
+    "BackendConfig", "LoopClosureConfig", "RealtimeConfig", "OutputConfig", "SlamConfig",
     "load_config", "update_config", "build_config", "save_config", "config_to_dict", "parse_overrides", "replace",
 ]

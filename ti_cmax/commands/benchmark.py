@@ -8,7 +8,8 @@ Each method on each sequence is a task (see ``ti-cmax batch``): ``--jobs N`` run
 simulated sequences (DIR/sequences). Writes DIR/tables.md, DIR/results.csv (one row per sequence x method),
 DIR/results.json, DIR/plots/ (violins of the errors, trajectories per axis, maps side by side, per sequence) and
 DIR/config.yaml. ``--quick``: 2 sequences of 1.5 s, linear BA only, 512x256 back-end maps and capped CG iterations
-(smoke runs; figures not comparable with the full suite).
+(smoke runs; figures not comparable with the full suite). ``--realtime``: the real-time table instead
+(``pipelines/bench_realtime.py``: ``slam --realtime --parallel`` against the offline run, 1-12 M events/s).
 """
 from __future__ import annotations
 
@@ -32,6 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--methods", default="", metavar="A,B",
                         help=f"comma-separated subset of {','.join(METHOD_KEYS)} (default: all)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    parser.add_argument("--realtime", action="store_true",
+                        help="real-time table instead (pipelines/bench_realtime.py): slam --realtime --parallel vs "
+                             "offline at 1, 2, 5 (DAVIS240C) and 12 (VGA) M events/s; --sequences picks cases")
     add_executor_arguments(parser)
 
 
@@ -50,6 +54,13 @@ def run(args) -> int:
     from ..outputs import atomic_path
     from ..pipelines import benchmark as B
 
+    if args.realtime:
+        from ..pipelines import bench_realtime
+
+        log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+        print(bench_realtime.run(Path(args.out), _split(args.sequences), threads=args.threads,
+                                 overrides=args.overrides, log=log))
+        return 0
     overrides = {**(B.quick_overrides() if args.quick else {}), **parse_overrides(args.overrides)}
     cfg = load_config(B.BenchmarkConfig, args.config, overrides)
     sequences = B.resolve_sequences(_split(args.sequences), quick=args.quick, suite=args.suite)

@@ -15,6 +15,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="trajectory model (default: spline_degree of the config, cubic)")
     parser.add_argument("--parallel", action="store_true",
                         help="run the back-end in a worker process at the same time as the front-end")
+    parser.add_argument("--realtime", action="store_true",
+                        help="replay the file in sensor time, degrading on purpose to bound the lag (report.json "
+                             "\"realtime\"; --set realtime_target_lag=0.3, realtime_speed=1, ...)")
 
 
 def spline_override(args) -> list[str]:
@@ -67,8 +70,17 @@ def run(args) -> int:
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     camera = dataset.camera
     t0, t1 = dataset.time_range()
-    result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
-                      backend_process=args.parallel)
+    if args.realtime:
+        import sys
+
+        from ..pipelines.realtime import READ_EVENTS, run_realtime
+
+        log = None if args.quiet else (lambda msg: print(f"ti-cmax slam: {msg}", file=sys.stderr, flush=True))
+        result = run_realtime(dataset.iter_events(min(cfg.dataset.chunk_size, READ_EVENTS)), camera, cfg,
+                              backend_process=args.parallel, progress_total=t1 - t0, log=log)
+    else:
+        result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
+                          backend_process=args.parallel)
     with OutputDir(args.out) as out:
         write_result(out, result, cfg, camera)
     us = result.report["us_per_event"]
@@ -76,4 +88,8 @@ def run(args) -> int:
     print(f"CMax-SLAM: {result.report['events_processed']} events, {len(result.trajectory)} poses, "
           f"front-end {us['frontend']:.3f} us/event, back-end {us['backend']:.3f} us/event "
           f"(compile {result.report['compile_seconds']:.1f} s apart) -> {out}")
+    if "realtime" in result.report:
+        from ..pipelines.realtime import describe
+
+        print(describe(result.report["realtime"]))
     return 0

@@ -1,0 +1,297 @@
+"""Real-time replay of a recording (``ti-cmax slam --realtime``) and the degradation controller that bounds the lag.
+
+Replay: the file is read in chunks of ``READ_EVENTS`` events (memory does not grow with the file) and each event
+is handed to :class:`~ti_cmax.pipelines.slam.OnlineSlam` once the wall clock reaches its timestamp
+(``realtime_speed`` sensor seconds per wall second). While the system keeps up, the replay sleeps until the next
+``realtime_chunk`` of sensor time is due and pushes it; when it is behind, it pushes every due event at once (one read
+chunk per push). No busy waiting.
+
+Lag: when a window completes (wall time ``done``), lag = done - due(window end), where due(t) is the wall time at
+which sensor time t was handed over in an ideal replay. The latency from an event to its first refined pose is that
+window's lag plus the event's age within the window's new stride: the events of (previous window end, window end]
+get their first refined pose when the window completes (mean over time: lag + stride / 2; max: lag + stride).
+
+Controller (one rule, applied after every completed window, with lag L, target T = ``realtime_target_lag`` and
+bound M = ``realtime_max_lag``): degradation level l in 0..4:
+
+    l | front-end packets | BA events per window (cap c: backend_max_window_events; floor: realtime_min_window_events)
+    0 | all               | c (the offline computation)
+    1 | all               | c / 2
+    2 | 1 of 2            | c / 4
+    3 | 1 of 4            | c / 8
+    4 | 1 of 4            | BA skipped (the window keeps the integrated front-end's poses; its events still go
+                          |   into the map)
+
+- L > T and L would not be back under T within 5 windows at its current rate of change (L - L_prev per window):
+  l += 1; at l = 4, when L > M and would not be back under M within 5 windows: hand over only 1 of q events (q
+  doubles, at most 16) - the hard bound, for when even level 4 is slower than the sensor. (A falling lag is given
+  time to drain: escalating on every late window overshoots, since a backlog takes windows to clear even once the
+  system is faster than the sensor.)
+- L > M: l = 4 at once;
+- L < T / 2 (and the front-end's lag too): first q halves, then (at q = 1, and at least 3 windows after the last
+  change) l -= 1.
+The front-end's lag (now - due(time of its last packet)), taken once per stride of its progress, is a second input
+to the escalating rules: when the front-end is the bottleneck, windows complete too rarely to react in time.
+Costs that do not scale with events (a front-end packet's optimisation, a window's BA) are cut first: levels 1-4 keep
+every event in the map; q (the hard bound) also cuts the per-event costs. Front-end packets are skipped because their
+cost is mostly per evaluation, not per event (thinning a packet's events saves little). report.json's "realtime"
+block says how long each level was in force (in sensor seconds) and what it removed.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Iterable
+
+import numpy as np
+
+from ti_cmax.camera import Camera
+from ti_cmax.config import SlamConfig
+from ti_cmax.errors import InputError
+from ti_cmax.events import Events
+from ti_cmax.progress import progress
+
+from .frontend import every_qth
+from .sensor_defaults import resolve_config
+
+READ_EVENTS = 50_000  # events per read of the file: a few ms of data at 10 M events/s, so I/O never stalls long
+MAX_LEVEL = 4
+MAX_INPUT_THINNING = 16  # deeper thinning leaves front-end packets too sparse (their cost is per packet anyway)
+RELAX_WINDOWS = 3  # windows at a level before it may be lowered
+DRAIN_WINDOWS = 5  # a lag above target that falls back under it within this many windows needs no escalation
+# level -> (1 of k front-end packets, BA cap divisor; 0: BA skipped)
+LEVELS = {0: (1, 1), 1: (1, 2), 2: (2, 4), 3: (4, 8), 4: (4, 0)}
+
+
+class RealtimeController:
+    """The controller of the module docstring: reads the lag of each completed window, sets OnlineSlam's
+    degradation, keeps the figures of the report's "realtime" block."""
+
+    def __init__(self, config: SlamConfig, speed: float):
+        rt, be = config.realtime, config.backend
+        self.target, self.bound, self.speed = rt.realtime_target_lag, rt.realtime_max_lag, speed
+        self.stride = be.backend_sliding_window_stride
+        self.cap = be.backend_max_window_events  # -1: every event (then the divisors apply to the window's count)
+        self.floor = rt.realtime_min_window_events
+        self.online = None
+        self.level, self.thinning = 0, 1
+        self._since_change = 0
+        self.wall0 = self.t0 = None
+        self.lags: list[float] = []
+        self.latency_mean: list[float] = []
+        self.latency_max: list[float] = []
+        self.level_seconds = [0.0] * (MAX_LEVEL + 1)  # sensor seconds of windows completed at each level
+        self.thinned_seconds = 0.0
+        self.max_thinning = 1
+        self._prev_end = None
+        self._prev_lag: dict[str, float] = {}  # last lag per source ("window", "frontend")
+        self._fe_tick = self._fe_lag = None
+        self._window_events = None
+        self.ba_used = self.ba_offline = 0  # BA events used, and what the offline run would use
+        self.windows_skipped = self.windows_sampled = 0
+
+    def due(self, t: float) -> float:
+        """Wall time (time.monotonic) at which sensor time t is handed over."""
+        return self.wall0 + (t - self.t0) / self.speed
+
+    def ba_cap(self, level: int, window_events: int | None = None) -> int | None:
+        divisor = LEVELS[level][1]
+        if divisor == 1:
+            return None
+        if divisor == 0:
+            return 0
+        base = self.cap if self.cap > 0 else (window_events or self.floor)
+        return int(max(self.floor, base // divisor))
+
+    def on_window(self, report) -> None:
+        """After every completed window: record lag and latency, then apply the rule."""
+        if self.wall0 is None:
+            return
+        end = report.t_end
+        prev = self._prev_end if self._prev_end is not None else report.t_start
+        lag = report.done_at - self.due(end)
+        self.lags.append(lag)
+        new = max(end - prev, 0.0) / self.speed
+        self.latency_mean.append(lag + 0.5 * new)
+        self.latency_max.append(lag + new)
+        self._prev_end = max(end, prev)
+        span = report.t_end - report.t_start
+        self.level_seconds[self.level] += min(self.stride, span)
+        if self.thinning > 1:
+            self.thinned_seconds += min(self.stride, span)
+        if report.optimized or report.rejected or report.skipped:
+            offline = report.num_events if self.cap < 0 else min(report.num_events, self.cap)
+            self.ba_offline += offline
+            self.ba_used += report.events_used
+            self.windows_skipped += int(report.skipped)
+            self.windows_sampled += int(0 < report.events_used < offline)
+        self._window_events = report.num_events
+        self._control(lag)
+
+    def on_frontend(self, now: float, t: float | None) -> None:
+        """After every push: the front-end's lag (now - due(its last packet's time)), once per stride of its progress,
+        is the rule's second input (a slow front-end delays the windows, so they alone would react late). It only
+        escalates: relaxing waits for windows."""
+        if t is None or self.wall0 is None or (self._fe_tick is not None and t < self._fe_tick + self.stride):
+            return
+        self._fe_tick = t
+        self._fe_lag = now - self.due(t)
+        self._control(self._fe_lag, "frontend")
+
+    def _control(self, lag: float, source: str = "window") -> None:
+        old = (self.level, self.thinning)
+        self._since_change += source == "window"
+        prev = self._prev_lag.get(source)
+        change = lag - prev if prev is not None else 0.0  # per stride of sensor time (ticks come once per stride)
+        self._prev_lag[source] = lag
+        if lag > self.bound and self.level < MAX_LEVEL:
+            self.level = MAX_LEVEL  # beyond the hard bound: the last level at once
+        elif lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL:
+            self.level += 1
+        elif self.level == MAX_LEVEL and lag > self.bound and lag + DRAIN_WINDOWS * change > self.bound:
+            self.thinning = min(MAX_INPUT_THINNING, 2 * self.thinning)
+        elif source == "window" and lag < 0.5 * self.target and (self._fe_lag or 0.0) < 0.5 * self.target:
+            if self.thinning > 1:
+                self.thinning //= 2
+            elif self.level > 0 and self._since_change >= RELAX_WINDOWS:
+                self.level -= 1
+        self.max_thinning = max(self.max_thinning, self.thinning)
+        if (self.level, self.thinning) != old:
+            self._since_change = 0
+            if self.online is not None:
+                self.online.degrade(LEVELS[self.level][0], self.ba_cap(self.level, self._window_events))
+
+    def summary(self) -> dict:
+        lags = np.asarray(self.lags) if self.lags else np.zeros(1)
+        sensor = sum(self.level_seconds)
+        return {
+            "windows": len(self.lags),
+            "max_lag_s": float(lags.max()), "mean_lag_s": float(lags.mean()),
+            "latency_mean_s": float(np.mean(self.latency_mean)) if self.latency_mean else 0.0,
+            "latency_max_s": float(np.max(self.latency_max)) if self.latency_max else 0.0,
+            "level_sensor_seconds": {str(k): v for k, v in enumerate(self.level_seconds)},
+            "degraded_fraction": float(1.0 - self.level_seconds[0] / sensor) if sensor > 0 else 0.0,
+            "ba_windows_skipped": self.windows_skipped, "ba_windows_sampled_below_cap": self.windows_sampled,
+            "ba_events_fraction": self.ba_used / self.ba_offline if self.ba_offline else 1.0,
+            "input_thinned_sensor_seconds": self.thinned_seconds, "input_max_thinning": self.max_thinning,
+        }
+
+
+def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = SlamConfig(), *,
+                 backend_process: bool = False, progress_total: float | None = None, log=None):
+    """CMax-SLAM on a recording replayed in sensor time (module docstring); returns the SlamResult with a
+    "realtime" block in its report. ``chunks``: time-ordered Events chunks (a dataset's ``iter_events``)."""
+    from .slam import OnlineSlam
+
+    config = resolve_config(config, camera)
+    rt = config.realtime
+    speed = float(rt.realtime_speed)
+    ctl = RealtimeController(config, speed)
+    be = config.backend
+    # with a worker, push() waits while the events sent run more than two windows and a stride ahead of the
+    # worker's last window (bounded in sensor time: a chunk of the catch-up phase holds READ_EVENTS events); the
+    # front-end then runs while the worker does a whole window's BA
+    online = OnlineSlam(camera, config, on_window=ctl.on_window, backend_process=backend_process,
+                        queue_size=100_000,
+                        max_backlog=2 * be.backend_time_window_size + be.backend_sliding_window_stride)
+    ctl.online = online
+    online.wait_ready()  # the sensor clock starts once both processes can work
+    reader = iter(chunks)
+    pending = Events.empty()
+    eof = False
+    read = handed = dropped = 0
+    cpu_io = sleep_s = 0.0
+    cpu0 = time.process_time()
+    bar = progress(total=progress_total, desc="slam (real time)", unit="s")
+    shown = None
+    try:
+        while True:
+            if len(pending) == 0 and not eof:
+                tic = time.process_time()
+                chunk = next(reader, None)
+                cpu_io += time.process_time() - tic
+                if chunk is None:
+                    eof = True
+                else:
+                    pending, read = chunk, read + len(chunk)
+                continue
+            if len(pending) == 0:
+                break
+            now = time.monotonic()
+            if ctl.wall0 is None:
+                ctl.wall0, ctl.t0 = now, float(pending.t[0])
+                if log is not None:
+                    log(f"replaying in sensor time (speed {speed:g}x) from t = {ctl.t0:.6f} s")
+            s_now = ctl.t0 + (now - ctl.wall0) * speed
+            if pending.t[0] > s_now:  # nothing due: sleep until the next slice of realtime_chunk is
+                k = math.ceil((float(pending.t[0]) - ctl.t0) / rt.realtime_chunk)
+                wait = ctl.due(max(ctl.t0 + k * rt.realtime_chunk, float(pending.t[0]))) - now
+                if wait > 0:
+                    time.sleep(wait)
+                    sleep_s += wait
+                continue
+            i = int(np.searchsorted(pending.t, s_now, side="right"))
+            batch, pending = pending[:i], pending[i:]
+            q = ctl.thinning
+            if q > 1:
+                kept = every_qth(batch, q, handed + dropped)
+                dropped += len(batch) - len(kept)
+                batch = kept
+            handed += len(batch)
+            if len(batch):
+                online.push(batch)
+                ctl.on_frontend(time.monotonic(), online.frontend_until)
+                if online.frontend_until is not None:
+                    bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
+                    shown = online.frontend_until
+        if read == 0:
+            raise InputError("no events to process")
+        result = online.close()
+    except BaseException:
+        online.abort()
+        raise
+    finally:
+        bar.close()
+    cpu_total = time.process_time() - cpu0
+    summary = ctl.summary()
+    fe_cpu, be_cpu = online.runner.cpu_seconds, online.backend_cpu_seconds
+    packets = max(online.packets_seen, 1)
+    fe_fraction = 1.0 - online.packets_skipped / packets
+    input_fraction = handed / read if read else 1.0
+    worker = result.report.get("backend_process")
+    report = {
+        "speed": speed, "target_lag_s": rt.realtime_target_lag, "max_lag_bound_s": rt.realtime_max_lag,
+        "chunk_s": rt.realtime_chunk, "events_read": int(read), "events_handed_over": int(handed),
+        # 1 exactly when every event was used as in the offline run (no event dropped, no packet skipped, no window
+        # sampled below the configured cap); else the smaller of the stages' fractions times the handed-over one
+        "events_used_fraction": input_fraction * min(fe_fraction, summary["ba_events_fraction"]),
+        **summary,
+        "degradation_applied": bool(summary["degraded_fraction"] > 0 or dropped > 0),
+        "frontend_packets": int(online.packets_seen), "frontend_packets_skipped": int(online.packets_skipped),
+        "input_events_dropped": int(dropped),
+        "min_window_events": int(rt.realtime_min_window_events),
+        "cpu_seconds": {
+            "frontend": fe_cpu, "backend": be_cpu if worker is None else online.backend_cpu_seconds,
+            "io": cpu_io,
+            # this process: bearings, buffers, slicing, pickling to the worker, the controller
+            "other": max(0.0, cpu_total - fe_cpu - (be_cpu if worker is None else 0.0) - cpu_io),
+            "main_process": cpu_total,
+            **({"backend_process": worker["cpu_seconds"]} if worker is not None else {}),
+        },
+        "sleep_seconds": sleep_s,
+        "wall_seconds": (time.monotonic() - ctl.wall0) if ctl.wall0 is not None else 0.0,
+    }
+    result.report["realtime"] = report
+    return result
+
+
+def describe(report: dict) -> str:
+    """One line for the command's summary."""
+    levels = {k: v for k, v in report["level_sensor_seconds"].items() if v > 0 and k != "0"}
+    degr = ("none" if not report["degradation_applied"] else
+            ", ".join(f"level {k} {v:.1f} s" for k, v in levels.items())
+            + (f", {report['frontend_packets_skipped']} packets skipped" if report["frontend_packets_skipped"] else "")
+            + (f", {report['ba_windows_skipped']} BA skipped" if report["ba_windows_skipped"] else "")
+            + (f", {report['input_events_dropped']} events dropped" if report["input_events_dropped"] else ""))
+    return (f"real time: lag max {report['max_lag_s']:.3f} s, mean {report['mean_lag_s']:.3f} s; latency mean "
+            f"{report['latency_mean_s']:.3f} s; events used {report['events_used_fraction']:.3f}; degradation: {degr}")

@@ -1,0 +1,188 @@
+"""Real-time replay (slam --realtime): lag fields, the degradation controller, bitwise sameness without degradation,
+Ctrl-C, the --parallel CLI, slow consumers of OnlineSlam."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from ti_cmax.config import SlamConfig, load_config
+from ti_cmax.pipelines import realtime as R
+from ti_cmax.pipelines.slam import OnlineSlam, run_slam
+
+SMALL = ["--set", "pano_height=256"]
+
+
+def _realtime(report_dir):
+    return json.loads((report_dir / "report.json").read_text())["realtime"]
+
+
+def test_realtime_cli_writes_sane_lag_fields(short_dataset, tmp_path, capsys):
+    from ti_cmax.cli import main
+
+    out = tmp_path / "rt"
+    assert main(["slam", str(short_dataset), "--out", str(out), "--realtime", "--quiet", *SMALL]) == 0
+    assert "real time: lag max" in capsys.readouterr().out
+    rt = _realtime(out)
+    assert rt["windows"] >= 8
+    assert 0.0 <= rt["mean_lag_s"] <= rt["max_lag_s"] < 30.0
+    assert rt["latency_mean_s"] >= rt["mean_lag_s"] and rt["latency_max_s"] >= rt["max_lag_s"]
+    assert 0.0 < rt["events_used_fraction"] <= 1.0
+    assert rt["events_read"] >= rt["events_handed_over"] > 0
+    assert rt["wall_seconds"] >= 1.0  # 1.2 s of data replayed at sensor speed cannot end sooner
+    cpu = rt["cpu_seconds"]
+    assert cpu["frontend"] > 0 and cpu["backend"] > 0 and cpu["io"] >= 0
+    assert sum(rt["level_sensor_seconds"].values()) == pytest.approx(1.2, abs=0.15)
+    assert rt["degradation_applied"] == (rt["degraded_fraction"] > 0 or rt["input_events_dropped"] > 0)
+
+
+def test_slow_consumer_degrades_and_bounds_the_lag(short_sequence):
+    """Replayed 4x faster than the sensor, the pipeline cannot keep up: the controller degrades, says so, and keeps
+    the lag well below that of the same replay with degradation off."""
+    ev = short_sequence.events
+    base = ["pano_height=256", "realtime_speed=4"]
+    off = R.run_realtime(iter([ev]), short_sequence.camera, load_config(
+        SlamConfig, None, base + ["realtime_target_lag=1000", "realtime_max_lag=1000"])).report["realtime"]
+    on = R.run_realtime(iter([ev]), short_sequence.camera, load_config(
+        SlamConfig, None, base + ["realtime_target_lag=0.05", "realtime_max_lag=0.2"])).report["realtime"]
+    assert not off["degradation_applied"] and off["events_used_fraction"] == 1.0
+    assert on["degradation_applied"] and on["degraded_fraction"] > 0.3
+    assert on["frontend_packets_skipped"] > 0 and on["ba_windows_skipped"] + on["ba_windows_sampled_below_cap"] > 0
+    assert on["events_used_fraction"] < 1.0
+    assert on["max_lag_s"] < 0.6 * off["max_lag_s"]
+
+
+def _report(t_end, lag, ctl, n=100_000):
+    return SimpleNamespace(t_start=t_end - 0.2, t_end=t_end, num_events=n, events_used=n, optimized=True,
+                           rejected=False, skipped=False, done_at=ctl.due(t_end) + lag)
+
+
+def test_controller_rule():
+    """Escalate while the lag is above target and not draining, hard bound only at the last level, relax below
+    half the target (thinning first, then levels after a hold)."""
+    cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
+    ctl = R.RealtimeController(cfg, 1.0)
+    calls = []
+    ctl.online = SimpleNamespace(degrade=lambda keep, cap: calls.append((keep, cap)))
+    ctl.wall0, ctl.t0 = 100.0, 0.0
+    t = 0.2
+    for lag in (0.5, 0.6, 0.7, 0.8):  # late and getting later: one level per window
+        ctl.on_window(_report(t, lag, ctl))
+        t += 0.1
+    assert ctl.level == 4 and ctl.thinning == 1
+    assert calls == [(1, 100_000), (2, 50_000), (4, 25_000), (4, 0)]
+    ctl.on_window(_report(t, 1.5, ctl))  # beyond the hard bound and rising: hand over 1 of 2 events
+    t += 0.1
+    assert ctl.thinning == 2
+    ctl.on_window(_report(t, 1.2, ctl))  # falling fast enough to be back under the bound within 5 windows: wait
+    t += 0.1
+    assert ctl.thinning == 2
+    for _ in range(2):  # under half the target: thinning goes first, then (after 3 windows at a level) levels
+        ctl.on_window(_report(t, 0.1, ctl))
+        t += 0.1
+    assert ctl.thinning == 1 and ctl.level == 4
+    for _ in range(3):
+        ctl.on_window(_report(t, 0.1, ctl))
+        t += 0.1
+    assert ctl.level == 3 and calls[-1] == (4, 25_000)
+    s = ctl.summary()
+    assert s["max_lag_s"] == pytest.approx(1.5) and s["level_sensor_seconds"]["4"] > 0 and s["input_max_thinning"] == 2
+    assert s["latency_max_s"] == pytest.approx(1.6)  # the lag plus the stride whose events got their first pose
+
+
+def _cli(args, **kw):
+    cmd = [sys.executable, "-m", "ti_cmax.cli", *map(str, args)]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=300, **kw)
+
+
+@pytest.mark.slow
+def test_one_thread_bitwise_offline_and_parallel_undegraded_realtime(tmp_path):
+    """With one thread: `slam` and `slam --parallel --realtime` with degradation off (replayed 4x fast) write the
+    same trajectory, angular velocity and map, byte for byte (the CLI's --parallel path and the replay's chunking
+    change nothing; without --realtime the report has no "realtime" block)."""
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence, write_sequence
+
+    seq = write_sequence(simulate_sequence(SimulatorConfig(scene="town", sensor="DVS128", duration=0.4, seed=2)),
+                         tmp_path / "seq", events_format="h5")
+    common = ["--quiet", "--threads", "1", "--set", "pano_height=128"]
+    runs = {"offline": [],
+            "realtime": ["--parallel", "--realtime", "--set", "realtime_target_lag=1000", "--set",
+                         "realtime_max_lag=1000", "--set", "realtime_speed=4"]}
+    files = {}
+    for name, extra in runs.items():
+        proc = _cli(["slam", seq, "--out", tmp_path / name, *common, *extra])
+        assert proc.returncode == 0, proc.stderr
+        files[name] = {f: (tmp_path / name / f).read_bytes()
+                       for f in ("trajectory.txt", "angular_velocity.txt", "map.npy")}
+    assert files["realtime"] == files["offline"]
+    assert "realtime" not in json.loads((tmp_path / "offline" / "report.json").read_text())
+    assert not _realtime(tmp_path / "realtime")["degradation_applied"]
+
+
+def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path):
+    out = tmp_path / "interrupted"
+    env = {**os.environ, "TI_CMAX_NO_PROGRESS": "1"}
+    cmd = [sys.executable, "-m", "ti_cmax.cli", "slam", str(short_dataset), "--out", str(out), "--realtime",
+           "--parallel", "--threads", "1", *SMALL]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+                            start_new_session=True)
+    try:
+        lines = []
+        while not lines or ("replaying" not in lines[-1] and lines[-1] and len(lines) < 50):
+            lines.append(proc.stderr.readline())  # until the replay has started (both processes are working)
+        assert "replaying" in lines[-1], lines
+        time.sleep(0.3)
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, stderr
+    assert "interrupted" in stderr and "Traceback" not in stderr, stderr
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_slow_consumers_lose_no_events(short_sequence):
+    """A slow on_window callback (sequential) and a worker bounded to a short backlog (push waits for it): every
+    event reaches the map, the result is the unthrottled one; map() mid-stream comes from the worker."""
+    ev = short_sequence.events.slice_time(short_sequence.events.t[0], short_sequence.events.t[0] + 0.45)
+    cfg = load_config(SlamConfig, None, ["pano_height=256"])
+    reference = run_slam(ev, short_sequence.camera, cfg)
+    slow = OnlineSlam(short_sequence.camera, cfg, on_window=lambda w: time.sleep(0.05))
+    bounded = OnlineSlam(short_sequence.camera, cfg, backend_process=True, max_backlog=0.3)
+    mid = None
+    for i in range(0, len(ev), 15_000):
+        slow.push(ev[i:i + 15_000])
+        bounded.push(ev[i:i + 15_000])
+        assert bounded.t_last - bounded.refined_until <= 0.3 + 0.01
+        if mid is None and bounded.refined_until > ev.t[0] + 0.05:  # a window is done
+            mid = bounded.map()
+    for online in (slow, bounded):
+        result = online.close()
+        assert result.report["events_processed"] == len(ev)
+        assert result.report["backend"]["events_settled"] == len(ev)
+        np.testing.assert_allclose(result.map, reference.map, rtol=1e-4, atol=1e-4)
+    assert mid is not None and 0 < mid.sum() < bounded.map().sum()
+
+
+def test_controller_jumps_past_the_bound_and_hears_a_slow_front_end():
+    cfg = load_config(SlamConfig, None, ["backend_max_window_events=200000"])
+    ctl = R.RealtimeController(cfg, 1.0)
+    ctl.wall0, ctl.t0 = 100.0, 0.0
+    ctl.on_window(_report(0.2, 1.5, ctl))  # beyond the hard bound: the last level at once
+    assert ctl.level == R.MAX_LEVEL
+    slow = R.RealtimeController(cfg, 1.0)
+    slow.wall0, slow.t0 = 100.0, 0.0
+    slow.on_frontend(slow.due(0.05) + 0.5, 0.05)  # the front-end alone is late: escalate before any window
+    assert slow.level == 1
+    slow.on_frontend(slow.due(0.1) + 0.6, 0.1)  # less than a stride later: no new decision
+    assert slow.level == 1
+    slow.on_frontend(slow.due(0.16) + 0.7, 0.16)
+    assert slow.level == 2
+    slow.on_frontend(slow.due(0.3) + 0.05, 0.3)  # the front-end alone never relaxes
+    assert slow.level == 2
