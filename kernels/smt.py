@@ -516,10 +516,10 @@ def _kernels(dtype):
             d = vec3d(0, 0, 0)  # pose deviation from the prediction (left, world frame)
             lam = mat3d(0)
             m = eye
-            nv = 0.0
-            ns = 0.0
-            na = 0.0
-            nsig = 0.0
+            nv = ti.cast(0.0, f64)
+            ns = ti.cast(0.0, f64)
+            na = ti.cast(0.0, f64)
+            nsig = ti.cast(0.0, f64)
             e_end = ti.min((b + 1) * batch_size, n)
             rp = ti.cast(R_pred, dtype)
             for e in range(b * batch_size, e_end):  # references, selected under the prediction
@@ -544,10 +544,10 @@ def _kernels(dtype):
                     wd = ti.cast(w, dtype)
                     lam6 = mat6d(0)
                     hr6 = vec6d(0)
-                    nv = 0.0
-                    ns = 0.0
-                    na = 0.0
-                    nsig = 0.0
+                    nv = ti.cast(0.0, f64)
+                    ns = ti.cast(0.0, f64)
+                    na = ti.cast(0.0, f64)
+                    nsig = ti.cast(0.0, f64)
                     for e in range(b * batch_size, e_end):
                         if ref_n[e] > 0:
                             dtr = ti.cast(mids[b] - mids[ref_src[e]], dtype)
@@ -577,10 +577,10 @@ def _kernels(dtype):
                 rd = ti.cast(R, dtype)
                 hh = mat3d(0)
                 hr = vec3d(0, 0, 0)
-                nv = 0.0
-                ns = 0.0
-                na = 0.0
-                nsig = 0.0
+                nv = ti.cast(0.0, f64)
+                ns = ti.cast(0.0, f64)
+                na = ti.cast(0.0, f64)
+                nsig = ti.cast(0.0, f64)
                 for e in range(b * batch_size, e_end):
                     if ref_n[e] > 0:
                         r, S, H, agree, sup = measure(rd, bearings[e], ref_uv[e, 0], ref_uv[e, 1], ref_n[e], pol[e],

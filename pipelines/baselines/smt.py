@@ -24,15 +24,28 @@ benchmark`` with ground truth, 1024 x 512 map):
   information per batch than pan and tilt (measured), so its prior dominated: even on a map built from
   ground-truth poses the random-walk EKF drifted in roll until it failed (DVS128 playroom at 2.34 s; with the
   constant-velocity model 0.1-0.2 deg to the end). ``motion_model=random_walk`` keeps the original.
+* State references (``reference=velocity``, kernels/smt.py): the reference point of a segment is predicted from
+  the state being estimated, p(R exp(-w dt_ref) b), not taken from the pose estimated for the reference's batch
+  (``reference=pose``). With pose references each event measures R relative to an earlier estimate taken as
+  exact: the pose std shrank to 0.01 deg at 0.2 deg of error, and reference errors fed back into the pose until
+  it ran away (3 deg in 0.1 s; simulated DAVIS240C city seed 101, lost at 1.3 s, also on a map built from
+  ground-truth poses; with ground-truth references instead: 0.04 deg to the end). The state reference makes the
+  increment a measurement of the angular velocity, as Eq. 38 writes it (h = -g . v dt), with the constant-
+  velocity extrapolation's variance (q_acc^2 dt_ref^3 / 3 per axis) in S; the update is 6-d.
+* Segments also end after ``max_segment_events`` (2) events: the length test uses the estimated motion, so after
+  a missed stop or turn-back the estimate said "at rest", no segment reached 1 map px and the events only grew n
+  (city seed 2 lost at 2.89 s that way; at 4.19 s with the rule).
 * Reference segments of at least ``min_displacement_px`` (1 map px) instead of the previous event: the map
   holds pixel-averaged gradients and events fire where the gradient is steep, so segments shorter than a pixel
   had their increment under-predicted by 20-60 % (residuals at ground truth); the tracker reads that as a motion
   scale error, and +-10 % of scale multiplied the drift by 5-10. The events of a short segment are summed
   (n C), nothing is dropped.
 * No measurements beyond ``max_latitude_deg`` (70 deg): the equirectangular chart is singular at the poles
-  (u stretches by 1 / cos(lat)). Not enough: 4 of the 5 losses left on the benchmark suite and 3 held-out
-  sequences happen while the field of view reaches beyond 70 deg (city lost at 4.59 s instead of 4.14, bicycle
-  unchanged at 3.16 s; cuts at 60 / 80 deg were not better).
+  (u stretches by 1 / cos(lat)). The map frame stays the world frame of App. B: with pose references, 4 of the 5
+  losses happened while the field of view reached beyond 70 deg, but a map frame chosen (from ground truth, as
+  an oracle) to keep the whole sequence within 60-73 deg of latitude did not remove them (bicycle 3.16 -> 3.46 s,
+  city 4.59 -> 4.59 s, held-out street 1.33 -> 1.53 s, city 1.33 -> 1.48 s): the poles were not the cause; the
+  references were (above).
 * Map gain: at the end of the bootstrap (known poses) the ratio k of the observed increments p n C to the
   predicted g . dp is measured and C, sigma are divided by it (:func:`_calibrate_gain`; k = 1.05-1.3 on the
   simulated sequences). The mapping EKF and the tracker read g differently (nearest pixel of each event's
@@ -47,8 +60,9 @@ benchmark`` with ground truth, 1024 x 512 map):
   selected under the previous estimate.
 
 Tracking loss, judged over a sliding window of ``loss_window`` s once tracking started: too few measurements land
-on mapped pixels (map support), the predicted increments agree in sign with the polarities barely more often than
-chance (likelihood collapse), or the estimate diverges (pose std, angular speed, non-finite values). These are the
+on mapped pixels (map support), the significant predicted increments (|z_hat| above its std: at a stop or a
+turn-back the others have no sign worth counting, and town seed 4 was reported lost there at 0.16 deg of error)
+agree in sign with the polarities barely more often than chance (likelihood collapse), or the estimate diverges (pose std, angular speed, non-finite values). These are the
 filter's own statistics, and a tracker that feeds its map can jump or drift while they stay healthy (measured:
 54 deg off with 99% support and 70-85% agreement); so the tracker's angular velocity is also checked against the
 events by contrast maximization (:class:`~ti_cmax.pipelines.baselines.consistency.MotionConsistencyCheck`).
@@ -240,8 +254,8 @@ class _Context:
 
 
 class EkfTracker:
-    """Error-state EKF on SO(3), random-walk motion model, batched brightness-increment updates; a chunk of
-    batches per kernel launch (kernels/smt.ekf_track)."""
+    """Error-state EKF on SO(3), constant-velocity (or random-walk) motion model, batched brightness-increment
+    updates with state (or pose) references; a chunk of batches per kernel launch (kernels/smt.ekf_track)."""
 
     name = "ekf"
 
