@@ -9,8 +9,8 @@ pose being estimated is p = p(R b_k), measures the brightness change along the s
 
 n being the number of events of the pixel since the reference (the current one included; all of one polarity).
 Reference selection (:func:`select_references`, decided once per batch under a selection pose: the prediction):
-the segment becomes a measurement once |dp| >= ``min_disp_px`` (and the event becomes the new reference);
-shorter segments accumulate (n grows); a polarity change restarts the segment at the previous event (an
+the segment becomes a measurement once |dp| >= ``min_disp_px`` or n reaches ``max_events`` (> 0; and the event
+becomes the new reference); shorter segments accumulate (n grows); a polarity change restarts the segment at the previous event (an
 extremum of M lies between them: the linear model cannot describe it); |dp| > ``outlier_px`` or a reference
 in the same batch (same pose: no displacement) restarts it at the current event without a measurement, and so
 does a segment with an end beyond ``max_lat_deg`` of latitude: the equirectangular chart is singular at the poles
@@ -20,6 +20,25 @@ Why a minimum segment of about one map pixel: the map holds pixel-averaged gradi
 samples the gradient below the map's resolution and, since events fire where the gradient is steep, its
 increment is under-predicted (by 20-60 % below half a map pixel, measured at 1024 x 512 with ground-truth poses),
 a motion-scale error that the tracker integrates into drift.
+
+Why ``max_events``: the selection measures |dp| under the estimated motion; once the estimate says "at rest"
+(after a stop or a turn back that it missed) no segment reaches the length, the events of the real motion only
+add to n and nothing corrects the estimate. Two events of one polarity are a brightness change of 2 C, which
+sub-pixel motion over a mapped gradient does not explain.
+
+State references (:func:`ekf_track` with ``velocity_reference``, EKF-SMT's default): the reference point is
+predicted from the state being estimated, p_ref = p(R exp(-w dt_ref) b), dt_ref the time from the reference's
+batch to the event's (``ref_src``), instead of p(R_ref b) under the pose estimated for the reference's batch. A
+fixed R_ref makes each measurement one of R relative to an earlier ESTIMATE taken as exact: the filter grows
+overconfident (pose std 0.01 deg at 0.2 deg of error) and an error of the references passes into the pose and
+back into later references (measured on simulated DAVIS240C sequences: 0.04 deg with ground-truth references,
+lost at 1.3 s with its own by a runaway of 3 deg in 0.1 s, also on a ground-truth map). With the state's own
+prediction the pose error is common to both ends (H_d only ties the pose to where on the map g is read) and the
+increment measures the angular velocity (Eq. 38: h = -g . v dt). The constant-velocity extrapolation is off by
+the velocity's random walk over dt_ref, whose variance q_acc^2 dt_ref^3 / 3 per axis is added to S (S += that x
+|d z_hat / d theta_ref|^2), so old references weigh little. (Tried and dropped: the estimated relative motion
+R_pred^T R_ref with only the velocity's deviation times dt_ref as its error: the references' pose jitter then
+reads as velocity, lost within 0.2 s on every sequence.)
 
 g (and its 2x2 covariance P_g) is bilinearly interpolated at p_mid. Residual r = z - z_hat, variance
 S = n sigma^2 + dp^T P_g dp (n independent per-event errors; unmapped pixels keep the prior covariance, so
@@ -36,9 +55,10 @@ slope included: it is what ties the pose to the map rather than only to the prev
   particles, serial over events: reproducible).
 * :func:`ekf_track` -- EKF-SMT over many batches in one launch (selection included). State: pose R (error d,
   R = exp(d) R_hat) and camera-frame angular velocity w (error dw), 6x6 covariance. Prediction R <- R exp(w dt),
-  F = [[I, R dt], [0, I]], noise max(q_rate dt, q_min)^2 on d and q_acc^2 dt on w; the batch measures only the
-  pose, so the iterated update x = P[:, d] (I + Lam P_dd)^-1 (b + Lam d_j) needs one 3x3 inverse
-  (Lam = H^T W H, b = H^T W r of the batch).
+  F = [[I, R dt], [0, I]], noise max(q_rate dt, q_min)^2 on d and q_acc^2 dt on w. Pose references: the batch
+  measures only the pose, so the iterated update x = P[:, d] (I + Lam P_dd)^-1 (b + Lam d_j) needs one 3x3
+  inverse (Lam = H^T W H, b = H^T W r of the batch). State references: H = (H_d, H_w) and the Gauss-Newton
+  step of prior + batch (P^-1 + Lam) x = b + Lam x_j (6x6, SPD), posterior (P^-1 + Lam)^-1.
 
 Per-pixel state (``new_reference_state``): ref_b (batch of the reference's pose, -1: none), last_b and last_p
 (batch and polarity of the pixel's last event), count (events since the reference). Every kernel has a float64
@@ -57,7 +77,7 @@ from .so3 import so3_funcs as _so3_funcs
 
 # slots of the ekf_accumulate output
 ACC = ("h00", "h01", "h02", "h11", "h12", "h22", "b0", "b1", "b2",
-       "valid", "supported", "agree", "nis", "chi2", "ppred", "count")
+       "valid", "supported", "agree", "nis", "chi2", "ppred", "count", "significant")
 N_ACC = len(ACC)
 _SQRT_2PI = float(np.sqrt(2.0 * np.pi))
 
@@ -92,7 +112,7 @@ def _wrap(du, width):
 
 
 def select_references_numpy(hist, sel_R, b0, b1, batch_size, bearings, pix, pol, state, width, height,
-                            outlier_px, min_disp_px, max_lat_deg, ref_uv, ref_n):
+                            outlier_px, min_disp_px, max_lat_deg, ref_uv, ref_n, ref_src=None, max_events=0):
     """Twin of :func:`select_references` (float64, event by event): fills ref_uv / ref_n of the events of batches
     b0..b1-1 (batch b's events start at b * batch_size; selection pose sel_R[b - b0]) and updates ``state``."""
     rb_, lb_, lp_, cn_ = state["ref_b"], state["last_b"], state["last_p"], state["count"]
@@ -117,17 +137,19 @@ def select_references_numpy(hist, sel_R, b0, b1, batch_size, bearings, pix, pol,
                     band = _v_band(height, max_lat_deg)
                     if d2 > outlier_px ** 2 or abs(v0 - 0.5 * height) > band or abs(v1 - 0.5 * height) > band:
                         rb_[k], cn_[k] = b, 0
-                    elif d2 >= min_disp_px ** 2:
+                    elif d2 >= min_disp_px ** 2 or 0 < max_events <= cn_[k] + 1:
                         ref_uv[e] = u0, v0
                         ref_n[e] = cn_[k] + 1
+                        if ref_src is not None:
+                            ref_src[e] = rb_[k]
                         rb_[k], cn_[k] = b, 0
                     else:
                         cn_[k] += 1
             lb_[k], lp_[k] = b, p
 
 
-def _measure_numpy(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast, sigma2):
-    """Per-event (ok, r, S, H (n, 3), pred, support) for one pose R (float64)."""
+def _measure_numpy(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast, sigma2, parts=False):
+    """Per-event (ok, r, S, H (n, 3), pred, support) for one pose R (float64); ``parts``: also (g_u, g_v, e_u, e_v)."""
     h, w = updates.shape
     xw = np.asarray(bearings, np.float64) @ np.asarray(R, np.float64).T
     u, v = equirect_numpy(xw, w, h)
@@ -150,7 +172,31 @@ def _measure_numpy(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast
     ev = g[:, 1] + 0.5 * (du * gdv[:, 0] + dv * gdv[:, 1])
     gx = eu[:, None] * jdu + ev[:, None] * jdv
     H = np.cross(xw, gx)
+    if parts:
+        return ok, r, S, H, pred, sup, (g[:, 0], g[:, 1], eu, ev)
     return ok, r, S, H, pred, sup
+
+
+def _measure_cv_numpy(R, w, dtr, bearings, ref_n, pol, grad, cov, updates, contrast, sigma2, q2=0.0):
+    """State-referenced twin (float64): per event (ok, r, S, H_d (n, 3) world, H_w (n, 3) camera, pred, support)
+    with the reference point p(R exp(-w dt_ref) b); ``dtr`` (n,) the reference's age."""
+    from ti_cmax import so3
+
+    h, wd = updates.shape
+    R = np.asarray(R, np.float64)
+    b = np.asarray(bearings, np.float64)
+    dtr = np.asarray(dtr, np.float64)
+    R_ref = R @ so3.exp(-np.outer(dtr, w))  # (n, 3, 3)
+    xr = np.einsum("nij,nj->ni", R_ref, b)
+    u0, v0 = equirect_numpy(xr, wd, h)
+    ok, r, S, H, pred, sup, (gu, gv, eu, ev) = _measure_numpy(R, b, np.stack([u0, v0], 1), ref_n, pol, grad, cov,
+                                                              updates, contrast, sigma2, parts=True)
+    jru, jrv = _project_jacobian_numpy(xr, wd, h)
+    hr = np.cross(xr, (eu - 2 * gu)[:, None] * jru + (ev - 2 * gv)[:, None] * jrv)
+    jr = so3.right_jacobian(-np.outer(dtr, w)).reshape(-1, 3, 3)
+    Hw = -dtr[:, None] * np.einsum("nji,nj->ni", jr, np.einsum("nji,nj->ni", R_ref, hr))
+    S = S + q2 * dtr ** 3 * np.sum(hr * hr, 1)
+    return ok, r, S, H + hr, Hw, pred, sup
 
 
 def ekf_accumulate_numpy(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast, sigma, huber):
@@ -169,7 +215,9 @@ def ekf_accumulate_numpy(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, co
     pp = pred * np.asarray(pol, np.float64)
     out[9] = ok.sum()
     out[10] = supported.sum()
-    out[11] = (supported & (pp > 0)).sum()
+    significant = supported & (pp * pp > S)  # |z_hat| above its std: its sign means something
+    out[11] = (significant & (pp > 0)).sum()
+    out[16] = significant.sum()
     out[12] = np.sum(np.where(supported, r * r / S, 0.0))
     out[13] = np.sum(np.where(ok, np.minimum(nr, huber) ** 2, 0.0))
     out[14] = np.sum(np.where(supported, pp, 0.0))
@@ -195,6 +243,7 @@ def pf_loglik_numpy(particles, bearings, ref_uv, ref_n, pol, grad, cov, updates,
 def _kernels(dtype):
     project, project_jacobian = _proj_funcs(dtype)
     bl = bilinear_funcs(dtype)
+    so3t = _so3_funcs(dtype)
     vec3 = ti.types.vector(3, dtype)
     mat3 = ti.types.matrix(3, 3, dtype)
     i32 = ti.i32
@@ -211,8 +260,8 @@ def _kernels(dtype):
     @ti.func
     def select_event(e, b, R_sel, hist: ti.template(), bearings: ti.template(), pix: ti.template(),
                      pol: ti.template(), ref_b: ti.template(), last_b: ti.template(), last_p: ti.template(),
-                     count: ti.template(), width, height, su, sv, outlier2, min2, v_band, ref_uv: ti.template(),
-                     ref_n: ti.template()):
+                     count: ti.template(), width, height, su, sv, outlier2, min2, v_band, max_n, ref_uv: ti.template(),
+                     ref_n: ti.template(), ref_src: ti.template()):
         """Reference of event e (batch b) under the selection pose R_sel; updates the pixel's state."""
         k = pix[e]
         p = ti.cast(pol[e], i32)
@@ -236,10 +285,11 @@ def _kernels(dtype):
                 if d2 > outlier2 or ti.abs(v0 - half_h) > v_band or ti.abs(v1 - half_h) > v_band:
                     ref_b[k] = b
                     count[k] = 0
-                elif d2 >= min2:
+                elif d2 >= min2 or (max_n > 0 and count[k] + 1 >= max_n):
                     ref_uv[e, 0] = u0
                     ref_uv[e, 1] = v0
                     ref_n[e] = count[k] + 1
+                    ref_src[e] = ref_b[k]
                     ref_b[k] = b
                     count[k] = 0
                 else:
@@ -248,10 +298,22 @@ def _kernels(dtype):
         last_p[k] = pol[e]
 
     @ti.func
-    def measure(R, b, u0, v0, cnt, pol, grad: ti.template(), cov: ti.template(), updates: ti.template(),
-                width, height, su, sv, contrast, sigma2):
-        """(r, S, H, pred, support) of one event with a reference (u0, v0) n = cnt events back (module doc)."""
-        x = R @ b
+    def weigh(r, S, agree, sup, huber):
+        """Huber weight of a measurement and its diagnostic counts (supported, significant, agreeing) as f64."""
+        nr = ti.abs(r) / ti.sqrt(S)
+        wt = ti.cast(1.0, dtype) / S
+        if nr > huber:
+            wt *= huber / nr
+        supported = sup >= ti.cast(0.5, dtype)
+        significant = supported and agree * agree > S
+        return (ti.cast(wt, ti.f64), ti.cast(supported, ti.f64), ti.cast(significant, ti.f64),
+                ti.cast(significant and agree > 0, ti.f64))
+
+    @ti.func
+    def segment(x, u0, v0, cnt, pol, grad: ti.template(), cov: ti.template(), updates: ti.template(), width, height,
+                su, sv, contrast, sigma2):
+        """Increment model of the segment p_ref = (u0, v0) -> p(x) (module doc): r, S, p z_hat, support, and
+        e = d z_hat / d p (end point) as (eu, ev); d z_hat / d p_ref = e - 2 g."""
         pu, pv = project(x, width, height, su, sv)
         du = wrap(pu - u0, width)
         dv = pv - v0
@@ -271,12 +333,43 @@ def _kernels(dtype):
         S = sigma2 * nf + du * du * p00 + ti.cast(2.0, dtype) * du * dv * p01 + dv * dv * p11
         z = ti.cast(pol, dtype) * nf * contrast
         r = z - pred
-        jdu, jdv = project_jacobian(x, su, sv)
         eu = gu + ti.cast(0.5, dtype) * (du * gu_u + dv * gv_u)
         ev = gv + ti.cast(0.5, dtype) * (du * gu_v + dv * gv_v)
-        gx = eu * jdu + ev * jdv
-        H = x.cross(gx)
-        return r, S, H, pred * ti.cast(pol, dtype), sup
+        return r, S, pred * ti.cast(pol, dtype), sup, eu, ev, gu, gv
+
+    @ti.func
+    def measure(R, b, u0, v0, cnt, pol, grad: ti.template(), cov: ti.template(), updates: ti.template(),
+                width, height, su, sv, contrast, sigma2):
+        """(r, S, H, p z_hat, support) of one event with a fixed reference (u0, v0) n = cnt events back."""
+        x = R @ b
+        r, S, agree, sup, eu, ev, _, _ = segment(x, u0, v0, cnt, pol, grad, cov, updates, width, height, su, sv,
+                                                 contrast, sigma2)
+        jdu, jdv = project_jacobian(x, su, sv)
+        H = x.cross(eu * jdu + ev * jdv)
+        return r, S, H, agree, sup
+
+    @ti.func
+    def measure_cv(R, w, dtr, b, cnt, pol, grad: ti.template(), cov: ti.template(), updates: ti.template(),
+                   width, height, su, sv, contrast, sigma2, q2):
+        """State-referenced measurement (module doc): the reference point is p(R exp(-w dtr) b), so the segment
+        depends on the state (R, w), not on an earlier estimate. (r, S, H_d (world), H_w (camera), p z_hat,
+        support)."""
+        x = R @ b
+        R_ref = R @ so3t.exp(-w * dtr)
+        xr = R_ref @ b
+        u0, v0 = project(xr, width, height, su, sv)
+        r, S, agree, sup, eu, ev, gu, gv = segment(x, u0, v0, cnt, pol, grad, cov, updates, width, height, su, sv,
+                                                   contrast, sigma2)
+        jdu, jdv = project_jacobian(x, su, sv)
+        jru, jrv = project_jacobian(xr, su, sv)
+        two = ti.cast(2.0, dtype)
+        hr = xr.cross((eu - two * gu) * jru + (ev - two * gv) * jrv)
+        Hd = x.cross(eu * jdu + ev * jdv) + hr
+        Hw = -dtr * (so3t.jr(-w * dtr).transpose() @ (R_ref.transpose() @ hr))
+        # the constant-velocity reference is off by the velocity's random walk over dt_ref: variance q2 dt_ref^3
+        # per axis of the reference's rotation (q2 = q_acc^2 / 3)
+        S += q2 * dtr * dtr * dtr * hr.dot(hr)
+        return r, S, Hd, Hw, agree, sup
 
     @ti.kernel
     def k_select(hist: ti.types.ndarray(dtype=mat3, ndim=1), sel_R: ti.types.ndarray(dtype=mat3, ndim=1),
@@ -285,13 +378,14 @@ def _kernels(dtype):
                  ref_b: ti.types.ndarray(dtype=i32, ndim=1), last_b: ti.types.ndarray(dtype=i32, ndim=1),
                  last_p: ti.types.ndarray(dtype=ti.i8, ndim=1), count: ti.types.ndarray(dtype=i32, ndim=1),
                  width: i32, height: i32, su: dtype, sv: dtype, outlier2: dtype, min2: dtype, v_band: dtype,
-                 ref_uv: ti.types.ndarray(dtype=dtype, ndim=2), ref_n: ti.types.ndarray(dtype=i32, ndim=1)):
+                 max_n: i32, ref_uv: ti.types.ndarray(dtype=dtype, ndim=2), ref_n: ti.types.ndarray(dtype=i32, ndim=1),
+                 ref_src: ti.types.ndarray(dtype=i32, ndim=1)):
         n = bearings.shape[0]
         ti.loop_config(serialize=True)
         for b in range(b0, b1):
             for e in range(b * batch_size, ti.min((b + 1) * batch_size, n)):
                 select_event(e, b, sel_R[b - b0], hist, bearings, pix, pol, ref_b, last_b, last_p, count, width,
-                             height, su, sv, outlier2, min2, v_band, ref_uv, ref_n)
+                             height, su, sv, outlier2, min2, v_band, max_n, ref_uv, ref_n, ref_src)
 
     @ti.kernel
     def k_accumulate(R: ti.types.ndarray(dtype=mat3, ndim=1), bearings: ti.types.ndarray(dtype=vec3, ndim=1),
@@ -331,8 +425,10 @@ def _kernels(dtype):
                     out[12] += ti.cast(r * r / S, ti.f64)
                     out[14] += ti.cast(agree, ti.f64)
                     out[15] += ti.cast(ref_n[e], ti.f64)
-                    if agree > 0:
-                        out[11] += 1.0
+                    if agree * agree > S:
+                        out[16] += 1.0
+                        if agree > 0:
+                            out[11] += 1.0
 
     @ti.kernel
     def k_loglik(particles: ti.types.ndarray(dtype=mat3, ndim=1), bearings: ti.types.ndarray(dtype=vec3, ndim=1),
@@ -357,6 +453,26 @@ def _kernels(dtype):
     mat3d = ti.types.matrix(3, 3, f64)
     vec3d = ti.types.vector(3, f64)
     so3d = _so3_funcs(f64)
+    mat6d = ti.types.matrix(6, 6, f64)
+    vec6d = ti.types.vector(6, f64)
+
+    @ti.func
+    def inv_spd6(a):
+        """Inverse of a symmetric positive definite 6x6 matrix (Gauss-Jordan, no pivoting needed)."""
+        m = a
+        inv = ti.Matrix.identity(f64, 6)
+        for k in ti.static(range(6)):
+            piv = 1.0 / m[k, k]
+            for j in ti.static(range(6)):
+                m[k, j] *= piv
+                inv[k, j] *= piv
+            for i in ti.static(range(6)):
+                if ti.static(i != k):
+                    f = m[i, k]
+                    for j in ti.static(range(6)):
+                        m[i, j] -= f * m[k, j]
+                        inv[i, j] -= f * inv[k, j]
+        return 0.5 * (inv + inv.transpose())
 
     @ti.kernel
     def k_ekf_track(hist: ti.types.ndarray(dtype=mat3, ndim=1), hist64: ti.types.ndarray(dtype=mat3d, ndim=1),
@@ -365,11 +481,12 @@ def _kernels(dtype):
                     pol: ti.types.ndarray(dtype=ti.i8, ndim=1), ref_b: ti.types.ndarray(dtype=i32, ndim=1),
                     last_b: ti.types.ndarray(dtype=i32, ndim=1), last_p: ti.types.ndarray(dtype=ti.i8, ndim=1),
                     count: ti.types.ndarray(dtype=i32, ndim=1), ref_uv: ti.types.ndarray(dtype=dtype, ndim=2),
-                    ref_n: ti.types.ndarray(dtype=i32, ndim=1), grad: ti.types.ndarray(dtype=dtype, ndim=3),
+                    ref_n: ti.types.ndarray(dtype=i32, ndim=1), ref_src: ti.types.ndarray(dtype=i32, ndim=1),
+                    grad: ti.types.ndarray(dtype=dtype, ndim=3),
                     cov: ti.types.ndarray(dtype=dtype, ndim=3), updates: ti.types.ndarray(dtype=ti.i32, ndim=2),
                     width: ti.i32, height: ti.i32, su: dtype, sv: dtype, contrast: dtype, sigma2: dtype,
-                    outlier2: dtype, min2: dtype, v_band: dtype, huber: dtype, q_rate: f64, q_min: f64, q_acc: f64,
-                    iterations: ti.i32, state_R: ti.types.ndarray(dtype=mat3d, ndim=1),
+                    outlier2: dtype, min2: dtype, v_band: dtype, max_n: ti.i32, huber: dtype, q_rate: f64, q_min: f64, q_acc: f64,
+                    iterations: ti.i32, cv_meas: ti.i32, state_R: ti.types.ndarray(dtype=mat3d, ndim=1),
                     state_w: ti.types.ndarray(dtype=vec3d, ndim=1), state_P: ti.types.ndarray(dtype=f64, ndim=3),
                     diag: ti.types.ndarray(dtype=f64, ndim=2)):
         """EKF-SMT over batches b0..b1-1 in one launch (serial): constant-velocity prediction, iterated batched
@@ -399,37 +516,83 @@ def _kernels(dtype):
             d = vec3d(0, 0, 0)  # pose deviation from the prediction (left, world frame)
             lam = mat3d(0)
             m = eye
-            nv = 0.0
-            ns = 0.0
-            na = 0.0
+            nv = ti.cast(0.0, f64)
+            ns = ti.cast(0.0, f64)
+            na = ti.cast(0.0, f64)
+            nsig = ti.cast(0.0, f64)
             e_end = ti.min((b + 1) * batch_size, n)
             rp = ti.cast(R_pred, dtype)
             for e in range(b * batch_size, e_end):  # references, selected under the prediction
                 select_event(e, b, rp, hist, bearings, pix, pol, ref_b, last_b, last_p, count, width, height, su,
-                             sv, outlier2, min2, v_band, ref_uv, ref_n)
-            for it in range(iterations):
+                             sv, outlier2, min2, v_band, max_n, ref_uv, ref_n, ref_src)
+            q2 = ti.cast(q_acc * q_acc / 3.0, dtype)
+            if cv_meas:
+                # velocity-referenced measurements: Gauss-Newton on prior + batch in the 6-d error state,
+                # (P^-1 + Lam) x = b + Lam x_j; the posterior covariance is (P^-1 + Lam)^-1
+                p6 = mat6d(0)
+                for i, j in ti.static(ti.ndrange(3, 3)):
+                    p6[i, j] = pdd[i, j]
+                    p6[i, j + 3] = pdw[i, j]
+                    p6[j + 3, i] = pdw[i, j]
+                    p6[i + 3, j + 3] = pww[i, j]
+                pinv = inv_spd6(p6)
+                x6 = vec6d(0)
+                post = p6
+                w_pred = state_w[0]
+                for it in range(iterations):
+                    rd = ti.cast(R, dtype)
+                    wd = ti.cast(w, dtype)
+                    lam6 = mat6d(0)
+                    hr6 = vec6d(0)
+                    nv = ti.cast(0.0, f64)
+                    ns = ti.cast(0.0, f64)
+                    na = ti.cast(0.0, f64)
+                    nsig = ti.cast(0.0, f64)
+                    for e in range(b * batch_size, e_end):
+                        if ref_n[e] > 0:
+                            dtr = ti.cast(mids[b] - mids[ref_src[e]], dtype)
+                            r, S, Hd, Hw, agree, sup = measure_cv(rd, wd, dtr, bearings[e], ref_n[e], pol[e], grad,
+                                                                  cov, updates, width, height, su, sv, contrast,
+                                                                  sigma2, q2)
+                            wt, cs, cg, ca = weigh(r, S, agree, sup, huber)
+                            h6 = vec6d(Hd[0], Hd[1], Hd[2], Hw[0], Hw[1], Hw[2])
+                            lam6 += wt * h6.outer_product(h6)
+                            hr6 += wt * ti.cast(r, f64) * h6
+                            nv += 1.0
+                            ns += cs
+                            nsig += cg
+                            na += ca
+                    if nv > 0:
+                        post = inv_spd6(pinv + lam6)
+                        x6 = post @ (hr6 + lam6 @ x6)
+                        d = vec3d(x6[0], x6[1], x6[2])
+                        w = w_pred + vec3d(x6[3], x6[4], x6[5])
+                        R = so3d.exp(d) @ R_pred
+                for i, j in ti.static(ti.ndrange(3, 3)):
+                    pdd[i, j] = post[i, j]
+                    pdw[i, j] = post[i, j + 3]
+                    pww[i, j] = post[i + 3, j + 3]
+                lam = mat3d(0)  # the posterior is already in pdd / pdw / pww
+            for it in range(iterations * (1 - cv_meas)):
                 rd = ti.cast(R, dtype)
                 hh = mat3d(0)
                 hr = vec3d(0, 0, 0)
-                nv = 0.0
-                ns = 0.0
-                na = 0.0
+                nv = ti.cast(0.0, f64)
+                ns = ti.cast(0.0, f64)
+                na = ti.cast(0.0, f64)
+                nsig = ti.cast(0.0, f64)
                 for e in range(b * batch_size, e_end):
                     if ref_n[e] > 0:
                         r, S, H, agree, sup = measure(rd, bearings[e], ref_uv[e, 0], ref_uv[e, 1], ref_n[e], pol[e],
                                                       grad, cov, updates, width, height, su, sv, contrast, sigma2)
-                        nr = ti.abs(r) / ti.sqrt(S)
-                        wt = ti.cast(1.0, dtype) / S
-                        if nr > huber:
-                            wt *= huber / nr
+                        wt, cs, cg, ca = weigh(r, S, agree, sup, huber)
                         h64 = ti.cast(H, f64)
-                        hh += ti.cast(wt, f64) * h64.outer_product(h64)
-                        hr += ti.cast(wt * r, f64) * h64
+                        hh += wt * h64.outer_product(h64)
+                        hr += wt * ti.cast(r, f64) * h64
                         nv += 1.0
-                        if sup >= 0.5:
-                            ns += 1.0
-                            if agree > 0:
-                                na += 1.0
+                        ns += cs
+                        nsig += cg
+                        na += ca
                 if nv > 0:
                     # iterated EKF step for a measurement of the pose only: x = P[:, d] (I + Lam Pdd)^-1 (b + Lam d)
                     lam = hh
@@ -464,6 +627,7 @@ def _kernels(dtype):
             diag[b - b0, 1] = ns
             diag[b - b0, 2] = na
             diag[b - b0, 3] = ti.max(pdd_new[0, 0], ti.max(pdd_new[1, 1], pdd_new[2, 2]))
+            diag[b - b0, 4] = nsig
 
     return k_select, k_accumulate, k_loglik, k_ekf_track
 
@@ -478,19 +642,22 @@ def _c(a, dtype):
 
 def select_references(hist, sel_R, b0: int, b1: int, batch_size: int, bearings, pix, pol, state: dict,
                       width: int, height: int, outlier_px: float, min_disp_px: float, max_lat_deg: float, ref_uv,
-                      ref_n) -> None:
+                      ref_n, ref_src=None, max_events: int = 0) -> None:
     """References of the events of batches b0..b1-1 (see module doc): batch b's events start at b * batch_size
     in ``bearings`` / ``pix`` / ``pol``, its selection pose is sel_R[b - b0], reference poses come from ``hist``
-    (nb, 3, 3); fills ``ref_uv`` (n, 2) and ``ref_n`` (n,) int32 (0: no measurement) for those events and updates
-    ``state`` (:func:`new_reference_state`). All arrays in the dtype of ``ref_uv`` (f32 or f64), C-contiguous."""
+    (nb, 3, 3); fills ``ref_uv`` (n, 2), ``ref_n`` (n,) int32 (0: no measurement) and, when given, ``ref_src``
+    (n,) int32 (the reference's batch) for those events and updates ``state`` (:func:`new_reference_state`). All
+    arrays in the dtype of ``ref_uv`` (f32 or f64), C-contiguous."""
     ensure_init()
     dtype = ref_uv.dtype
     k = _kernels(_tdt(dtype))[0]
+    if ref_src is None:
+        ref_src = np.zeros(len(ref_n), np.int32)
     if b1 > b0:
         k(hist, _c(np.asarray(sel_R).reshape(-1, 3, 3), dtype), int(b0), int(b1), int(batch_size), bearings, pix,
           pol, state["ref_b"], state["last_b"], state["last_p"], state["count"], int(width), int(height),
           float(width / (2 * np.pi)), float(height / np.pi), float(outlier_px) ** 2, float(min_disp_px) ** 2,
-          _v_band(height, max_lat_deg), ref_uv, ref_n)
+          _v_band(height, max_lat_deg), int(max_events), ref_uv, ref_n, ref_src)
 
 
 def ekf_accumulate(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast: float, sigma: float,
@@ -498,8 +665,10 @@ def ekf_accumulate(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast
     """Huber-weighted normal equations of one pose over a batch; the dtype of ``grad`` selects f32/f64.
 
     Returns N_ACC float64 sums (see ACC): H^T W H upper triangle, H^T W r, counts of valid / supported
-    (bilinear weight of mapped pixels >= 1/2) / polarity-agreeing supported measurements, sum of r^2/S over
-    supported ones, sum of clipped squared normalized residuals, sums of p z_hat and of n over supported ones.
+    (bilinear weight of mapped pixels >= 1/2) / polarity-agreeing significant measurements (supported, |z_hat| above
+    its std sqrt(S): the sign of a smaller prediction is noise, e.g. while the camera stops or turns back), sum of r^2/S over
+    supported ones, sum of clipped squared normalized residuals, sums of p z_hat and of n over supported ones, count
+    of significant ones.
     """
     ensure_init()
     dtype = grad.dtype
@@ -532,7 +701,7 @@ def pf_loglik(particles, bearings, ref_uv, ref_n, pol, grad, cov, updates, contr
 def ekf_track(hist, hist64, mids, b0: int, b1: int, batch_size: int, bearings, pix, pol, state: dict, ref_uv, ref_n,
               grad, cov, updates, contrast: float, sigma: float, outlier_px: float, min_disp_px: float,
               max_lat_deg: float, huber: float, q_rate: float, q_min: float, q_acc: float, iterations: int, state_R,
-              state_w, state_P) -> np.ndarray:
+              state_w, state_P, velocity_reference: bool = False, ref_src=None, max_events: int = 0) -> np.ndarray:
     """EKF-SMT on batches b0..b1-1 in one launch (see module doc and ``ekf_track_numpy``).
 
     ``hist`` (nb, 3, 3) in the map dtype and ``hist64`` (float64) receive the poses; ``state`` (per-pixel
@@ -540,21 +709,24 @@ def ekf_track(hist, hist64, mids, b0: int, b1: int, batch_size: int, bearings, p
     ``state_R`` ((1, 3, 3)), ``state_w`` ((1, 3), camera-frame angular velocity) and ``state_P`` ((1, 6, 6): pose
     error, velocity error), all float64, carry the filter between calls. Process noise per batch of duration dt:
     pose std max(q_rate dt, q_min), velocity std q_acc sqrt(dt) (q_acc = 0 with w = 0 and a zero velocity
-    covariance: the random-walk model). Returns (b1 - b0, 4) diagnostics per batch: valid, supported and
-    polarity-agreeing measurements, largest diagonal entry of the pose covariance (rad^2).
+    covariance: the random-walk model). ``velocity_reference`` (constant velocity only): state references (module doc)
+    instead of the reference batch's estimated pose; ``ref_src`` (n,) int32 scratch (allocated when None). Returns (b1 - b0, 5) diagnostics per
+    batch: valid, supported and polarity-agreeing (significant) measurements, largest diagonal entry of the pose
+    covariance (rad^2), significant measurements (see :func:`ekf_accumulate`).
     """
     ensure_init()
     dtype = grad.dtype
     k = _kernels(_tdt(dtype))[3]
-    diag = np.zeros((max(b1 - b0, 0), 4), np.float64)
+    if ref_src is None:
+        ref_src = np.zeros(len(ref_n), np.int32)
+    diag = np.zeros((max(b1 - b0, 0), 5), np.float64)
     if b1 > b0:
         h, w = updates.shape
         k(hist, hist64, mids, int(b0), int(b1), int(batch_size), bearings, pix, pol, state["ref_b"],
-          state["last_b"], state["last_p"], state["count"], ref_uv, ref_n, grad, cov, updates, int(w), int(h),
+          state["last_b"], state["last_p"], state["count"], ref_uv, ref_n, ref_src, grad, cov, updates, int(w), int(h),
           float(w / (2 * np.pi)), float(h / np.pi), float(contrast), float(sigma) ** 2, float(outlier_px) ** 2,
-          float(min_disp_px) ** 2, _v_band(h, max_lat_deg), float(huber), float(q_rate), float(q_min), float(q_acc),
-          int(iterations),
-          state_R, state_w, state_P, diag)
+          float(min_disp_px) ** 2, _v_band(h, max_lat_deg), int(max_events), float(huber), float(q_rate), float(q_min), float(q_acc),
+          int(iterations), int(bool(velocity_reference)), state_R, state_w, state_P, diag)
     return diag
 
 
@@ -572,42 +744,69 @@ def ekf_predict_numpy(R, w, P, dt, q_rate, q_min, q_acc):
 
 def ekf_track_numpy(hist, hist64, mids, b0, b1, batch_size, bearings, pix, pol, state, ref_uv, ref_n, grad, cov,
                     updates, contrast, sigma, outlier_px, min_disp_px, max_lat_deg, huber, q_rate, q_min, q_acc,
-                    iterations, state_R, state_w, state_P):
-    """float64 twin of :func:`ekf_track` (same in/out arrays). The update is the iterated EKF (Gauss-Newton on
-    prior + batch) for measurements of the pose only, x = P[:, :3] (I + Lam P_dd)^-1 (b + Lam d): equal to
-    (P^-1 + E Lam E^T)^-1 (E b + E Lam d) with E = [I; 0] (tested), and defined when P is singular (the
-    random-walk model has no velocity covariance)."""
+                    iterations, state_R, state_w, state_P, velocity_reference=False, ref_src=None, max_events=0):
+    """float64 twin of :func:`ekf_track` (same in/out arrays). With pose references the update is the iterated EKF
+    (Gauss-Newton on prior + batch) for measurements of the pose only, x = P[:, :3] (I + Lam P_dd)^-1 (b + Lam d):
+    equal to (P^-1 + E Lam E^T)^-1 (E b + E Lam d) with E = [I; 0] (tested), and defined when P is singular (the
+    random-walk model has no velocity covariance). With velocity references the measurements depend on the whole
+    6-d state: (P^-1 + Lam) x = b + Lam x_j, posterior covariance (P^-1 + Lam)^-1."""
     from ti_cmax import so3
 
     h, w = updates.shape
     n = len(pol)
-    diag = np.zeros((max(b1 - b0, 0), 4))
+    if ref_src is None:
+        ref_src = np.zeros(len(ref_n), np.int32)
+    diag = np.zeros((max(b1 - b0, 0), 5))
     for b in range(b0, b1):
         R_pred, P = ekf_predict_numpy(state_R[0], state_w[0], state_P[0], mids[b] - mids[b - 1], q_rate, q_min,
                                       q_acc)
+        w_pred = state_w[0].copy()
         x = np.zeros(6)
-        R, lam = R_pred, np.zeros((3, 3))
+        R, wv, lam = R_pred, w_pred, np.zeros((3, 3))
         e0, e1 = b * batch_size, min((b + 1) * batch_size, n)
         select_references_numpy(hist, R_pred[None], b, b + 1, batch_size, bearings, pix, pol, state, w, h,
-                                outlier_px, min_disp_px, max_lat_deg, ref_uv, ref_n)
+                                outlier_px, min_disp_px, max_lat_deg, ref_uv, ref_n, ref_src, max_events)
         acc = np.zeros(N_ACC)
-        for _ in range(iterations):
-            acc = ekf_accumulate_numpy(R, bearings[e0:e1], ref_uv[e0:e1], ref_n[e0:e1], pol[e0:e1], grad, cov,
-                                       updates, contrast, sigma, huber)
-            if acc[9] > 0:
-                lam = np.array([[acc[0], acc[1], acc[2]], [acc[1], acc[3], acc[4]], [acc[2], acc[4], acc[5]]])
-                x = P[:, :3] @ np.linalg.solve(np.eye(3) + lam @ P[:3, :3], acc[6:9] + lam @ x[:3])
-                R = so3.exp(x[:3]) @ R_pred
+        if velocity_reference:
+            post = P
+            for _ in range(iterations):
+                ok, r, S, Hd, Hw, pred, sup = _measure_cv_numpy(
+                    R, wv, mids[b] - mids[ref_src[e0:e1]], bearings[e0:e1], ref_n[e0:e1], pol[e0:e1], grad, cov,
+                    updates, contrast, sigma * sigma, q_acc * q_acc / 3.0)
+                nr = np.abs(r) / np.sqrt(S)
+                wt = np.where(ok, np.where(nr <= huber, 1.0, huber / np.maximum(nr, 1e-300)) / S, 0.0)
+                H6 = np.concatenate([Hd, Hw], 1)
+                supported = ok & (sup >= 0.5)
+                pp = pred * np.asarray(pol[e0:e1], np.float64)
+                significant = supported & (pp * pp > S)
+                acc[9], acc[10], acc[11], acc[16] = ok.sum(), supported.sum(), (significant & (pp > 0)).sum(), \
+                    significant.sum()
+                if acc[9] > 0:
+                    lam6 = (H6 * wt[:, None]).T @ H6
+                    post = np.linalg.inv(np.linalg.inv(P) + lam6)
+                    post = 0.5 * (post + post.T)
+                    x = post @ ((H6 * wt[:, None]).T @ r + lam6 @ x)
+                    R, wv = so3.exp(x[:3]) @ R_pred, w_pred + x[3:]
+            P = post
+        else:
+            for _ in range(iterations):
+                acc = ekf_accumulate_numpy(R, bearings[e0:e1], ref_uv[e0:e1], ref_n[e0:e1], pol[e0:e1], grad, cov,
+                                           updates, contrast, sigma, huber)
+                if acc[9] > 0:
+                    lam = np.array([[acc[0], acc[1], acc[2]], [acc[1], acc[3], acc[4]], [acc[2], acc[4], acc[5]]])
+                    x = P[:, :3] @ np.linalg.solve(np.eye(3) + lam @ P[:3, :3], acc[6:9] + lam @ x[:3])
+                    R = so3.exp(x[:3]) @ R_pred
+            wv = w_pred + x[3:]
+            E = np.zeros((6, 3))
+            E[:3] = np.eye(3)
+            P = P - P @ E @ np.linalg.solve(np.eye(3) + lam @ P[:3, :3], lam) @ E.T @ P
+            P = 0.5 * (P + P.T)
         u, _, vt = np.linalg.svd(R)
         R = u @ vt
-        E = np.zeros((6, 3))
-        E[:3] = np.eye(3)
-        P = P - P @ E @ np.linalg.solve(np.eye(3) + lam @ P[:3, :3], lam) @ E.T @ P
-        P = 0.5 * (P + P.T)
-        state_R[0], state_w[0], state_P[0] = R, state_w[0] + x[3:], P
+        state_R[0], state_w[0], state_P[0] = R, wv, P
         hist64[b] = R
         hist[b] = R
-        diag[b - b0] = acc[9], acc[10], acc[11], np.max(np.diag(P)[:3])
+        diag[b - b0] = acc[9], acc[10], acc[11], np.max(np.diag(P)[:3]), acc[16]
     return diag
 
 

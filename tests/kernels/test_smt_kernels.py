@@ -159,10 +159,11 @@ def test_iterated_update_equals_information_form(scene):
     np.testing.assert_allclose(x, np.linalg.solve(info, np.concatenate([bvec + lam @ d, np.zeros(3)])), rtol=1e-8)
 
 
+@pytest.mark.parametrize("velocity_reference", [False, True])
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_ekf_track_matches_numpy(ti_runtime, scene, dtype):
+def test_ekf_track_matches_numpy(ti_runtime, scene, dtype, velocity_reference):
     """References selected over batches 1..8 under the history poses, then EKF-SMT (constant velocity, two
-    iterations) on batches 9..11 from the pose of batch 8."""
+    iterations; pose or velocity references) on batches 9..11 from the pose of batch 8."""
     nb, b_track = scene["nb"], 9
     out = {}
     for impl in ("numpy", "taichi"):
@@ -176,7 +177,7 @@ def test_ekf_track_matches_numpy(ti_runtime, scene, dtype):
         diag = fn(h if impl == "taichi" else h64, h64, np.arange(nb) * 1e-3, b_track, nb, BS,
                   np.ascontiguousarray(scene["bearings"], dt_), scene["pix"], scene["pol"], state, uv, cnt,
                   scene["grad"].astype(dt_), scene["cov"].astype(dt_), scene["updates"], C, SIGMA, OUTLIER, MIN_DISP,
-                  90.0, HUBER, 0.0, 0.0, 20.0, 2, sR, sw, sP)
+                  90.0, HUBER, 0.0, 0.0, 20.0, 2, sR, sw, sP, velocity_reference, np.zeros(len(cnt), np.int32))
         out[impl] = (h64[b_track:].copy(), diag, sP[0].copy(), sw[0].copy())
     tol = 1e-9 if dtype == np.float64 else 2e-4
     assert np.all(so3.geodesic_angle(out["numpy"][0], out["taichi"][0]) < tol)
@@ -188,3 +189,28 @@ def test_ekf_track_matches_numpy(ti_runtime, scene, dtype):
     assert not np.allclose(out["numpy"][3], scene["omega"] * 0.9)  # the update moved the velocity
     if dtype == np.float64:
         np.testing.assert_array_equal(out["taichi"][1][:, :3], out["numpy"][1][:, :3])
+
+
+def test_velocity_reference_jacobians_central_differences(scene):
+    """H_d (left pose perturbation) and H_w (camera-frame angular velocity) of the state-referenced model,
+    float64, vs central differences."""
+    b = scene["nb"] - 1
+    bear, uv, cnt, pol, grad, cov, upd = _batch_args(scene, np.float64, b)
+    dtr = np.random.default_rng(4).uniform(1e-3, 5e-3, len(pol))
+    R, w = scene["R"], scene["omega"]
+
+    def z(R_, w_):
+        return ks._measure_cv_numpy(R_, w_, dtr, bear, cnt, pol, grad, cov, upd, C, SIGMA ** 2, 3.0)[5]
+
+    ok, _, _, Hd, Hw, _, _ = ks._measure_cv_numpy(R, w, dtr, bear, cnt, pol, grad, cov, upd, C, SIGMA ** 2, 3.0)
+    assert ok.sum() > 15
+    eps = 1e-7
+    for Hj, f in ((Hd, lambda d: z(so3.exp(d) @ R, w)), (Hw, lambda d: z(R, w + d))):
+        num = np.zeros_like(Hj)
+        for a in range(3):
+            d = np.zeros(3)
+            d[a] = eps
+            num[:, a] = (f(d) - f(-d)) / (2 * eps)
+        err = np.abs(num[ok] - Hj[ok])
+        assert np.median(err) < 1e-5 * np.abs(Hj[ok]).max()
+        assert np.mean(err < 1e-4 * np.abs(Hj[ok]).max()) > 0.95
