@@ -57,6 +57,7 @@ class LoopCloser:
                                                 backend.map.max_update_time if sigma > 0 else None)
         w, h = backend.width, backend.height
         self.age = np.full((-(-h // _CELL), -(-w // _CELL)), -np.inf)  # last observed (delayed); -inf: never
+        self.visit = np.full_like(self.age, -np.inf)  # start of the last visit (observed after a loop_min_age gap)
         self.old = self._new_map(0.0)  # raw map of the stored events older than the recent block
         self.chunks: list[tuple[np.ndarray, np.ndarray, float, float, bool]] = []  # (t, b, weight, t0, moving)
         self._n_old = 0  # chunks already voted into the old map and the age map
@@ -66,6 +67,7 @@ class LoopCloser:
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
         self.loops: list[dict] = []
         self.seconds = 0.0
+        self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "rebuild": 0.0}  # parts of seconds
 
     # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
     def store(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
@@ -81,6 +83,7 @@ class LoopCloser:
             self.chunks = [(c[0][::2], c[1][::2], c[2] * len(c[0]) / len(c[0][::2]), c[3], c[4]) for c in self.chunks]
             self._stored = sum(len(c[0]) for c in self.chunks)
         self.seconds += time.perf_counter() - tic
+        self.profile["store"] += time.perf_counter() - tic
 
     def after_window(self, t_now: float) -> None:
         """Age the stored events into the old map; every loop_recent_time, look for a revisit and close it."""
@@ -89,6 +92,7 @@ class LoopCloser:
         while self._n_old < len(self.chunks) and self.chunks[self._n_old][0][-1] < t_now - recent:
             self._age_chunk(self.chunks[self._n_old])
             self._n_old += 1
+        self.profile["age"] += time.perf_counter() - tic
         if t_now >= self._next_check:  # the overlap test runs after every window: catch a revisit before the
             self._check(t_now)          # back-end's windows snap to the old map (that jump is the loop error)
         self.seconds += time.perf_counter() - tic
@@ -116,6 +120,8 @@ class LoopCloser:
         _, rot = self._rotations(t)
         self.old.add(b, rot, self.backend.cfg.event_batch_size, t0, moving, weight=weight)
         cells = np.unique(self._cells(b, rot))
+        new_visit = self.age.flat[cells] < float(t[0]) - self.cfg.loop_min_age  # never observed, or long ago
+        self.visit.flat[cells[new_visit]] = float(t[0])
         self.age.flat[cells] = np.maximum(self.age.flat[cells], float(t[-1]))
 
     def _recent_events(self) -> tuple[np.ndarray, np.ndarray]:
@@ -142,6 +148,7 @@ class LoopCloser:
         tic = time.perf_counter()
         entry = {"time": float(t_now), "overlap": overlap}
         entry.update(self.verify(t, b, old_cells))
+        self.profile["verify"] += time.perf_counter() - tic
         px = 2 * np.pi / self.backend.width
         if entry["accepted"] and entry["correction_deg"] < np.degrees(cfg.loop_min_correction_px * px):
             entry["applied"], entry["reason"] = False, "correction below loop_min_correction_px"
@@ -253,8 +260,10 @@ class LoopCloser:
         on_old = old_cells.flat[cells]
         if not on_old.any():
             return {"applied": False, "reason": "no recent event on the old map"}
-        # the correction was measured by the recent events on the old regions, against the last visit there
-        t_old = float(np.median(self.age.flat[cells[on_old]]))
+        # the correction was measured by the recent events on the old regions, against the last visit there: the
+        # old map of a region stands for the poses of that whole visit, zero correction at its middle
+        hit = cells[on_old]
+        t_old = float(np.median(0.5 * (self.visit.flat[hit] + self.age.flat[hit])))
         t_ref = float(np.median(t[on_old]))
         t_a = max(t_old, self._closed_until)
         if t_ref <= t_a:
@@ -275,20 +284,23 @@ class LoopCloser:
 
     def _rebuild(self) -> None:
         """Global map, old map and age map from the stored subsamples along the (corrected) spline."""
+        tic = time.perf_counter()
         backend = self.backend
         bs = backend.cfg.event_batch_size
         backend.map = self._new_map(backend.cfg.backend_blur_sigma)
         self.old = self._new_map(0.0)
         self.age[:] = -np.inf
+        self.visit[:] = -np.inf
         for i, chunk in enumerate(self.chunks):
             t, b, weight, t0, moving = chunk
             _, rot = self._rotations(t)
             backend.map.add(b, rot, bs, t0, moving, weight=weight)
             if i < self._n_old:
                 self._age_chunk(chunk)
+        self.profile["rebuild"] += time.perf_counter() - tic
 
     # ---- report ----------------------------------------------------------------------------------------------------
     def summary(self) -> dict:
         return {"candidates": len(self.loops), "accepted": sum(e["accepted"] for e in self.loops),
                 "applied": sum(bool(e.get("applied")) for e in self.loops), "seconds": self.seconds,
-                "stored_events": int(self._stored)}
+                "stored_events": int(self._stored), "seconds_by_part": dict(self.profile)}
