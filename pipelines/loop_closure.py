@@ -2,15 +2,16 @@
 
 Without it, drift builds up over a 360-degree pan until the camera sees the first turn's map again; the global map
 then pulls the new windows back, so the trajectory carries the drift and a jump. ``LoopCloser`` hooks into
-``SlidingWindowBackend`` (``backend.loop``), and after every window:
+``SlidingWindowBackend`` (``backend.loop``), and around every window:
 
 1. keeps a subsample of the settled events (at most ``loop_stored_event_rate`` per second, each stride 1 of k with
    weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and, delayed
    by ``loop_recent_time``, votes them into an *old map* and a coarse map of the time each region was last
    observed;
-2. detection, after every window (at most one verification per ``loop_recent_time``, less often while a revisit
-   goes on without a correction to apply: the interval doubles up to ``loop_min_age``): the recent events (the
-   last ``loop_recent_time`` seconds) at their current poses are a revisit candidate when at least
+2. detection, before every window's BA (at most one verification per ``loop_recent_time``, less often while a
+   revisit goes on without a correction to apply: the interval doubles up to ``loop_min_age``): the recent events
+   (the last ``loop_recent_time`` seconds of settled events plus the window's, at their initialized poses: the
+   BA has not pulled them to the old map yet) at their current poses are a revisit candidate when at least
    ``loop_min_overlap`` of them fall on regions observed, and last observed at least ``loop_min_age`` s ago
    (regions without texture give no events, so they are never observed);
 3. verification: one rotation C (left, world frame) registers the recent events against the old map of those
@@ -20,7 +21,8 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    4 and 8 map pixels away >= ``loop_min_peak_ratio``) and |C| <= ``loop_max_correction``;
 4. correction (when |C| >= ``loop_min_correction_px`` map pixels and the registration raised the correlation by
    at least ``loop_min_gain``, i.e. the data support it): C is spread over the control poses between the
-   old visit (or the last applied loop) and the recent events by the chain pose graph ``so3.spread_correction``
+   old visit (the middle of the old regions' last visit, or the last applied loop: each later revisit closes
+   only the drift since, against the corrected map) and the recent events by the chain pose graph ``so3.spread_correction``
    (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of
    the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
    spline, so later windows align to one consistent map.
@@ -85,16 +87,28 @@ class LoopCloser:
         self.seconds += time.perf_counter() - tic
         self.profile["store"] += time.perf_counter() - tic
 
+    def before_window(self, t0: float, t1: float) -> None:
+        """Before the BA of window [t0, t1] (its control poses initialized): look for a revisit in the recent
+        events plus the window's, and close it. The window's events are still at their initialized poses: the
+        BA has not pulled them to the old map yet (that pull, spread over the windows that enter the old
+        regions, is the jump at a loop, and it hides the loop's error from a later check)."""
+        if t1 < self._next_check:
+            return
+        tic = time.perf_counter()
+        ev_t, ev_b = self.backend.events.range(t0, t1, include_end=True)
+        cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * (t1 - t0))), 1)  # as stored (store())
+        k = max(int(math.ceil(len(ev_t) / cap)), 1)
+        self._check(t1, ev_t[::k], ev_b[::k])
+        self.seconds += time.perf_counter() - tic
+
     def after_window(self, t_now: float) -> None:
-        """Age the stored events into the old map; every loop_recent_time, look for a revisit and close it."""
+        """Age the stored events older than loop_recent_time into the old map and the age map."""
         tic = time.perf_counter()
         recent = self.cfg.loop_recent_time
         while self._n_old < len(self.chunks) and self.chunks[self._n_old][0][-1] < t_now - recent:
             self._age_chunk(self.chunks[self._n_old])
             self._n_old += 1
         self.profile["age"] += time.perf_counter() - tic
-        if t_now >= self._next_check:  # the overlap test runs after every window: catch a revisit before the
-            self._check(t_now)          # back-end's windows snap to the old map (that jump is the loop error)
         self.seconds += time.perf_counter() - tic
 
     # ---- detection and verification ----------------------------------------------------------------------------
@@ -124,18 +138,16 @@ class LoopCloser:
         self.visit.flat[cells[new_visit]] = float(t[0])
         self.age.flat[cells] = np.maximum(self.age.flat[cells], float(t[-1]))
 
-    def _recent_events(self) -> tuple[np.ndarray, np.ndarray]:
-        parts = self.chunks[self._n_old:]
-        if not parts:
-            return np.zeros(0), np.zeros((0, 3), np.float32)
-        t = np.concatenate([c[0] for c in parts])
-        b = np.concatenate([c[1] for c in parts])
+    def _recent_events(self, ev_t, ev_b) -> tuple[np.ndarray, np.ndarray]:
+        """The stored events not aged yet, then (ev_t, ev_b); thinned to loop_registration_events."""
+        t = np.concatenate([c[0] for c in self.chunks[self._n_old:]] + [np.asarray(ev_t, float)])
+        b = np.concatenate([c[1] for c in self.chunks[self._n_old:]] + [np.asarray(ev_b, np.float32).reshape(-1, 3)])
         k = max(int(math.ceil(len(t) / max(self.cfg.loop_registration_events, 1))), 1)
         return t[::k], b[::k]
 
-    def _check(self, t_now: float) -> None:
+    def _check(self, t_now: float, ev_t, ev_b) -> None:
         cfg = self.cfg
-        t, b = self._recent_events()
+        t, b = self._recent_events(ev_t, ev_b)
         if len(t) < 2 * self.backend.cfg.event_batch_size:
             return
         old_cells = (self.age > -np.inf) & (self.age < t_now - cfg.loop_min_age)
