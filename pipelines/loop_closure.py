@@ -69,7 +69,7 @@ class LoopCloser:
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
         self.loops: list[dict] = []
         self.seconds = 0.0
-        self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "rebuild": 0.0}  # parts of seconds
+        self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
 
     # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
     def store(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
@@ -191,6 +191,7 @@ class LoopCloser:
         s, u = spline.support(mids)
         base = spline.control_R.copy()
         phi = np.zeros(3)
+        tic = time.perf_counter()
         levels = [f for f in (4, 2, 1) if w % f == 0 and h % f == 0 and (w // f >= 256 or f == 1)]
         problem = None
         for f in levels:
@@ -218,6 +219,7 @@ class LoopCloser:
                 return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
                         "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
                         "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
+        self.profile["register"] += time.perf_counter() - tic
         # correlation of the registered recent map with the old map over the old regions, on local texture
         rows = np.flatnonzero(mask.any(axis=1))
         if len(rows) == 0:
