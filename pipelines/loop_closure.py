@@ -45,7 +45,7 @@ from .backend import GlobalMap
 from .optim import fletcher_reeves
 
 _CELL = 4  # map pixels per side of an age cell
-_RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's rotations from the optimum
+_RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's shifts from the optimum
 _CG_ITERS, _CG_LINE_EVALS = 10, 8  # per pyramid level: 3 unknowns, started near the optimum by the coarser level
 _TEXTURE = 3  # map pixels: scale of the local texture normalization of the confidence test
 
@@ -225,30 +225,37 @@ class LoopCloser:
         if len(rows) == 0:
             return {"correction_deg": 0.0, "confidence": 0.0, "confidence_before": 0.0, "peak_ratio": 0.0,
                     "accepted": False, "applied": False, "reason": "no old map region", "_phi": [0.0, 0.0, 0.0]}
-        band = slice(max(int(rows[0]) - 4 * _TEXTURE, 0), min(int(rows[-1]) + 4 * _TEXTURE + 1, h))
+        margin = 4 * _TEXTURE + int(math.ceil(max(_RING)))
+        band = slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h))
         g_tex = local_texture(problem.gmap[band], _TEXTURE)
         m_band = mask[band]
 
-        def ncc(x):
-            lmap = problem.local_map(so3.exp(x) @ base)[band]
+        def ncc(lmap, tex, shift=(0, 0)):
+            """Correlation over the old regions of the recent map's texture (shifted by (rows, columns)) with
+            the old map's."""
+            if shift != (0, 0):
+                lmap, tex = (np.roll(x, shift, axis=(0, 1)) for x in (lmap, tex))
             sel = m_band & (lmap > 1e-3 * float(lmap.max()))
             if sel.sum() < 16:
                 return 0.0
-            a, c = local_texture(lmap, _TEXTURE)[sel], g_tex[sel]
+            a, c = tex[sel], g_tex[sel]
             a, c = a - a.mean(), c - c.mean()
             den = math.sqrt(float(a @ a) * float(c @ c))
             return float(a @ c) / den if den > 0 else 0.0
 
-        conf = ncc(phi)
-        # uniqueness: rotations that shift the recent map by _RING map pixels in 4 directions each around the optimum
-        # (a second peak there: repeated texture, a false loop)
-        xw = np.einsum("nij,nj->ni", so3.exp(phi) @ spline.evaluate_at(s, u)[:1], b[:1].astype(np.float64))
-        d = xw[0] / np.linalg.norm(xw[0])
-        e1 = np.cross(d, [0.0, 1.0, 0.0] if abs(d[1]) < 0.9 else [1.0, 0.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(d, e1)
-        ring = [ncc(so3.log(so3.exp(r * 2 * np.pi / w * (math.cos(a) * e1 + math.sin(a) * e2)) @ so3.exp(phi)))
-                for r in _RING for a in np.arange(4) * np.pi / 2 + (np.pi / 4 if r > _RING[0] else 0.0)]
+        def maps_at(x):
+            lmap = problem.local_map(so3.exp(x) @ base)[band]
+            return lmap, local_texture(lmap, _TEXTURE)
+
+        at_opt = maps_at(phi)
+        conf = ncc(*at_opt)
+        # uniqueness: the registered recent map shifted by _RING map pixels in 4 directions each (a second peak
+        # there: repeated texture, a false loop). Shifting the map (not re-voting at rotated poses) costs one
+        # correlation each; near the optimum a small rotation moves the map by about such a shift.
+        ring = []
+        for r in _RING:
+            for a in np.arange(4) * np.pi / 2 + (np.pi / 4 if r > _RING[0] else 0.0):
+                ring.append(ncc(*at_opt, shift=(int(round(r * math.sin(a))), int(round(r * math.cos(a))))))
         best_ring = max(ring)
         peak = conf / best_ring if best_ring > 0 else np.inf
         corr = float(np.linalg.norm(phi))
@@ -260,7 +267,7 @@ class LoopCloser:
             ok, reason = False, "correction above loop_max_correction"
         else:
             ok, reason = True, "accepted"
-        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": ncc(np.zeros(3)),
+        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": ncc(*maps_at(np.zeros(3))),
                 "peak_ratio": float(peak), "accepted": ok, "applied": False, "reason": reason, "_phi": phi.tolist()}
 
     # ---- correction ----------------------------------------------------------------------------------------------
