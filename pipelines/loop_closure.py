@@ -55,8 +55,9 @@ class LoopCloser:
 
     def __init__(self, config: LoopClosureConfig, backend):
         self.cfg, self.backend = config, backend
+        freeze = backend.map.max_update_time
         self._new_map = lambda sigma: GlobalMap(backend.width, backend.height, sigma, backend.cfg.lambda0,
-                                                backend.map.max_update_time if sigma > 0 else None)
+                                                freeze if sigma > 0 else None)
         w, h = backend.width, backend.height
         self.age = np.full((-(-h // _CELL), -(-w // _CELL)), -np.inf)  # last observed (delayed); -inf: never
         self.visit = np.full_like(self.age, -np.inf)  # start of the last visit (observed after a loop_min_age gap)
@@ -308,6 +309,7 @@ class LoopCloser:
         tic = time.perf_counter()
         backend = self.backend
         bs = backend.cfg.event_batch_size
+        backend.map = self.old = None  # free the old maps first: peak memory holds one set of maps, not two
         backend.map = self._new_map(backend.cfg.backend_blur_sigma)
         self.old = self._new_map(0.0)
         self.age[:] = -np.inf
