@@ -36,7 +36,7 @@ from ti_cmax.metrics import event_area_percent
 from . import bilinear
 from .bilinear import ADD, bilinear_funcs
 from .blur import TRUNCATE, blur_radius, gaussian_taps
-from .runtime import ensure_init, ti
+from .runtime import ensure_init, num_threads, ti
 from .spline import spline_funcs
 
 
@@ -312,24 +312,43 @@ def _iwe_kernels(dtype, degree: int, radius: int):
         wrap: ti.i32,
         gmap: ti.types.ndarray(dtype=dtype, ndim=2),
         use_g: ti.i32,
+        lambda0: dtype,
+        votes: ti.types.ndarray(dtype=dtype, ndim=2),
         buf: ti.types.ndarray(dtype=dtype, ndim=2),
         tmp: ti.types.ndarray(dtype=dtype, ndim=2),
         stats: ti.types.ndarray(dtype=ti.f64, ndim=2),
     ):
-        """Vote I_L into the window buffer, blur it (result in buf), per-row sums of L, L^2, L G (float64).
+        """Vote I_L into the window buffer, blur it (result in buf), per-row sums of L, L^2, L G, of the raw votes and
+        of their event area 1 - exp(-I / lambda0) (float64; the last two give the density of I_L for alpha).
 
-        Top-level loops run one after the other (one launch instead of four).
+        ``votes`` holds P = rows / bh copies of the buffer: part p votes events [p n/P, (p+1) n/P) into copy p with
+        plain load/add/store, then the copies are summed in a fixed order (no float atomics, which were measured
+        2x slower than serial voting here, and bit-reproducible for a given P). Top-level loops run one after
+        the other (one launch instead of five).
         """
         bh, bw = buf.shape[0], buf.shape[1]
-        for i, j in buf:
-            buf[i, j] = ti.cast(0.0, dtype)
-        # serial, non-atomic voting: measured 2x faster than parallel float atomics here (1.5 vs 2.8 ms per 200k
-        # events) and bit-reproducible
-        ti.loop_config(serialize=True)
-        for e in range(uv.shape[0]):
-            i0, j0, fu, fv = bl.split(uv[e, 0], uv[e, 1])
-            la, lb = bl.wrap_cols(i0 - c0, width)  # buffer columns of map columns i0, i0 + 1 (mod w)
-            bl.scatter(buf, 0, bh, j0 - r0, la, lb, 1, 1, fu, fv, ti.cast(1.0, dtype), ADD)
+        parts = votes.shape[0] // bh
+        for i, j in votes:
+            votes[i, j] = ti.cast(0.0, dtype)
+        n_ev = uv.shape[0]
+        chunk = (n_ev + parts - 1) // parts
+        for part in range(parts):
+            for e in range(part * chunk, ti.min(n_ev, (part + 1) * chunk)):
+                i0, j0, fu, fv = bl.split(uv[e, 0], uv[e, 1])
+                la, lb = bl.wrap_cols(i0 - c0, width)  # buffer columns of map columns i0, i0 + 1 (mod w)
+                bl.scatter(votes, part * bh, bh, j0 - r0, la, lb, 1, 1, fu, fv, ti.cast(1.0, dtype), ADD)
+        for i in range(bh):
+            raw = ti.cast(0.0, ti.f64)
+            area = ti.cast(0.0, ti.f64)
+            for j in range(bw):
+                acc = ti.cast(0.0, dtype)
+                for part in range(parts):
+                    acc += votes[part * bh + i, j]
+                buf[i, j] = acc
+                raw += ti.cast(acc, ti.f64)
+                area += ti.cast(ti.cast(1.0, dtype) - ti.exp(-acc / lambda0), ti.f64)
+            stats[i, 3] = raw
+            stats[i, 4] = area
         blur_cols(buf, taps, wrap, tmp)
         blur_rows(tmp, taps, buf)
         gw = gmap.shape[1]
@@ -544,11 +563,14 @@ class PanoIWE:
     passed (poses the window keeps fixed are the caller's to ignore). Instead of ``global_map``, a caller that keeps
     B(I_G) up to date passes ``global_blurred`` (h, w) with ``global_sums`` = (sum, sum of squares) of it: no
     per-window work over the whole map then (large maps). ``alpha`` may be changed after construction.
+    ``alpha_from_density=(rho_g, lambda0)``: alpha = rho(I_L) / rho_g (Eq. 16-17) with I_L the local map of the
+    FIRST evaluation (the optimiser's start, the initialization): no separate projection of the events for it.
     """
 
     def __init__(self, bearings, batch_s, batch_u, degree: int, width: int, height: int, sigma: float = 1.0,
                  global_map=None, alpha: float = 1.0, batch_size: int = 100, dtype=np.float32,
-                 global_blurred=None, global_sums: tuple[float, float] | None = None):
+                 global_blurred=None, global_sums: tuple[float, float] | None = None, parts: int | None = None,
+                 alpha_from_density: tuple[float, float] | None = None):
         ensure_init()
         self.dtype = np.dtype(dtype)
         self.degree, self.width, self.height = int(degree), int(width), int(height)
@@ -569,7 +591,7 @@ class PanoIWE:
             self.alpha = float(alpha)
             self.g_sum, self.g_sq = (float(v) for v in global_sums)
             self.gmap = np.ascontiguousarray(global_blurred, dtype=self.dtype)
-        elif global_map is not None and alpha != 0:
+        elif global_map is not None and (alpha != 0 or alpha_from_density is not None):
             g = blur_map(global_map, self.sigma)
             self.alpha = float(alpha)
             self.g_sum = float(g.sum())
@@ -586,6 +608,14 @@ class PanoIWE:
         self._bbox = np.zeros((nb, 4), dtype=np.int32)
         self._gb = np.zeros((nb, order, 3), dtype=self.dtype)
         self.last_window = None  # (r0, c0, bh, bw, wrap) of the last evaluation, for inspection
+        self._density_ref = None  # (rho_g, lambda0) until alpha is set by the first evaluation
+        self.lambda0 = 1.0
+        if alpha_from_density is not None and self.g_sum > 0 and alpha_from_density[0] > 0:
+            self._density_ref = (float(alpha_from_density[0]), float(alpha_from_density[1]))
+            self.lambda0 = self._density_ref[1]
+            self.alpha = 1.0  # placeholder: the first evaluation sets it (the G terms are computed)
+        # copies of the window buffer voted into by one parallel part each (the Taichi thread count, at most 8)
+        self.parts = int(parts) if parts else max(1, min(8, num_threads()))
 
     # -- helpers --
     def _window(self):
@@ -631,10 +661,15 @@ class PanoIWE:
         r0, c0, bh, bw, wrap = win
         lmap = np.empty((bh, bw), dtype=self.dtype)
         tmp = np.empty_like(lmap)
-        stats = np.empty((bh, 3))
-        k["local_map"](self._uv, c0, r0, self.width, self.taps, wrap, self.gmap, int(self.alpha != 0), lmap, tmp,
-                       stats)
-        s_l, s_ll, s_lg = stats.sum(axis=0)
+        votes = np.empty((self.parts * bh, bw), dtype=self.dtype)
+        stats = np.empty((bh, 5))
+        k["local_map"](self._uv, c0, r0, self.width, self.taps, wrap, self.gmap, int(self.alpha != 0), self.lambda0,
+                       votes, lmap, tmp, stats)
+        s_l, s_ll, s_lg, raw, area = stats.sum(axis=0)
+        if self._density_ref is not None:  # the first evaluation: alpha from the density of this local map
+            rho_g, _ = self._density_ref
+            self.alpha = float(raw / area / rho_g) if area > 0 else 0.0
+            self._density_ref = None
         mu = (s_l + self.alpha * self.g_sum) / self.n_px
         # sum over all px of (L + aG - mu)^2 = sum (aG - mu)^2 + sum_buf (L^2 + 2 L (aG - mu))
         base = self.alpha**2 * self.g_sq - 2 * self.alpha * mu * self.g_sum + self.n_px * mu * mu
@@ -642,6 +677,9 @@ class PanoIWE:
         return ctrl, (r0, c0, bh, bw, wrap), (lmap, tmp, mu), float(var)
 
     def _constant_var(self):
+        """Variance without local votes (no events, or none in the map)."""
+        if self._density_ref is not None:  # an empty local map has no density: alpha 0
+            self.alpha, self._density_ref = 0.0, None
         mu = self.alpha * self.g_sum / self.n_px
         return float((self.alpha**2 * self.g_sq - self.n_px * mu * mu) / self.n_px)
 

@@ -12,7 +12,8 @@ For every window [T, T + backend_time_window_size] (T advancing by backend_slidi
 1. initialize the control poses that the window adds by lift-solve-retract on the re-anchored source poses;
 2. if the event rate is at least backend_min_ev_rate, maximize Var(B(I_L) + alpha B(I_G)) (Eq. 18) over the
    control poses with knot time >= T (earlier ones are fixed), with alpha = rho(I_L) / rho(I_G) (Eq. 16-17)
-   computed once from the initial I_L, by Fletcher-Reeves CG on left increments R_k <- exp(x_k) R_k^0;
+   computed once from the initial I_L, on left increments R_k <- exp(x_k) R_k^0, by BFGS whose inverse Hessian
+   carries over from the previous window (``backend_optimizer``; or the reference's Fletcher-Reeves CG);
 3. settle the events of [T, T + stride) into I_G with the refined poses (optionally freezing map pixels that
    have been observed for max_update_time seconds).
 """
@@ -25,12 +26,12 @@ import numpy as np
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
 from ti_cmax.kernels.pano import (
-    PanoIWE, batch_mid_times, blur_radius, blur_region, event_area, touched_region, vote_map,
+    PanoIWE, batch_mid_times, blur_radius, blur_region, touched_region, vote_map,
 )
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
-from .optim import fletcher_reeves
+from .optim import bfgs, fletcher_reeves
 
 _TIME_EPS = 1e-9
 
@@ -102,26 +103,12 @@ class GlobalMap:
         """rho(I_G) = N_e / area (Eq. 16); 0 while empty."""
         return self.n_events / self.area if self.area > 0 else 0.0
 
-    def _area(self, values: np.ndarray) -> float:
-        return event_area(values, self.lambda0)
-
     def _vote_scratch(self, bearings, rotations, batch_size, margin):
         for occ in self._occ:
             occ[:] = 0
         vote_map(bearings, rotations, self.width, self.height, batch_size=batch_size, out=self._scratch,
                  occupancy=self._occ)
         return touched_region(*self._occ, margin)
-
-    def density_of(self, bearings, rotations, batch_size) -> float:
-        """rho of the map the given events alone would make (the local map I_L for alpha, Eq. 17)."""
-        region = self._vote_scratch(bearings, rotations, batch_size, 0)
-        if region is None:
-            return 0.0
-        rows, cols = region
-        votes = self._scratch[rows][:, cols]
-        self._scratch[rows.start:rows.stop, cols] = 0
-        area = self._area(votes)
-        return float(votes.sum(dtype=np.float64)) / area if area > 0 else 0.0
 
     def add(self, bearings, rotations, batch_size: int, t_now: float, moving: bool = True,
             weight: float = 1.0) -> None:
@@ -145,7 +132,11 @@ class GlobalMap:
         new_raw = old_raw + votes
         self.raw[rows.start:rows.stop, cols] = new_raw
         self.n_events += float(votes.sum(dtype=np.float64))
-        self.area += self._area(new_raw) - self._area(old_raw)
+        # event area: only pixels that received votes change, sum of exp(-old / lambda0) - exp(-new / lambda0)
+        changed = np.flatnonzero(votes)
+        old_v = old_raw.reshape(-1)[changed].astype(np.float64) / -self.lambda0
+        new_v = new_raw.reshape(-1)[changed].astype(np.float64) / -self.lambda0
+        self.area += float(np.sum(np.exp(old_v) - np.exp(new_v)))
         old_blur = blur_region(self.raw, self.blurred, rows, cols, self.sigma).astype(np.float64)
         new_blur = self.blurred[rows][:, cols].astype(np.float64)
         self.g_sum += float(new_blur.sum() - old_blur.sum())
@@ -176,6 +167,7 @@ class SlidingWindowBackend:
         self.events_settled = 0
         self.events_optimized = 0  # event-window pairs that went through BA
         self._last_correction: float | None = None  # |x| of the last window's CG solution
+        self._inv_hessian = None  # BFGS: (first free control pose, inverse Hessian) of the last window
         self.loop = None  # loop closure hook (pipelines/loop_closure.LoopCloser), attached by its owner
 
     # ---- input streams -------------------------------------------------------------------------------------------
@@ -350,36 +342,51 @@ class SlidingWindowBackend:
         first_free = max(first_free, 1)  # the very first pose anchors the gauge (world frame)
         mids = batch_mid_times(ev_t, cfg.event_batch_size)
         s, u = spline.support(mids)
-        # alpha from the event densities of the initial local map and the global map (Eq. 16-17)
+        # alpha from the event densities of the initial local map and the global map (Eq. 16-17): PanoIWE takes
+        # rho(I_L) from its first evaluation, the optimiser's start at the initialization
         rho_g = self.map.density
-        if rho_g > 0:
-            report.alpha = self.map.density_of(ev_b, spline.evaluate_at(s, u), cfg.event_batch_size) / rho_g
         problem = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=cfg.backend_blur_sigma,
-                          alpha=report.alpha, batch_size=cfg.event_batch_size,
-                          global_blurred=self.map.blurred, global_sums=(self.map.g_sum, self.map.g_sq))
+                          alpha=0.0, batch_size=cfg.event_batch_size,
+                          global_blurred=self.map.blurred, global_sums=(self.map.g_sum, self.map.g_sq),
+                          alpha_from_density=(rho_g, self.map.lambda0) if rho_g > 0 else None)
         base = spline.control_R.copy()
         n_free = len(base) - first_free
         if n_free <= 0:
             return
 
-        var0 = problem.cost(base)
-        scale = 1.0 / var0 if var0 > 0 else 1.0  # tolerances act on the relative variance: scale-free
+        # tolerances act on the relative variance (scale-free): the cost is divided by var0, the variance at the
+        # initialization, which the optimiser's first evaluation (x = 0) gives
+        var0 = scale = None
 
         def objective(x: np.ndarray):
+            nonlocal var0, scale
             delta = x.reshape(-1, 3)
             ctrl = base.copy()
             ctrl[first_free:] = so3.exp(delta) @ base[first_free:]
             var, grad = problem.cost_and_grad(ctrl)
+            if scale is None:
+                var0 = var if not np.any(x) else problem.cost(base)
+                scale = 1.0 / var0 if var0 > 0 else 1.0
             # chain the left-perturbation gradient through exp: d/dx exp(x) R = Jl(x)
             g = np.einsum("nji,nj->ni", so3.left_jacobian(delta), grad[first_free:])
             return var * scale, g.reshape(-1) * scale
 
-        result = fletcher_reeves(
-            objective, np.zeros(3 * n_free), maximize=True, init_step=self._init_step(),
-            line_search_tol=cfg.backend_cg_line_search_tol, max_iter=cfg.backend_cg_max_iters,
-            grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
-            max_line_evals=cfg.backend_cg_max_line_evals, step_guess=cfg.backend_cg_step_guess,
-        )
+        if cfg.backend_optimizer == "bfgs":
+            warm = self._carried_inv_hessian(first_free, n_free)
+            result, h = bfgs(
+                objective, np.zeros(3 * n_free), maximize=True, inv_hessian=warm,
+                init_step=self._init_step(), max_iter=cfg.backend_cg_max_iters, grad_tol=cfg.backend_cg_grad_tol,
+                rel_cost_tol=cfg.backend_cg_rel_cost_tol, max_step=cfg.backend_bfgs_max_step,
+                max_line_evals=cfg.backend_cg_max_line_evals)
+            self._inv_hessian = None if h is None else (first_free, h)
+        else:
+            result = fletcher_reeves(
+                objective, np.zeros(3 * n_free), maximize=True, init_step=self._init_step(),
+                line_search_tol=cfg.backend_cg_line_search_tol, max_iter=cfg.backend_cg_max_iters,
+                grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
+                max_line_evals=cfg.backend_cg_max_line_evals, step_guess=cfg.backend_cg_step_guess,
+            )
+        report.alpha = problem.alpha  # set by the first evaluation
         # the correction is how far the optimum moves the trajectory where the window's events are, not how far
         # it moves control poses: with sparse knots (10 Hz) a pose that the events barely reach moves by degrees
         # while the trajectory it shapes does not
@@ -390,6 +397,7 @@ class SlidingWindowBackend:
             # a false maximum (e.g. a map too coarse for the sensor): keep the initialization for this window
             spline.control_R[:] = base
             report.rejected = True
+            self._inv_hessian = None  # the curvature of a false maximum
             return
         self._last_correction = float(np.linalg.norm(result.x))
         report.variance_before = var0
@@ -399,6 +407,21 @@ class SlidingWindowBackend:
         report.evaluations = result.evaluations
         self.events_optimized += len(ev_t)
         self._anchor_at(self._anchor[0])
+
+    def _carried_inv_hessian(self, first_free: int, n_free: int) -> np.ndarray | None:
+        """The last window's BFGS inverse Hessian re-indexed to this window's free control poses: the poses both
+        windows optimise keep their blocks (windows overlap, the cost changes little there), poses new to this
+        window start uncoupled with the mean diagonal. None when nothing is shared (a cold start)."""
+        if self._inv_hessian is None:
+            return None
+        prev_first, h_prev = self._inv_hessian
+        offset, n_prev = first_free - prev_first, len(h_prev) // 3
+        keep = min(n_prev - offset, n_free)
+        if offset < 0 or keep <= 0:
+            return None
+        h = np.diag(np.full(3 * n_free, float(np.mean(np.diag(h_prev)))))
+        h[:3 * keep, :3 * keep] = h_prev[3 * offset:3 * (offset + keep), 3 * offset:3 * (offset + keep)]
+        return h
 
     def _init_step(self) -> float:
         """First CG trial step: the size of the previous window's correction (windows overlap, so corrections

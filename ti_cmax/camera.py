@@ -91,16 +91,39 @@ class Camera:
     @cached_property
     def bearing_lut(self) -> np.ndarray:
         """Per-pixel bearings (height*width, 3) float32, indexed by y*width + x. Built once."""
-        ys, xs = np.mgrid[0 : self.height, 0 : self.width]
-        b = self.unproject(xs.ravel(), ys.ravel())
-        return np.ascontiguousarray(b, dtype=np.float32)
+        return np.ascontiguousarray(self.bearing_lut4[:, :3])
 
-    def bearings(self, x: np.ndarray, y: np.ndarray, dtype=np.float32) -> np.ndarray:
-        """Bearings of event pixels: table lookup for integer pixels, direct undistortion otherwise."""
-        if np.issubdtype(np.asarray(x).dtype, np.integer):
-            idx = np.asarray(y, dtype=np.int64) * self.width + np.asarray(x, dtype=np.int64)
-            return np.ascontiguousarray(self.bearing_lut[idx], dtype=dtype)
-        return np.ascontiguousarray(self.unproject(x, y), dtype=dtype)
+    @cached_property
+    def bearing_lut4(self) -> np.ndarray:
+        """Per-pixel bearings in the first 3 columns of a (height*width, 4) float32 table (4th column 0)."""
+        ys, xs = np.mgrid[0 : self.height, 0 : self.width]
+        lut = np.zeros((self.height * self.width, 4), np.float32)
+        lut[:, :3] = self.unproject(xs.ravel(), ys.ravel())
+        return lut
+
+    def bearings(self, x: np.ndarray, y: np.ndarray, dtype=np.float32, columns: int = 3) -> np.ndarray:
+        """Bearings of event pixels (n, 3): table lookup for integer pixels, direct undistortion otherwise.
+        ``columns=4`` returns an (n, 4) array with the bearings in the first 3 columns and a 4th one free for
+        the caller (the front-end stores event times there: one copy fewer per packet)."""
+        if columns not in (3, 4):
+            raise ValueError(f"columns must be 3 or 4, got {columns}")
+        x = np.asarray(x)
+        if np.issubdtype(x.dtype, np.integer):
+            idx = np.asarray(y).astype(np.int32)
+            idx *= self.width
+            idx += x
+            out = (self.bearing_lut4 if columns == 4 else self.bearing_lut).take(idx, axis=0)
+            return out if out.dtype == dtype else out.astype(dtype)
+        return self._unprojected(x, y, dtype, columns)
+
+    def _unprojected(self, x, y, dtype, columns: int) -> np.ndarray:
+        """:meth:`bearings` by direct undistortion (any coordinates)."""
+        b = self.unproject(x, y)
+        if columns == 3:
+            return np.ascontiguousarray(b, dtype=dtype)
+        out = np.zeros((len(b), 4), dtype)
+        out[:, :3] = b
+        return out
 
     @property
     def undistorted_K(self) -> np.ndarray:

@@ -96,8 +96,9 @@ def test_kernel_matches_numpy_twin(ti_runtime, degree, yaw0, yaw_rate, expect):
     ref_var, ref_grad, ref_img = pano.pano_iwe_numpy(
         bearings, s, u, spline.control_R, degree, W, H, 1.0, pano.blur_map(gmap, 1.0), 0.6, 100
     )
-    for dtype, rtol in ((np.float64, 1e-10), (np.float32, 1e-4)):
-        obj = pano.PanoIWE(bearings, s, u, degree, W, H, 1.0, gmap, 0.6, 100, dtype=dtype)
+    # parts: copies of the window buffer voted into by one parallel part each (1: serial voting)
+    for dtype, rtol, parts in ((np.float64, 1e-10, 1), (np.float64, 1e-10, 3), (np.float32, 1e-4, 2)):
+        obj = pano.PanoIWE(bearings, s, u, degree, W, H, 1.0, gmap, 0.6, 100, dtype=dtype, parts=parts)
         var, grad = obj.cost_and_grad(spline.control_R)
         assert var == pytest.approx(ref_var, rel=rtol)
         np.testing.assert_allclose(grad, ref_grad, atol=rtol * np.abs(ref_grad).max())
@@ -163,3 +164,26 @@ def test_vote_map_is_bit_reproducible(ti_runtime):
     again = vote_map(b, rot, 256, 128, batch_size=100)
     np.testing.assert_array_equal(first, again)
     assert first.sum(dtype=np.float64) == pytest.approx(n, rel=1e-5)
+
+
+@pytest.mark.parametrize("lambda0", [1.0, 0.5])
+def test_alpha_from_the_density_of_the_first_local_map(ti_runtime, lambda0):
+    """alpha_from_density: alpha = rho(I_L) / rho_g from the first evaluation's raw local map (Eq. 16-17), the same
+    as voting the events at those poses separately; the cost then equals the one with that alpha given."""
+    from ti_cmax.kernels import pano
+
+    spline, bearings, s, u, gmap = window_case(3, 0.5, 1.0)
+    rho_g = pano.event_density(gmap, lambda0)
+    local = pano.vote_map_numpy(bearings, spline.evaluate_at(s, u), W, H, batch_size=100)
+    expected = pano.event_density(local, lambda0) / rho_g
+    obj = pano.PanoIWE(bearings, s, u, 3, W, H, 1.0, gmap, 0.0, 100, dtype=np.float64,
+                       alpha_from_density=(rho_g, lambda0))
+    var, grad = obj.cost_and_grad(spline.control_R)
+    assert obj.alpha == pytest.approx(expected, rel=1e-9)
+    given = pano.PanoIWE(bearings, s, u, 3, W, H, 1.0, gmap, expected, 100, dtype=np.float64)
+    var_g, grad_g = given.cost_and_grad(spline.control_R)
+    assert var == pytest.approx(var_g, rel=1e-9)
+    np.testing.assert_allclose(grad, grad_g, atol=1e-9 * np.abs(grad_g).max())
+    later = obj.alpha
+    obj.cost(spline.control_R @ so3_small(0.01))  # later evaluations keep the first one's alpha
+    assert obj.alpha == later

@@ -61,3 +61,22 @@ def test_backend_rejects_bad_line_search_settings(field, value):
 
     with pytest.raises(InputError, match=field):
         SlidingWindowBackend(BackendConfig(**{field: value}), 0.0)
+
+
+def test_carried_inverse_hessian_follows_the_free_control_poses():
+    """The next window frees control poses 2..6 where the last one freed 0..4: the shared poses 2..4 keep their
+    blocks, the new poses 5, 6 start uncoupled with the mean diagonal; nothing shared gives a cold start."""
+    from ti_cmax.config import BackendConfig
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+
+    be = SlidingWindowBackend.__new__(SlidingWindowBackend)
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(15, 15))
+    h_prev = a @ a.T + 15 * np.eye(15)
+    be._inv_hessian = (10, h_prev)
+    h = be._carried_inv_hessian(12, 5)
+    np.testing.assert_array_equal(h[:9, :9], h_prev[6:, 6:])
+    np.testing.assert_array_equal(h[9:, :9], 0.0)
+    np.testing.assert_allclose(np.diag(h)[9:], np.mean(np.diag(h_prev)))
+    assert be._carried_inv_hessian(15, 5) is None and be._carried_inv_hessian(9, 5) is None
+    assert BackendConfig().backend_optimizer == "bfgs"

@@ -1,9 +1,9 @@
-"""Fletcher-Reeves nonlinear CG with strong-Wolfe line search."""
+"""Local optimisers: Fletcher-Reeves nonlinear CG with strong-Wolfe line search, warm-started BFGS."""
 import numpy as np
 import pytest
 from scipy.optimize import rosen, rosen_der
 
-from ti_cmax.pipelines.optim import fletcher_reeves
+from ti_cmax.pipelines.optim import bfgs, fletcher_reeves
 
 
 def test_quadratic_is_solved():
@@ -59,3 +59,48 @@ def test_secant_step_guess_converges():
     np.testing.assert_allclose(res.x, [1.0, 1.0], atol=1e-4)
     with pytest.raises(ValueError, match="step_guess"):
         fletcher_reeves(lambda x: (rosen(x), rosen_der(x)), np.zeros(2), step_guess="newton")
+
+
+def _quadratic(a, b):
+    return lambda x: (0.5 * x @ a @ x - b @ x, a @ x - b)
+
+
+def test_bfgs_solves_rosenbrock_and_a_quadratic():
+    res, h = bfgs(lambda x: (rosen(x), rosen_der(x)), [-1.2, 1.0], max_iter=500, grad_tol=1e-6,
+                  rel_cost_tol=0.0, max_step=1.0)
+    assert res.converged
+    np.testing.assert_allclose(res.x, [1.0, 1.0], atol=1e-4)
+    a = np.diag([1.0, 10.0, 100.0]) + 0.5
+    b = np.array([1.0, -2.0, 3.0])
+    res, h = bfgs(_quadratic(a, b), np.zeros(3), grad_tol=1e-9, rel_cost_tol=0.0, max_step=10.0)
+    np.testing.assert_allclose(res.x, np.linalg.solve(a, b), atol=1e-8)
+    assert np.abs(h @ a - np.eye(3)).max() < 0.1  # the returned inverse Hessian is learnt
+
+
+def test_bfgs_warm_inverse_hessian_solves_the_next_problem_in_few_evaluations():
+    """The front-end's use: a sequence of similar problems; passing the last inverse Hessian back makes the first
+    step a Newton step (a quadratic is then solved by 2 evaluations: start and the step)."""
+    a = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 0.5], [0.0, 0.5, 2.0]])
+    cold, h = bfgs(_quadratic(a, np.array([1.0, 0.0, -1.0])), np.zeros(3), grad_tol=1e-10, rel_cost_tol=0.0)
+    warm, _ = bfgs(_quadratic(a, np.array([1.1, 0.1, -0.9])), cold.x, inv_hessian=h, grad_tol=1e-6,
+                   rel_cost_tol=0.0)
+    np.testing.assert_allclose(warm.x, np.linalg.solve(a, [1.1, 0.1, -0.9]), atol=1e-5)
+    assert warm.evaluations <= 3 < cold.evaluations
+
+
+def test_bfgs_maximizes_caps_steps_and_never_returns_a_worse_point():
+    c = np.array([20.0, -10.0, 5.0])
+    seen = []
+
+    def f(x):
+        seen.append(x.copy())
+        return -np.sum((x - c) ** 2) + 3.0, -2 * (x - c)
+
+    res, _ = bfgs(f, np.zeros(3), maximize=True, grad_tol=1e-8, rel_cost_tol=0.0, max_step=2.0, max_iter=200)
+    np.testing.assert_allclose(res.x, c, atol=1e-6)
+    assert res.fun == pytest.approx(3.0)
+    steps = np.linalg.norm(np.diff(np.array(seen), axis=0), axis=1)
+    assert steps.max() <= 2.0 + 1e-9
+    # a cost that only gets worse away from the start: the start is returned
+    res, h = bfgs(lambda x: (float(np.sum(np.abs(x))) + 1.0, np.sign(x) + 0.5), np.zeros(2), max_iter=5)
+    assert res.fun <= 1.0 and h is None

@@ -172,3 +172,24 @@ def test_sparse_knots_are_judged_by_the_trajectory_not_the_control_poses(ti_runt
     res = run_slam(seq.events, seq.camera, load_config(SlamConfig, None, ["dt_knots=0.1"]))
     assert not any(w.rejected for w in res.windows), [(w.t_start, w.max_correction) for w in res.windows]
     assert evaluate_rotations(seq.groundtruth, res.trajectory).abs_rmse_deg < 1.0
+
+
+def test_backend_bfgs_carries_the_curvature_and_beats_cg(short_sequence):
+    """The back-end's BFGS (inverse Hessian carried from window to window) needs fewer evaluations per window than
+    Fletcher-Reeves CG for a comparable result (refining IMU dead reckoning of a simulated sequence: on 8 sequences
+    of 2 s it was better on average, abs 0.078 vs 0.087 deg, rel 0.100 vs 0.116 deg/s, not on each one)."""
+    from dataclasses import replace
+
+    seq = short_sequence
+    imu = dead_reckoning(seq.imu.t, seq.imu.gyro, r0=seq.groundtruth.at(seq.imu.t[0])[0])
+    runs = {}
+    for opt in ("bfgs", "cg"):
+        cfg = SlamConfig()
+        cfg = replace(cfg, backend=replace(cfg.backend, backend_optimizer=opt))
+        result = refine(seq.events, seq.camera, imu, cfg)
+        runs[opt] = (evaluate_rotations(seq.groundtruth, result.trajectory), result.report["backend"])
+    (err_b, rep_b), (err_c, rep_c) = runs["bfgs"], runs["cg"]
+    assert rep_b["mean_evaluations"] < rep_c["mean_evaluations"], (rep_b["mean_evaluations"], rep_c["mean_evaluations"])
+    before = evaluate_rotations(seq.groundtruth, imu).abs_rmse_deg
+    assert err_b.abs_rmse_deg < 0.3 * before and err_c.abs_rmse_deg < 0.3 * before
+    assert err_b.abs_rmse_deg < 1.3 * err_c.abs_rmse_deg and err_b.rel_rmse_deg_per_s < 1.3 * err_c.rel_rmse_deg_per_s

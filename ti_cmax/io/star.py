@@ -99,8 +99,8 @@ class StarCamera(Camera):
         by = (m[1, 0] * x + m[1, 1] * y + m[1, 2]) / z
         return np.stack([bx, by, np.ones_like(bx)], axis=-1)
 
-    def bearings(self, x, y, dtype=np.float32) -> np.ndarray:
-        return np.ascontiguousarray(self.unproject(x, y), dtype=dtype)
+    def bearings(self, x, y, dtype=np.float32, columns: int = 3) -> np.ndarray:
+        return self._unprojected(x, y, dtype, columns)
 
     def project(self, bearings, distort: bool = True) -> np.ndarray:
         """Bearings (N, 3) -> event coordinates (N, 2) through M^-1 (exact inverse of :meth:`unproject`)."""
