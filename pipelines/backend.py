@@ -216,6 +216,8 @@ class SlidingWindowBackend:
             last = max(self.events.t[-1] if len(self.events.t) else t0, self._src_t[-1] if len(self._src_t) else t0)
             t1 = max(t0 + 1e-6, min(t1, last))
         self._initialize_until(t1)
+        if self.loop is not None:  # loop closure: a revisit is closed before this window's BA
+            self.loop.before_window(t0, t1)
         ev_t, ev_b = self.events.range(t0, t1, include_end=True)
         n = len(ev_t)
         rate = n / max(t1 - t0, 1e-9)

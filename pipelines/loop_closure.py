@@ -2,15 +2,16 @@
 
 Without it, drift builds up over a 360-degree pan until the camera sees the first turn's map again; the global map
 then pulls the new windows back, so the trajectory carries the drift and a jump. ``LoopCloser`` hooks into
-``SlidingWindowBackend`` (``backend.loop``), and after every window:
+``SlidingWindowBackend`` (``backend.loop``), and around every window:
 
 1. keeps a subsample of the settled events (at most ``loop_stored_event_rate`` per second, each stride 1 of k with
    weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and, delayed
    by ``loop_recent_time``, votes them into an *old map* and a coarse map of the time each region was last
    observed;
-2. detection, after every window (at most one verification per ``loop_recent_time``, less often while a revisit
-   goes on without a correction to apply: the interval doubles up to ``loop_min_age``): the recent events (the
-   last ``loop_recent_time`` seconds) at their current poses are a revisit candidate when at least
+2. detection, before every window's BA (at most one verification per ``loop_recent_time``, less often while a
+   revisit goes on without a correction to apply: the interval doubles up to ``loop_min_age``): the recent events
+   (the last ``loop_recent_time`` seconds of settled events plus the window's, at their initialized poses: the
+   BA has not pulled them to the old map yet) at their current poses are a revisit candidate when at least
    ``loop_min_overlap`` of them fall on regions observed, and last observed at least ``loop_min_age`` s ago
    (regions without texture give no events, so they are never observed);
 3. verification: one rotation C (left, world frame) registers the recent events against the old map of those
@@ -20,7 +21,8 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    4 and 8 map pixels away >= ``loop_min_peak_ratio``) and |C| <= ``loop_max_correction``;
 4. correction (when |C| >= ``loop_min_correction_px`` map pixels and the registration raised the correlation by
    at least ``loop_min_gain``, i.e. the data support it): C is spread over the control poses between the
-   old visit (or the last applied loop) and the recent events by the chain pose graph ``so3.spread_correction``
+   old visit (the middle of the old regions' last visit, or the last applied loop: each later revisit closes
+   only the drift since, against the corrected map) and the recent events by the chain pose graph ``so3.spread_correction``
    (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of
    the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
    spline, so later windows align to one consistent map.
@@ -43,7 +45,7 @@ from .backend import GlobalMap
 from .optim import fletcher_reeves
 
 _CELL = 4  # map pixels per side of an age cell
-_RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's rotations from the optimum
+_RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's shifts from the optimum
 _CG_ITERS, _CG_LINE_EVALS = 10, 8  # per pyramid level: 3 unknowns, started near the optimum by the coarser level
 _TEXTURE = 3  # map pixels: scale of the local texture normalization of the confidence test
 
@@ -53,10 +55,12 @@ class LoopCloser:
 
     def __init__(self, config: LoopClosureConfig, backend):
         self.cfg, self.backend = config, backend
+        freeze = backend.map.max_update_time
         self._new_map = lambda sigma: GlobalMap(backend.width, backend.height, sigma, backend.cfg.lambda0,
-                                                backend.map.max_update_time if sigma > 0 else None)
+                                                freeze if sigma > 0 else None)
         w, h = backend.width, backend.height
         self.age = np.full((-(-h // _CELL), -(-w // _CELL)), -np.inf)  # last observed (delayed); -inf: never
+        self.visit = np.full_like(self.age, -np.inf)  # start of the last visit (observed after a loop_min_age gap)
         self.old = self._new_map(0.0)  # raw map of the stored events older than the recent block
         self.chunks: list[tuple[np.ndarray, np.ndarray, float, float, bool]] = []  # (t, b, weight, t0, moving)
         self._n_old = 0  # chunks already voted into the old map and the age map
@@ -66,6 +70,7 @@ class LoopCloser:
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
         self.loops: list[dict] = []
         self.seconds = 0.0
+        self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
 
     # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
     def store(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
@@ -81,16 +86,30 @@ class LoopCloser:
             self.chunks = [(c[0][::2], c[1][::2], c[2] * len(c[0]) / len(c[0][::2]), c[3], c[4]) for c in self.chunks]
             self._stored = sum(len(c[0]) for c in self.chunks)
         self.seconds += time.perf_counter() - tic
+        self.profile["store"] += time.perf_counter() - tic
+
+    def before_window(self, t0: float, t1: float) -> None:
+        """Before the BA of window [t0, t1] (its control poses initialized): look for a revisit in the recent
+        events plus the window's, and close it. The window's events are still at their initialized poses: the
+        BA has not pulled them to the old map yet (that pull, spread over the windows that enter the old
+        regions, is the jump at a loop, and it hides the loop's error from a later check)."""
+        if t1 < self._next_check:
+            return
+        tic = time.perf_counter()
+        ev_t, ev_b = self.backend.events.range(t0, t1, include_end=True)
+        cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * (t1 - t0))), 1)  # as stored (store())
+        k = max(int(math.ceil(len(ev_t) / cap)), 1)
+        self._check(t1, ev_t[::k], ev_b[::k])
+        self.seconds += time.perf_counter() - tic
 
     def after_window(self, t_now: float) -> None:
-        """Age the stored events into the old map; every loop_recent_time, look for a revisit and close it."""
+        """Age the stored events older than loop_recent_time into the old map and the age map."""
         tic = time.perf_counter()
         recent = self.cfg.loop_recent_time
         while self._n_old < len(self.chunks) and self.chunks[self._n_old][0][-1] < t_now - recent:
             self._age_chunk(self.chunks[self._n_old])
             self._n_old += 1
-        if t_now >= self._next_check:  # the overlap test runs after every window: catch a revisit before the
-            self._check(t_now)          # back-end's windows snap to the old map (that jump is the loop error)
+        self.profile["age"] += time.perf_counter() - tic
         self.seconds += time.perf_counter() - tic
 
     # ---- detection and verification ----------------------------------------------------------------------------
@@ -116,20 +135,20 @@ class LoopCloser:
         _, rot = self._rotations(t)
         self.old.add(b, rot, self.backend.cfg.event_batch_size, t0, moving, weight=weight)
         cells = np.unique(self._cells(b, rot))
+        new_visit = self.age.flat[cells] < float(t[0]) - self.cfg.loop_min_age  # never observed, or long ago
+        self.visit.flat[cells[new_visit]] = float(t[0])
         self.age.flat[cells] = np.maximum(self.age.flat[cells], float(t[-1]))
 
-    def _recent_events(self) -> tuple[np.ndarray, np.ndarray]:
-        parts = self.chunks[self._n_old:]
-        if not parts:
-            return np.zeros(0), np.zeros((0, 3), np.float32)
-        t = np.concatenate([c[0] for c in parts])
-        b = np.concatenate([c[1] for c in parts])
+    def _recent_events(self, ev_t, ev_b) -> tuple[np.ndarray, np.ndarray]:
+        """The stored events not aged yet, then (ev_t, ev_b); thinned to loop_registration_events."""
+        t = np.concatenate([c[0] for c in self.chunks[self._n_old:]] + [np.asarray(ev_t, float)])
+        b = np.concatenate([c[1] for c in self.chunks[self._n_old:]] + [np.asarray(ev_b, np.float32).reshape(-1, 3)])
         k = max(int(math.ceil(len(t) / max(self.cfg.loop_registration_events, 1))), 1)
         return t[::k], b[::k]
 
-    def _check(self, t_now: float) -> None:
+    def _check(self, t_now: float, ev_t, ev_b) -> None:
         cfg = self.cfg
-        t, b = self._recent_events()
+        t, b = self._recent_events(ev_t, ev_b)
         if len(t) < 2 * self.backend.cfg.event_batch_size:
             return
         old_cells = (self.age > -np.inf) & (self.age < t_now - cfg.loop_min_age)
@@ -142,6 +161,7 @@ class LoopCloser:
         tic = time.perf_counter()
         entry = {"time": float(t_now), "overlap": overlap}
         entry.update(self.verify(t, b, old_cells))
+        self.profile["verify"] += time.perf_counter() - tic
         px = 2 * np.pi / self.backend.width
         if entry["accepted"] and entry["correction_deg"] < np.degrees(cfg.loop_min_correction_px * px):
             entry["applied"], entry["reason"] = False, "correction below loop_min_correction_px"
@@ -172,6 +192,7 @@ class LoopCloser:
         s, u = spline.support(mids)
         base = spline.control_R.copy()
         phi = np.zeros(3)
+        tic = time.perf_counter()
         levels = [f for f in (4, 2, 1) if w % f == 0 and h % f == 0 and (w // f >= 256 or f == 1)]
         problem = None
         for f in levels:
@@ -199,35 +220,43 @@ class LoopCloser:
                 return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
                         "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
                         "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
+        self.profile["register"] += time.perf_counter() - tic
         # correlation of the registered recent map with the old map over the old regions, on local texture
         rows = np.flatnonzero(mask.any(axis=1))
         if len(rows) == 0:
             return {"correction_deg": 0.0, "confidence": 0.0, "confidence_before": 0.0, "peak_ratio": 0.0,
                     "accepted": False, "applied": False, "reason": "no old map region", "_phi": [0.0, 0.0, 0.0]}
-        band = slice(max(int(rows[0]) - 4 * _TEXTURE, 0), min(int(rows[-1]) + 4 * _TEXTURE + 1, h))
+        margin = 4 * _TEXTURE + int(math.ceil(max(_RING)))
+        band = slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h))
         g_tex = local_texture(problem.gmap[band], _TEXTURE)
         m_band = mask[band]
 
-        def ncc(x):
-            lmap = problem.local_map(so3.exp(x) @ base)[band]
+        def ncc(lmap, tex, shift=(0, 0)):
+            """Correlation over the old regions of the recent map's texture (shifted by (rows, columns)) with
+            the old map's."""
+            if shift != (0, 0):
+                lmap, tex = (np.roll(x, shift, axis=(0, 1)) for x in (lmap, tex))
             sel = m_band & (lmap > 1e-3 * float(lmap.max()))
             if sel.sum() < 16:
                 return 0.0
-            a, c = local_texture(lmap, _TEXTURE)[sel], g_tex[sel]
+            a, c = tex[sel], g_tex[sel]
             a, c = a - a.mean(), c - c.mean()
             den = math.sqrt(float(a @ a) * float(c @ c))
             return float(a @ c) / den if den > 0 else 0.0
 
-        conf = ncc(phi)
-        # uniqueness: rotations that shift the recent map by _RING map pixels in 4 directions each around the optimum
-        # (a second peak there: repeated texture, a false loop)
-        xw = np.einsum("nij,nj->ni", so3.exp(phi) @ spline.evaluate_at(s, u)[:1], b[:1].astype(np.float64))
-        d = xw[0] / np.linalg.norm(xw[0])
-        e1 = np.cross(d, [0.0, 1.0, 0.0] if abs(d[1]) < 0.9 else [1.0, 0.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(d, e1)
-        ring = [ncc(so3.log(so3.exp(r * 2 * np.pi / w * (math.cos(a) * e1 + math.sin(a) * e2)) @ so3.exp(phi)))
-                for r in _RING for a in np.arange(4) * np.pi / 2 + (np.pi / 4 if r > _RING[0] else 0.0)]
+        def maps_at(x):
+            lmap = problem.local_map(so3.exp(x) @ base)[band]
+            return lmap, local_texture(lmap, _TEXTURE)
+
+        at_opt = maps_at(phi)
+        conf = ncc(*at_opt)
+        # uniqueness: the registered recent map shifted by _RING map pixels in 4 directions each (a second peak
+        # there: repeated texture, a false loop). Shifting the map (not re-voting at rotated poses) costs one
+        # correlation each; near the optimum a small rotation moves the map by about such a shift.
+        ring = []
+        for r in _RING:
+            for a in np.arange(4) * np.pi / 2 + (np.pi / 4 if r > _RING[0] else 0.0):
+                ring.append(ncc(*at_opt, shift=(int(round(r * math.sin(a))), int(round(r * math.cos(a))))))
         best_ring = max(ring)
         peak = conf / best_ring if best_ring > 0 else np.inf
         corr = float(np.linalg.norm(phi))
@@ -239,7 +268,7 @@ class LoopCloser:
             ok, reason = False, "correction above loop_max_correction"
         else:
             ok, reason = True, "accepted"
-        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": ncc(np.zeros(3)),
+        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": ncc(*maps_at(np.zeros(3))),
                 "peak_ratio": float(peak), "accepted": ok, "applied": False, "reason": reason, "_phi": phi.tolist()}
 
     # ---- correction ----------------------------------------------------------------------------------------------
@@ -253,8 +282,10 @@ class LoopCloser:
         on_old = old_cells.flat[cells]
         if not on_old.any():
             return {"applied": False, "reason": "no recent event on the old map"}
-        # the correction was measured by the recent events on the old regions, against the last visit there
-        t_old = float(np.median(self.age.flat[cells[on_old]]))
+        # the correction was measured by the recent events on the old regions, against the last visit there: the
+        # old map of a region stands for the poses of that whole visit, zero correction at its middle
+        hit = cells[on_old]
+        t_old = float(np.median(0.5 * (self.visit.flat[hit] + self.age.flat[hit])))
         t_ref = float(np.median(t[on_old]))
         t_a = max(t_old, self._closed_until)
         if t_ref <= t_a:
@@ -275,20 +306,24 @@ class LoopCloser:
 
     def _rebuild(self) -> None:
         """Global map, old map and age map from the stored subsamples along the (corrected) spline."""
+        tic = time.perf_counter()
         backend = self.backend
         bs = backend.cfg.event_batch_size
+        backend.map = self.old = None  # free the old maps first: peak memory holds one set of maps, not two
         backend.map = self._new_map(backend.cfg.backend_blur_sigma)
         self.old = self._new_map(0.0)
         self.age[:] = -np.inf
+        self.visit[:] = -np.inf
         for i, chunk in enumerate(self.chunks):
             t, b, weight, t0, moving = chunk
             _, rot = self._rotations(t)
             backend.map.add(b, rot, bs, t0, moving, weight=weight)
             if i < self._n_old:
                 self._age_chunk(chunk)
+        self.profile["rebuild"] += time.perf_counter() - tic
 
     # ---- report ----------------------------------------------------------------------------------------------------
     def summary(self) -> dict:
         return {"candidates": len(self.loops), "accepted": sum(e["accepted"] for e in self.loops),
                 "applied": sum(bool(e.get("applied")) for e in self.loops), "seconds": self.seconds,
-                "stored_events": int(self._stored)}
+                "stored_events": int(self._stored), "seconds_by_part": dict(self.profile)}

@@ -453,6 +453,7 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
         outbox.put(("ready", compile_s))
         feed = _BackendFeed(camera, config, lambda t0: np.eye(3))
         seconds = step_cpu = 0.0
+        loops_applied = 0  # an applied loop moves control poses before the window: send them all then
         while True:
             kind, *args = inbox.get()
             if kind == "events":
@@ -475,9 +476,13 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
             seconds += time.perf_counter() - tic
             step_cpu += time.process_time() - cpu
             spline = backend.spline
+            applied = backend.loop.summary()["applied"] if backend.loop is not None else 0
             for report in backend.windows[new:]:
-                # control poses before the window's first free one (minus one) did not change
-                first = max(0, int(np.floor((report.t_start - spline.t0) / spline.dt)) - 1)
+                # control poses before the window's first free one (minus one) did not change, unless a loop was
+                # closed
+                first = 0 if applied > loops_applied else \
+                    max(0, int(np.floor((report.t_start - spline.t0) / spline.dt)) - 1)
+                loops_applied = applied
                 outbox.put(("window", report, first, spline.control_R[first:].copy(), backend._anchor,
                             backend.window_start, (spline.degree, spline.t0, spline.dt)))
             if kind == "finish":

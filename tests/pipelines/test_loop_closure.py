@@ -12,8 +12,8 @@ DRIFT = np.radians(4.0)  # injected drift at the end (grows linearly from 0), ab
 DRIFT_AXIS = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
 
 
-def _pan(t):
-    yaw = 2 * np.pi * TURNS * np.asarray(t) / DURATION
+def _pan(t, duration=DURATION, turns=TURNS):
+    yaw = 2 * np.pi * turns * np.asarray(t) / duration
     return so3.exp(np.outer(yaw, [0.0, 1.0, 0.0]))
 
 
@@ -28,7 +28,7 @@ def _features(rng, n, yaw_range=(-np.pi, np.pi)):
     return np.column_stack([np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon)])
 
 
-def _events(seed=0, second_visit="same"):
+def _events(seed=0, second_visit="same", duration=DURATION, turns=TURNS, rate=RATE):
     """Unit-depth bearings of a camera (60 x 45 deg field of view) panning over point features (one event = one
     feature seen at one time, 0.15 deg jitter). ``second_visit``: "same" scene; "other": after the first turn the
     camera sees a different random scene of the same density (similar texture); "textureless": the revisited
@@ -36,12 +36,12 @@ def _events(seed=0, second_visit="same"):
     rng = np.random.default_rng(seed)
     feats = _features(rng, 20000)
     other = _features(rng, 20000)
-    n = int(RATE * DURATION * 3)
-    t = np.sort(rng.uniform(0, DURATION, n))
+    n = int(rate * duration * 3)
+    t = np.sort(rng.uniform(0, duration, n))
     idx = rng.integers(0, len(feats), n)
     d = feats[idx].copy()
     if second_visit == "other":
-        late = t > DURATION / TURNS * 0.9
+        late = t > duration / turns * 0.9
         d[late] = other[idx[late]]
     if second_visit == "textureless":
         lon = np.arctan2(d[:, 0], d[:, 2])
@@ -52,7 +52,7 @@ def _events(seed=0, second_visit="same"):
         keep = ~quiet | (rng.uniform(size=n) < 0.1)
         t, d = t[keep], d[keep]
     d = d + rng.normal(0, np.radians(0.15), d.shape)
-    b = np.einsum("nji,nj->ni", _pan(t), d)  # R^T d
+    b = np.einsum("nji,nj->ni", _pan(t, duration, turns), d)  # R^T d
     vis = (b[:, 2] > 0.1) & (np.abs(b[:, 0] / b[:, 2]) < np.tan(np.radians(30))) & \
         (np.abs(b[:, 1] / b[:, 2]) < np.tan(np.radians(22.5)))
     t, b = t[vis], b[vis] / b[vis, 2:3]
@@ -63,33 +63,34 @@ def _drifted(t):
     return so3.exp(np.outer(DRIFT * np.asarray(t) / DURATION, DRIFT_AXIS)) @ _pan(t)
 
 
-def _spline(trajectory, dt=0.05):
+def _spline(trajectory, dt=0.05, duration=DURATION):
     """Cubic spline fitted to the trajectory segment by segment, as the back-end grows it (a single lift of more
     than half a turn would wrap)."""
     spline = SO3Spline(3, -dt, dt, np.broadcast_to(trajectory([0.0])[0], (4, 3, 3)).copy())
-    for t0 in np.arange(0, DURATION - 1e-9, 0.5):
+    for t0 in np.arange(0, duration - 1e-9, 0.5):
         ts = np.linspace(t0, t0 + 0.5, 51)
         first_free = int(np.searchsorted(spline.knot_times(), t0 + 1e-9, side="right"))
         spline.fit_new_segment(ts, trajectory(ts), first_free=max(first_free, 1), refine_iters=1)
     return spline
 
 
-def _run(t_ev, b_ev, trajectory, loop_cfg=LoopClosureConfig(loop_closure=True)):
+def _run(t_ev, b_ev, trajectory, loop_cfg=LoopClosureConfig(loop_closure=True), duration=DURATION):
     """Settle every stride of the events along the given trajectory (a spline fitted to it, no BA) with a loop
     closer attached, as the back-end does after each window."""
     from ti_cmax.pipelines.backend import SlidingWindowBackend
     from ti_cmax.pipelines.loop_closure import LoopCloser
 
     cfg = BackendConfig(pano_height=256, backend_min_ev_rate=10000.0, backend_max_window_events=-1)
-    ts = np.arange(0, DURATION + 1e-9, 0.01)
+    ts = np.arange(0, duration + 1e-9, 0.01)
     be = SlidingWindowBackend(cfg, 0.0)
-    be.spline = _spline(trajectory)
+    be.spline = _spline(trajectory, duration=duration)
     be.push_source_poses(ts, trajectory(ts))
-    be._anchor_at(DURATION - 0.2)
+    be._anchor_at(duration - 0.2)
     be.loop = LoopCloser(loop_cfg, be)
     be.push_events(t_ev, b_ev)
     stride = cfg.backend_sliding_window_stride
-    for k in range(int(round((DURATION - 0.2) / stride))):
+    for k in range(int(round((duration - 0.2) / stride))):
+        be.loop.before_window(k * stride, k * stride + cfg.backend_time_window_size)
         be._settle(k * stride, (k + 1) * stride, still=False)
         be.loop.after_window((k + 1) * stride)
     return be
@@ -124,6 +125,27 @@ def test_injected_drift_over_a_revisit_is_found_and_removed(ti_runtime):
     from ti_cmax.metrics import event_area_percent
 
     assert event_area_percent(be.map.raw) < event_area_percent(ref.map.raw)
+
+
+def test_every_revisit_is_closed_once(ti_runtime):
+    """A 2.3-turn pan whose drift keeps growing: every later revisit closes the drift built up since the last
+    loop (against the corrected map), and no correction is applied twice."""
+    duration, turns = 7.5, 2.3
+    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
+    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
+    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    be = _run(t_ev, b_ev, drifted, duration=duration)
+    applied = [e for e in be.loop.loops if e["applied"]]
+    assert len(applied) >= 3, be.loop.loops  # the first return and the later checks of the revisits
+    drift_deg = lambda t: np.degrees(DRIFT) * np.asarray(t) / duration  # noqa: E731
+    first, later = applied[0], applied[1:]
+    assert first["correction_deg"] > 0.5 * drift_deg(first["t_ref"] - first["t_old"])
+    # a later loop corrects the drift since the previous one (about 1 s of it), not the total again
+    for prev, e in zip(applied, later):
+        assert e["correction_deg"] < 2.0 * drift_deg(e["t_ref"] - prev["t_ref"]) + 0.1, (prev, e)
+    ts = np.linspace(first["t_ref"], applied[-1]["t_ref"], 30)
+    err = np.degrees(so3.geodesic_angle(be.spline.evaluate(ts), pan(ts)))
+    assert err.max() < 0.25 * drift_deg(applied[-1]["t_ref"]), err  # 3.6 deg injected there
 
 
 @pytest.mark.parametrize("second_visit", ["other", "textureless"])
