@@ -319,7 +319,8 @@ def _iwe_kernels(dtype, degree: int, radius: int):
         stats: ti.types.ndarray(dtype=ti.f64, ndim=2),
     ):
         """Vote I_L into the window buffer, blur it (result in buf), per-row sums of L, L^2, L G, of the raw votes and
-        of their event area 1 - exp(-I / lambda0) (float64; the last two give the density of I_L for alpha).
+        of their event area 1 - exp(-I / lambda0) (float64; the last two give the density of I_L for alpha; the
+        area only when lambda0 >= 0, i.e. when the caller needs it (-1 otherwise): an exp per buffer pixel).
 
         ``votes`` holds P = rows / bh copies of the buffer: part p votes events [p n/P, (p+1) n/P) into copy p with
         plain load/add/store, then the copies are summed in a fixed order (no float atomics, which were measured
@@ -346,7 +347,8 @@ def _iwe_kernels(dtype, degree: int, radius: int):
                     acc += votes[part * bh + i, j]
                 buf[i, j] = acc
                 raw += ti.cast(acc, ti.f64)
-                area += ti.cast(ti.cast(1.0, dtype) - ti.exp(-acc / lambda0), ti.f64)
+                if lambda0 >= 0:
+                    area += ti.cast(ti.cast(1.0, dtype) - ti.exp(-acc / lambda0), ti.f64)
             stats[i, 3] = raw
             stats[i, 4] = area
         blur_cols(buf, taps, wrap, tmp)
@@ -609,10 +611,8 @@ class PanoIWE:
         self._gb = np.zeros((nb, order, 3), dtype=self.dtype)
         self.last_window = None  # (r0, c0, bh, bw, wrap) of the last evaluation, for inspection
         self._density_ref = None  # (rho_g, lambda0) until alpha is set by the first evaluation
-        self.lambda0 = 1.0
         if alpha_from_density is not None and self.g_sum > 0 and alpha_from_density[0] > 0:
             self._density_ref = (float(alpha_from_density[0]), float(alpha_from_density[1]))
-            self.lambda0 = self._density_ref[1]
             self.alpha = 1.0  # placeholder: the first evaluation sets it (the G terms are computed)
         # copies of the window buffer voted into by one parallel part each (the Taichi thread count, at most 8)
         self.parts = int(parts) if parts else max(1, min(8, num_threads()))
@@ -663,7 +663,8 @@ class PanoIWE:
         tmp = np.empty_like(lmap)
         votes = np.empty((self.parts * bh, bw), dtype=self.dtype)
         stats = np.empty((bh, 5))
-        k["local_map"](self._uv, c0, r0, self.width, self.taps, wrap, self.gmap, int(self.alpha != 0), self.lambda0,
+        k["local_map"](self._uv, c0, r0, self.width, self.taps, wrap, self.gmap, int(self.alpha != 0),
+                       self._density_ref[1] if self._density_ref is not None else -1.0,  # event area: first call only
                        votes, lmap, tmp, stats)
         s_l, s_ll, s_lg, raw, area = stats.sum(axis=0)
         if self._density_ref is not None:  # the first evaluation: alpha from the density of this local map
