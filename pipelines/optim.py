@@ -247,12 +247,11 @@ def bfgs(
             converged, message = True, "gradient tolerance reached"
             break
         it += 1
-        p = -g * (init_step / np.linalg.norm(g)) if H is None else -(H @ g)
-        d = float(g @ p)
-        if not d < 0:  # H lost positive definiteness numerically: steepest descent
+        p = None if H is None else -(H @ g)
+        if p is None or not float(g @ p) < 0:  # no curvature yet, or H lost positive definiteness numerically
             H, updates = None, 0
             p = -g * (init_step / np.linalg.norm(g))
-            d = float(g @ p)
+        d = float(g @ p)
         steepest = H is None
         norm = float(np.linalg.norm(p))
         if norm > max_step:
