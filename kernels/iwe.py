@@ -23,10 +23,15 @@ g * g (zero padding on the sensor is then exact; the outer taps below 1e-5 of th
              (P = thread count), each voting into its own copy of I with plain load/add/store: no float
              atomics (compare-and-swap loops on CPU) and a deterministic sum. The projection (u, v), the
              rotated bearing and the Rodrigues coefficients are kept per event for pass 3;
-  2. rows:   T = horizontal G2 blur of sum_p I_p, 8 outputs per step so LLVM can use SIMD (the copies
-             are cleared row by row for the next evaluation);
+  2. pixels: T = horizontal G2 blur of sum_p I_p, 8 outputs per (row, group) iteration so LLVM can use SIMD;
+             then the copies are cleared for the next evaluation;
   3. events: H at the four neighbours by the vertical G2 taps gathered from T, then the cost term w.H
-             and the gradient 3-vector from the stored warp, reduced per block of events (no gradient image).
+             and the gradient 3-vector from the stored warp, partial sums per group of 8 events
+             (no gradient image).
+Taichi 1.7's CPU range-for hands out tasks of (at least) 512 consecutive iterations, so a loop over the 2
+parts or the 180 rows would run on one thread: pass 1 loops over 512 iterations per part (task p = part p),
+passes 2 and 3 over (row, group) and event groups. Partial sums are
+stored per iteration and added in a fixed order, so a result does not depend on the schedule.
 The vertical blur is never materialised: gathering it per event beats a full image pass with stores,
 which Taichi's CPU backend does not vectorise (measured; see the front-end issue note).
 
@@ -48,7 +53,8 @@ from ti_cmax.kernels.runtime import ensure_init, num_threads, ti
 
 MEASURES = {"variance": 0, "mean_square": 1}
 _DTYPES = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
-_BLOCK = 256  # events per reduction block
+_TASK = 512  # iterations of one CPU task in Taichi 1.7 (see pass 1)
+_GROUP = 8  # events per pass-3 iteration (its partial sums in f32, then f64 in order)
 _LANES = 8  # outputs per step of the horizontal blur
 
 
@@ -87,7 +93,8 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
     img = ti.field(f, shape=(parts * h, wi))  # copy p holds rows [p h, (p + 1) h)
     tmp = ti.field(f, shape=(h + 2 * pady, w4 + 2))
     out = ti.field(ti.f64, shape=8)
-    nblocks_max = (capacity + _BLOCK - 1) // _BLOCK
+    psum = ti.Vector.field(2, ti.f64, shape=parts * _TASK)  # pass 1 partials: sum of weights, events landing
+    gsum = ti.Vector.field(4, f, shape=(capacity + _GROUP - 1) // _GROUP)  # pass 3 partials per event group
 
     @ti.func
     def coeffs(th2):
@@ -130,16 +137,21 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                  with_grad: ti.i32, res: ti.types.ndarray(dtype=ti.f64, ndim=1)):
         """res[:6] = sum of weights, cost term, gradient (3), events landing (a kernel's vector return costs ~70 us
         of Python per launch; an ndarray argument ~15)."""
-        for q in range(8):
-            out[q] = 0.0
-        nblocks = (n + _BLOCK - 1) // _BLOCK
-        # pass 1: warp and vote (in-bounds neighbours only); part p votes events [p*chunk, (p+1)*chunk) into its
-        # own copy of I with plain load/add/store (no atomics: float atomics are compare-and-swap loops on CPU)
+        # pass 1: warp and vote (in-bounds neighbours only). Part p votes events [p*chunk, (p+1)*chunk) into its own
+        # copy of I with plain load/add/store (float atomics are compare-and-swap loops on CPU). The loop has
+        # _TASK iterations per part: Taichi 1.7's CPU range-for runs tasks of max(512, n / (32 threads)) = _TASK
+        # consecutive iterations on one thread each, so part p is task p (one thread writes each copy, in event
+        # order: deterministic) and the parts run on different threads.
         chunk = (n + parts - 1) // parts
-        for part in range(parts):
-            sw = ti.f64(0.0)
-            cnt = ti.f64(0.0)
-            for k in range(part * chunk, ti.min(n, (part + 1) * chunk)):
+        sub = (chunk + _TASK - 1) // _TASK  # events per iteration
+        ti.loop_config(block_dim=_TASK)
+        for it in range(parts * _TASK):
+            part = it // _TASK
+            k0 = part * chunk + (it % _TASK) * sub
+            k1 = ti.min(ti.min(n, (part + 1) * chunk), k0 + sub)
+            sw = f(0.0)
+            cnt = 0
+            for k in range(k0, k1):
                 xr, _phi, _dk, bb, cc = warp(k, wx, wy, wz)
                 wp[k][0] = f(-2.0)
                 if xr[2] > f(1e-6):
@@ -150,33 +162,40 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                         wp[k] = ti.Vector([u, v, xr[0], xr[1], xr[2], bb, cc, iz])
                         x0, y0, ax, ay = bl.split(u, v)
                         xi = x0 + r2  # padded column: always within [r2-1, r2+w]; u in (-1, w) needs 2 checks
-                        sw += ti.cast(bl.scatter(img, part * h, h, y0, xi, xi + 1, x0 >= 0, x0 + 1 < w, ax, ay,
-                                                 f(1.0), ADD), ti.f64)
-                        cnt += 1.0
-            out[0] += sw
-            out[5] += cnt
-        # pass 2: horizontal G2 blur of each row of sum_p I_p into T, then clear the row of every copy
-        for i in range(h):
-            for jg in range(w4 // _LANES):  # _LANES independent outputs per step (lets LLVM use SIMD)
-                j = jg * _LANES
-                s = ti.Vector([f(0.0)] * _LANES)
-                for c in ti.static(range(2 * r2 + 1)):
-                    for q in ti.static(range(_LANES)):
-                        for p in ti.static(range(parts)):
-                            s[q] += f(taps2[c]) * img[p * h + i, j + c + q]
+                        sw += bl.scatter(img, part * h, h, y0, xi, xi + 1, x0 >= 0, x0 + 1 < w, ax, ay, f(1.0), ADD)
+                        cnt += 1
+            psum[it] = ti.Vector([ti.cast(sw, ti.f64), ti.cast(cnt, ti.f64)])
+        # pass 2: horizontal G2 blur of sum_p I_p into T, _LANES outputs per (row, group) iteration (SIMD; enough
+        # iterations for several tasks)
+        for i, jg in ti.ndrange(h, w4 // _LANES):
+            j = jg * _LANES
+            s = ti.Vector([f(0.0)] * _LANES)
+            for c in ti.static(range(2 * r2 + 1)):
                 for q in ti.static(range(_LANES)):
-                    tmp[i + pady, j + q + 1] = s[q]
-            for j in range(wi):
-                for p in ti.static(range(parts)):
-                    img[p * h + i, j] = f(0.0)
-        # pass 3: cost and gradient, gathering the vertical G2 taps from T per event
+                    for p in ti.static(range(parts)):
+                        s[q] += f(taps2[c]) * img[p * h + i, j + c + q]
+            for q in ti.static(range(_LANES)):
+                tmp[i + pady, j + q + 1] = s[q]
+        # serial sums of the per-iteration partials (fixed order: the same bits whatever the schedule); mu
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            acc1 = ti.Vector([0.0, 0.0], ti.f64)
+            for it in range(parts * _TASK):
+                acc1 += psum[it]
+            out[0] = acc1[0]
+            out[5] = acc1[1]
+        # the copies of I are cleared for the next evaluation
+        for i, j in ti.ndrange(parts * h, wi):
+            img[i, j] = f(0.0)
+        # pass 3: cost and gradient, gathering the vertical G2 taps from T per event, _GROUP events per iteration
         npix = f(float(h * w))
         mu = f(0.0)
         if measure == 0:
             mu = ti.cast(out[0], f) / npix
-        for blk in range(nblocks):
-            acc = ti.Vector([f(0.0), f(0.0), f(0.0), f(0.0)])  # f32 within a block of _BLOCK events, f64 across
-            for k in range(blk * _BLOCK, ti.min(n, (blk + 1) * _BLOCK)):
+        ngroups = (n + _GROUP - 1) // _GROUP
+        for grp in range(ngroups):
+            acc = ti.Vector([f(0.0), f(0.0), f(0.0), f(0.0)])
+            for k in range(grp * _GROUP, ti.min(n, (grp + 1) * _GROUP)):
                 q = wp[k]
                 u = q[0]
                 v = q[1]
@@ -223,10 +242,17 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                         acc[0] += gk[0]
                         acc[1] += gk[1]
                         acc[2] += gk[2]
-            out[2] += ti.cast(acc[0], ti.f64)
-            out[3] += ti.cast(acc[1], ti.f64)
-            out[4] += ti.cast(acc[2], ti.f64)
-            out[1] += ti.cast(acc[3], ti.f64)
+            gsum[grp] = acc
+        # f64 sums of the group partials, in order
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            acc3 = ti.Vector([0.0, 0.0, 0.0, 0.0], ti.f64)
+            for grp in range(ngroups):
+                acc3 += ti.cast(gsum[grp], ti.f64)
+            out[2] = acc3[0]
+            out[3] = acc3[1]
+            out[4] = acc3[2]
+            out[1] = acc3[3]
         for q in range(6):
             res[q] = out[q]
 
@@ -243,7 +269,6 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                 if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
                     bl.vote(dst, u, v, f(1.0), ATOMIC)
 
-    assert nblocks_max >= 1
     return load, evaluate, render
 
 
