@@ -28,10 +28,11 @@ g * g (zero padding on the sensor is then exact; the outer taps below 1e-5 of th
   3. events: H at the four neighbours by the vertical G2 taps gathered from T, then the cost term w.H
              and the gradient 3-vector from the stored warp, partial sums per group of 8 events
              (no gradient image).
-Taichi 1.7's CPU range-for hands out tasks of (at least) 512 consecutive iterations, so a loop over the 2
-parts or the 180 rows would run on one thread: pass 1 loops over 512 iterations per part (task p = part p),
-passes 2 and 3 over (row, group) and event groups. Partial sums are
-stored per iteration and added in a fixed order, so a result does not depend on the schedule.
+Taichi 1.7.4's CPU range-for of N iterations runs as tasks of max(512, ceil(N / threads)) consecutive
+iterations, one thread each (measured), so a loop over the 2 parts or a few hundred rows runs on one thread.
+Pass 1 therefore loops over 512 iterations per part: with P <= threads (or P a multiple of it) every task
+holds whole parts, so one thread writes each copy; passes 2 and 3 loop over (row, group) and event groups.
+Partial sums are stored per iteration and added in a fixed order: a result does not depend on the schedule.
 The vertical blur is never materialised: gathering it per event beats a full image pass with stores,
 which Taichi's CPU backend does not vectorise (measured; see the front-end issue note).
 
@@ -138,10 +139,9 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
         """res[:6] = sum of weights, cost term, gradient (3), events landing (a kernel's vector return costs ~70 us
         of Python per launch; an ndarray argument ~15)."""
         # pass 1: warp and vote (in-bounds neighbours only). Part p votes events [p*chunk, (p+1)*chunk) into its own
-        # copy of I with plain load/add/store (float atomics are compare-and-swap loops on CPU). The loop has
-        # _TASK iterations per part: Taichi 1.7's CPU range-for runs tasks of max(512, n / (32 threads)) = _TASK
-        # consecutive iterations on one thread each, so part p is task p (one thread writes each copy, in event
-        # order: deterministic) and the parts run on different threads.
+        # copy of I with plain load/add/store (float atomics are compare-and-swap loops on CPU). _TASK iterations
+        # per part: each CPU task holds whole parts (module docstring), so one thread writes each copy, in event
+        # order (deterministic), and the parts run on different threads.
         chunk = (n + parts - 1) // parts
         sub = (chunk + _TASK - 1) // _TASK  # events per iteration
         ti.loop_config(block_dim=_TASK)
@@ -299,16 +299,20 @@ class IWEWorkspace:
     def _ensure(self):
         if self._kernels is None:
             ensure_init()
-            self._kernels = _build(_DTYPES[self.dtype], self.taps2, self.height, self.width, self.capacity,
-                                   self.parts or max(1, min(8, num_threads())))
+            threads = num_threads()
+            parts = self.parts or max(1, min(8, threads))
+            if parts > threads and parts % threads:
+                # a CPU task would then hold parts of two copies: two threads could write one copy (module docstring)
+                raise ValueError(f"parts={parts} must be at most the thread count ({threads}) or a multiple of it")
+            self._kernels = _build(_DTYPES[self.dtype], self.taps2, self.height, self.width, self.capacity, parts)
         return self._kernels
 
     def compile(self) -> None:
-        """Build (or fetch from the offline cache) all kernels now, e.g. to time compilation apart."""
-        load, evaluate, render = self._ensure()
+        """Build (or fetch from the offline cache) the kernels an estimation uses, e.g. to time compilation apart
+        (not ``iwe``'s display kernel: every command pays the start-up)."""
+        load, evaluate, _render = self._ensure()
         self.set_packet(np.zeros((1, 3)) + [0, 0, 1], np.zeros(1))
         evaluate(1, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0, 1, self._res)
-        render(1, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, np.zeros((self.height, self.width), self.dtype))
 
     def set_packet(self, bearings: np.ndarray, dts: np.ndarray) -> None:
         """Upload one packet: bearings (N, 3) and relative times dt_k = t_k - t_ref (N,)."""

@@ -229,9 +229,7 @@ def _iwe_kernels(dtype, degree: int, radius: int):
         n_ev = bearings.shape[0]
         half = width // 2
         for b in range(batch_s.shape[0]):
-            r, jac = spl.pose_jacobians(ctrl, batch_s[b], batch_u[b])
-            for k in ti.static(range(order)):
-                jac_out[b, k] = jac[k]
+            r = spl.pose_jacobians(ctrl, batch_s[b], batch_u[b], jac_out, b)
             ref = -1
             dmin = 0
             dmax = 0

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from ti_cmax import Camera
-from ti_cmax.kernels import iwe
+from ti_cmax.kernels import iwe, runtime
 
 CAM = Camera(64, 48, 50.0, 52.0, 31.3, 24.1)
 
@@ -95,9 +95,11 @@ def test_unknown_measure_is_rejected():
         iwe.measure_id("entropy")
 
 
-@pytest.mark.parametrize("parts", [1, 3])
-def test_vote_parts_and_ragged_width_match_twin(ti_runtime, parts):
-    """Votes split over several image copies, and a width that is not a multiple of the blur's SIMD group."""
+@pytest.mark.parametrize("parts_per_thread", [0, 1, 2])
+def test_vote_parts_and_ragged_width_match_twin(ti_runtime, parts_per_thread):
+    """Votes split over several image copies (1 part, one per thread, two per thread), and a width that is not a
+    multiple of the blur's SIMD group."""
+    parts = max(1, parts_per_thread * runtime.num_threads())
     cam = Camera(61, 37, 40.0, 41.0, 30.2, 18.4)
     rng = np.random.default_rng(5)
     n = 1500
@@ -132,3 +134,13 @@ def test_parallel_evaluation_is_deterministic(ti_runtime):
         tol = 1e-9 if dtype == np.float64 else 1e-5  # f32: the gradient's sum cancels to ~1e-3 relative
         assert c == pytest.approx(c_ref, rel=tol)
         np.testing.assert_allclose(g, g_ref, rtol=tol if dtype == np.float64 else 3e-3, atol=tol * np.abs(g_ref).max())
+
+
+def test_parts_that_would_share_a_task_are_rejected(ti_runtime):
+    """With more parts than threads (and not a multiple), one CPU task would hold pieces of two copies."""
+    threads = runtime.num_threads()
+    if threads == 1:
+        pytest.skip("every part count is safe with one thread")
+    ws = iwe.IWEWorkspace(16, 8, np.float32, capacity=64, parts=threads + 1)
+    with pytest.raises(ValueError, match="thread count"):
+        ws.set_packet(np.array([[0.0, 0.0, 1.0]]), np.zeros(1))
