@@ -28,10 +28,9 @@ g * g (zero padding on the sensor is then exact; the outer taps below 1e-5 of th
   3. events: H at the four neighbours by the vertical G2 taps gathered from T, then the cost term w.H
              and the gradient 3-vector from the stored warp, partial sums per group of 8 events
              (no gradient image).
-Taichi 1.7.4's CPU range-for of N iterations runs as tasks of max(512, ceil(N / threads)) consecutive
-iterations, one thread each (measured), so a loop over the 2 parts or a few hundred rows runs on one thread.
-Pass 1 therefore loops over 512 iterations per part: with P <= threads (or P a multiple of it) every task
-holds whole parts, so one thread writes each copy; passes 2 and 3 loop over (row, group) and event groups.
+Taichi 1.7.4's CPU range-for runs as tasks of >= 512 consecutive iterations, one thread each (see
+kernels/runtime.py), so a loop over the 2 parts or a few hundred rows would run on one thread: pass 1 loops over
+PART_TASK iterations per part (whole parts per task), passes 2 and 3 over (row, group) and event groups.
 Partial sums are stored per iteration and added in a fixed order: a result does not depend on the schedule.
 The vertical blur is never materialised: gathering it per event beats a full image pass with stores,
 which Taichi's CPU backend does not vectorise (measured; see the front-end issue note).
@@ -50,11 +49,10 @@ import numpy as np
 from ti_cmax.kernels import bilinear
 from ti_cmax.kernels.bilinear import ADD, ATOMIC, bilinear_funcs
 from ti_cmax.kernels.blur import gaussian_taps
-from ti_cmax.kernels.runtime import ensure_init, num_threads, ti
+from ti_cmax.kernels.runtime import PART_TASK, check_parts, ensure_init, num_threads, part_slice, ti
 
 MEASURES = {"variance": 0, "mean_square": 1}
 _DTYPES = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
-_TASK = 512  # iterations of one CPU task in Taichi 1.7 (see pass 1)
 _GROUP = 8  # events per pass-3 iteration (its partial sums in f32, then f64 in order)
 _LANES = 8  # outputs per step of the horizontal blur
 
@@ -94,7 +92,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
     img = ti.field(f, shape=(parts * h, wi))  # copy p holds rows [p h, (p + 1) h)
     tmp = ti.field(f, shape=(h + 2 * pady, w4 + 2))
     out = ti.field(ti.f64, shape=8)
-    psum = ti.Vector.field(2, ti.f64, shape=parts * _TASK)  # pass 1 partials: sum of weights, events landing
+    psum = ti.Vector.field(2, ti.f64, shape=parts * PART_TASK)  # pass 1 partials: sum of weights, events landing
     gsum = ti.Vector.field(4, f, shape=(capacity + _GROUP - 1) // _GROUP)  # pass 3 partials per event group
 
     @ti.func
@@ -139,16 +137,10 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
         """res[:6] = sum of weights, cost term, gradient (3), events landing (a kernel's vector return costs ~70 us
         of Python per launch; an ndarray argument ~15)."""
         # pass 1: warp and vote (in-bounds neighbours only). Part p votes events [p*chunk, (p+1)*chunk) into its own
-        # copy of I with plain load/add/store (float atomics are compare-and-swap loops on CPU). _TASK iterations
-        # per part: each CPU task holds whole parts (module docstring), so one thread writes each copy, in event
-        # order (deterministic), and the parts run on different threads.
-        chunk = (n + parts - 1) // parts
-        sub = (chunk + _TASK - 1) // _TASK  # events per iteration
-        ti.loop_config(block_dim=_TASK)
-        for it in range(parts * _TASK):
-            part = it // _TASK
-            k0 = part * chunk + (it % _TASK) * sub
-            k1 = ti.min(ti.min(n, (part + 1) * chunk), k0 + sub)
+        # copy of I with plain load/add/store (float atomics are compare-and-swap loops on CPU); each CPU task
+        # holds whole parts (kernels/runtime.py), so one thread writes each copy, in event order (deterministic)
+        for it in range(parts * PART_TASK):
+            part, k0, k1 = part_slice(it, n, parts)
             sw = f(0.0)
             cnt = 0
             for k in range(k0, k1):
@@ -180,7 +172,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
         ti.loop_config(serialize=True)
         for _ in range(1):
             acc1 = ti.Vector([0.0, 0.0], ti.f64)
-            for it in range(parts * _TASK):
+            for it in range(parts * PART_TASK):
                 acc1 += psum[it]
             out[0] = acc1[0]
             out[5] = acc1[1]
@@ -299,11 +291,7 @@ class IWEWorkspace:
     def _ensure(self):
         if self._kernels is None:
             ensure_init()
-            threads = num_threads()
-            parts = self.parts or max(1, min(8, threads))
-            if parts > threads and parts % threads:
-                # a CPU task would then hold parts of two copies: two threads could write one copy (module docstring)
-                raise ValueError(f"parts={parts} must be at most the thread count ({threads}) or a multiple of it")
+            parts = check_parts(self.parts or max(1, min(8, num_threads())))
             self._kernels = _build(_DTYPES[self.dtype], self.taps2, self.height, self.width, self.capacity, parts)
         return self._kernels
 

@@ -126,4 +126,32 @@ def ensure_init() -> None:
     _state["threads"] = threads
 
 
-__all__ = ["ti", "ensure_init", "set_num_threads", "num_threads"]
+# Taichi 1.7.4 runs a CPU range-for of N iterations as tasks of max(512, ceil(N / threads)) consecutive
+# iterations, one thread each (measured: tests/kernels/test_iwe.py). A loop of <= 512 iterations (2 vote parts, a
+# few hundred rows) therefore runs on one thread. Voting in P parts, each into its own image copy with plain
+# load/add/store, loops over PART_TASK iterations per part: with P <= threads, or P a multiple of threads, every
+# task holds whole parts, so one thread writes each copy, in event order (deterministic).
+PART_TASK = 512
+
+
+def check_parts(parts: int) -> int:
+    """``parts`` if every CPU task of a P x PART_TASK loop holds whole parts (see above), else ValueError."""
+    threads = num_threads()
+    if parts > threads and parts % threads:
+        raise ValueError(f"parts={parts} must be at most the thread count ({threads}) or a multiple of it")
+    return parts
+
+
+@ti.func
+def part_slice(it, n, parts):
+    """Iteration ``it`` of a ``range(parts * PART_TASK)`` loop over n items: (part, first item, end item); part p
+    covers items [p ceil(n/P), (p+1) ceil(n/P)), in PART_TASK consecutive slices."""
+    chunk = (n + parts - 1) // parts
+    sub = (chunk + PART_TASK - 1) // PART_TASK
+    part = it // PART_TASK
+    k0 = part * chunk + (it % PART_TASK) * sub
+    k1 = ti.min(ti.min(n, (part + 1) * chunk), k0 + sub)
+    return part, k0, k1
+
+
+__all__ = ["ti", "ensure_init", "set_num_threads", "num_threads", "PART_TASK", "check_parts", "part_slice"]
