@@ -36,7 +36,7 @@ from ti_cmax.metrics import event_area_percent
 from . import bilinear
 from .bilinear import ADD, bilinear_funcs
 from .blur import TRUNCATE, blur_radius, gaussian_taps
-from .runtime import PART_TASK, check_parts, ensure_init, num_threads, part_slice, ti
+from .runtime import ensure_init, num_threads, ti
 from .spline import spline_funcs
 
 
@@ -261,40 +261,44 @@ def _iwe_kernels(dtype, degree: int, radius: int):
 
     @ti.func
     def blur_cols(src: ti.template(), taps, wrap, dst: ti.template()):
-        """Blur along u, one task per pixel range (a loop over a few hundred rows would run on one thread): cyclic
-        when the buffer is the full width, else zero padding."""
+        """Blur along u, one row per task: cyclic when the buffer is the full width, else zero padding."""
         bh, bw = src.shape[0], src.shape[1]
-        for i, j in ti.ndrange(bh, bw):
-            acc = ti.cast(0.0, dtype)
-            if j >= radius and j < bw - radius:
-                for k in ti.static(range(-radius, radius + 1)):
-                    acc += taps[k + radius] * src[i, j + k]
-            else:
-                for k in ti.static(range(-radius, radius + 1)):
-                    jj = j + k
-                    if wrap:
-                        if jj < 0:
-                            jj += bw
-                        elif jj >= bw:
-                            jj -= bw
-                    if jj >= 0 and jj < bw:
-                        acc += taps[k + radius] * src[i, jj]
-            dst[i, j] = acc
+        for i in range(bh):
+            for j in range(bw):
+                acc = ti.cast(0.0, dtype)
+                if j >= radius and j < bw - radius:
+                    for k in ti.static(range(-radius, radius + 1)):
+                        acc += taps[k + radius] * src[i, j + k]
+                else:
+                    for k in ti.static(range(-radius, radius + 1)):
+                        jj = j + k
+                        if wrap:
+                            if jj < 0:
+                                jj += bw
+                            elif jj >= bw:
+                                jj -= bw
+                        if jj >= 0 and jj < bw:
+                            acc += taps[k + radius] * src[i, jj]
+                dst[i, j] = acc
 
     @ti.func
     def blur_rows(src: ti.template(), taps, dst: ti.template()):
-        """Blur along v (zero padding: the buffer's rows reach the map border or beyond the support), per pixel."""
+        """Blur along v (zero padding: the buffer's rows reach the map border or beyond the support)."""
         bh, bw = src.shape[0], src.shape[1]
-        for i, j in ti.ndrange(bh, bw):
-            acc = ti.cast(0.0, dtype)
+        for i in range(bh):
             if i >= radius and i < bh - radius:
-                for k in ti.static(range(-radius, radius + 1)):
-                    acc += taps[k + radius] * src[i + k, j]
-            else:
-                for k in ti.static(range(-radius, radius + 1)):
-                    if i + k >= 0 and i + k < bh:
+                for j in range(bw):
+                    acc = ti.cast(0.0, dtype)
+                    for k in ti.static(range(-radius, radius + 1)):
                         acc += taps[k + radius] * src[i + k, j]
-            dst[i, j] = acc
+                    dst[i, j] = acc
+            else:
+                for j in range(bw):
+                    acc = ti.cast(0.0, dtype)
+                    for k in ti.static(range(-radius, radius + 1)):
+                        if i + k >= 0 and i + k < bh:
+                            acc += taps[k + radius] * src[i + k, j]
+                    dst[i, j] = acc
 
     @ti.kernel
     def k_local_map(
@@ -326,9 +330,9 @@ def _iwe_kernels(dtype, degree: int, radius: int):
         for i, j in votes:
             votes[i, j] = ti.cast(0.0, dtype)
         n_ev = uv.shape[0]
-        for it in range(parts * PART_TASK):  # whole parts per CPU task (kernels/runtime.py): parts run in parallel
-            part, e0, e1 = part_slice(it, n_ev, parts)
-            for e in range(e0, e1):
+        chunk = (n_ev + parts - 1) // parts
+        for part in range(parts):
+            for e in range(part * chunk, ti.min(n_ev, (part + 1) * chunk)):
                 i0, j0, fu, fv = bl.split(uv[e, 0], uv[e, 1])
                 la, lb = bl.wrap_cols(i0 - c0, width)  # buffer columns of map columns i0, i0 + 1 (mod w)
                 bl.scatter(votes, part * bh, bh, j0 - r0, la, lb, 1, 1, fu, fv, ti.cast(1.0, dtype), ADD)
@@ -609,7 +613,7 @@ class PanoIWE:
             self._density_ref = (float(alpha_from_density[0]), float(alpha_from_density[1]))
             self.alpha = 1.0  # placeholder: the first evaluation sets it (the G terms are computed)
         # copies of the window buffer voted into by one parallel part each (the Taichi thread count, at most 8)
-        self.parts = check_parts(int(parts) if parts else max(1, min(8, num_threads())))
+        self.parts = int(parts) if parts else max(1, min(8, num_threads()))
 
     # -- helpers --
     def _window(self):
