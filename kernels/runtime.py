@@ -99,6 +99,16 @@ def set_num_threads(n: int | None) -> None:
     _state["threads"] = n
 
 
+def share_cores(processes: int) -> None:
+    """Before the first kernel: this process runs beside ``processes - 1`` others (a back-end worker), so it takes
+    its share of the cores, unless a thread count was chosen (set_num_threads / --threads, TI_CMAX_THREADS).
+    Oversubscribed Taichi thread pools wait for descheduled threads at every parallel loop: `slam --parallel` on 2
+    cores took 8.0-12.5 s with 2 threads per process, 7.4-7.8 s with 1 (3 M events, load 5)."""
+    if _state["initialized"] or _state["threads"] or os.environ.get("TI_CMAX_THREADS"):
+        return
+    _state["threads"] = max(1, (os.cpu_count() or 1) // max(1, int(processes)))
+
+
 def num_threads() -> int:
     if _state["threads"]:
         return int(_state["threads"])
@@ -154,4 +164,4 @@ def part_slice(it, n, parts):
     return part, k0, k1
 
 
-__all__ = ["ti", "ensure_init", "set_num_threads", "num_threads", "PART_TASK", "check_parts", "part_slice"]
+__all__ = ["ti", "ensure_init", "set_num_threads", "num_threads", "share_cores", "PART_TASK", "check_parts", "part_slice"]

@@ -143,6 +143,10 @@ class OnlineSlam:
     def __init__(self, camera: Camera, config: SlamConfig = SlamConfig(), *, on_window=None,
                  backend_process: bool = False, queue_size: int = 16, max_backlog: float | None = None):
         self._wall0 = time.perf_counter()
+        if backend_process:
+            from ti_cmax.kernels import runtime
+
+            runtime.share_cores(2)  # the worker runs beside this process: half the cores each (unless chosen)
         self.derived = derived_summary(config, camera)
         self.config = config = resolve_config(config, camera)
         self.on_window = on_window

@@ -25,3 +25,21 @@ def test_one_thread_is_bit_exact(tmp_path):
     first = _slam(seq, tmp_path / "a", "--threads", "1")
     second = _slam(seq, tmp_path / "b", "--set", "num_threads=1")  # the config key reaches the runtime too
     assert first == second
+
+
+def test_a_worker_process_halves_the_default_thread_count(monkeypatch):
+    """With a back-end worker beside it (--parallel) each process takes half the cores; a chosen count is kept."""
+    from ti_cmax.kernels import runtime
+
+    monkeypatch.delenv("TI_CMAX_THREADS", raising=False)
+    monkeypatch.setattr(runtime, "_state", {"initialized": False, "threads": None})
+    monkeypatch.setattr(runtime.os, "cpu_count", lambda: 8)
+    runtime.share_cores(2)
+    assert runtime.num_threads() == 4
+    monkeypatch.setattr(runtime, "_state", {"initialized": False, "threads": 3})
+    runtime.share_cores(2)
+    assert runtime.num_threads() == 3
+    monkeypatch.setattr(runtime, "_state", {"initialized": False, "threads": None})
+    monkeypatch.setenv("TI_CMAX_THREADS", "2")
+    runtime.share_cores(2)
+    assert runtime.num_threads() == 2
