@@ -326,9 +326,7 @@ def _iwe_kernels(dtype, degree: int, radius: int):
         the other (one launch instead of five).
         """
         bh, bw = buf.shape[0], buf.shape[1]
-        parts = votes.shape[0] // bh
-        for i, j in votes:
-            votes[i, j] = ti.cast(0.0, dtype)
+        parts = votes.shape[0] // bh  # votes arrives zeroed (np.zeros: a struct-for clear cost 10 ns per pixel)
         n_ev = uv.shape[0]
         chunk = (n_ev + parts - 1) // parts
         for part in range(parts):
@@ -659,7 +657,7 @@ class PanoIWE:
         r0, c0, bh, bw, wrap = win
         lmap = np.empty((bh, bw), dtype=self.dtype)
         tmp = np.empty_like(lmap)
-        votes = np.empty((self.parts * bh, bw), dtype=self.dtype)
+        votes = np.zeros((self.parts * bh, bw), dtype=self.dtype)  # calloc: zero pages, no pass over memory
         stats = np.empty((bh, 5))
         k["local_map"](self._uv, c0, r0, self.width, self.taps, wrap, self.gmap, int(self.alpha != 0),
                        self._density_ref[1] if self._density_ref is not None else -1.0,  # event area: first call only
