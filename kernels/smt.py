@@ -43,8 +43,8 @@ reads as velocity, lost within 0.2 s on every sequence.)
 Constant angular acceleration (``state_a``, EKF-SMT's default): a segment dt_ref long measures the MEAN angular
 velocity over it, which under an angular acceleration a is w - a dt_ref / 2, not the current w: a constant-velocity
 state reads every segment as a velocity dt_ref / 2 old and, with its velocity random walk, trades that lag against
-noise (measured on the simulated bicycle, seed 1: velocity error 0.2-0.8 rad/s, 0.5-1.0 while |a| = 12-22 rad/s^2,
-filter std 0.15-0.2; lost at 4.76 s while braking from 5 to 1 rad/s). The state (R, w, a) predicts R exp(w dt +
+noise (measured on the simulated bicycle, seed 1: RMS velocity error 0.63 rad/s over 2.4-4 s, where |a| reaches
+20 rad/s^2, 0.27 with the acceleration state; pipelines/baselines/smt.py). The state (R, w, a) predicts R exp(w dt +
 a dt^2 / 2), w + a dt (a random walk of std q_jerk sqrt(dt)), reads the reference at p(R exp(-(w - a dt_ref / 2)
 dt_ref) b), H_a = -(dt_ref / 2) H_w, and adds the jerk walk's extrapolation variance q_jerk^2 dt_ref^5 / 20 to S.
 The update is 9-d. Its n x n algebra (n = 6, 9) runs in loops over a scratch array: unrolled 9 x 9 register

@@ -36,9 +36,10 @@ benchmark`` with ground truth, 1024 x 512 map):
   segment dt_ref long measures the mean angular velocity over it, w - a dt_ref / 2; the constant-velocity state
   read it as the current w, so its velocity lagged under angular acceleration and its velocity random walk
   (``angular_acceleration_std``) could only trade that lag for noise. Measured on bicycle (paper suite, seed 1),
-  error of w against the ground truth: constant velocity 0.2-0.3 rad/s over the first 2 s (filter std 0.2), 0.5-1.0
-  at |a| = 12-22 rad/s^2, lost at 4.76 s while braking from 5 to 1 rad/s; constant acceleration 0.05-0.17 rad/s,
-  0.2-0.4 at that acceleration. The jerk noise ``angular_jerk_std`` q_j (a random walk of a, std q_j sqrt(dt))
+  RMS error of w against the ground truth (sampled every 50 batches), constant velocity -> constant acceleration:
+  0.5-2.4 s 0.25 -> 0.19 rad/s, 2.4-4.0 s (|a| up to 20 rad/s^2) 0.63 -> 0.27, 4.0-4.7 s (braking from 5 to
+  1 rad/s) 0.77 -> 0.65; the constant-velocity filter was lost at 4.76 s, the other tracks to the end (1.0 deg).
+  The filter's own w std is 0.05-0.07 rad/s (0.15-0.2 before): still overconfident by 3-10x. The jerk noise ``angular_jerk_std`` q_j (a random walk of a, std q_j sqrt(dt))
   sets the same trade one derivative higher: q_j = 150 / 500 / 1000 / 2000 rad/s^2.5 were run on bicycle, city
   (paper suite) and the old held-out street seed 102; 500 lost bicycle at the braking (4.1 s), 2000 lost city at
   3.8 s (a noisier w failed the motion-consistency check) but tracked street-102, 1000 tracked bicycle and city,
