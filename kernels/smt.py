@@ -40,6 +40,16 @@ the velocity's random walk over dt_ref, whose variance q_acc^2 dt_ref^3 / 3 per 
 R_pred^T R_ref with only the velocity's deviation times dt_ref as its error: the references' pose jitter then
 reads as velocity, lost within 0.2 s on every sequence.)
 
+Constant angular acceleration (``state_a``, EKF-SMT's default): a segment dt_ref long measures the MEAN angular
+velocity over it, which under an angular acceleration a is w - a dt_ref / 2, not the current w: a constant-velocity
+state reads every segment as a velocity dt_ref / 2 old and, with its velocity random walk, trades that lag against
+noise (measured on the simulated bicycle, seed 1: RMS velocity error 0.63 rad/s over 2.4-4 s, where |a| reaches
+20 rad/s^2, 0.27 with the acceleration state; pipelines/baselines/smt.py). The state (R, w, a) predicts R exp(w dt +
+a dt^2 / 2), w + a dt (a random walk of std q_jerk sqrt(dt)), reads the reference at p(R exp(-(w - a dt_ref / 2)
+dt_ref) b), H_a = -(dt_ref / 2) H_w, and adds the jerk walk's extrapolation variance q_jerk^2 dt_ref^5 / 20 to S.
+The update is 9-d. Its n x n algebra (n = 6, 9) runs in loops over a scratch array: unrolled 9 x 9 register
+matrices took 7 minutes to compile.
+
 g (and its 2x2 covariance P_g) is bilinearly interpolated at p_mid. Residual r = z - z_hat, variance
 S = n sigma^2 + dp^T P_g dp (n independent per-event errors; unmapped pixels keep the prior covariance, so
 they weigh little by themselves).
@@ -54,11 +64,13 @@ slope included: it is what ties the pose to the map rather than only to the prev
 * :func:`pf_loglik` -- many poses (particles): sum over the batch of log(N(r; 0, S) + floor) (parallel over
   particles, serial over events: reproducible).
 * :func:`ekf_track` -- EKF-SMT over many batches in one launch (selection included). State: pose R (error d,
-  R = exp(d) R_hat) and camera-frame angular velocity w (error dw), 6x6 covariance. Prediction R <- R exp(w dt),
-  F = [[I, R dt], [0, I]], noise max(q_rate dt, q_min)^2 on d and q_acc^2 dt on w. Pose references: the batch
-  measures only the pose, so the iterated update x = P[:, d] (I + Lam P_dd)^-1 (b + Lam d_j) needs one 3x3
-  inverse (Lam = H^T W H, b = H^T W r of the batch). State references: H = (H_d, H_w) and the Gauss-Newton
-  step of prior + batch (P^-1 + Lam) x = b + Lam x_j (6x6, SPD), posterior (P^-1 + Lam)^-1.
+  R = exp(d) R_hat), camera-frame angular velocity w (error dw) and, with ``state_a``, angular acceleration a;
+  6x6 (9x9) covariance. Prediction R <- R exp(w dt + a dt^2 / 2), w <- w + a dt, F = [[I, R dt, R dt^2 / 2],
+  [0, I, I dt], [0, 0, I]], noise max(q_rate dt, q_min)^2 on d, q_acc^2 dt on w, q_jerk^2 dt on a. Pose
+  references: the batch measures only the pose, so the iterated update x = P[:, d] (I + Lam P_dd)^-1 (b + Lam d_j)
+  needs one 3x3 inverse (Lam = H^T W H, b = H^T W r of the batch). State references: H = (H_d, H_w[, H_a]) and
+  the Gauss-Newton step of prior + batch (P^-1 + Lam) x = b + Lam x_j (SPD), posterior (P^-1 + Lam)^-1. One
+  ti.func (``normal_equations``) sums the batch's Lam and b for the 3-, 6- and 9-d Jacobians.
 
 Per-pixel state (``new_reference_state``): ref_b (batch of the reference's pose, -1: none), last_b and last_p
 (batch and polarity of the pixel's last event), count (events since the reference). Every kernel has a float64
@@ -177,25 +189,28 @@ def _measure_numpy(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast
     return ok, r, S, H, pred, sup
 
 
-def _measure_cv_numpy(R, w, dtr, bearings, ref_n, pol, grad, cov, updates, contrast, sigma2, q2=0.0):
+def _measure_cv_numpy(R, w, dtr, bearings, ref_n, pol, grad, cov, updates, contrast, sigma2, q2=0.0, a=None,
+                      q5=0.0):
     """State-referenced twin (float64): per event (ok, r, S, H_d (n, 3) world, H_w (n, 3) camera, pred, support)
-    with the reference point p(R exp(-w dt_ref) b); ``dtr`` (n,) the reference's age."""
+    with the reference point p(R exp(-(w - a dt_ref / 2) dt_ref) b); ``dtr`` (n,) the reference's age, ``a`` the
+    angular acceleration (None: 0; H_a = -(dt_ref / 2) H_w)."""
     from ti_cmax import so3
 
     h, wd = updates.shape
     R = np.asarray(R, np.float64)
     b = np.asarray(bearings, np.float64)
     dtr = np.asarray(dtr, np.float64)
-    R_ref = R @ so3.exp(-np.outer(dtr, w))  # (n, 3, 3)
+    w = np.asarray(w, np.float64)[None] - (0.0 if a is None else 0.5 * dtr[:, None] * np.asarray(a, np.float64))
+    R_ref = R @ so3.exp(-dtr[:, None] * w)  # (n, 3, 3)
     xr = np.einsum("nij,nj->ni", R_ref, b)
     u0, v0 = equirect_numpy(xr, wd, h)
     ok, r, S, H, pred, sup, (gu, gv, eu, ev) = _measure_numpy(R, b, np.stack([u0, v0], 1), ref_n, pol, grad, cov,
                                                               updates, contrast, sigma2, parts=True)
     jru, jrv = _project_jacobian_numpy(xr, wd, h)
     hr = np.cross(xr, (eu - 2 * gu)[:, None] * jru + (ev - 2 * gv)[:, None] * jrv)
-    jr = so3.right_jacobian(-np.outer(dtr, w)).reshape(-1, 3, 3)
+    jr = so3.right_jacobian(-dtr[:, None] * w).reshape(-1, 3, 3)
     Hw = -dtr[:, None] * np.einsum("nji,nj->ni", jr, np.einsum("nji,nj->ni", R_ref, hr))
-    S = S + q2 * dtr ** 3 * np.sum(hr * hr, 1)
+    S = S + (q2 * dtr ** 3 + q5 * dtr ** 5) * np.sum(hr * hr, 1)
     return ok, r, S, H + hr, Hw, pred, sup
 
 
@@ -350,10 +365,10 @@ def _kernels(dtype):
 
     @ti.func
     def measure_cv(R, w, dtr, b, cnt, pol, grad: ti.template(), cov: ti.template(), updates: ti.template(),
-                   width, height, su, sv, contrast, sigma2, q2):
-        """State-referenced measurement (module doc): the reference point is p(R exp(-w dtr) b), so the segment
-        depends on the state (R, w), not on an earlier estimate. (r, S, H_d (world), H_w (camera), p z_hat,
-        support)."""
+                   width, height, su, sv, contrast, sigma2, q2, q5):
+        """State-referenced measurement (module doc): the reference point is p(R exp(-w dtr) b), w the mean angular
+        velocity over the segment (w - a dtr / 2 with an acceleration state), so the segment depends on the state,
+        not on an earlier estimate. (r, S, H_d (world), H_w (camera; H_a = -(dtr / 2) H_w), p z_hat, support)."""
         x = R @ b
         R_ref = R @ so3t.exp(-w * dtr)
         xr = R_ref @ b
@@ -366,9 +381,10 @@ def _kernels(dtype):
         hr = xr.cross((eu - two * gu) * jru + (ev - two * gv) * jrv)
         Hd = x.cross(eu * jdu + ev * jdv) + hr
         Hw = -dtr * (so3t.jr(-w * dtr).transpose() @ (R_ref.transpose() @ hr))
-        # the constant-velocity reference is off by the velocity's random walk over dt_ref: variance q2 dt_ref^3
-        # per axis of the reference's rotation (q2 = q_acc^2 / 3)
-        S += q2 * dtr * dtr * dtr * hr.dot(hr)
+        # the extrapolated reference is off by the random walks over dt_ref: variance q2 dt_ref^3 + q5 dt_ref^5
+        # per axis of the reference's rotation (q2 = q_acc^2 / 3 from w's, q5 = q_jerk^2 / 20 from a's)
+        dt3 = dtr * dtr * dtr
+        S += (q2 + q5 * dtr * dtr) * dt3 * hr.dot(hr)
         return r, S, Hd, Hw, agree, sup
 
     @ti.kernel
@@ -453,26 +469,80 @@ def _kernels(dtype):
     mat3d = ti.types.matrix(3, 3, f64)
     vec3d = ti.types.vector(3, f64)
     so3d = _so3_funcs(f64)
-    mat6d = ti.types.matrix(6, 6, f64)
-    vec6d = ti.types.vector(6, f64)
+
+    # the filter's n x n algebra (n = 6 or 9) runs in loops over a scratch array ``work`` (k, 9, 9): unrolled
+    # register matrices of that size took minutes to compile (7 min measured for n = 9)
+    @ti.func
+    def ws_matmul(work: ti.template(), a, b, c, n, transpose_b):
+        """work[c] = work[a] @ work[b] (or @ work[b]^T)."""
+        for i, j in ti.ndrange(n, n):
+            s = ti.cast(0.0, f64)
+            for k in range(n):
+                s += work[a, i, k] * (work[b, j, k] if transpose_b else work[b, k, j])
+            work[c, i, j] = s
 
     @ti.func
-    def inv_spd6(a):
-        """Inverse of a symmetric positive definite 6x6 matrix (Gauss-Jordan, no pivoting needed)."""
-        m = a
-        inv = ti.Matrix.identity(f64, 6)
-        for k in ti.static(range(6)):
-            piv = 1.0 / m[k, k]
-            for j in ti.static(range(6)):
-                m[k, j] *= piv
-                inv[k, j] *= piv
-            for i in ti.static(range(6)):
-                if ti.static(i != k):
-                    f = m[i, k]
-                    for j in ti.static(range(6)):
-                        m[i, j] -= f * m[k, j]
-                        inv[i, j] -= f * inv[k, j]
-        return 0.5 * (inv + inv.transpose())
+    def ws_inv_spd(work: ti.template(), src, dst, tmp, n):
+        """work[dst] = inverse of the symmetric positive definite work[src] (Gauss-Jordan, no pivoting needed),
+        symmetrized; work[tmp] is overwritten."""
+        for i, j in ti.ndrange(n, n):
+            work[tmp, i, j] = work[src, i, j]
+            work[dst, i, j] = ti.cast(1.0 if i == j else 0.0, f64)
+        for k in range(n):
+            piv = 1.0 / work[tmp, k, k]
+            for j in range(n):
+                work[tmp, k, j] *= piv
+                work[dst, k, j] *= piv
+            for i in range(n):
+                if i != k:
+                    f = work[tmp, i, k]
+                    for j in range(n):
+                        work[tmp, i, j] -= f * work[tmp, k, j]
+                        work[dst, i, j] -= f * work[dst, k, j]
+        for i, j in ti.ndrange(n, n):
+            if i < j:
+                s = 0.5 * (work[dst, i, j] + work[dst, j, i])
+                work[dst, i, j] = s
+                work[dst, j, i] = s
+
+    @ti.func
+    def normal_equations(m: ti.template(), rd, wd, ad, b, e0, e_end, mids: ti.template(), bearings: ti.template(),
+                         ref_uv: ti.template(), ref_n: ti.template(), ref_src: ti.template(), pol: ti.template(),
+                         grad: ti.template(), cov: ti.template(), updates: ti.template(), width, height, su, sv,
+                         contrast, sigma2, q2, q5, huber):
+        """Huber-weighted normal equations Lam = H^T W H (m x m), H^T W r (m) of the events e0..e_end-1 of batch b
+        and their counts (valid, supported, agreeing, significant), float64. m = 3: references fixed in ref_uv,
+        H = H_d; m = 6: state references, H = (H_d, H_w); m = 9: also the acceleration, H_a = -(dt_ref / 2) H_w."""
+        lam = ti.Matrix.zero(f64, m, m)
+        hb = ti.Vector.zero(f64, m)
+        cnt = ti.Vector.zero(f64, 4)
+        for e in range(e0, e_end):
+            if ref_n[e] > 0:
+                h = ti.Vector.zero(f64, m)
+                r = ti.cast(0.0, dtype)
+                S = ti.cast(1.0, dtype)
+                agree = ti.cast(0.0, dtype)
+                sup = ti.cast(0.0, dtype)
+                if ti.static(m == 3):
+                    r, S, H, agree, sup = measure(rd, bearings[e], ref_uv[e, 0], ref_uv[e, 1], ref_n[e], pol[e], grad,
+                                                  cov, updates, width, height, su, sv, contrast, sigma2)
+                    for i in ti.static(range(3)):
+                        h[i] = ti.cast(H[i], f64)
+                else:
+                    dtr = ti.cast(mids[b] - mids[ref_src[e]], dtype)
+                    r, S, Hd, Hw, agree, sup = measure_cv(rd, wd - ti.cast(0.5, dtype) * dtr * ad, dtr, bearings[e],
+                                                          ref_n[e], pol[e], grad, cov, updates, width, height, su, sv,
+                                                          contrast, sigma2, q2, q5)
+                    for i in ti.static(range(3)):
+                        h[i] = ti.cast(Hd[i], f64)
+                        h[i + 3] = ti.cast(Hw[i], f64)
+                        if ti.static(m == 9):
+                            h[i + 6] = -0.5 * ti.cast(dtr, f64) * ti.cast(Hw[i], f64)
+                wt, cs, cg, ca = weigh(r, S, agree, sup, huber)
+                lam += wt * h.outer_product(h)
+                hb += wt * ti.cast(r, f64) * h
+                cnt += ti.Vector([1.0, cs, ca, cg], f64)
+        return lam, hb, cnt
 
     @ti.kernel
     def k_ekf_track(hist: ti.types.ndarray(dtype=mat3, ndim=1), hist64: ti.types.ndarray(dtype=mat3d, ndim=1),
@@ -485,149 +555,148 @@ def _kernels(dtype):
                     grad: ti.types.ndarray(dtype=dtype, ndim=3),
                     cov: ti.types.ndarray(dtype=dtype, ndim=3), updates: ti.types.ndarray(dtype=ti.i32, ndim=2),
                     width: ti.i32, height: ti.i32, su: dtype, sv: dtype, contrast: dtype, sigma2: dtype,
-                    outlier2: dtype, min2: dtype, v_band: dtype, max_n: ti.i32, huber: dtype, q_rate: f64, q_min: f64, q_acc: f64,
-                    iterations: ti.i32, cv_meas: ti.i32, state_R: ti.types.ndarray(dtype=mat3d, ndim=1),
-                    state_w: ti.types.ndarray(dtype=vec3d, ndim=1), state_P: ti.types.ndarray(dtype=f64, ndim=3),
-                    diag: ti.types.ndarray(dtype=f64, ndim=2)):
-        """EKF-SMT over batches b0..b1-1 in one launch (serial): constant-velocity prediction, iterated batched
-        update, poses written to hist/hist64 (read back as the previous poses of later events)."""
+                    outlier2: dtype, min2: dtype, v_band: dtype, max_n: ti.i32, huber: dtype, q_rate: f64, q_min: f64,
+                    q_acc: f64, q_jerk: f64, iterations: ti.i32, cv_meas: ti.i32,
+                    state_R: ti.types.ndarray(dtype=mat3d, ndim=1), state_w: ti.types.ndarray(dtype=vec3d, ndim=1),
+                    state_a: ti.types.ndarray(dtype=vec3d, ndim=1), state_P: ti.types.ndarray(dtype=f64, ndim=3),
+                    work: ti.types.ndarray(dtype=f64, ndim=3), diag: ti.types.ndarray(dtype=f64, ndim=2),
+                    ns: ti.template()):
+        """EKF-SMT over batches b0..b1-1 in one launch (serial): constant-velocity (ns = 6) or constant-acceleration
+        (ns = 9) prediction, iterated batched update, poses written to hist/hist64 (read back as the previous poses
+        of later events). work[0]: P, [1]: F, then the matrix to invert, [2]: F P, [3]: P^-1, [4]: posterior,
+        [5], [6]: scratch."""
         n = bearings.shape[0]
         eye = ti.Matrix.identity(f64, 3)
         ti.loop_config(serialize=True)
         for b in range(b0, b1):
-            pdd = mat3d(0)
-            pdw = mat3d(0)
-            pww = mat3d(0)
-            for i, j in ti.static(ti.ndrange(3, 3)):
-                pdd[i, j] = state_P[0, i, j]
-                pdw[i, j] = state_P[0, i, j + 3]
-                pww[i, j] = state_P[0, i + 3, j + 3]
             dt = mids[b] - mids[b - 1]
-            # prediction: R <- R exp(w dt) (w in the camera frame), d <- d + R dw dt
+            # prediction: R <- R exp(w dt + a dt^2 / 2), w <- w + a dt (camera frame); F maps the error state
+            # (d world-frame pose, dw, da) through it
             w = state_w[0]
-            R_pred = state_R[0] @ so3d.exp(w * dt)
-            f = R_pred * dt
-            pdd = pdd + f @ pdw.transpose() + pdw @ f.transpose() + f @ pww @ f.transpose()
-            pdw = pdw + f @ pww
+            a = state_a[0]
+            phi = w * dt
+            if ti.static(ns == 9):
+                phi += 0.5 * dt * dt * a
+            R_pred = state_R[0] @ so3d.exp(phi)
+            for i, j in ti.ndrange(ns, ns):
+                work[0, i, j] = state_P[0, i, j]
+                work[1, i, j] = ti.cast(1.0 if i == j else 0.0, f64)
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                work[1, i, j + 3] = R_pred[i, j] * dt
+                if ti.static(ns == 9):
+                    work[1, i, j + 6] = 0.5 * dt * dt * R_pred[i, j]
+            if ti.static(ns == 9):
+                for i in ti.static(range(3)):
+                    work[1, i + 3, i + 6] = dt
+                w += a * dt
+            ws_matmul(work, 1, 0, 2, ns, False)
+            ws_matmul(work, 2, 1, 0, ns, True)
             q = ti.max(q_rate * dt, q_min)
-            pdd += q * q * eye
-            pww += q_acc * q_acc * dt * eye
+            for i in ti.static(range(3)):
+                work[0, i, i] += q * q
+                work[0, i + 3, i + 3] += q_acc * q_acc * dt
+                if ti.static(ns == 9):
+                    work[0, i + 6, i + 6] += q_jerk * q_jerk * dt
+            for i, j in ti.ndrange(ns, ns):
+                work[4, i, j] = work[0, i, j]  # the posterior when nothing is measured
+            w_pred = w
             R = R_pred
-            d = vec3d(0, 0, 0)  # pose deviation from the prediction (left, world frame)
-            lam = mat3d(0)
-            m = eye
-            nv = ti.cast(0.0, f64)
-            ns = ti.cast(0.0, f64)
-            na = ti.cast(0.0, f64)
-            nsig = ti.cast(0.0, f64)
+            e0 = b * batch_size
             e_end = ti.min((b + 1) * batch_size, n)
             rp = ti.cast(R_pred, dtype)
-            for e in range(b * batch_size, e_end):  # references, selected under the prediction
+            for e in range(e0, e_end):  # references, selected under the prediction
                 select_event(e, b, rp, hist, bearings, pix, pol, ref_b, last_b, last_p, count, width, height, su,
                              sv, outlier2, min2, v_band, max_n, ref_uv, ref_n, ref_src)
+            # the extrapolation error of a state reference dt_ref back: variance (q_acc^2 / 3) dt_ref^3 per axis
+            # from w's random walk, (q_jerk^2 / 20) dt_ref^5 from a's (constant acceleration)
             q2 = ti.cast(q_acc * q_acc / 3.0, dtype)
+            q5 = ti.cast(q_jerk * q_jerk / 20.0, dtype)
+            cnt = ti.Vector.zero(f64, 4)
             if cv_meas:
-                # velocity-referenced measurements: Gauss-Newton on prior + batch in the 6-d error state,
+                # state-referenced measurements: Gauss-Newton on prior + batch in the ns-d error state,
                 # (P^-1 + Lam) x = b + Lam x_j; the posterior covariance is (P^-1 + Lam)^-1
-                p6 = mat6d(0)
-                for i, j in ti.static(ti.ndrange(3, 3)):
-                    p6[i, j] = pdd[i, j]
-                    p6[i, j + 3] = pdw[i, j]
-                    p6[j + 3, i] = pdw[i, j]
-                    p6[i + 3, j + 3] = pww[i, j]
-                pinv = inv_spd6(p6)
-                x6 = vec6d(0)
-                post = p6
-                w_pred = state_w[0]
+                ws_inv_spd(work, 0, 3, 5, ns)
+                x = ti.Vector.zero(f64, ns)
                 for it in range(iterations):
-                    rd = ti.cast(R, dtype)
-                    wd = ti.cast(w, dtype)
-                    lam6 = mat6d(0)
-                    hr6 = vec6d(0)
-                    nv = ti.cast(0.0, f64)
-                    ns = ti.cast(0.0, f64)
-                    na = ti.cast(0.0, f64)
-                    nsig = ti.cast(0.0, f64)
-                    for e in range(b * batch_size, e_end):
-                        if ref_n[e] > 0:
-                            dtr = ti.cast(mids[b] - mids[ref_src[e]], dtype)
-                            r, S, Hd, Hw, agree, sup = measure_cv(rd, wd, dtr, bearings[e], ref_n[e], pol[e], grad,
-                                                                  cov, updates, width, height, su, sv, contrast,
-                                                                  sigma2, q2)
-                            wt, cs, cg, ca = weigh(r, S, agree, sup, huber)
-                            h6 = vec6d(Hd[0], Hd[1], Hd[2], Hw[0], Hw[1], Hw[2])
-                            lam6 += wt * h6.outer_product(h6)
-                            hr6 += wt * ti.cast(r, f64) * h6
-                            nv += 1.0
-                            ns += cs
-                            nsig += cg
-                            na += ca
-                    if nv > 0:
-                        post = inv_spd6(pinv + lam6)
-                        x6 = post @ (hr6 + lam6 @ x6)
-                        d = vec3d(x6[0], x6[1], x6[2])
-                        w = w_pred + vec3d(x6[3], x6[4], x6[5])
-                        R = so3d.exp(d) @ R_pred
+                    lam, hb, cnt_it = normal_equations(ns, ti.cast(R, dtype), ti.cast(w, dtype), ti.cast(a, dtype), b,
+                                                       e0, e_end, mids, bearings, ref_uv, ref_n, ref_src, pol, grad,
+                                                       cov, updates, width, height, su, sv, contrast, sigma2, q2, q5,
+                                                       huber)
+                    cnt = cnt_it
+                    if cnt[0] > 0:
+                        for i in ti.static(range(ns)):  # (nested: a static loop of ns^2 would warn)
+                            for j in ti.static(range(ns)):
+                                work[1, i, j] = work[3, i, j] + lam[i, j]
+                        ws_inv_spd(work, 1, 4, 5, ns)
+                        rhs = hb + lam @ x
+                        for i in ti.static(range(ns)):
+                            s = ti.cast(0.0, f64)
+                            for j in ti.static(range(ns)):
+                                s += work[4, i, j] * rhs[j]
+                            x[i] = s
+                        R = so3d.exp(vec3d(x[0], x[1], x[2])) @ R_pred
+                        w = w_pred + vec3d(x[3], x[4], x[5])
+                        if ti.static(ns == 9):
+                            a = state_a[0] + vec3d(x[6], x[7], x[8])
+            else:
+                # measurements of the pose only (fixed references): x = P[:, d] (I + Lam P_dd)^-1 (b + Lam d),
+                # posterior P - P[:, d] (I + Lam P_dd)^-1 Lam P[d, :]
+                pdd = mat3d(0)
                 for i, j in ti.static(ti.ndrange(3, 3)):
-                    pdd[i, j] = post[i, j]
-                    pdw[i, j] = post[i, j + 3]
-                    pww[i, j] = post[i + 3, j + 3]
-                lam = mat3d(0)  # the posterior is already in pdd / pdw / pww
-            for it in range(iterations * (1 - cv_meas)):
-                rd = ti.cast(R, dtype)
-                hh = mat3d(0)
-                hr = vec3d(0, 0, 0)
-                nv = ti.cast(0.0, f64)
-                ns = ti.cast(0.0, f64)
-                na = ti.cast(0.0, f64)
-                nsig = ti.cast(0.0, f64)
-                for e in range(b * batch_size, e_end):
-                    if ref_n[e] > 0:
-                        r, S, H, agree, sup = measure(rd, bearings[e], ref_uv[e, 0], ref_uv[e, 1], ref_n[e], pol[e],
-                                                      grad, cov, updates, width, height, su, sv, contrast, sigma2)
-                        wt, cs, cg, ca = weigh(r, S, agree, sup, huber)
-                        h64 = ti.cast(H, f64)
-                        hh += wt * h64.outer_product(h64)
-                        hr += wt * ti.cast(r, f64) * h64
-                        nv += 1.0
-                        ns += cs
-                        nsig += cg
-                        na += ca
-                if nv > 0:
-                    # iterated EKF step for a measurement of the pose only: x = P[:, d] (I + Lam Pdd)^-1 (b + Lam d)
-                    lam = hh
-                    m = (eye + lam @ pdd).inverse()
-                    v = m @ (hr + lam @ d)
-                    d = pdd @ v
-                    w = state_w[0] + pdw.transpose() @ v
-                    R = so3d.exp(d) @ R_pred
+                    pdd[i, j] = work[0, i, j]
+                d = vec3d(0, 0, 0)
+                for it in range(iterations):
+                    lam, hb, cnt_it = normal_equations(3, ti.cast(R, dtype), ti.cast(w, dtype), ti.cast(a, dtype), b,
+                                                       e0, e_end, mids, bearings, ref_uv, ref_n, ref_src, pol, grad,
+                                                       cov, updates, width, height, su, sv, contrast, sigma2, q2, q5,
+                                                       huber)
+                    cnt = cnt_it
+                    if cnt[0] > 0:
+                        m = (eye + lam @ pdd).inverse()
+                        v = m @ (hb + lam @ d)
+                        ml = m @ lam
+                        for i in range(ns):  # x = P[:, d] v; work[5] = P[:, d] (I + Lam P_dd)^-1 Lam
+                            xi = ti.cast(0.0, f64)
+                            for k in ti.static(range(3)):
+                                xi += work[0, i, k] * v[k]
+                            if i < 3:
+                                d[i] = xi
+                            elif i < 6:
+                                w[i - 3] = w_pred[i - 3] + xi
+                            for j in ti.static(range(3)):
+                                s = ti.cast(0.0, f64)
+                                for k in ti.static(range(3)):
+                                    s += work[0, i, k] * ml[k, j]
+                                work[5, i, j] = s
+                        R = so3d.exp(d) @ R_pred
+                        for i, j in ti.ndrange(ns, ns):
+                            s = ti.cast(0.0, f64)
+                            for k in range(3):
+                                s += work[5, i, k] * work[0, k, j]
+                            work[4, i, j] = work[0, i, j] - s
+                for i, j in ti.ndrange(ns, ns):
+                    if i < j:
+                        s = 0.5 * (work[4, i, j] + work[4, j, i])
+                        work[4, i, j] = s
+                        work[4, j, i] = s
             # re-orthonormalize (Gram-Schmidt on the columns)
             c0 = vec3d(R[0, 0], R[1, 0], R[2, 0]).normalized()
             c1 = vec3d(R[0, 1], R[1, 1], R[2, 1])
             c1 = (c1 - c0.dot(c1) * c0).normalized()
             c2 = c0.cross(c1)
             R = ti.Matrix.cols([c0, c1, c2])
-            # posterior covariance: P - P[:, d] (I + Lam Pdd)^-1 Lam P[d, :]
-            ml = m @ lam
-            pdd_new = pdd - pdd @ ml @ pdd
-            pdw_new = pdw - pdd @ ml @ pdw
-            pww_new = pww - pdw.transpose() @ ml @ pdw
-            pdd_new = 0.5 * (pdd_new + pdd_new.transpose())
-            pww_new = 0.5 * (pww_new + pww_new.transpose())
-            for i, j in ti.static(ti.ndrange(3, 3)):
-                state_P[0, i, j] = pdd_new[i, j]
-                state_P[0, i, j + 3] = pdw_new[i, j]
-                state_P[0, j + 3, i] = pdw_new[i, j]
-                state_P[0, i + 3, j + 3] = pww_new[i, j]
+            for i, j in ti.ndrange(ns, ns):
+                state_P[0, i, j] = work[4, i, j]
             state_R[0] = R
             state_w[0] = w
+            state_a[0] = a
             hist64[b] = R
             hist[b] = ti.cast(R, dtype)
-            diag[b - b0, 0] = nv
-            diag[b - b0, 1] = ns
-            diag[b - b0, 2] = na
-            diag[b - b0, 3] = ti.max(pdd_new[0, 0], ti.max(pdd_new[1, 1], pdd_new[2, 2]))
-            diag[b - b0, 4] = nsig
+            diag[b - b0, 0] = cnt[0]
+            diag[b - b0, 1] = cnt[1]
+            diag[b - b0, 2] = cnt[2]
+            diag[b - b0, 3] = ti.max(work[4, 0, 0], ti.max(work[4, 1, 1], work[4, 2, 2]))
+            diag[b - b0, 4] = cnt[3]
 
     return k_select, k_accumulate, k_loglik, k_ekf_track
 
@@ -701,92 +770,119 @@ def pf_loglik(particles, bearings, ref_uv, ref_n, pol, grad, cov, updates, contr
 def ekf_track(hist, hist64, mids, b0: int, b1: int, batch_size: int, bearings, pix, pol, state: dict, ref_uv, ref_n,
               grad, cov, updates, contrast: float, sigma: float, outlier_px: float, min_disp_px: float,
               max_lat_deg: float, huber: float, q_rate: float, q_min: float, q_acc: float, iterations: int, state_R,
-              state_w, state_P, velocity_reference: bool = False, ref_src=None, max_events: int = 0) -> np.ndarray:
+              state_w, state_P, velocity_reference: bool = False, ref_src=None, max_events: int = 0, state_a=None,
+              q_jerk: float = 0.0) -> np.ndarray:
     """EKF-SMT on batches b0..b1-1 in one launch (see module doc and ``ekf_track_numpy``).
 
     ``hist`` (nb, 3, 3) in the map dtype and ``hist64`` (float64) receive the poses; ``state`` (per-pixel
     references), ``ref_uv`` / ``ref_n`` (per-event scratch, filled) as in :func:`select_references`;
     ``state_R`` ((1, 3, 3)), ``state_w`` ((1, 3), camera-frame angular velocity) and ``state_P`` ((1, 6, 6): pose
-    error, velocity error), all float64, carry the filter between calls. Process noise per batch of duration dt:
-    pose std max(q_rate dt, q_min), velocity std q_acc sqrt(dt) (q_acc = 0 with w = 0 and a zero velocity
-    covariance: the random-walk model). ``velocity_reference`` (constant velocity only): state references (module doc)
-    instead of the reference batch's estimated pose; ``ref_src`` (n,) int32 scratch (allocated when None). Returns (b1 - b0, 5) diagnostics per
-    batch: valid, supported and polarity-agreeing (significant) measurements, largest diagonal entry of the pose
-    covariance (rad^2), significant measurements (see :func:`ekf_accumulate`).
+    error, velocity error), all float64, carry the filter between calls. ``state_a`` ((1, 3), camera-frame angular
+    acceleration; then ``state_P`` is (1, 9, 9) and ``velocity_reference`` is required): the constant-acceleration
+    model. Process noise per batch of duration dt: pose std max(q_rate dt, q_min), velocity std q_acc sqrt(dt),
+    acceleration std q_jerk sqrt(dt) (q_acc = 0 with w = 0 and a zero velocity covariance: the random-walk model).
+    ``velocity_reference`` (constant velocity or acceleration): state references (module doc) instead of the
+    reference batch's estimated pose; ``ref_src`` (n,) int32 scratch (allocated when None). Returns (b1 - b0, 5)
+    diagnostics per batch: valid, supported and polarity-agreeing (significant) measurements, largest diagonal entry
+    of the pose covariance (rad^2), significant measurements (see :func:`ekf_accumulate`).
     """
     ensure_init()
     dtype = grad.dtype
     k = _kernels(_tdt(dtype))[3]
     if ref_src is None:
         ref_src = np.zeros(len(ref_n), np.int32)
+    ns = 6 if state_a is None else 9
+    if ns == 9 and not velocity_reference:
+        raise ValueError("the constant-acceleration model needs state references (velocity_reference)")
+    if state_P.shape[1:] != (ns, ns):
+        raise ValueError(f"state_P must be (1, {ns}, {ns}), got {state_P.shape}")
+    if state_a is None:
+        state_a, q_jerk = np.zeros((1, 3)), 0.0
     diag = np.zeros((max(b1 - b0, 0), 5), np.float64)
     if b1 > b0:
         h, w = updates.shape
         k(hist, hist64, mids, int(b0), int(b1), int(batch_size), bearings, pix, pol, state["ref_b"],
           state["last_b"], state["last_p"], state["count"], ref_uv, ref_n, ref_src, grad, cov, updates, int(w), int(h),
           float(w / (2 * np.pi)), float(h / np.pi), float(contrast), float(sigma) ** 2, float(outlier_px) ** 2,
-          float(min_disp_px) ** 2, _v_band(h, max_lat_deg), int(max_events), float(huber), float(q_rate), float(q_min), float(q_acc),
-          int(iterations), int(bool(velocity_reference)), state_R, state_w, state_P, diag)
+          float(min_disp_px) ** 2, _v_band(h, max_lat_deg), int(max_events), float(huber), float(q_rate),
+          float(q_min), float(q_acc), float(q_jerk), int(iterations), int(bool(velocity_reference)), state_R, state_w,
+          state_a, state_P, np.zeros((6, 9, 9)), diag, ns)
     return diag
 
 
-def ekf_predict_numpy(R, w, P, dt, q_rate, q_min, q_acc):
-    """Constant-velocity prediction (float64): R exp(w dt), and P through F = [[I, R dt], [0, I]] plus noise."""
+def ekf_predict_numpy(R, w, P, dt, q_rate, q_min, q_acc, a=None, q_jerk=0.0):
+    """Constant-velocity (``a`` None, P 6x6) or constant-acceleration (P 9x9) prediction (float64):
+    R exp(w dt + a dt^2 / 2), w + a dt, and P through F = [[I, R dt, R dt^2 / 2], [0, I, I dt], [0, 0, I]] plus
+    noise. Returns (R, w, P)."""
     from ti_cmax import so3
 
-    R_pred = R @ so3.exp(w * dt)
-    F = np.eye(6)
-    F[:3, 3:] = R_pred * dt
-    q = max(q_rate * dt, q_min)
-    P = F @ P @ F.T + np.diag([q * q] * 3 + [q_acc * q_acc * dt] * 3)
-    return R_pred, P
+    ns = 6 if a is None else 9
+    a = np.zeros(3) if a is None else np.asarray(a, np.float64)
+    R_pred = R @ so3.exp(w * dt + (0.5 * dt * dt * a if ns == 9 else 0.0))
+    F = np.eye(ns)
+    F[:3, 3:6] = R_pred * dt
+    q = [max(q_rate * dt, q_min) ** 2] * 3 + [q_acc * q_acc * dt] * 3
+    if ns == 9:
+        F[:3, 6:] = 0.5 * dt * dt * R_pred
+        F[3:6, 6:] = np.eye(3) * dt
+        q += [q_jerk * q_jerk * dt] * 3
+        w = w + a * dt
+    return R_pred, np.array(w, np.float64), F @ P @ F.T + np.diag(q)
 
 
 def ekf_track_numpy(hist, hist64, mids, b0, b1, batch_size, bearings, pix, pol, state, ref_uv, ref_n, grad, cov,
                     updates, contrast, sigma, outlier_px, min_disp_px, max_lat_deg, huber, q_rate, q_min, q_acc,
-                    iterations, state_R, state_w, state_P, velocity_reference=False, ref_src=None, max_events=0):
+                    iterations, state_R, state_w, state_P, velocity_reference=False, ref_src=None, max_events=0,
+                    state_a=None, q_jerk=0.0):
     """float64 twin of :func:`ekf_track` (same in/out arrays). With pose references the update is the iterated EKF
     (Gauss-Newton on prior + batch) for measurements of the pose only, x = P[:, :3] (I + Lam P_dd)^-1 (b + Lam d):
     equal to (P^-1 + E Lam E^T)^-1 (E b + E Lam d) with E = [I; 0] (tested), and defined when P is singular (the
-    random-walk model has no velocity covariance). With velocity references the measurements depend on the whole
-    6-d state: (P^-1 + Lam) x = b + Lam x_j, posterior covariance (P^-1 + Lam)^-1."""
+    random-walk model has no velocity covariance). With state references the measurements depend on the whole
+    state (6-d, or 9-d with the acceleration): (P^-1 + Lam) x = b + Lam x_j, posterior covariance (P^-1 + Lam)^-1."""
     from ti_cmax import so3
 
     h, w = updates.shape
     n = len(pol)
+    ns = 6 if state_a is None else 9
+    if ns == 6:
+        q_jerk = 0.0  # no acceleration state: no jerk noise (as ekf_track)
     if ref_src is None:
         ref_src = np.zeros(len(ref_n), np.int32)
     diag = np.zeros((max(b1 - b0, 0), 5))
     for b in range(b0, b1):
-        R_pred, P = ekf_predict_numpy(state_R[0], state_w[0], state_P[0], mids[b] - mids[b - 1], q_rate, q_min,
-                                      q_acc)
-        w_pred = state_w[0].copy()
-        x = np.zeros(6)
-        R, wv, lam = R_pred, w_pred, np.zeros((3, 3))
+        a_prev = None if ns == 6 else state_a[0].copy()
+        R_pred, w_pred, P = ekf_predict_numpy(state_R[0], state_w[0], state_P[0], mids[b] - mids[b - 1], q_rate,
+                                              q_min, q_acc, a_prev, q_jerk)
+        x = np.zeros(ns)
+        R, wv, av, lam = R_pred, w_pred, a_prev, np.zeros((3, 3))
         e0, e1 = b * batch_size, min((b + 1) * batch_size, n)
         select_references_numpy(hist, R_pred[None], b, b + 1, batch_size, bearings, pix, pol, state, w, h,
                                 outlier_px, min_disp_px, max_lat_deg, ref_uv, ref_n, ref_src, max_events)
         acc = np.zeros(N_ACC)
         if velocity_reference:
             post = P
+            dtr = mids[b] - mids[ref_src[e0:e1]]
             for _ in range(iterations):
                 ok, r, S, Hd, Hw, pred, sup = _measure_cv_numpy(
-                    R, wv, mids[b] - mids[ref_src[e0:e1]], bearings[e0:e1], ref_n[e0:e1], pol[e0:e1], grad, cov,
-                    updates, contrast, sigma * sigma, q_acc * q_acc / 3.0)
+                    R, wv, dtr, bearings[e0:e1], ref_n[e0:e1], pol[e0:e1], grad, cov, updates, contrast,
+                    sigma * sigma, q_acc * q_acc / 3.0, av, q_jerk * q_jerk / 20.0)
                 nr = np.abs(r) / np.sqrt(S)
                 wt = np.where(ok, np.where(nr <= huber, 1.0, huber / np.maximum(nr, 1e-300)) / S, 0.0)
-                H6 = np.concatenate([Hd, Hw], 1)
+                Hs = [Hd, Hw] + ([-0.5 * dtr[:, None] * Hw] if ns == 9 else [])
+                Hn = np.concatenate(Hs, 1)
                 supported = ok & (sup >= 0.5)
                 pp = pred * np.asarray(pol[e0:e1], np.float64)
                 significant = supported & (pp * pp > S)
                 acc[9], acc[10], acc[11], acc[16] = ok.sum(), supported.sum(), (significant & (pp > 0)).sum(), \
                     significant.sum()
                 if acc[9] > 0:
-                    lam6 = (H6 * wt[:, None]).T @ H6
-                    post = np.linalg.inv(np.linalg.inv(P) + lam6)
+                    lamn = (Hn * wt[:, None]).T @ Hn
+                    post = np.linalg.inv(np.linalg.inv(P) + lamn)
                     post = 0.5 * (post + post.T)
-                    x = post @ ((H6 * wt[:, None]).T @ r + lam6 @ x)
-                    R, wv = so3.exp(x[:3]) @ R_pred, w_pred + x[3:]
+                    x = post @ ((Hn * wt[:, None]).T @ r + lamn @ x)
+                    R, wv = so3.exp(x[:3]) @ R_pred, w_pred + x[3:6]
+                    if ns == 9:
+                        av = a_prev + x[6:]
             P = post
         else:
             for _ in range(iterations):
@@ -796,14 +892,16 @@ def ekf_track_numpy(hist, hist64, mids, b0, b1, batch_size, bearings, pix, pol, 
                     lam = np.array([[acc[0], acc[1], acc[2]], [acc[1], acc[3], acc[4]], [acc[2], acc[4], acc[5]]])
                     x = P[:, :3] @ np.linalg.solve(np.eye(3) + lam @ P[:3, :3], acc[6:9] + lam @ x[:3])
                     R = so3.exp(x[:3]) @ R_pred
-            wv = w_pred + x[3:]
-            E = np.zeros((6, 3))
+            wv = w_pred + x[3:6]
+            E = np.zeros((ns, 3))
             E[:3] = np.eye(3)
             P = P - P @ E @ np.linalg.solve(np.eye(3) + lam @ P[:3, :3], lam) @ E.T @ P
             P = 0.5 * (P + P.T)
         u, _, vt = np.linalg.svd(R)
         R = u @ vt
         state_R[0], state_w[0], state_P[0] = R, wv, P
+        if ns == 9:
+            state_a[0] = av
         hist64[b] = R
         hist[b] = R
         diag[b - b0] = acc[9], acc[10], acc[11], np.max(np.diag(P)[:3]), acc[16]

@@ -107,6 +107,10 @@ SUITES = {
         SequenceSpec("street202", "DAVIS240C", "street", 3.0, 202),
         SequenceSpec("bay203", "DAVIS240C", "bay", 3.0, 203),
         SequenceSpec("bicycle204", "DAVIS240C", "bicycle", 3.0, 204),
+        # session 6 (constant-acceleration EKF-SMT), declared on 2026-12-01 22:40 UTC before any method ran on them
+        SequenceSpec("town211", "DAVIS240C", "town", 3.0, 211),
+        SequenceSpec("city212", "DAVIS240C", "city", 3.0, 212),
+        SequenceSpec("street213", "DAVIS240C", "street", 3.0, 213),
     ),
 }
 SUITE = SUITES["paper"]

@@ -159,11 +159,13 @@ def test_iterated_update_equals_information_form(scene):
     np.testing.assert_allclose(x, np.linalg.solve(info, np.concatenate([bvec + lam @ d, np.zeros(3)])), rtol=1e-8)
 
 
-@pytest.mark.parametrize("velocity_reference", [False, True])
+@pytest.mark.parametrize("model", ["pose", "velocity", "acceleration"])
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_ekf_track_matches_numpy(ti_runtime, scene, dtype, velocity_reference):
-    """References selected over batches 1..8 under the history poses, then EKF-SMT (constant velocity, two
-    iterations; pose or velocity references) on batches 9..11 from the pose of batch 8."""
+def test_ekf_track_matches_numpy(ti_runtime, scene, dtype, model):
+    """References selected over batches 1..8 under the history poses, then EKF-SMT (two iterations; constant
+    velocity with pose or state references, or constant acceleration) on batches 9..11 from the pose of batch 8."""
+    velocity_reference = model != "pose"
+    ns = 9 if model == "acceleration" else 6
     nb, b_track = scene["nb"], 9
     out = {}
     for impl in ("numpy", "taichi"):
@@ -172,45 +174,60 @@ def test_ekf_track_matches_numpy(ti_runtime, scene, dtype, velocity_reference):
         h64 = scene["hist"].copy()
         h = np.ascontiguousarray(h64, dt_)
         sR, sw = h64[b_track - 1][None].copy(), scene["omega"][None] * 0.9
-        sP = np.diag([1e-7] * 3 + [0.1] * 3)[None].copy()
+        sP = np.diag([1e-7] * 3 + [0.1] * 3 + [100.0] * (ns - 6))[None].copy()
+        sa = np.array([[30.0, -20.0, 10.0]]) if ns == 9 else None
         fn = ks.ekf_track_numpy if impl == "numpy" else ks.ekf_track
         diag = fn(h if impl == "taichi" else h64, h64, np.arange(nb) * 1e-3, b_track, nb, BS,
                   np.ascontiguousarray(scene["bearings"], dt_), scene["pix"], scene["pol"], state, uv, cnt,
                   scene["grad"].astype(dt_), scene["cov"].astype(dt_), scene["updates"], C, SIGMA, OUTLIER, MIN_DISP,
-                  90.0, HUBER, 0.0, 0.0, 20.0, 2, sR, sw, sP, velocity_reference, np.zeros(len(cnt), np.int32))
-        out[impl] = (h64[b_track:].copy(), diag, sP[0].copy(), sw[0].copy())
+                  90.0, HUBER, 0.0, 0.0, 20.0, 2, sR, sw, sP, velocity_reference, np.zeros(len(cnt), np.int32),
+                  state_a=sa, q_jerk=1000.0)
+        out[impl] = (h64[b_track:].copy(), diag, sP[0].copy(), sw[0].copy(), None if sa is None else sa[0].copy())
     tol = 1e-9 if dtype == np.float64 else 2e-4
+    rt = 1e-6 if dtype == np.float64 else 0.05
     assert np.all(so3.geodesic_angle(out["numpy"][0], out["taichi"][0]) < tol)
     assert out["numpy"][1][:, 0].min() > 5  # measurements in every batch
     np.testing.assert_allclose(out["taichi"][1][:, 3], out["numpy"][1][:, 3], rtol=1e-6 if dtype == np.float64 else 0.05)
-    np.testing.assert_allclose(out["taichi"][3], out["numpy"][3], rtol=1e-6 if dtype == np.float64 else 0.05)
+    np.testing.assert_allclose(out["taichi"][3], out["numpy"][3], rtol=rt)
     np.testing.assert_allclose(out["taichi"][2], out["numpy"][2], rtol=1e-6 if dtype == np.float64 else 0.05,
                                atol=1e-12)
     assert not np.allclose(out["numpy"][3], scene["omega"] * 0.9)  # the update moved the velocity
+    if ns == 9:  # and the acceleration
+        np.testing.assert_allclose(out["taichi"][4], out["numpy"][4], rtol=1e-6 if dtype == np.float64 else 0.05,
+                                   atol=1e-6 if dtype == np.float64 else 0.5)
+        assert not np.allclose(out["numpy"][4], [30.0, -20.0, 10.0])
     if dtype == np.float64:
         np.testing.assert_array_equal(out["taichi"][1][:, :3], out["numpy"][1][:, :3])
 
 
-def test_velocity_reference_jacobians_central_differences(scene):
-    """H_d (left pose perturbation) and H_w (camera-frame angular velocity) of the state-referenced model,
-    float64, vs central differences."""
+@pytest.mark.parametrize("accel", [None, [300.0, -200.0, 100.0]])
+def test_velocity_reference_jacobians_central_differences(scene, accel):
+    """H_d (left pose perturbation), H_w (camera-frame angular velocity) and, with an angular acceleration a, H_a =
+    -(dt_ref / 2) H_w of the state-referenced model, float64, vs central differences."""
     b = scene["nb"] - 1
     bear, uv, cnt, pol, grad, cov, upd = _batch_args(scene, np.float64, b)
     dtr = np.random.default_rng(4).uniform(1e-3, 5e-3, len(pol))
     R, w = scene["R"], scene["omega"]
+    a = None if accel is None else np.array(accel)
 
-    def z(R_, w_):
-        return ks._measure_cv_numpy(R_, w_, dtr, bear, cnt, pol, grad, cov, upd, C, SIGMA ** 2, 3.0)[5]
+    def z(R_, w_, a_=a):
+        return ks._measure_cv_numpy(R_, w_, dtr, bear, cnt, pol, grad, cov, upd, C, SIGMA ** 2, 3.0, a_, 50.0)[5]
 
-    ok, _, _, Hd, Hw, _, _ = ks._measure_cv_numpy(R, w, dtr, bear, cnt, pol, grad, cov, upd, C, SIGMA ** 2, 3.0)
+    ok, _, _, Hd, Hw, _, _ = ks._measure_cv_numpy(R, w, dtr, bear, cnt, pol, grad, cov, upd, C, SIGMA ** 2, 3.0, a,
+                                                  50.0)
     assert ok.sum() > 15
     eps = 1e-7
-    for Hj, f in ((Hd, lambda d: z(so3.exp(d) @ R, w)), (Hw, lambda d: z(R, w + d))):
+    checks = [(Hd, lambda d: z(so3.exp(d) @ R, w)), (Hw, lambda d: z(R, w + d))]
+    if a is not None:
+        checks.append((-0.5 * dtr[:, None] * Hw, lambda d: z(R, w, a + d * 1e3)))  # step 1e-4 rad/s^2
+    for k, (Hj, f) in enumerate(checks):
+        if k == 2:
+            Hj = Hj * 1e3
         num = np.zeros_like(Hj)
-        for a in range(3):
+        for i in range(3):
             d = np.zeros(3)
-            d[a] = eps
-            num[:, a] = (f(d) - f(-d)) / (2 * eps)
+            d[i] = eps
+            num[:, i] = (f(d) - f(-d)) / (2 * eps)
         err = np.abs(num[ok] - Hj[ok])
         assert np.median(err) < 1e-5 * np.abs(Hj[ok]).max()
         assert np.mean(err < 1e-4 * np.abs(Hj[ok]).max()) > 0.95
