@@ -210,3 +210,20 @@ def test_loop_closure_false_is_todays_output_and_refine_cli_reports_loops(short_
                  "--loop-closure", "--quiet", "--set", "pano_height=256"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["loops"] == [] and report["parameters"]["loop"]["loop_closure"] is True
+
+
+def test_old_map_holds_the_global_maps_weighted_votes(ti_runtime):
+    """The loop closer's raw-only old map (no blur, sums or area) receives exactly the votes GlobalMap.add puts in
+    I_G, weight included, across the longitude wrap."""
+    from ti_cmax.pipelines.backend import GlobalMap
+    from ti_cmax.pipelines.loop_closure import _RawMap
+
+    t, b = _events(seed=3, duration=1.0)
+    rot = _pan(t[::100] + 1.5)  # one rotation per batch of 100, the pan crossing longitude +-180 deg
+    ref, old = GlobalMap(512, 256, 1.0, 1.0), _RawMap(512, 256)
+    for weight in (1.0, 2.5):
+        ref.add(b, rot, 100, 0.0, weight=weight)
+        old.add(b, rot, 100, weight=weight)
+    assert ref.raw.sum() > 0 and np.any(ref.raw[:, 0] > 0) and np.any(ref.raw[:, -1] > 0)
+    np.testing.assert_array_equal(old.raw, ref.raw)
+    assert not old._scratch.any()
