@@ -39,7 +39,9 @@ import numpy as np
 from ti_cmax import so3
 from ti_cmax.config import LoopClosureConfig
 from ti_cmax.metrics import local_texture
-from ti_cmax.kernels.pano import PanoIWE, batch_mid_times, equirect_numpy, event_density, vote_map
+from ti_cmax.kernels.pano import (
+    PanoIWE, batch_mid_times, blur_radius, blur_region, equirect_numpy, event_density, vote_map,
+)
 
 from .backend import GlobalMap
 from .optim import fletcher_reeves
@@ -48,6 +50,32 @@ _CELL = 4  # map pixels per side of an age cell
 _RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's shifts from the optimum
 _CG_ITERS, _CG_LINE_EVALS = 10, 8  # per pyramid level: 3 unknowns, started near the optimum by the coarser level
 _TEXTURE = 3  # map pixels: scale of the local texture normalization of the confidence test
+
+
+def _blur_rows(raw: np.ndarray, r0: int, r1: int, sigma: float) -> tuple[np.ndarray, tuple[float, float]]:
+    """``blur_map(raw)`` (float32) of a map that is zero outside rows [r0, r1), filtering only those rows and the
+    blur radius around them, with the (sum, sum of squares) ``PanoIWE`` takes beside it."""
+    h, w = raw.shape
+    out = np.zeros((h, w), np.float32)
+    rows = slice(max(r0 - blur_radius(sigma), 0), min(r1 + blur_radius(sigma), h))
+    blur_region(raw, out, rows, np.arange(w), sigma)
+    band = out[rows].astype(np.float64)
+    return out, (float(band.sum()), float(np.sum(band * band)))
+
+
+def _cyclic_span(used: np.ndarray, margin: int) -> np.ndarray:
+    """Column indices of the shortest cyclic interval holding every True column of ``used``, widened by margin on
+    both sides (all columns when that covers the width)."""
+    w = len(used)
+    idx = np.flatnonzero(used)
+    if len(idx) == 0:
+        return np.arange(w)
+    gaps = np.diff(np.append(idx, idx[0] + w))  # gap after each used column, cyclically
+    k = int(np.argmax(gaps))  # the interval starts after the largest gap
+    start, length = int(idx[(k + 1) % len(idx)]), w - int(gaps[k]) + 1
+    if length + 2 * margin >= w:
+        return np.arange(w)
+    return (start - margin + np.arange(length + 2 * margin)) % w
 
 
 class _RawMap(GlobalMap):
@@ -205,6 +233,10 @@ class LoopCloser:
         cfg, bcfg, spline = self.cfg, self.backend.cfg, self.backend.spline
         w, h = self.backend.width, self.backend.height
         mask = np.repeat(np.repeat(old_cells, _CELL, axis=0), _CELL, axis=1)[:h, :w]
+        rows = np.flatnonzero(mask.any(axis=1))
+        if len(rows) == 0:
+            return {"correction_deg": 0.0, "confidence": 0.0, "confidence_before": 0.0, "peak_ratio": 0.0,
+                    "accepted": False, "applied": False, "reason": "no old map region", "_phi": [0.0, 0.0, 0.0]}
         g_raw = np.where(mask, self.old.raw, np.float32(0))
         mids, _ = self._rotations(t)
         s, u = spline.support(mids)
@@ -217,10 +249,14 @@ class LoopCloser:
             g = g_raw.reshape(h // f, f, w // f, f).sum(axis=(1, 3)) if f > 1 else g_raw
             local = vote_map(b, so3.exp(phi) @ spline.evaluate_at(s, u), w // f, h // f,
                              batch_size=bcfg.event_batch_size)
-            rho_g = event_density(g, bcfg.lambda0)
-            alpha = event_density(local, bcfg.lambda0) / rho_g if rho_g > 0 else 0.0
+            # the old map is zero beyond its rows: densities and blur on those rows only (large maps)
+            r0, r1 = int(rows[0]) // f, int(rows[-1]) // f + 1
+            rho_g = event_density(g[r0:r1], bcfg.lambda0)
+            alpha = event_density(local[local.any(axis=1)], bcfg.lambda0) / rho_g if rho_g > 0 else 0.0
+            g_blurred, g_sums = _blur_rows(g, r0, r1, bcfg.backend_blur_sigma)
             problem = PanoIWE(b, s, u, bcfg.spline_degree, w // f, h // f, sigma=bcfg.backend_blur_sigma,
-                              global_map=g, alpha=alpha, batch_size=bcfg.event_batch_size)
+                              global_blurred=g_blurred, global_sums=g_sums, alpha=alpha,
+                              batch_size=bcfg.event_batch_size)
             var0 = problem.cost(so3.exp(phi) @ base)
             scale = 1.0 / var0 if var0 > 0 else 1.0
 
@@ -239,15 +275,14 @@ class LoopCloser:
                         "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
                         "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
         self.profile["register"] += time.perf_counter() - tic
-        # correlation of the registered recent map with the old map over the old regions, on local texture
-        rows = np.flatnonzero(mask.any(axis=1))
-        if len(rows) == 0:
-            return {"correction_deg": 0.0, "confidence": 0.0, "confidence_before": 0.0, "peak_ratio": 0.0,
-                    "accepted": False, "applied": False, "reason": "no old map region", "_phi": [0.0, 0.0, 0.0]}
+        # correlation of the registered recent map with the old map over the old regions, on local texture: on the
+        # box around them (rows, and the cyclic column interval) with a margin for the texture filter and the shifts
         margin = 4 * _TEXTURE + int(math.ceil(max(_RING)))
         band = slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h))
-        g_tex = local_texture(problem.gmap[band], _TEXTURE)
-        m_band = mask[band]
+        cols = _cyclic_span(mask[band].any(axis=0), margin)
+        wrap = len(cols) == w  # the whole width: columns wrap
+        g_tex = local_texture(problem.gmap[band][:, cols], _TEXTURE, wrap_columns=wrap)
+        m_band = mask[band][:, cols]
 
         def ncc(lmap, tex, shift=(0, 0)):
             """Correlation over the old regions of the recent map's texture (shifted by (rows, columns)) with
@@ -263,8 +298,8 @@ class LoopCloser:
             return float(a @ c) / den if den > 0 else 0.0
 
         def maps_at(x):
-            lmap = problem.local_map(so3.exp(x) @ base)[band]
-            return lmap, local_texture(lmap, _TEXTURE)
+            lmap = problem.local_map(so3.exp(x) @ base)[band][:, cols]
+            return lmap, local_texture(lmap, _TEXTURE, wrap_columns=wrap)
 
         at_opt = maps_at(phi)
         conf = ncc(*at_opt)

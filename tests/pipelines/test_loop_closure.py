@@ -227,3 +227,22 @@ def test_old_map_holds_the_global_maps_weighted_votes(ti_runtime):
     assert ref.raw.sum() > 0 and np.any(ref.raw[:, 0] > 0) and np.any(ref.raw[:, -1] > 0)
     np.testing.assert_array_equal(old.raw, ref.raw)
     assert not old._scratch.any()
+
+
+def test_verification_crops_are_exact():
+    """The verification's shortcuts on large maps: the old map blurred on its rows alone equals the full-map blur
+    (with its sums), and the column box of the old regions is the shortest cyclic interval, across the wrap."""
+    from ti_cmax.kernels.pano import blur_map
+    from ti_cmax.pipelines.loop_closure import _blur_rows, _cyclic_span
+
+    rng = np.random.default_rng(4)
+    g = np.zeros((64, 128), np.float32)
+    g[20:31] = rng.uniform(0, 3, (11, 128)).astype(np.float32)
+    blurred, (total, squares) = _blur_rows(g, 20, 31, 1.0)
+    full = blur_map(g, 1.0)
+    np.testing.assert_allclose(blurred, full, atol=1e-5)
+    np.testing.assert_allclose([total, squares], [full.sum(), np.sum(full ** 2)], rtol=1e-5)
+    used = np.zeros(128, bool)
+    used[[2, 3, 125]] = True
+    assert _cyclic_span(used, 4).tolist() == [(c % 128) for c in range(121, 136)]
+    assert len(_cyclic_span(used, 70)) == 128
