@@ -100,6 +100,9 @@ class LoopCloser:
     """Loop detection, verification and correction for one ``SlidingWindowBackend`` (module docstring)."""
 
     def __init__(self, config: LoopClosureConfig, backend):
+        """``config`` must be resolved for the camera (``sensor_defaults.resolve_config``): no derived 0s."""
+        if config.loop_registration_events <= 0:
+            raise ValueError("the loop closer needs a config resolved for the camera (sensor_defaults.resolve_config)")
         self.cfg, self.backend = config, backend
         freeze = backend.map.max_update_time
         self._new_map = lambda: GlobalMap(backend.width, backend.height, backend.cfg.backend_blur_sigma,

@@ -270,8 +270,9 @@ class LoopClosureConfig(Params):
     loop_max_correction: float = param(0.1, "larger registrations are rejected as false loops", unit="rad", gt=0)
     loop_min_correction_px: float = param(0.25, "corrections below this are not applied", unit="map px", ge=0)
     loop_min_gain: float = param(0.02, "corrections raising the correlation by less are not applied", ge=0)
-    loop_registration_events: int = param(20000, "recent events used for the registration at most (thinned)",
-                                          unit="events", ge=100)
+    loop_registration_events: int = param(0, "recent events used for the registration at most (thinned); derived: "
+                                             "20 000 x max(1, pixels / 43200)", unit="events", ge=100,
+                                          zero="derived")
     loop_stored_event_rate: float = param(200000.0, "events kept per second to rebuild the map after a loop",
                                           unit="events/s", gt=0)
     loop_max_stored_events: int = param(4000000, "stored events at most (all strides thinned by 2 beyond)",
