@@ -118,13 +118,13 @@ class LoopCloser:
         self._interval = config.loop_recent_time  # time from one verification to the next check
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
         self.loops: list[dict] = []
-        self.seconds = 0.0
+        self.seconds = self.cpu_seconds = 0.0
         self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
 
     # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
     def store(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
         """Keep a subsample of one settled stride (1 of k, weight k)."""
-        tic = time.perf_counter()
+        tic, cpu = time.perf_counter(), time.process_time()
         n = len(ev_t)
         cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * self.backend.cfg.backend_sliding_window_stride)), 1)
         k = max(int(math.ceil(n / cap)), 1)
@@ -134,7 +134,7 @@ class LoopCloser:
         if self._stored > self.cfg.loop_max_stored_events:
             self.chunks = [(c[0][::2], c[1][::2], c[2] * len(c[0]) / len(c[0][::2]), c[3], c[4]) for c in self.chunks]
             self._stored = sum(len(c[0]) for c in self.chunks)
-        self.seconds += time.perf_counter() - tic
+        self._spent(tic, cpu)
         self.profile["store"] += time.perf_counter() - tic
 
     def before_window(self, t0: float, t1: float) -> None:
@@ -144,22 +144,28 @@ class LoopCloser:
         regions, is the jump at a loop, and it hides the loop's error from a later check)."""
         if t1 < self._next_check:
             return
-        tic = time.perf_counter()
+        tic, cpu = time.perf_counter(), time.process_time()
         ev_t, ev_b = self.backend.events.range(t0, t1, include_end=True)
         cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * (t1 - t0))), 1)  # as stored (store())
         k = max(int(math.ceil(len(ev_t) / cap)), 1)
         self._check(t1, ev_t[::k], ev_b[::k])
-        self.seconds += time.perf_counter() - tic
+        self._spent(tic, cpu)
 
     def after_window(self, t_now: float) -> None:
         """Age the stored events older than loop_recent_time into the old map and the age map."""
-        tic = time.perf_counter()
+        tic, cpu = time.perf_counter(), time.process_time()
         recent = self.cfg.loop_recent_time
         while self._n_old < len(self.chunks) and self.chunks[self._n_old][0][-1] < t_now - recent:
             self._age_chunk(self.chunks[self._n_old])
             self._n_old += 1
         self.profile["age"] += time.perf_counter() - tic
+        self._spent(tic, cpu)
+
+    def _spent(self, tic: float, cpu: float) -> None:
+        """Add the wall and CPU time since (tic, cpu) to the loop closer's totals (CPU time: comparable on a
+        loaded machine, where wall time is not)."""
         self.seconds += time.perf_counter() - tic
+        self.cpu_seconds += time.process_time() - cpu
 
     # ---- detection and verification ----------------------------------------------------------------------------
     def _rotations(self, t: np.ndarray, ctrl_left: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -382,4 +388,5 @@ class LoopCloser:
     def summary(self) -> dict:
         return {"candidates": len(self.loops), "accepted": sum(e["accepted"] for e in self.loops),
                 "applied": sum(bool(e.get("applied")) for e in self.loops), "seconds": self.seconds,
+                "cpu_seconds": self.cpu_seconds,
                 "stored_events": int(self._stored), "seconds_by_part": dict(self.profile)}
