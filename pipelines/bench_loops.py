@@ -11,7 +11,9 @@ DIR (reused later). One markdown table row per sequence and mode: abs / rel rota
 revisit (the jump at the loop, ``jump_at_revisit``), the largest and the median (typical) over the sequence; event
 area EA% and gradient magnitude GM of all events rendered along the trajectory (the same map size for both modes:
 the loop closer's rebuilt map holds only subsamples); loops applied / accepted / candidates; back-end us per input
-event with the loop closer's part, and its share of the run's front-end + back-end time. With --out, each mode's
+event with the loop closer's part, and its share of the run's front-end + back-end time; the run's process CPU
+seconds with the loop closer's part and the increase over loop_closure=false (CPU time: load inflates it far less
+than wall time, but it still varies by about 10 % between runs on a loaded machine). With --out, each mode's
 trajectory, report.json and row are kept (RUNS/SEQUENCE/), for plots of the error over time and for --summarize
 (the table of all rows there). The 1-minute load average is printed: timings are only comparable on an idle machine.
 """
