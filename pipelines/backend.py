@@ -105,25 +105,31 @@ class GlobalMap:
         """rho(I_G) = N_e / area (Eq. 16); 0 while empty."""
         return self.n_events / self.area if self.area > 0 else 0.0
 
-    def _vote_scratch(self, bearings, rotations, batch_size, margin):
+    def _take_votes(self, bearings, rotations, batch_size, margin, weight):
+        """Vote into the scratch map and take the votes (times weight) of the touched region (plus margin) out of
+        it, leaving it zero: (rows, cols, votes), or None when no vote landed."""
         for occ in self._occ:
             occ[:] = 0
         vote_map(bearings, rotations, self.width, self.height, batch_size=batch_size, out=self._scratch,
                  occupancy=self._occ)
-        return touched_region(*self._occ, margin)
-
-    def add(self, bearings, rotations, batch_size: int, t_now: float, moving: bool = True,
-            weight: float = 1.0) -> None:
-        """Vote events (per-batch rotations) into I_G and update B(I_G), the sums and the density. ``weight``
-        scales the votes (a subsample standing for more events, as when loop closure rebuilds the map)."""
-        region = self._vote_scratch(bearings, rotations, batch_size, blur_radius(self.sigma))
+        region = touched_region(*self._occ, margin)
         if region is None:
-            return
+            return None
         rows, cols = region
         votes = self._scratch[rows][:, cols]
         if weight != 1.0:
             votes *= np.float32(weight)
         self._scratch[rows.start:rows.stop, cols] = 0
+        return rows, cols, votes
+
+    def add(self, bearings, rotations, batch_size: int, t_now: float, moving: bool = True,
+            weight: float = 1.0) -> None:
+        """Vote events (per-batch rotations) into I_G and update B(I_G), the sums and the density. ``weight``
+        scales the votes (a subsample standing for more events, as when loop closure rebuilds the map)."""
+        taken = self._take_votes(bearings, rotations, batch_size, blur_radius(self.sigma), weight)
+        if taken is None:
+            return
+        rows, cols, votes = taken
         if self.first_seen is not None:
             seen = self.first_seen[rows][:, cols]
             if moving:

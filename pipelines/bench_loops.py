@@ -11,7 +11,9 @@ DIR (reused later). One markdown table row per sequence and mode: abs / rel rota
 revisit (the jump at the loop, ``jump_at_revisit``), the largest and the median (typical) over the sequence; event
 area EA% and gradient magnitude GM of all events rendered along the trajectory (the same map size for both modes:
 the loop closer's rebuilt map holds only subsamples); loops applied / accepted / candidates; back-end us per input
-event with the loop closer's part, and its share of the run's front-end + back-end time. With --out, each mode's
+event with the loop closer's part, and its share of the run's front-end + back-end time; the run's process CPU
+seconds with the loop closer's part and the increase over loop_closure=false (CPU time: load inflates it far less
+than wall time, but it still varies by about 10 % between runs on a loaded machine). With --out, each mode's
 trajectory, report.json and row are kept (RUNS/SEQUENCE/), for plots of the error over time and for --summarize
 (the table of all rows there). The 1-minute load average is printed: timings are only comparable on an idle machine.
 """
@@ -103,8 +105,10 @@ def jump_at_revisit(gt, est, t_revisit: float | None) -> float | None:
     return float(np.degrees(so3.geodesic_angle(d_est, d_gt)).max()) if len(t) else None
 
 
-def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, report: dict) -> dict:
-    """One table row from a run's trajectory and report.json (the map rendered along the trajectory)."""
+def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, report: dict,
+                 cpu_seconds: float | None = None) -> dict:
+    """One table row from a run's trajectory and report.json (the map rendered along the trajectory);
+    ``cpu_seconds``: the run's process CPU time (None: unknown)."""
     from ti_cmax.config import SlamConfig, load_config
     from ti_cmax.io import open_dataset, read_tum
     from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
@@ -132,6 +136,7 @@ def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, repo
         "loops": loops, "backend_us_per_event": report["us_per_event"]["backend"],
         "frontend_us_per_event": report["us_per_event"]["frontend"],
         "loop_us_per_event": lc.get("seconds", 0.0) * 1e6 / max(n, 1), "load_1min": os.getloadavg()[0],
+        "cpu_seconds": cpu_seconds, "loop_cpu_seconds": lc.get("cpu_seconds", 0.0),
         "loop_seconds_by_part": lc.get("seconds_by_part", {}),
         "jump_deg": jump_at_revisit(gt, trajectory, first_revisit_time(gt)),
     }
@@ -153,16 +158,18 @@ def bench(dataset: Path, overrides: list[str], out: Path | None = None, modes=(F
         mode = "on" if on else "off"
         if saved:
             traj, report = read_tum(out / f"trajectory_{mode}.txt"), json.loads((out / f"report_{mode}.json").read_text())
+            cpu = None
         else:
             ds = open_dataset(dataset)
             cfg = load_config(SlamConfig, None, list(overrides) + [f"loop_closure={str(on).lower()}"])
+            cpu = time.process_time()
             res = run_slam(ds.iter_events(cfg.dataset.chunk_size), ds.camera, cfg)
-            traj, report = res.trajectory, res.report
+            traj, report, cpu = res.trajectory, res.report, time.process_time() - cpu
             if out is not None:  # for plots of the error over time
                 out.mkdir(parents=True, exist_ok=True)
                 write_tum(out / f"trajectory_{mode}.txt", traj)
                 (out / f"report_{mode}.json").write_text(json.dumps(report, indent=1, default=float))
-        rows.append(evaluate_run(dataset, overrides, on, traj, report))
+        rows.append(evaluate_run(dataset, overrides, on, traj, report, cpu))
         if out is not None:
             (out / f"row_{mode}.json").write_text(json.dumps(rows[-1], indent=1, default=float))
     return rows
@@ -171,12 +178,17 @@ def bench(dataset: Path, overrides: list[str], out: Path | None = None, modes=(F
 def format_rows(rows: list[dict]) -> str:
     """Markdown table. jump: the largest 0.1 s step error around the start of the revisit (``jump_at_revisit``),
     against the median one over the sequence (typical); loop share: the loop closer's time over the run's
-    front-end + back-end time."""
+    front-end + back-end time; CPU: the run's process CPU seconds (a single-threaded run's work, which load does
+    not inflate as it does wall time), the loop closer's part, and the increase over the same sequence's off row."""
     lines = ["| sequence | loop closure | abs RMSE deg | rel RMSE deg/s | 0.1 s step err: jump at revisit / max / "
              "median deg | EA% | GM | loops applied / accepted / candidates | BE us/ev (loop part) | FE us/ev "
-             "| loop share % | load |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| loop share % | CPU s (loop part) / vs off | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    cpu_off = {r["sequence"]: r.get("cpu_seconds") for r in rows if not r["loop_closure"]}
     for r in rows:
+        cpu, ref = r.get("cpu_seconds"), cpu_off.get(r["sequence"])
+        cpu_text = "-" if cpu is None else f"{cpu:.1f} ({r.get('loop_cpu_seconds', 0.0):.1f})" + (
+            f" / {100 * (cpu / ref - 1):+.1f} %" if r["loop_closure"] and ref else "")
         jump = "-" if r.get("jump_deg") is None else f"{r['jump_deg']:.3f}"
         total = r["backend_us_per_event"] + r["frontend_us_per_event"]
         share = 100 * r["loop_us_per_event"] / total if total > 0 else 0.0
@@ -186,7 +198,7 @@ def format_rows(rows: list[dict]) -> str:
             f"{r['rel_rmse_deg_per_s']:.3f} | {jump} / {r['step_max_deg']:.3f} / {r['step_median_deg']:.3f} | "
             f"{r['ea_percent']:.3f} | {r['gm']:.4f} | {r['loops_applied']} / {accepted} / {r['loops_candidates']} | "
             f"{r['backend_us_per_event']:.2f} ({r['loop_us_per_event']:.2f}) | {r['frontend_us_per_event']:.2f} | "
-            f"{share:.1f} | {r['load_1min']:.1f} |")
+            f"{share:.1f} | {cpu_text} | {r['load_1min']:.1f} |")
     return "\n".join(lines)
 
 

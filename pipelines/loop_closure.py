@@ -39,7 +39,9 @@ import numpy as np
 from ti_cmax import so3
 from ti_cmax.config import LoopClosureConfig
 from ti_cmax.metrics import local_texture
-from ti_cmax.kernels.pano import PanoIWE, batch_mid_times, equirect_numpy, event_density, vote_map
+from ti_cmax.kernels.pano import (
+    PanoIWE, batch_mid_times, blur_radius, blur_region, equirect_numpy, event_density, vote_map,
+)
 
 from .backend import GlobalMap
 from .optim import fletcher_reeves
@@ -50,18 +52,65 @@ _CG_ITERS, _CG_LINE_EVALS = 10, 8  # per pyramid level: 3 unknowns, started near
 _TEXTURE = 3  # map pixels: scale of the local texture normalization of the confidence test
 
 
+def _blur_rows(raw: np.ndarray, r0: int, r1: int, sigma: float) -> tuple[np.ndarray, tuple[float, float]]:
+    """``blur_map(raw)`` (float32) of a map that is zero outside rows [r0, r1), filtering only those rows and the
+    blur radius around them, with the (sum, sum of squares) ``PanoIWE`` takes beside it."""
+    h, w = raw.shape
+    out = np.zeros((h, w), np.float32)
+    rows = slice(max(r0 - blur_radius(sigma), 0), min(r1 + blur_radius(sigma), h))
+    blur_region(raw, out, rows, np.arange(w), sigma)
+    band = out[rows].astype(np.float64)
+    return out, (float(band.sum()), float(np.sum(band * band)))
+
+
+def _cyclic_span(used: np.ndarray, margin: int) -> np.ndarray:
+    """Column indices of the shortest cyclic interval holding every True column of ``used``, widened by margin on
+    both sides (all columns when that covers the width)."""
+    w = len(used)
+    idx = np.flatnonzero(used)
+    if len(idx) == 0:
+        return np.arange(w)
+    gaps = np.diff(np.append(idx, idx[0] + w))  # gap after each used column, cyclically
+    k = int(np.argmax(gaps))  # the interval starts after the largest gap
+    start, length = int(idx[(k + 1) % len(idx)]), w - int(gaps[k]) + 1
+    if length + 2 * margin >= w:
+        return np.arange(w)
+    return (start - margin + np.arange(length + 2 * margin)) % w
+
+
+class _RawMap(GlobalMap):
+    """The old map: raw votes only. The registration reads nothing else, so the blurred copy, the sums and the
+    event area of ``GlobalMap`` are neither kept nor updated (a third less memory: 2 instead of 3 float32 maps,
+    268 MB instead of 402 MB at 8192 x 4096, and no blur or exp per aged stride). Same votes as GlobalMap.add."""
+
+    def __init__(self, width: int, height: int):
+        self.width, self.height = width, height
+        self.raw = np.zeros((height, width), np.float32)
+        self._scratch = np.zeros((height, width), np.float32)  # stays zero between calls
+        self._occ = (np.zeros(width, np.int32), np.zeros(height, np.int32))
+
+    def add(self, bearings, rotations, batch_size: int, weight: float = 1.0) -> None:
+        taken = self._take_votes(bearings, rotations, batch_size, 0, weight)
+        if taken is not None:
+            rows, cols, votes = taken
+            self.raw[rows.start:rows.stop, cols] += votes
+
+
 class LoopCloser:
     """Loop detection, verification and correction for one ``SlidingWindowBackend`` (module docstring)."""
 
     def __init__(self, config: LoopClosureConfig, backend):
+        """``config`` must be resolved for the camera (``sensor_defaults.resolve_config``): no derived 0s."""
+        if config.loop_registration_events <= 0:
+            raise ValueError("the loop closer needs a config resolved for the camera (sensor_defaults.resolve_config)")
         self.cfg, self.backend = config, backend
         freeze = backend.map.max_update_time
-        self._new_map = lambda sigma: GlobalMap(backend.width, backend.height, sigma, backend.cfg.lambda0,
-                                                freeze if sigma > 0 else None)
+        self._new_map = lambda: GlobalMap(backend.width, backend.height, backend.cfg.backend_blur_sigma,
+                                          backend.cfg.lambda0, freeze)
         w, h = backend.width, backend.height
         self.age = np.full((-(-h // _CELL), -(-w // _CELL)), -np.inf)  # last observed (delayed); -inf: never
         self.visit = np.full_like(self.age, -np.inf)  # start of the last visit (observed after a loop_min_age gap)
-        self.old = self._new_map(0.0)  # raw map of the stored events older than the recent block
+        self.old = _RawMap(w, h)  # raw map of the stored events older than the recent block
         self.chunks: list[tuple[np.ndarray, np.ndarray, float, float, bool]] = []  # (t, b, weight, t0, moving)
         self._n_old = 0  # chunks already voted into the old map and the age map
         self._stored = 0
@@ -69,13 +118,13 @@ class LoopCloser:
         self._interval = config.loop_recent_time  # time from one verification to the next check
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
         self.loops: list[dict] = []
-        self.seconds = 0.0
+        self.seconds = self.cpu_seconds = 0.0
         self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
 
     # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
     def store(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
         """Keep a subsample of one settled stride (1 of k, weight k)."""
-        tic = time.perf_counter()
+        tic, cpu = time.perf_counter(), time.process_time()
         n = len(ev_t)
         cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * self.backend.cfg.backend_sliding_window_stride)), 1)
         k = max(int(math.ceil(n / cap)), 1)
@@ -85,7 +134,7 @@ class LoopCloser:
         if self._stored > self.cfg.loop_max_stored_events:
             self.chunks = [(c[0][::2], c[1][::2], c[2] * len(c[0]) / len(c[0][::2]), c[3], c[4]) for c in self.chunks]
             self._stored = sum(len(c[0]) for c in self.chunks)
-        self.seconds += time.perf_counter() - tic
+        self._spent(tic, cpu)
         self.profile["store"] += time.perf_counter() - tic
 
     def before_window(self, t0: float, t1: float) -> None:
@@ -95,22 +144,28 @@ class LoopCloser:
         regions, is the jump at a loop, and it hides the loop's error from a later check)."""
         if t1 < self._next_check:
             return
-        tic = time.perf_counter()
+        tic, cpu = time.perf_counter(), time.process_time()
         ev_t, ev_b = self.backend.events.range(t0, t1, include_end=True)
         cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * (t1 - t0))), 1)  # as stored (store())
         k = max(int(math.ceil(len(ev_t) / cap)), 1)
         self._check(t1, ev_t[::k], ev_b[::k])
-        self.seconds += time.perf_counter() - tic
+        self._spent(tic, cpu)
 
     def after_window(self, t_now: float) -> None:
         """Age the stored events older than loop_recent_time into the old map and the age map."""
-        tic = time.perf_counter()
+        tic, cpu = time.perf_counter(), time.process_time()
         recent = self.cfg.loop_recent_time
         while self._n_old < len(self.chunks) and self.chunks[self._n_old][0][-1] < t_now - recent:
             self._age_chunk(self.chunks[self._n_old])
             self._n_old += 1
         self.profile["age"] += time.perf_counter() - tic
+        self._spent(tic, cpu)
+
+    def _spent(self, tic: float, cpu: float) -> None:
+        """Add the wall and CPU time since (tic, cpu) to the loop closer's totals (CPU time: comparable on a
+        loaded machine, where wall time is not)."""
         self.seconds += time.perf_counter() - tic
+        self.cpu_seconds += time.process_time() - cpu
 
     # ---- detection and verification ----------------------------------------------------------------------------
     def _rotations(self, t: np.ndarray, ctrl_left: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -133,7 +188,7 @@ class LoopCloser:
     def _age_chunk(self, chunk) -> None:
         t, b, weight, t0, moving = chunk
         _, rot = self._rotations(t)
-        self.old.add(b, rot, self.backend.cfg.event_batch_size, t0, moving, weight=weight)
+        self.old.add(b, rot, self.backend.cfg.event_batch_size, weight=weight)
         cells = np.unique(self._cells(b, rot))
         new_visit = self.age.flat[cells] < float(t[0]) - self.cfg.loop_min_age  # never observed, or long ago
         self.visit.flat[cells[new_visit]] = float(t[0])
@@ -187,6 +242,10 @@ class LoopCloser:
         cfg, bcfg, spline = self.cfg, self.backend.cfg, self.backend.spline
         w, h = self.backend.width, self.backend.height
         mask = np.repeat(np.repeat(old_cells, _CELL, axis=0), _CELL, axis=1)[:h, :w]
+        rows = np.flatnonzero(mask.any(axis=1))
+        if len(rows) == 0:
+            return {"correction_deg": 0.0, "confidence": 0.0, "confidence_before": 0.0, "peak_ratio": 0.0,
+                    "accepted": False, "applied": False, "reason": "no old map region", "_phi": [0.0, 0.0, 0.0]}
         g_raw = np.where(mask, self.old.raw, np.float32(0))
         mids, _ = self._rotations(t)
         s, u = spline.support(mids)
@@ -199,10 +258,14 @@ class LoopCloser:
             g = g_raw.reshape(h // f, f, w // f, f).sum(axis=(1, 3)) if f > 1 else g_raw
             local = vote_map(b, so3.exp(phi) @ spline.evaluate_at(s, u), w // f, h // f,
                              batch_size=bcfg.event_batch_size)
-            rho_g = event_density(g, bcfg.lambda0)
-            alpha = event_density(local, bcfg.lambda0) / rho_g if rho_g > 0 else 0.0
+            # the old map is zero beyond its rows: densities and blur on those rows only (large maps)
+            r0, r1 = int(rows[0]) // f, int(rows[-1]) // f + 1
+            rho_g = event_density(g[r0:r1], bcfg.lambda0)
+            alpha = event_density(local[local.any(axis=1)], bcfg.lambda0) / rho_g if rho_g > 0 else 0.0
+            g_blurred, g_sums = _blur_rows(g, r0, r1, bcfg.backend_blur_sigma)
             problem = PanoIWE(b, s, u, bcfg.spline_degree, w // f, h // f, sigma=bcfg.backend_blur_sigma,
-                              global_map=g, alpha=alpha, batch_size=bcfg.event_batch_size)
+                              global_blurred=g_blurred, global_sums=g_sums, alpha=alpha,
+                              batch_size=bcfg.event_batch_size)
             var0 = problem.cost(so3.exp(phi) @ base)
             scale = 1.0 / var0 if var0 > 0 else 1.0
 
@@ -221,15 +284,14 @@ class LoopCloser:
                         "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
                         "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
         self.profile["register"] += time.perf_counter() - tic
-        # correlation of the registered recent map with the old map over the old regions, on local texture
-        rows = np.flatnonzero(mask.any(axis=1))
-        if len(rows) == 0:
-            return {"correction_deg": 0.0, "confidence": 0.0, "confidence_before": 0.0, "peak_ratio": 0.0,
-                    "accepted": False, "applied": False, "reason": "no old map region", "_phi": [0.0, 0.0, 0.0]}
+        # correlation of the registered recent map with the old map over the old regions, on local texture: on the
+        # box around them (rows, and the cyclic column interval) with a margin for the texture filter and the shifts
         margin = 4 * _TEXTURE + int(math.ceil(max(_RING)))
         band = slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h))
-        g_tex = local_texture(problem.gmap[band], _TEXTURE)
-        m_band = mask[band]
+        cols = _cyclic_span(mask[band].any(axis=0), margin)
+        wrap = len(cols) == w  # the whole width: columns wrap
+        g_tex = local_texture(problem.gmap[band][:, cols], _TEXTURE, wrap_columns=wrap)
+        m_band = mask[band][:, cols]
 
         def ncc(lmap, tex, shift=(0, 0)):
             """Correlation over the old regions of the recent map's texture (shifted by (rows, columns)) with
@@ -245,8 +307,8 @@ class LoopCloser:
             return float(a @ c) / den if den > 0 else 0.0
 
         def maps_at(x):
-            lmap = problem.local_map(so3.exp(x) @ base)[band]
-            return lmap, local_texture(lmap, _TEXTURE)
+            lmap = problem.local_map(so3.exp(x) @ base)[band][:, cols]
+            return lmap, local_texture(lmap, _TEXTURE, wrap_columns=wrap)
 
         at_opt = maps_at(phi)
         conf = ncc(*at_opt)
@@ -310,8 +372,8 @@ class LoopCloser:
         backend = self.backend
         bs = backend.cfg.event_batch_size
         backend.map = self.old = None  # free the old maps first: peak memory holds one set of maps, not two
-        backend.map = self._new_map(backend.cfg.backend_blur_sigma)
-        self.old = self._new_map(0.0)
+        backend.map = self._new_map()
+        self.old = _RawMap(self.backend.width, self.backend.height)
         self.age[:] = -np.inf
         self.visit[:] = -np.inf
         for i, chunk in enumerate(self.chunks):
@@ -326,4 +388,5 @@ class LoopCloser:
     def summary(self) -> dict:
         return {"candidates": len(self.loops), "accepted": sum(e["accepted"] for e in self.loops),
                 "applied": sum(bool(e.get("applied")) for e in self.loops), "seconds": self.seconds,
+                "cpu_seconds": self.cpu_seconds,
                 "stored_events": int(self._stored), "seconds_by_part": dict(self.profile)}

@@ -24,6 +24,11 @@ With P the sensor's pixel count, s = P / 43200 (DAVIS240C = 1) and f = (fx + fy)
   event still goes into the map. 5 events per pixel per 0.2 s window is about 1.1 M events/s on a DAVIS240C and
   7.7 M events/s on a VGA sensor; on a VGA sequence at 10.5 M events/s, sampling to it (66 % of the events) left
   the abs error unchanged (0.032 deg) and halved the back-end's work.
+- ``loop_registration_events``  = 20 000 * max(1, s), rounded to 1000: the recent events a loop verification
+  registers hold as many events per map pixel as 20 000 on a DAVIS240C (maps have 1.5 map pixels per sensor
+  pixel on every sensor below the 8192 cap). On a VGA pan (bay, 8 s, 2 turns) the first revisit registered with
+  20 000 events correlated 0.046 with the old map (rejected, with a false 0.10 deg correction), with 142 000
+  0.561 (accepted, 0.012 deg: no drift to close); its verification then took 16 s instead of 7 (load 6-7).
 - ``realtime_min_window_events`` = 1 * P * window / 0.2 s, rounded to 1000: the floor below which the real-time
   controller (pipelines/realtime.py) never samples a window's BA (a fifth of the cap above; fewer events per
   pixel leave the panoramic IWE too sparse for its variance to mean much).
@@ -40,6 +45,7 @@ REFERENCE_PIXELS = 240 * 180  # DAVIS240C, the sensor the reference's defaults w
 REFERENCE_PACKET_EVENTS = 10_000
 REFERENCE_MAX_PACKET_EVENTS = 20_000
 REFERENCE_MIN_EVENT_RATE = 10_000.0  # events/s
+REFERENCE_REGISTRATION_EVENTS = 20_000  # loop verification on a DAVIS240C
 WINDOW_EVENTS_PER_PIXEL = 5.0  # per 0.2 s window
 REALTIME_MIN_WINDOW_EVENTS_PER_PIXEL = 1.0  # per 0.2 s window
 MAP_WIDTH_MULTIPLE = 256
@@ -84,6 +90,12 @@ def derived_backend(camera: Camera, config: BackendConfig = BackendConfig()) -> 
     }
 
 
+def derived_loop(camera: Camera) -> dict:
+    """The loop closer's values for this camera (see the module docstring)."""
+    events = REFERENCE_REGISTRATION_EVENTS * max(1.0, _pixel_scale(camera))
+    return {"loop_registration_events": _round_to(events, 1000)}
+
+
 def derived_realtime(camera: Camera, backend: BackendConfig = BackendConfig()) -> dict:
     """The real-time controller's values for this camera (see the module docstring)."""
     pixels = camera.width * camera.height
@@ -113,16 +125,18 @@ def resolve_config(config: SlamConfig, camera: Camera) -> SlamConfig:
     """The config with every derived (0) value replaced by its rule's number for this camera. Idempotent."""
     return replace(config, frontend=resolve_frontend(config.frontend, camera),
                    backend=resolve_backend(config.backend, camera),
-                   realtime=_fill(config.realtime, derived_realtime(camera, config.backend)))
+                   realtime=_fill(config.realtime, derived_realtime(camera, config.backend)),
+                   loop=_fill(config.loop, derived_loop(camera)))
 
 
 def derived_summary(config: SlamConfig, camera: Camera) -> dict:
     """The values the rules set (not those the user gave), for the command's summary and report.json."""
     resolved = resolve_config(config, camera)
     out = {}
-    for section in ("frontend", "backend"):
+    for section in ("frontend", "backend", "loop"):
         before, after = getattr(config, section), getattr(resolved, section)
-        for key in list(derived_frontend(camera)) + list(derived_backend(camera, config.backend)):
+        for key in list(derived_frontend(camera)) + list(derived_backend(camera, config.backend)) + \
+                list(derived_loop(camera)):
             if hasattr(before, key) and getattr(before, key) != getattr(after, key):
                 out[key] = getattr(after, key)
     return out
@@ -134,4 +148,4 @@ def describe(values: dict) -> str:
 
 
 __all__ = ["resolve_config", "resolve_frontend", "resolve_backend", "derived_frontend", "derived_backend",
-           "derived_summary", "describe", "map_width_for", "pano_size", "derived_realtime"]
+           "derived_summary", "describe", "map_width_for", "pano_size", "derived_realtime", "derived_loop"]

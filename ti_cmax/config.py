@@ -256,7 +256,7 @@ class LoopClosureConfig(Params):
     regions last observed long ago; an accepted correction is spread over the trajectory since that visit and
     the global map is rebuilt from stored event subsamples."""
 
-    loop_closure: bool = param(False, "loop closure on revisits (false: the back-end's output is bitwise unchanged)")
+    loop_closure: bool = param(True, "loop closure on revisits (false: the back-end's output is bitwise unchanged)")
     loop_min_age: float = param(3.0, "time since a map region was last observed for it to count as old", unit="s",
                                 gt=0)
     loop_recent_time: float = param(1.0, "recent events registered against the old map; at most one check per this",
@@ -270,8 +270,9 @@ class LoopClosureConfig(Params):
     loop_max_correction: float = param(0.1, "larger registrations are rejected as false loops", unit="rad", gt=0)
     loop_min_correction_px: float = param(0.25, "corrections below this are not applied", unit="map px", ge=0)
     loop_min_gain: float = param(0.02, "corrections raising the correlation by less are not applied", ge=0)
-    loop_registration_events: int = param(20000, "recent events used for the registration at most (thinned)",
-                                          unit="events", ge=100)
+    loop_registration_events: int = param(0, "recent events used for the registration at most (thinned); derived: "
+                                             "20 000 x max(1, pixels / 43200)", unit="events", ge=100,
+                                          zero="derived")
     loop_stored_event_rate: float = param(200000.0, "events kept per second to rebuild the map after a loop",
                                           unit="events/s", gt=0)
     loop_max_stored_events: int = param(4000000, "stored events at most (all strides thinned by 2 beyond)",

@@ -1,5 +1,7 @@
 """Loop closure (pipelines/loop_closure.py): an injected drift over a revisit is found and removed, false revisits
 (another region with similar texture, a textureless region) are rejected, loop_closure=false changes nothing."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from ti_cmax.spline import SO3Spline
 DURATION, TURNS, RATE = 5.0, 1.3, 120_000  # s, pan turns, events/s
 DRIFT = np.radians(4.0)  # injected drift at the end (grows linearly from 0), about DRIFT_AXIS (world frame)
 DRIFT_AXIS = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
+LOOP = LoopClosureConfig(loop_closure=True, loop_registration_events=20000)  # as resolved for a DAVIS240C
 
 
 def _pan(t, duration=DURATION, turns=TURNS):
@@ -74,7 +77,7 @@ def _spline(trajectory, dt=0.05, duration=DURATION):
     return spline
 
 
-def _run(t_ev, b_ev, trajectory, loop_cfg=LoopClosureConfig(loop_closure=True), duration=DURATION):
+def _run(t_ev, b_ev, trajectory, loop_cfg=LOOP, duration=DURATION):
     """Settle every stride of the events along the given trajectory (a spline fitted to it, no BA) with a loop
     closer attached, as the back-end does after each window."""
     from ti_cmax.pipelines.backend import SlidingWindowBackend
@@ -120,7 +123,7 @@ def test_injected_drift_over_a_revisit_is_found_and_removed(ti_runtime):
     mid = 0.5 * (t_old + t_ref)
     assert _error(be, np.array([mid]))[0] < 0.6 * np.degrees(DRIFT) * mid / DURATION
     # the global map was rebuilt along the corrected trajectory: sharper than the drifted one
-    ref = _run(t_ev, b_ev, _drifted, LoopClosureConfig(loop_closure=True, loop_min_confidence=2.0))
+    ref = _run(t_ev, b_ev, _drifted, replace(LOOP, loop_min_confidence=2.0))
     assert not any(e["applied"] for e in ref.loop.loops)
     from ti_cmax.metrics import event_area_percent
 
@@ -210,3 +213,60 @@ def test_loop_closure_false_is_todays_output_and_refine_cli_reports_loops(short_
                  "--loop-closure", "--quiet", "--set", "pano_height=256"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["loops"] == [] and report["parameters"]["loop"]["loop_closure"] is True
+
+
+def test_old_map_holds_the_global_maps_weighted_votes(ti_runtime):
+    """The loop closer's raw-only old map (no blur, sums or area) receives exactly the votes GlobalMap.add puts in
+    I_G, weight included, across the longitude wrap."""
+    from ti_cmax.pipelines.backend import GlobalMap
+    from ti_cmax.pipelines.loop_closure import _RawMap
+
+    t, b = _events(seed=3, duration=1.0)
+    rot = _pan(t[::100] + 1.5)  # one rotation per batch of 100, the pan crossing longitude +-180 deg
+    ref, old = GlobalMap(512, 256, 1.0, 1.0), _RawMap(512, 256)
+    for weight in (1.0, 2.5):
+        ref.add(b, rot, 100, 0.0, weight=weight)
+        old.add(b, rot, 100, weight=weight)
+    assert ref.raw.sum() > 0 and np.any(ref.raw[:, 0] > 0) and np.any(ref.raw[:, -1] > 0)
+    np.testing.assert_array_equal(old.raw, ref.raw)
+    assert not old._scratch.any()
+
+
+def test_verification_crops_are_exact():
+    """The verification's shortcuts on large maps: the old map blurred on its rows alone equals the full-map blur
+    (with its sums), and the column box of the old regions is the shortest cyclic interval, across the wrap."""
+    from ti_cmax.kernels.pano import blur_map
+    from ti_cmax.pipelines.loop_closure import _blur_rows, _cyclic_span
+
+    rng = np.random.default_rng(4)
+    g = np.zeros((64, 128), np.float32)
+    g[20:31] = rng.uniform(0, 3, (11, 128)).astype(np.float32)
+    blurred, (total, squares) = _blur_rows(g, 20, 31, 1.0)
+    full = blur_map(g, 1.0)
+    np.testing.assert_allclose(blurred, full, atol=1e-5)
+    np.testing.assert_allclose([total, squares], [full.sum(), np.sum(full ** 2)], rtol=1e-5)
+    used = np.zeros(128, bool)
+    used[[2, 3, 125]] = True
+    assert _cyclic_span(used, 4).tolist() == [(c % 128) for c in range(121, 136)]
+    assert len(_cyclic_span(used, 70)) == 128
+
+
+def test_registration_events_follow_the_sensor_and_need_a_resolved_config():
+    """loop_registration_events: 20 000 on a DAVIS240C (and smaller sensors), in proportion to the pixels above;
+    a user value wins; the loop closer refuses the unresolved 0."""
+    from ti_cmax.camera import Camera
+    from ti_cmax.config import SlamConfig
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+    from ti_cmax.pipelines.loop_closure import LoopCloser
+    from ti_cmax.pipelines.sensor_defaults import resolve_config
+
+    def events_for(w, h, cfg=SlamConfig()):
+        return resolve_config(cfg, Camera(w, h, 200.0, 200.0, w / 2, h / 2)).loop.loop_registration_events
+
+    assert (events_for(128, 128), events_for(240, 180), events_for(640, 480), events_for(1280, 720)) == \
+        (20000, 20000, 142000, 427000)
+    assert events_for(640, 480, SlamConfig(loop=LOOP)) == 20000
+    backend = SlidingWindowBackend(BackendConfig(pano_height=256, backend_min_ev_rate=1.0,
+                                                 backend_max_window_events=-1), 0.0)
+    with pytest.raises(ValueError, match="resolved"):
+        LoopCloser(LoopClosureConfig(loop_closure=True), backend)
