@@ -256,7 +256,7 @@ class LoopClosureConfig(Params):
     regions last observed long ago; an accepted correction is spread over the trajectory since that visit and
     the global map is rebuilt from stored event subsamples."""
 
-    loop_closure: bool = param(True, "loop closure on revisits (false: the back-end's output is bitwise unchanged)")
+    loop_closure: bool = param(False, "loop closure on revisits (false: the back-end's output is bitwise unchanged)")
     loop_min_age: float = param(3.0, "time since a map region was last observed for it to count as old", unit="s",
                                 gt=0)
     loop_recent_time: float = param(1.0, "recent events registered against the old map; at most one check per this",
