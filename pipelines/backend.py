@@ -26,7 +26,7 @@ import numpy as np
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
 from ti_cmax.kernels.pano import (
-    PanoIWE, batch_mid_times, blur_radius, blur_region, touched_region, vote_map,
+    PanoIWE, batch_mid_times, blur_radius, blur_region, column_selector, touched_region, vote_map,
 )
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
@@ -120,27 +120,31 @@ class GlobalMap:
         if region is None:
             return
         rows, cols = region
-        votes = self._scratch[rows][:, cols]
+        sel = (rows, column_selector(cols))  # slices (views) unless the region straddles the seam
+        contiguous = isinstance(sel[1], slice)
+        votes = self._scratch[sel]  # a view when contiguous: the scratch is cleared only at the end
         if weight != 1.0:
-            votes *= np.float32(weight)
-        self._scratch[rows.start:rows.stop, cols] = 0
+            votes = votes * np.float32(weight)
         if self.first_seen is not None:
-            seen = self.first_seen[rows][:, cols]
+            seen = self.first_seen[sel]
             if moving:
                 seen = np.minimum(seen, np.where(votes > 0, np.float32(t_now), np.float32(np.inf)))
-                self.first_seen[rows.start:rows.stop, cols] = seen
+                self.first_seen[sel] = seen
             votes = np.where((t_now - seen) < self.max_update_time, votes, 0).astype(np.float32)
-        old_raw = self.raw[rows][:, cols]
+        old_raw = self.raw[sel].copy() if contiguous else self.raw[sel]
         new_raw = old_raw + votes
-        self.raw[rows.start:rows.stop, cols] = new_raw
-        self.n_events += float(votes.sum(dtype=np.float64))
+        self.raw[sel] = new_raw
+        # the votes and the new blur are summed over column-major copies, the old blur over a row-major one: the
+        # summation orders (hence every bit) of the gathered copies this code used before it took views
+        self.n_events += float(np.asfortranarray(votes).sum(dtype=np.float64))
         # event area: only pixels that received votes change, sum of exp(-old / lambda0) - exp(-new / lambda0)
         changed = np.flatnonzero(votes)
         old_v = old_raw.reshape(-1)[changed].astype(np.float64) / -self.lambda0
         new_v = new_raw.reshape(-1)[changed].astype(np.float64) / -self.lambda0
         self.area += float(np.sum(np.exp(old_v) - np.exp(new_v)))
-        old_blur = blur_region(self.raw, self.blurred, rows, cols, self.sigma).astype(np.float64)
-        new_blur = self.blurred[rows][:, cols].astype(np.float64)
+        self._scratch[sel] = 0
+        old_blur = blur_region(self.raw, self.blurred, rows, cols, self.sigma).astype(np.float64)  # a C copy
+        new_blur = self.blurred[sel].astype(np.float64, order="F")
         self.g_sum += float(new_blur.sum() - old_blur.sum())
         self.g_sq += float(np.sum(new_blur * new_blur) - np.sum(old_blur * old_blur))
 
@@ -232,6 +236,7 @@ class SlidingWindowBackend:
         self.window_start = t0 + cfg.backend_sliding_window_stride
         if self.loop is not None:  # loop closure: may correct the spline and rebuild the map
             self.loop.after_window(self.window_start)
+        self._drop_source_before_anchor()
         report.seconds = time.perf_counter() - tic
         report.done_at = time.monotonic()
         self.windows.append(report)
@@ -282,6 +287,16 @@ class SlidingWindowBackend:
         times, rots = self._src_t[i0:i1], self._src_R[i0:i1]
         t_a, r_src_a, r_spl_a = self._anchor
         return times, r_spl_a @ r_src_a.T @ rots
+
+    def _drop_source_before_anchor(self) -> None:
+        """Forget source poses before the anchor's interval: later windows, pose_at and the extrapolation only read
+        the source from the anchor on, so memory and the per-packet append stay bounded on long streams."""
+        if self._anchor is None:
+            return
+        i = int(np.searchsorted(self._src_t, self._anchor[0], side="left")) - 1
+        i = min(i, len(self._src_t) - 2)
+        if i > 0:
+            self._src_t, self._src_R = self._src_t[i:], self._src_R[i:]
 
     def _source_at(self, t: float) -> np.ndarray:
         return Trajectory(self._src_t, self._src_R).at(t)[0] if len(self._src_t) > 1 else self._src_R[0]

@@ -336,6 +336,7 @@ class OnlineSlam:
                 else:
                     shadow.spline.control_R = np.concatenate([shadow.spline.control_R[:first], tail])
                 shadow._anchor, shadow.window_start = anchor, window_start
+                shadow._drop_source_before_anchor()
                 shadow.windows.append(report)
                 self._notify(report)
             elif kind == until:
