@@ -19,6 +19,8 @@ For every window [T, T + backend_time_window_size] (T advancing by backend_slidi
 """
 from __future__ import annotations
 
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,6 +57,28 @@ class WindowReport:
     seconds: float = 0.0
     skipped: bool = False  # BA skipped by the real-time controller (ba_cap = 0): front-end poses kept
     done_at: float = 0.0  # time.monotonic() when the window completed (the same clock in every process)
+    ba_seconds: float = 0.0  # wall time of the BA (part of ``seconds``)
+    busy_seconds: float | None = None  # worker process: wall time it worked since the previous window (not waiting)
+
+
+class StageClock:
+    """CPU and wall seconds per named stage, for the report's per-stage costs (``with clock("ba"): ...``)."""
+
+    def __init__(self):
+        self.cpu: dict[str, float] = {}
+        self.wall: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str):
+        wall, cpu = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            self.wall[name] = self.wall.get(name, 0.0) + time.perf_counter() - wall
+            self.cpu[name] = self.cpu.get(name, 0.0) + time.process_time() - cpu
+
+    def summary(self) -> dict:
+        return {"cpu_seconds": dict(self.cpu), "wall_seconds": dict(self.wall)}
 
 
 @dataclass
@@ -175,6 +199,7 @@ class SlidingWindowBackend:
         self._last_correction: float | None = None  # |x| of the last window's CG solution
         self._inv_hessian = None  # BFGS: (first free control pose, inverse Hessian) of the last window
         self.loop = None  # loop closure hook (pipelines/loop_closure.LoopCloser), attached by its owner
+        self.clock = StageClock()  # per-stage CPU and wall seconds (fit, ba, settle, loop)
         # real-time degradation (pipelines/realtime.py): BA events per window at most instead of
         # backend_max_window_events (None: the config's); 0 skips the BA (the window keeps its initialization)
         self.ba_cap: int | None = None
@@ -211,17 +236,17 @@ class SlidingWindowBackend:
 
     def step(self, final: bool = False) -> WindowReport:
         """Initialize, refine and settle one window. ``final`` settles every remaining event."""
-        import time
-
         tic = time.perf_counter()
-        cfg = self.cfg
+        cfg, clock = self.cfg, self.clock
         t0, t1 = self.window_start, self.window_end
         if final:
             last = max(self.events.t[-1] if len(self.events.t) else t0, self._src_t[-1] if len(self._src_t) else t0)
             t1 = max(t0 + 1e-6, min(t1, last))
-        self._initialize_until(t1)
+        with clock("fit"):
+            self._initialize_until(t1)
         if self.loop is not None:  # loop closure: a revisit is closed before this window's BA
-            self.loop.before_window(t0, t1)
+            with clock("loop"):
+                self.loop.before_window(t0, t1)
         ev_t, ev_b = self.events.range(t0, t1, include_end=True)
         n = len(ev_t)
         rate = n / max(t1 - t0, 1e-9)
@@ -230,12 +255,17 @@ class SlidingWindowBackend:
             if self.ba_cap == 0:
                 report.skipped = True
             else:
-                self._refine(ev_t, ev_b, t0, report)
+                ba0 = time.perf_counter()
+                with clock("ba"):
+                    self._refine(ev_t, ev_b, t0, report)
+                report.ba_seconds = time.perf_counter() - ba0
         settle_end = t1 + 1.0 if final else t0 + cfg.backend_sliding_window_stride
-        self._settle(t0, settle_end, still=not report.optimized)
+        with clock("settle"):
+            self._settle(t0, settle_end, still=not report.optimized)
         self.window_start = t0 + cfg.backend_sliding_window_stride
         if self.loop is not None:  # loop closure: may correct the spline and rebuild the map
-            self.loop.after_window(self.window_start)
+            with clock("loop"):
+                self.loop.after_window(self.window_start)
         self._drop_source_before_anchor()
         report.seconds = time.perf_counter() - tic
         report.done_at = time.monotonic()

@@ -26,7 +26,7 @@ from ti_cmax.progress import progress
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
-from .backend import SlidingWindowBackend
+from .backend import SlidingWindowBackend, StageClock
 from .frontend import FrontendResult, FrontendRunner, Packet, as_chunks, every_qth
 from .loop_closure import LoopCloser
 from .sensor_defaults import derived_summary, resolve_config
@@ -98,6 +98,7 @@ def _backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
         "map_size": [int(backend.width), int(backend.height)],
         "spline_degree": int(backend.cfg.spline_degree),
         "control_poses": int(backend.spline.num_control) if backend.spline is not None else 0,
+        "stages": backend.clock.summary(),  # CPU and wall seconds of fit, ba, settle (and loop)
         **({"loop_closure": backend.loop.summary()} if backend.loop is not None else {}),
     }
 
@@ -455,10 +456,18 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
         feed = _BackendFeed(camera, config, lambda t0: np.eye(3))
         seconds = step_cpu = 0.0
         loops_applied = 0  # an applied loop moves control poses before the window: send them all then
+        # per-stage costs of the worker loop: receive (waiting for input and unpickling it: wall; unpickling: CPU),
+        # events (bearings and the window buffer), send (the window messages); the back-end's own stages beside
+        clock = StageClock()
+        last_done, waited = time.perf_counter(), 0.0  # busy_seconds of a window: wall since the last one - waited
         while True:
-            kind, *args = inbox.get()
+            tic = time.perf_counter()
+            with clock("receive"):
+                kind, *args = inbox.get()
+            waited += time.perf_counter() - tic
             if kind == "events":
-                feed.push(args[0])
+                with clock("events"):
+                    feed.push(args[0])
                 continue
             backend = feed.backend
             if kind == "map":  # OnlineSlam.map(): a copy of the map of the events settled so far
@@ -479,16 +488,21 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
             spline = backend.spline
             applied = backend.loop.summary()["applied"] if backend.loop is not None else 0
             for report in backend.windows[new:]:
+                now = time.perf_counter()
+                report.busy_seconds, last_done, waited = max(0.0, now - last_done - waited), now, 0.0
                 # control poses before the window's first free one (minus one) did not change, unless a loop was
                 # closed
                 first = 0 if applied > loops_applied else \
                     max(0, int(np.floor((report.t_start - spline.t0) / spline.dt)) - 1)
                 loops_applied = applied
-                outbox.put(("window", report, first, spline.control_R[first:].copy(), backend._anchor,
-                            backend.window_start, (spline.degree, spline.t0, spline.dt)))
+                with clock("send"):
+                    outbox.put(("window", report, first, spline.control_R[first:].copy(), backend._anchor,
+                                backend.window_start, (spline.degree, spline.t0, spline.dt)))
             if kind == "finish":
+                worker_report = _backend_report(backend, seconds)
+                worker_report["worker_stages"] = clock.summary()
                 outbox.put(("done", {
-                    "report": _backend_report(backend, seconds), "spline": spline, "map": backend.map.raw,
+                    "report": worker_report, "spline": spline, "map": backend.map.raw,
                     "windows": backend.windows, "trajectory": backend.trajectory(config.output.trajectory_rate),
                     "seconds": seconds, "step_cpu_seconds": step_cpu, "compile_seconds": compile_s,
                     "cpu_seconds": time.process_time() - cpu0,

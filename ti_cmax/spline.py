@@ -146,9 +146,9 @@ class SO3Spline:
         # Omega depends on the control index only: one log per distinct index, not per time (many times share a
         # segment; the same matrices give the same logs, so the values are unchanged)
         first, inverse = np.unique(s, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        omegas = np.stack([so3.log(np.swapaxes(ctrl[first + j - 1], -1, -2) @ ctrl[first + j])[inverse]
-                           for j in range(1, n + 1)], 1)
+        idx = first[:, None] + np.arange(n + 1)  # (F, n + 1): the control poses of each distinct index
+        rel = np.swapaxes(ctrl[idx[:, :-1]], -1, -2) @ ctrl[idx[:, 1:]]  # (F, n, 3, 3), one log call for all
+        omegas = so3.log(rel)[inverse.reshape(-1)]
         prods = [ctrl[s]]
         for j in range(1, n + 1):
             prods.append(prods[-1] @ so3.exp(b[:, j, None] * omegas[:, j - 1]))
