@@ -203,6 +203,7 @@ class SlidingWindowBackend:
         # real-time degradation (pipelines/realtime.py): BA events per window at most instead of
         # backend_max_window_events (None: the config's); 0 skips the BA (the window keeps its initialization)
         self.ba_cap: int | None = None
+        self.ba_every = 1  # real-time degradation: the BA runs on 1 of ba_every windows (the others: as ba_cap = 0)
 
     # ---- input streams -------------------------------------------------------------------------------------------
     def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
@@ -252,7 +253,7 @@ class SlidingWindowBackend:
         rate = n / max(t1 - t0, 1e-9)
         report = WindowReport(t0, t1, n, optimized=False, alpha=0.0)
         if n >= 2 * cfg.event_batch_size and rate >= cfg.backend_min_ev_rate:
-            if self.ba_cap == 0:
+            if self.ba_cap == 0 or len(self.windows) % max(1, self.ba_every):
                 report.skipped = True
             else:
                 ba0 = time.perf_counter()

@@ -15,12 +15,18 @@ Controller (one rule, applied after every completed window, with lag L, target T
 bound M = ``realtime_max_lag``): degradation level l in 0..4:
 
     l | front-end packets | BA events per window (cap c: backend_max_window_events; floor: realtime_min_window_events)
-    0 | all               | c (the offline computation)
-    1 | all               | c / 2
-    2 | 1 of 2            | c / 4
-    3 | 1 of 4            | c / 8
+    0 | all               | c on every window (the offline computation)
+    1 | all               | c / 2 on every window
+    2 | 1 of 2            | c / 2 on 1 of 2 windows
+    3 | 1 of 4            | c / 4 on 1 of 2 windows
     4 | 1 of 4            | BA skipped (the window keeps the integrated front-end's poses; its events still go
                           |   into the map)
+
+A window without its BA (levels 2-3: every other one) settles its stride with the poses the previous window
+refined (that stride was the second half of the previous window), so each stride is still refined once. Fewer BA
+windows rather than ever fewer BA events: the BA's cost is mostly per evaluation (the local map over the window's
+region), not per event (1 M ev/s, one thread: 216k / 108k / 54k events per window cost 0.77 / 0.66 / 0.50 CPU s per
+second of data), so c/4 and c/8 on every window saved little.
 
 - L > T and L would not be back under T within 5 windows at its current rate of change (L - L_prev per window):
   l += 1; at l = 4, when L > M and would not be back under M within 5 windows: hand over only 1 of q events (q
@@ -33,17 +39,17 @@ bound M = ``realtime_max_lag``): degradation level l in 0..4:
   waiting for input; ``WindowReport.busy_seconds``) and for the main process (wall time not sleeping until events
   are due nor waiting for the worker, per sensor second the front-end advanced); with one process, the main
   process's alone. c < 1 means that process keeps up at this level; the lag drains at rate 1 - c. Of the cost, the
-  parts that the next lower level changes are measured too: the BA's wall time (it grows with the BA events: c/8
-  -> c/4 -> c/2 -> c, i.e. x2 per level; from level 4, where no BA runs, the BA seconds per event last measured
-  times the level-3 cap) and the front-end's (x2 when 1 of 2 packets becomes all, 2 -> 1; x2 from 4 -> 2). The
-  predicted cost of level l - 1 is c(l) minus those parts plus them scaled; it is an overestimate where part of
-  a cost is per evaluation rather than per event (the safe side). Then, with the costs smoothed over windows
-  (summed over the last windows that cover ``RELAX_WINDOWS`` strides of sensor data): when L < T, L would stay under T within 5 windows at its rate of
-  change, and the predicted cost of l - 1 is below ``RELAX_HEADROOM`` (0.8: a fifth left for event-rate bursts
-  and the machine's other load) in every process: first q halves (while q > 1 only when L < T / 2), then l -= 1
-  (at least ``RELAX_WINDOWS`` windows after the last change). A lag that merely fell under T / 2 no longer relaxes
-  on its own: after the start-up transient a window completes at least one BA after its end, so that threshold
-  was rarely met even with spare time, and was met by a backlog that had drained at a level still too costly.
+  parts that the next lower level changes are measured too: the BA's wall time (x the ratio of BA windows, x the
+  square root of the ratio of BA events: measured sub-linear, see above, so an overestimate; from level 4, where no
+  BA runs, the last BA measured, scaled to the level-3 cap) and the front-end's (x the ratio of packets). The
+  predicted cost of level l - 1 is c(l) minus those parts plus them scaled. Then, with the costs summed over the
+  last windows that cover ``RELAX_WINDOWS`` strides of sensor data: when L < T, L would stay under T within 5
+  windows at its rate of change, and the predicted cost of l - 1 is below ``RELAX_HEADROOM`` (0.8: a fifth left
+  for event-rate bursts and the machine's other load) in every process: first q halves (while q > 1 only when
+  L < T / 2), then l -= 1 (at least ``RELAX_WINDOWS`` windows after the last change). A lag that merely fell
+  under T / 2 no longer relaxes on its own: after the start-up transient a window completes at least one BA after
+  its end, so that threshold was rarely met even with spare time, and was met by a backlog that had drained at a
+  level still too costly.
 The front-end's lag (now - due(time of its last packet)), taken once per stride of its progress, is a second input
 to the escalating rules: when the front-end is the bottleneck, windows complete too rarely to react in time.
 Costs that do not scale with events (a front-end packet's optimisation, a window's BA) are cut first: levels 1-4 keep
@@ -74,8 +80,8 @@ MAX_INPUT_THINNING = 16  # deeper thinning leaves front-end packets too sparse (
 RELAX_WINDOWS = 3  # windows at a level before it may be lowered (and over which its costs are averaged)
 RELAX_HEADROOM = 0.8  # a level is relaxed only when the lower one is predicted to cost below this (per process)
 DRAIN_WINDOWS = 5  # a lag above target that falls back under it within this many windows needs no escalation
-# level -> (1 of k front-end packets, BA cap divisor; 0: BA skipped)
-LEVELS = {0: (1, 1), 1: (1, 2), 2: (2, 4), 3: (4, 8), 4: (4, 0)}
+# level -> (1 of k front-end packets, BA cap divisor (0: BA skipped), BA on 1 of m windows)
+LEVELS = {0: (1, 1, 1), 1: (1, 2, 1), 2: (2, 2, 2), 3: (4, 4, 2), 4: (4, 0, 1)}
 
 
 class RealtimeController:
@@ -109,7 +115,7 @@ class RealtimeController:
         self.idle_seconds = lambda: 0.0
         self._costs: list[dict] = []  # per window since the last change: {"worker", "main", "ba", "fe"}
         self._mark = None  # (time.monotonic, main idle, front-end seconds, front-end time, worker done_at)
-        self._ba_per_event = None
+        self._ba_last = None  # (seconds, events) of the last window with a BA
         self.predicted: list[float] = []  # predicted cost of the level below at each relaxation (report)
 
     def due(self, t: float) -> float:
@@ -159,7 +165,7 @@ class RealtimeController:
         now, idle = time.monotonic(), self.idle_seconds()
         mark, self._mark = self._mark, (now, idle, fe_seconds, fe_time, report.done_at)
         if report.ba_seconds > 0 and report.events_used > 0:
-            self._ba_per_event = report.ba_seconds / report.events_used
+            self._ba_last = (report.ba_seconds, report.events_used)
         if mark is None or fe_time is None or mark[3] is None:
             return
         sensor = self.stride / self.speed  # per window: one stride of sensor data, in wall seconds
@@ -199,10 +205,16 @@ class RealtimeController:
         full = self.cap if self.cap > 0 else (self._window_events or self.floor)
         cap_now = full if cap_now is None else cap_now
         cap_lower = full if cap_lower is None else cap_lower
+        # BA cost per window ~ sqrt(events): measured sub-linear (per-evaluation work over the map region dominates;
+        # 1 M ev/s, one thread: 216k / 108k / 54k events 0.77 / 0.66 / 0.50 CPU s per s), so still an overestimate
+        every_now, every_lower = LEVELS[self.level][2], LEVELS[lower][2]
         if cap_now > 0:
-            ba_lower = mean["ba"] * cap_lower / cap_now
-        else:  # no BA at this level: its seconds per event last measured, at the lower level's cap
-            ba_lower = (self._ba_per_event or 0.0) * cap_lower / (self.stride / self.speed)
+            ba_lower = mean["ba"] * math.sqrt(cap_lower / cap_now) * every_now / every_lower
+        elif self._ba_last is not None:  # no BA at this level: the last one measured, at the lower level's cap
+            seconds, events = self._ba_last
+            ba_lower = seconds * math.sqrt(cap_lower / events) / every_lower / (self.stride / self.speed)
+        else:
+            ba_lower = 0.0
         fe_lower = mean["fe"] * LEVELS[self.level][0] / LEVELS[lower][0]
         main = mean["main"] + (fe_lower - mean["fe"])
         if mean["worker"] is None:  # one process does both
@@ -246,7 +258,8 @@ class RealtimeController:
             self._since_change = 0
             self._costs = []  # costs are measured afresh at the new level
             if self.online is not None:
-                self.online.degrade(LEVELS[self.level][0], self.ba_cap(self.level, self._window_events))
+                self.online.degrade(LEVELS[self.level][0], self.ba_cap(self.level, self._window_events),
+                                    LEVELS[self.level][2])
 
     def summary(self) -> dict:
         lags = np.asarray(self.lags) if self.lags else np.zeros(1)

@@ -73,7 +73,7 @@ def test_controller_rule():
     cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
     ctl = R.RealtimeController(cfg, 1.0)
     calls = []
-    ctl.online = SimpleNamespace(degrade=lambda keep, cap: calls.append((keep, cap)), frontend_until=0.1,
+    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every: calls.append((keep, cap, every)), frontend_until=0.1,
                                  runner=SimpleNamespace(seconds=0.0))
     ctl.wall0, ctl.t0 = 100.0, 0.0
     t = 0.2
@@ -81,7 +81,7 @@ def test_controller_rule():
         ctl.on_window(_report(t, lag, ctl, busy=0.08, ba=0.05))
         t += 0.1
     assert ctl.level == 4 and ctl.thinning == 1
-    assert calls == [(1, 100_000), (2, 50_000), (4, 25_000), (4, 0)]
+    assert calls == [(1, 100_000, 1), (2, 100_000, 2), (4, 50_000, 2), (4, 0, 1)]
     ctl.on_window(_report(t, 1.5, ctl))  # beyond the hard bound and rising: hand over 1 of 2 events
     t += 0.1
     assert ctl.thinning == 2
@@ -92,16 +92,20 @@ def test_controller_rule():
         ctl.on_window(_report(t, 0.1, ctl))
         t += 0.1
     assert ctl.thinning == 1 and ctl.level == 4
-    for _ in range(2):  # level 4 costs 0.5 of the wall time; level 3 adds a BA of 25 000 events: 0.125 more
-        assert ctl.level == 4
+    for _ in range(2):  # level 4 costs 0.5 of the wall time; level 3 adds a BA of 50 000 events on 1 of 2 windows:
+        assert ctl.level == 4  # the last BA (0.05 s for 100 000 events) x sqrt(1/2) / 2 per 0.1 s stride = 0.18
         ctl.on_window(_report(t, 0.2, ctl))  # under the target (not under half of it: relaxing needs headroom)
         t += 0.1
-    assert ctl.level == 3 and calls[-1] == (4, 25_000)  # 3 windows after the last change
-    assert ctl.predicted[-1] == pytest.approx(0.625, rel=0.05)
-    for _ in range(6):  # level 3 costs 0.9 with 0.05 in the BA: level 2 would cost 0.95, no headroom, no relaxing
-        ctl.on_window(_report(t, 0.1, ctl, n=25_000, busy=0.09, ba=0.005))
+    assert ctl.level == 3 and calls[-1] == (4, 50_000, 2)  # 3 windows after the last change
+    assert ctl.predicted[-1] == pytest.approx(0.5 + 0.05 * np.sqrt(0.5) / 2 / 0.1, rel=0.02)
+    for _ in range(6):  # level 3 costs 0.9, 0.1 of it in the BA: level 2 (x sqrt 2) would cost 0.94; no relaxing
+        ctl.on_window(_report(t, 0.1, ctl, n=50_000, busy=0.09, ba=0.01))
         t += 0.1
     assert ctl.level == 3
+    for _ in range(3):  # less busy (0.6): level 2 is predicted at 0.64 and is taken
+        ctl.on_window(_report(t, 0.1, ctl, n=50_000, busy=0.06, ba=0.01))
+        t += 0.1
+    assert ctl.level == 2 and calls[-1] == (2, 100_000, 2)
     s = ctl.summary()
     assert s["max_lag_s"] == pytest.approx(1.5) and s["level_sensor_seconds"]["4"] > 0 and s["input_max_thinning"] == 2
     assert s["latency_max_s"] == pytest.approx(1.6)  # the lag plus the stride whose events got their first pose
