@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -81,27 +81,44 @@ class StageClock:
         return {"cpu_seconds": dict(self.cpu), "wall_seconds": dict(self.wall)}
 
 
-@dataclass
 class _Buffer:
-    """Growing column buffer (times + bearings) that drops its settled head cheaply."""
+    """Growing column buffer (times + bearings) that drops its settled head cheaply. Pushed chunks are kept in a list
+    and joined once when read (a window's range), not on every push: a live source pushes many small chunks (2 ms
+    slices in the real-time replay), and joining each into a window's worth of events copied the buffer every time."""
 
-    t: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    def __init__(self):
+        self._t, self._b = np.zeros(0), np.zeros((0, 3), np.float32)
+        self._parts: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def _join(self) -> None:
+        if self._parts:
+            self._t = np.concatenate([self._t] + [t for t, _ in self._parts])
+            self._b = np.concatenate([self._b] + [b for _, b in self._parts])
+            self._parts = []
+
+    @property
+    def t(self) -> np.ndarray:
+        self._join()
+        return self._t
+
+    @property
+    def b(self) -> np.ndarray:
+        self._join()
+        return self._b
 
     def push(self, t: np.ndarray, b: np.ndarray) -> None:
-        if len(t):
-            self.t = np.concatenate([self.t, t])
-            self.b = np.concatenate([self.b, b])
+        if len(t):  # copies: a live source may refill its arrays after the call
+            self._parts.append((np.array(t, dtype=np.float64), np.array(b, dtype=np.float32)))
 
     def drop_before(self, t: float) -> None:
         i = int(np.searchsorted(self.t, t, side="left"))
         if i:
-            self.t, self.b = self.t[i:], self.b[i:]
+            self._t, self._b = self._t[i:], self._b[i:]
 
     def range(self, t0: float, t1: float, include_end: bool = False) -> tuple[np.ndarray, np.ndarray]:
         i0 = int(np.searchsorted(self.t, t0, side="left"))
-        i1 = int(np.searchsorted(self.t, t1, side="right" if include_end else "left"))
-        return self.t[i0:i1], self.b[i0:i1]
+        i1 = int(np.searchsorted(self._t, t1, side="right" if include_end else "left"))
+        return self._t[i0:i1], self._b[i0:i1]
 
 
 class GlobalMap:
