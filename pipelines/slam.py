@@ -177,6 +177,7 @@ class OnlineSlam:
         # with a worker: push() also waits while the events sent run more than this many sensor seconds ahead of
         # the worker's last window (the queue's bound in messages is none in time when chunks are large)
         self.max_backlog = max_backlog
+        self._to_send: list[Events] = []  # with a worker: chunks not yet sent (see _send_events)
 
     # ---- input ---------------------------------------------------------------------------------------------------
     def push(self, events: Events) -> None:
@@ -196,7 +197,7 @@ class OnlineSlam:
         else:
             if self._feed.backend is None:
                 self._feed.backend = SlidingWindowBackend(self.config.backend, float(events.t[0]), np.eye(3))
-            self._worker.send(("events", events))
+            self._to_send.append(events)  # sent with the next pose (or before waiting): fewer, larger messages
         self.events_read += len(events)
         self.t_last = float(events.t[-1])
         for packet in self.runner.slicer.push(every_qth(events, self._q_front, offset)):
@@ -204,6 +205,7 @@ class OnlineSlam:
         self._receive()
         while self.max_backlog is not None and self._worker is not None and \
                 self.t_last - self.refined_until > self.max_backlog:
+            self._send_events()
             tic = time.perf_counter()
             self._receive(until="window")
             self._worker.blocked_seconds += time.perf_counter() - tic
@@ -219,6 +221,7 @@ class OnlineSlam:
                 self._worker.stop()
             raise InputError("no events to process")
         if self._worker is not None:
+            self._send_events()
             self._worker.send(("finish",))
             done = self._receive(until="done")
             self._worker.stop()
@@ -296,6 +299,7 @@ class OnlineSlam:
         if self._result is not None:
             return self._result.map.copy()
         if backend is not None and self._worker is not None:
+            self._send_events()
             self._worker.send(("map",))
             snapshot = self._receive(until="map")
             if snapshot is not None:
@@ -318,6 +322,7 @@ class OnlineSlam:
         backend = self._feed.backend
         backend.push_source_poses([packet.t_ref], self._r_src[None])
         if self._worker is not None:
+            self._send_events()  # every event pushed so far goes before the pose, as in the sequential run
             self._worker.send(("pose", packet.t_ref, self._r_src))
             return
         while backend.ready():
@@ -326,6 +331,13 @@ class OnlineSlam:
             self.backend_seconds += time.perf_counter() - tic
             self.backend_cpu_seconds += time.process_time() - cpu
             self._notify(report)
+
+    def _send_events(self) -> None:
+        """Hand the chunks pushed since the last pose to the worker as one message (a live source or the real-time
+        replay pushes many small chunks; each message costs a pickle, a pipe write and a wake-up of the worker)."""
+        if self._to_send:
+            chunks, self._to_send = self._to_send, []
+            self._worker.send(("events", Events.concatenate(chunks)))
 
     def _receive(self, until: str | None = None):
         """Apply the worker's window messages to the shadow back-end (and call on_window); with ``until`` ("done",
