@@ -513,6 +513,15 @@ def touched_region(occ_col: np.ndarray, occ_row: np.ndarray, margin: int):
     return slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)), col_idx
 
 
+def column_selector(cols: np.ndarray):
+    """``cols`` (column indices, as touched_region returns them) as a slice when they are one increasing run without
+    the seam: indexing with it gives views (no gathers, no scattered writes); else the index array itself."""
+    cols = np.asarray(cols)
+    if len(cols) and int(cols[-1]) - int(cols[0]) == len(cols) - 1:
+        return slice(int(cols[0]), int(cols[-1]) + 1)
+    return cols
+
+
 def blur_region(raw: np.ndarray, blurred: np.ndarray, rows: slice, cols: np.ndarray, sigma: float) -> np.ndarray:
     """Recompute ``blurred`` = blur_map(raw) on rows x cols only (in place); returns the old values there.
 
@@ -521,22 +530,27 @@ def blur_region(raw: np.ndarray, blurred: np.ndarray, rows: slice, cols: np.ndar
     """
     h, w = raw.shape
     r = blur_radius(sigma)
-    old = blurred[rows][:, cols].copy()
+    sel = (rows, column_selector(cols))
+    old = blurred[sel].copy()
     if sigma <= 0:
-        blurred[rows.start:rows.stop, cols] = raw[rows][:, cols]
+        blurred[sel] = raw[sel]
         return old
     full_width = len(cols) == w
-    in_cols = np.arange(w) if full_width else (cols[0] - r + np.arange(len(cols) + 2 * r)) % w
     r0, r1 = rows.start - r, rows.stop + r
-    src = np.zeros((r1 - r0, len(in_cols)), np.float64)
     lo, hi = max(r0, 0), min(r1, h)
-    src[lo - r0 : hi - r0] = raw[lo:hi][:, in_cols]
+    if full_width:
+        in_cols = slice(0, w)
+    else:
+        in_cols = column_selector((cols[0] - r + np.arange(len(cols) + 2 * r)) % w)
+    n_in = w if full_width else len(cols) + 2 * r
+    src = np.zeros((r1 - r0, n_in), np.float64)
+    src[lo - r0 : hi - r0] = raw[lo:hi, in_cols]
     out = gaussian_filter1d(src, sigma, axis=1, mode="wrap" if full_width else "constant", truncate=TRUNCATE)
     out = gaussian_filter1d(out, sigma, axis=0, mode="constant", cval=0.0, truncate=TRUNCATE)
     out = out[r : r + (rows.stop - rows.start)]
     if not full_width:
         out = out[:, r : r + len(cols)]
-    blurred[rows.start:rows.stop, cols] = out
+    blurred[sel] = out
     return old
 
 

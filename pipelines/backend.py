@@ -19,14 +19,16 @@ For every window [T, T + backend_time_window_size] (T advancing by backend_slidi
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
 from ti_cmax.kernels.pano import (
-    PanoIWE, batch_mid_times, blur_radius, blur_region, touched_region, vote_map,
+    PanoIWE, batch_mid_times, blur_radius, blur_region, column_selector, touched_region, vote_map,
 )
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
@@ -55,29 +57,68 @@ class WindowReport:
     seconds: float = 0.0
     skipped: bool = False  # BA skipped by the real-time controller (ba_cap = 0): front-end poses kept
     done_at: float = 0.0  # time.monotonic() when the window completed (the same clock in every process)
+    ba_seconds: float = 0.0  # wall time of the BA (part of ``seconds``)
+    busy_seconds: float | None = None  # worker process: wall time it worked since the previous window (not waiting)
 
 
-@dataclass
+class StageClock:
+    """CPU and wall seconds per named stage, for the report's per-stage costs (``with clock("ba"): ...``)."""
+
+    def __init__(self):
+        self.cpu: dict[str, float] = {}
+        self.wall: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str):
+        wall, cpu = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            self.wall[name] = self.wall.get(name, 0.0) + time.perf_counter() - wall
+            self.cpu[name] = self.cpu.get(name, 0.0) + time.process_time() - cpu
+
+    def summary(self) -> dict:
+        return {"cpu_seconds": dict(self.cpu), "wall_seconds": dict(self.wall)}
+
+
 class _Buffer:
-    """Growing column buffer (times + bearings) that drops its settled head cheaply."""
+    """Growing column buffer (times + bearings) that drops its settled head cheaply. Pushed chunks are kept in a list
+    and joined once when read (a window's range), not on every push: a live source pushes many small chunks (2 ms
+    slices in the real-time replay), and joining each into a window's worth of events copied the buffer every time."""
 
-    t: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    def __init__(self):
+        self._t, self._b = np.zeros(0), np.zeros((0, 3), np.float32)
+        self._parts: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def _join(self) -> None:
+        if self._parts:
+            self._t = np.concatenate([self._t] + [t for t, _ in self._parts])
+            self._b = np.concatenate([self._b] + [b for _, b in self._parts])
+            self._parts = []
+
+    @property
+    def t(self) -> np.ndarray:
+        self._join()
+        return self._t
+
+    @property
+    def b(self) -> np.ndarray:
+        self._join()
+        return self._b
 
     def push(self, t: np.ndarray, b: np.ndarray) -> None:
-        if len(t):
-            self.t = np.concatenate([self.t, t])
-            self.b = np.concatenate([self.b, b])
+        if len(t):  # copies: a live source may refill its arrays after the call
+            self._parts.append((np.array(t, dtype=np.float64), np.array(b, dtype=np.float32)))
 
     def drop_before(self, t: float) -> None:
         i = int(np.searchsorted(self.t, t, side="left"))
         if i:
-            self.t, self.b = self.t[i:], self.b[i:]
+            self._t, self._b = self._t[i:], self._b[i:]
 
     def range(self, t0: float, t1: float, include_end: bool = False) -> tuple[np.ndarray, np.ndarray]:
         i0 = int(np.searchsorted(self.t, t0, side="left"))
-        i1 = int(np.searchsorted(self.t, t1, side="right" if include_end else "left"))
-        return self.t[i0:i1], self.b[i0:i1]
+        i1 = int(np.searchsorted(self._t, t1, side="right" if include_end else "left"))
+        return self._t[i0:i1], self._b[i0:i1]
 
 
 class GlobalMap:
@@ -107,7 +148,8 @@ class GlobalMap:
 
     def _take_votes(self, bearings, rotations, batch_size, margin, weight):
         """Vote into the scratch map and take the votes (times weight) of the touched region (plus margin) out of
-        it, leaving it zero: (rows, cols, votes), or None when no vote landed."""
+        it, leaving it zero: (rows, cols, sel, votes) with sel the region's index (slices, i.e. views, unless it
+        straddles the seam), or None when no vote landed."""
         for occ in self._occ:
             occ[:] = 0
         vote_map(bearings, rotations, self.width, self.height, batch_size=batch_size, out=self._scratch,
@@ -116,11 +158,13 @@ class GlobalMap:
         if region is None:
             return None
         rows, cols = region
-        votes = self._scratch[rows][:, cols]
+        sel = (rows, column_selector(cols))
+        votes = self._scratch[sel]
+        votes = votes.copy() if isinstance(sel[1], slice) else votes  # a view would be cleared below
         if weight != 1.0:
             votes *= np.float32(weight)
-        self._scratch[rows.start:rows.stop, cols] = 0
-        return rows, cols, votes
+        self._scratch[sel] = 0
+        return rows, cols, sel, votes
 
     def add(self, bearings, rotations, batch_size: int, t_now: float, moving: bool = True,
             weight: float = 1.0) -> None:
@@ -129,24 +173,27 @@ class GlobalMap:
         taken = self._take_votes(bearings, rotations, batch_size, blur_radius(self.sigma), weight)
         if taken is None:
             return
-        rows, cols, votes = taken
+        rows, cols, sel, votes = taken
+        contiguous = isinstance(sel[1], slice)
         if self.first_seen is not None:
-            seen = self.first_seen[rows][:, cols]
+            seen = self.first_seen[sel]
             if moving:
                 seen = np.minimum(seen, np.where(votes > 0, np.float32(t_now), np.float32(np.inf)))
-                self.first_seen[rows.start:rows.stop, cols] = seen
+                self.first_seen[sel] = seen
             votes = np.where((t_now - seen) < self.max_update_time, votes, 0).astype(np.float32)
-        old_raw = self.raw[rows][:, cols]
+        old_raw = self.raw[sel].copy() if contiguous else self.raw[sel]
         new_raw = old_raw + votes
-        self.raw[rows.start:rows.stop, cols] = new_raw
-        self.n_events += float(votes.sum(dtype=np.float64))
+        self.raw[sel] = new_raw
+        # the votes and the new blur are summed over column-major copies, the old blur over a row-major one: the
+        # summation orders (hence every bit) of the gathered copies this code used before it took views
+        self.n_events += float(np.asfortranarray(votes).sum(dtype=np.float64))
         # event area: only pixels that received votes change, sum of exp(-old / lambda0) - exp(-new / lambda0)
         changed = np.flatnonzero(votes)
         old_v = old_raw.reshape(-1)[changed].astype(np.float64) / -self.lambda0
         new_v = new_raw.reshape(-1)[changed].astype(np.float64) / -self.lambda0
         self.area += float(np.sum(np.exp(old_v) - np.exp(new_v)))
-        old_blur = blur_region(self.raw, self.blurred, rows, cols, self.sigma).astype(np.float64)
-        new_blur = self.blurred[rows][:, cols].astype(np.float64)
+        old_blur = blur_region(self.raw, self.blurred, rows, cols, self.sigma).astype(np.float64)  # a C copy
+        new_blur = self.blurred[sel].astype(np.float64, order="F")
         self.g_sum += float(new_blur.sum() - old_blur.sum())
         self.g_sq += float(np.sum(new_blur * new_blur) - np.sum(old_blur * old_blur))
 
@@ -177,9 +224,11 @@ class SlidingWindowBackend:
         self._last_correction: float | None = None  # |x| of the last window's CG solution
         self._inv_hessian = None  # BFGS: (first free control pose, inverse Hessian) of the last window
         self.loop = None  # loop closure hook (pipelines/loop_closure.LoopCloser), attached by its owner
+        self.clock = StageClock()  # per-stage CPU and wall seconds (fit, ba, settle, loop)
         # real-time degradation (pipelines/realtime.py): BA events per window at most instead of
         # backend_max_window_events (None: the config's); 0 skips the BA (the window keeps its initialization)
         self.ba_cap: int | None = None
+        self.ba_every = 1  # real-time degradation: the BA runs on 1 of ba_every windows (the others: as ba_cap = 0)
 
     # ---- input streams -------------------------------------------------------------------------------------------
     def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
@@ -213,31 +262,37 @@ class SlidingWindowBackend:
 
     def step(self, final: bool = False) -> WindowReport:
         """Initialize, refine and settle one window. ``final`` settles every remaining event."""
-        import time
-
         tic = time.perf_counter()
-        cfg = self.cfg
+        cfg, clock = self.cfg, self.clock
         t0, t1 = self.window_start, self.window_end
         if final:
             last = max(self.events.t[-1] if len(self.events.t) else t0, self._src_t[-1] if len(self._src_t) else t0)
             t1 = max(t0 + 1e-6, min(t1, last))
-        self._initialize_until(t1)
+        with clock("fit"):
+            self._initialize_until(t1)
         if self.loop is not None:  # loop closure: a revisit is closed before this window's BA
-            self.loop.before_window(t0, t1)
+            with clock("loop"):
+                self.loop.before_window(t0, t1)
         ev_t, ev_b = self.events.range(t0, t1, include_end=True)
         n = len(ev_t)
         rate = n / max(t1 - t0, 1e-9)
         report = WindowReport(t0, t1, n, optimized=False, alpha=0.0)
         if n >= 2 * cfg.event_batch_size and rate >= cfg.backend_min_ev_rate:
-            if self.ba_cap == 0:
+            if self.ba_cap == 0 or len(self.windows) % max(1, self.ba_every):
                 report.skipped = True
             else:
-                self._refine(ev_t, ev_b, t0, report)
+                ba0 = time.perf_counter()
+                with clock("ba"):
+                    self._refine(ev_t, ev_b, t0, report)
+                report.ba_seconds = time.perf_counter() - ba0
         settle_end = t1 + 1.0 if final else t0 + cfg.backend_sliding_window_stride
-        self._settle(t0, settle_end, still=not report.optimized)
+        with clock("settle"):
+            self._settle(t0, settle_end, still=not report.optimized)
         self.window_start = t0 + cfg.backend_sliding_window_stride
         if self.loop is not None:  # loop closure: may correct the spline and rebuild the map
-            self.loop.after_window(self.window_start)
+            with clock("loop"):
+                self.loop.after_window(self.window_start)
+        self._drop_source_before_anchor()
         report.seconds = time.perf_counter() - tic
         report.done_at = time.monotonic()
         self.windows.append(report)
@@ -288,6 +343,16 @@ class SlidingWindowBackend:
         times, rots = self._src_t[i0:i1], self._src_R[i0:i1]
         t_a, r_src_a, r_spl_a = self._anchor
         return times, r_spl_a @ r_src_a.T @ rots
+
+    def _drop_source_before_anchor(self) -> None:
+        """Forget source poses before the anchor's interval: later windows, pose_at and the extrapolation only read
+        the source from the anchor on, so memory and the per-packet append stay bounded on long streams."""
+        if self._anchor is None:
+            return
+        i = int(np.searchsorted(self._src_t, self._anchor[0], side="left")) - 1
+        i = min(i, len(self._src_t) - 2)
+        if i > 0:
+            self._src_t, self._src_R = self._src_t[i:], self._src_R[i:]
 
     def _source_at(self, t: float) -> np.ndarray:
         return Trajectory(self._src_t, self._src_R).at(t)[0] if len(self._src_t) > 1 else self._src_R[0]

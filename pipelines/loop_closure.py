@@ -92,8 +92,8 @@ class _RawMap(GlobalMap):
     def add(self, bearings, rotations, batch_size: int, weight: float = 1.0) -> None:
         taken = self._take_votes(bearings, rotations, batch_size, 0, weight)
         if taken is not None:
-            rows, cols, votes = taken
-            self.raw[rows.start:rows.stop, cols] += votes
+            _rows, _cols, sel, votes = taken
+            self.raw[sel] += votes
 
 
 class LoopCloser:

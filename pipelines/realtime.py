@@ -15,12 +15,18 @@ Controller (one rule, applied after every completed window, with lag L, target T
 bound M = ``realtime_max_lag``): degradation level l in 0..4:
 
     l | front-end packets | BA events per window (cap c: backend_max_window_events; floor: realtime_min_window_events)
-    0 | all               | c (the offline computation)
-    1 | all               | c / 2
-    2 | 1 of 2            | c / 4
-    3 | 1 of 4            | c / 8
+    0 | all               | c on every window (the offline computation)
+    1 | all               | c / 2 on every window
+    2 | 1 of 2            | c / 2 on 1 of 2 windows
+    3 | 1 of 4            | c / 4 on 1 of 2 windows
     4 | 1 of 4            | BA skipped (the window keeps the integrated front-end's poses; its events still go
                           |   into the map)
+
+A window without its BA (levels 2-3: every other one) settles its stride with the poses the previous window
+refined (that stride was the second half of the previous window), so each stride is still refined once. Fewer BA
+windows rather than ever fewer BA events: the BA's cost is mostly per evaluation (the local map over the window's
+region), not per event (1 M ev/s, one thread: 216k / 108k / 54k events per window cost 0.77 / 0.66 / 0.50 CPU s per
+second of data), so c/4 and c/8 on every window saved little.
 
 - L > T and L would not be back under T within 5 windows at its current rate of change (L - L_prev per window):
   l += 1; at l = 4, when L > M and would not be back under M within 5 windows: hand over only 1 of q events (q
@@ -28,8 +34,22 @@ bound M = ``realtime_max_lag``): degradation level l in 0..4:
   time to drain: escalating on every late window overshoots, since a backlog takes windows to clear even once the
   system is faster than the sensor.)
 - L > M: l = 4 at once;
-- L < T / 2 (and the front-end's lag too): first q halves, then (at q = 1, and at least 3 windows after the last
-  change) l -= 1.
+- relaxing, on the measured headroom: the cost of a level is the wall time a process works per wall second of
+  sensor data, c = busy / (stride / speed), measured per window for the back-end worker (its wall time not spent
+  waiting for input; ``WindowReport.busy_seconds``) and for the main process (wall time not sleeping until events
+  are due nor waiting for the worker, per sensor second the front-end advanced); with one process, the main
+  process's alone. c < 1 means that process keeps up at this level; the lag drains at rate 1 - c. Of the cost, the
+  parts that the next lower level changes are measured too: the BA's wall time (x the ratio of BA windows, x the
+  square root of the ratio of BA events: measured sub-linear, see above, so an overestimate; from level 4, where no
+  BA runs, the last BA measured, scaled to the level-3 cap) and the front-end's (x the ratio of packets). The
+  predicted cost of level l - 1 is c(l) minus those parts plus them scaled. Then, with the costs summed over the
+  last windows that cover ``RELAX_WINDOWS`` strides of sensor data: when L < T, L would stay under T within 5
+  windows at its rate of change, and the predicted cost of l - 1 is below ``RELAX_HEADROOM`` (0.8: a fifth left
+  for event-rate bursts and the machine's other load) in every process: first q halves (while q > 1 only when
+  L < T / 2), then l -= 1 (at least ``RELAX_WINDOWS`` windows after the last change). A lag that merely fell
+  under T / 2 no longer relaxes on its own: after the start-up transient a window completes at least one BA after
+  its end, so that threshold was rarely met even with spare time, and was met by a backlog that had drained at a
+  level still too costly.
 The front-end's lag (now - due(time of its last packet)), taken once per stride of its progress, is a second input
 to the escalating rules: when the front-end is the bottleneck, windows complete too rarely to react in time.
 Costs that do not scale with events (a front-end packet's optimisation, a window's BA) are cut first: levels 1-4 keep
@@ -57,10 +77,11 @@ from .sensor_defaults import resolve_config
 READ_EVENTS = 50_000  # events per read of the file: a few ms of data at 10 M events/s, so I/O never stalls long
 MAX_LEVEL = 4
 MAX_INPUT_THINNING = 16  # deeper thinning leaves front-end packets too sparse (their cost is per packet anyway)
-RELAX_WINDOWS = 3  # windows at a level before it may be lowered
+RELAX_WINDOWS = 3  # windows at a level before it may be lowered (and over which its costs are averaged)
+RELAX_HEADROOM = 0.8  # a level is relaxed only when the lower one is predicted to cost below this (per process)
 DRAIN_WINDOWS = 5  # a lag above target that falls back under it within this many windows needs no escalation
-# level -> (1 of k front-end packets, BA cap divisor; 0: BA skipped)
-LEVELS = {0: (1, 1), 1: (1, 2), 2: (2, 4), 3: (4, 8), 4: (4, 0)}
+# level -> (1 of k front-end packets, BA cap divisor (0: BA skipped), BA on 1 of m windows)
+LEVELS = {0: (1, 1, 1), 1: (1, 2, 1), 2: (2, 2, 2), 3: (4, 4, 2), 4: (4, 0, 1)}
 
 
 class RealtimeController:
@@ -89,6 +110,13 @@ class RealtimeController:
         self._window_events = None
         self.ba_used = self.ba_offline = 0  # BA events used, and what the offline run would use
         self.windows_skipped = self.windows_sampled = 0
+        # headroom (module docstring): per-window costs at the current level, the main process's idle time
+        # (sleeping until events are due + waiting for the worker; set by run_realtime) and the BA's seconds/event
+        self.idle_seconds = lambda: 0.0
+        self._costs: list[dict] = []  # per window since the last change: {"worker", "main", "ba", "fe"}
+        self._mark = None  # (time.monotonic, main idle, front-end seconds, front-end time, worker done_at)
+        self._ba_last = None  # (seconds, events) of the last window with a BA
+        self.predicted: list[float] = []  # predicted cost of the level below at each relaxation (report)
 
     def due(self, t: float) -> float:
         """Wall time (time.monotonic) at which sensor time t is handed over."""
@@ -126,7 +154,72 @@ class RealtimeController:
             self.windows_skipped += int(report.skipped)
             self.windows_sampled += int(0 < report.events_used < offline)
         self._window_events = report.num_events
+        self._measure(report)
         self._control(lag)
+
+    def _measure(self, report) -> None:
+        """Costs (wall seconds of work per wall second of sensor data) of this window at the current level."""
+        online = self.online
+        fe_seconds = online.runner.seconds if online is not None else 0.0
+        fe_time = online.frontend_until if online is not None else None
+        now, idle = time.monotonic(), self.idle_seconds()
+        mark, self._mark = self._mark, (now, idle, fe_seconds, fe_time, report.done_at)
+        if report.ba_seconds > 0 and report.events_used > 0:
+            self._ba_last = (report.ba_seconds, report.events_used)
+        if mark is None or fe_time is None or mark[3] is None:
+            return
+        sensor = self.stride / self.speed  # per window: one stride of sensor data, in wall seconds
+        # wall seconds of work and of sensor data; costs are ratios of sums over windows (callbacks come in bursts
+        # when the main process catches up, so per-window ratios would be noisy)
+        cost = {"main": (max(0.0, (now - mark[0]) - (idle - mark[1])), (fe_time - mark[3]) / self.speed),
+                "fe": (fe_seconds - mark[2], (fe_time - mark[3]) / self.speed), "ba": (report.ba_seconds, sensor),
+                "worker": (report.busy_seconds, sensor) if report.busy_seconds is not None else None}
+        if report.busy_seconds is None:  # one process: the back-end's step is part of the main process's work
+            cost["main"] = (max(cost["main"][0], report.seconds + cost["fe"][0]), cost["main"][1])
+        self._costs.append(cost)
+
+    def mean_costs(self) -> dict | None:
+        """Costs of the current level over its last windows covering RELAX_WINDOWS strides of the front-end's
+        progress (windows complete in bursts when the main process catches up: counting windows would divide by
+        almost no sensor time): {"main", "fe", "ba", "worker"}; None until that much was measured."""
+        need = RELAX_WINDOWS * self.stride / self.speed * (1 - 1e-6)
+        sums = None
+        for cost in reversed(self._costs):
+            sums = {k: [a + b for a, b in zip(sums[k], v)] if v is not None else None
+                    for k, v in cost.items()} if sums is not None else {k: list(v) if v is not None else None
+                                                                          for k, v in cost.items()}
+            if sums["main"][1] >= need:
+                break
+        if sums is None or sums["main"][1] < need:
+            return None
+        return {k: v[0] / max(v[1], 1e-9) if v is not None else None for k, v in sums.items()}
+
+    def predicted_cost(self) -> float | None:
+        """Predicted cost of the level below the current one in its costliest process (module docstring), from
+        the mean costs of the windows since the last change; None before any was measured."""
+        mean = self.mean_costs()
+        if mean is None or self.level == 0:
+            return None
+        lower = self.level - 1
+        cap_now, cap_lower = self.ba_cap(self.level, self._window_events), self.ba_cap(lower, self._window_events)
+        full = self.cap if self.cap > 0 else (self._window_events or self.floor)
+        cap_now = full if cap_now is None else cap_now
+        cap_lower = full if cap_lower is None else cap_lower
+        # BA cost per window ~ sqrt(events): measured sub-linear (per-evaluation work over the map region dominates;
+        # 1 M ev/s, one thread: 216k / 108k / 54k events 0.77 / 0.66 / 0.50 CPU s per s), so still an overestimate
+        every_now, every_lower = LEVELS[self.level][2], LEVELS[lower][2]
+        if cap_now > 0:
+            ba_lower = mean["ba"] * math.sqrt(cap_lower / cap_now) * every_now / every_lower
+        elif self._ba_last is not None:  # no BA at this level: the last one measured, at the lower level's cap
+            seconds, events = self._ba_last
+            ba_lower = seconds * math.sqrt(cap_lower / events) / every_lower / (self.stride / self.speed)
+        else:
+            ba_lower = 0.0
+        fe_lower = mean["fe"] * LEVELS[self.level][0] / LEVELS[lower][0]
+        main = mean["main"] + (fe_lower - mean["fe"])
+        if mean["worker"] is None:  # one process does both
+            return main + (ba_lower - mean["ba"])
+        return max(main, mean["worker"] + (ba_lower - mean["ba"]))
 
     def on_frontend(self, now: float, t: float | None) -> None:
         """After every push: the front-end's lag (now - due(its last packet's time)), once per stride of its progress,
@@ -150,16 +243,23 @@ class RealtimeController:
             self.level += 1
         elif self.level == MAX_LEVEL and lag > self.bound and lag + DRAIN_WINDOWS * change > self.bound:
             self.thinning = min(MAX_INPUT_THINNING, 2 * self.thinning)
-        elif source == "window" and lag < 0.5 * self.target and (self._fe_lag or 0.0) < 0.5 * self.target:
+        elif source == "window" and lag < self.target and lag + DRAIN_WINDOWS * change < self.target \
+                and (self._fe_lag or 0.0) < self.target:
             if self.thinning > 1:
-                self.thinning //= 2
+                if lag < 0.5 * self.target:
+                    self.thinning //= 2
             elif self.level > 0 and self._since_change >= RELAX_WINDOWS:
-                self.level -= 1
+                cost = self.predicted_cost()
+                if cost is not None and cost < RELAX_HEADROOM:
+                    self.predicted.append(cost)
+                    self.level -= 1
         self.max_thinning = max(self.max_thinning, self.thinning)
         if (self.level, self.thinning) != old:
             self._since_change = 0
+            self._costs = []  # costs are measured afresh at the new level
             if self.online is not None:
-                self.online.degrade(LEVELS[self.level][0], self.ba_cap(self.level, self._window_events))
+                self.online.degrade(LEVELS[self.level][0], self.ba_cap(self.level, self._window_events),
+                                    LEVELS[self.level][2])
 
     def summary(self) -> dict:
         lags = np.asarray(self.lags) if self.lags else np.zeros(1)
@@ -174,6 +274,9 @@ class RealtimeController:
             "ba_windows_skipped": self.windows_skipped, "ba_windows_sampled_below_cap": self.windows_sampled,
             "ba_events_fraction": self.ba_used / self.ba_offline if self.ba_offline else 1.0,
             "input_thinned_sensor_seconds": self.thinned_seconds, "input_max_thinning": self.max_thinning,
+            # wall seconds of work per sensor second in the last windows (main process, worker, the BA's and the
+            # front-end's parts) and the predicted costs that let the controller relax
+            "last_costs": self.mean_costs(), "relax_predicted_costs": self.predicted,
         }
 
 
@@ -195,6 +298,8 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                         queue_size=100_000,
                         max_backlog=2 * be.backend_time_window_size + be.backend_sliding_window_stride)
     ctl.online = online
+    idle = {"sleep": 0.0}
+    ctl.idle_seconds = lambda: idle["sleep"] + (online._worker.blocked_seconds if online._worker is not None else 0.0)
     online.wait_ready()  # the sensor clock starts once both processes can work
     reader = iter(chunks)
     pending = Events.empty()
@@ -229,6 +334,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                 if wait > 0:
                     time.sleep(wait)
                     sleep_s += wait
+                    idle["sleep"] = sleep_s
                 continue
             i = int(np.searchsorted(pending.t, s_now, side="right"))
             batch, pending = pending[:i], pending[i:]
@@ -278,6 +384,10 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
             "main_process": cpu_total,
             **({"backend_process": worker["cpu_seconds"]} if worker is not None else {}),
         },
+        # CPU seconds per stage of the back-end (fit, ba, settle, loop) and of its worker's loop (receive: waiting
+        # for and unpickling input, events: bearings and the window buffer, send: the window messages)
+        "stage_cpu_seconds": {**result.report["backend"]["stages"]["cpu_seconds"],
+                              **result.report["backend"].get("worker_stages", {}).get("cpu_seconds", {})},
         "sleep_seconds": sleep_s,
         "wall_seconds": (time.monotonic() - ctl.wall0) if ctl.wall0 is not None else 0.0,
     }

@@ -26,7 +26,7 @@ from ti_cmax.progress import progress
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
-from .backend import SlidingWindowBackend
+from .backend import SlidingWindowBackend, StageClock
 from .frontend import FrontendResult, FrontendRunner, Packet, as_chunks, every_qth
 from .loop_closure import LoopCloser
 from .sensor_defaults import derived_summary, resolve_config
@@ -98,6 +98,7 @@ def _backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
         "map_size": [int(backend.width), int(backend.height)],
         "spline_degree": int(backend.cfg.spline_degree),
         "control_poses": int(backend.spline.num_control) if backend.spline is not None else 0,
+        "stages": backend.clock.summary(),  # CPU and wall seconds of fit, ba, settle (and loop)
         **({"loop_closure": backend.loop.summary()} if backend.loop is not None else {}),
     }
 
@@ -173,12 +174,14 @@ class OnlineSlam:
         # real-time degradation (``degrade``, set by pipelines/realtime.py): the front-end processes 1 of
         # frontend_keep packets (the others are skipped: integration goes on from the last processed one)
         self.frontend_keep = 1
-        self._ba_cap: int | None = None  # the back-end's ba_cap (see SlidingWindowBackend)
+        self._ba_cap: int | None = None  # the back-end's ba_cap and ba_every (see SlidingWindowBackend)
+        self._ba_every = 1
         self.packets_seen = self.packets_skipped = 0
         self._result: SlamResult | None = None
         # with a worker: push() also waits while the events sent run more than this many sensor seconds ahead of
         # the worker's last window (the queue's bound in messages is none in time when chunks are large)
         self.max_backlog = max_backlog
+        self._to_send: list[Events] = []  # with a worker: chunks not yet sent (see _send_events)
 
     # ---- input ---------------------------------------------------------------------------------------------------
     def push(self, events: Events) -> None:
@@ -194,11 +197,11 @@ class OnlineSlam:
         offset = self.events_read
         if self._worker is None:
             self._feed.push(events)
-            self._feed.backend.ba_cap = self._ba_cap
+            self._feed.backend.ba_cap, self._feed.backend.ba_every = self._ba_cap, self._ba_every
         else:
             if self._feed.backend is None:
                 self._feed.backend = SlidingWindowBackend(self.config.backend, float(events.t[0]), np.eye(3))
-            self._worker.send(("events", events))
+            self._to_send.append(events)  # sent with the next pose (or before waiting): fewer, larger messages
         self.events_read += len(events)
         self.t_last = float(events.t[-1])
         for packet in self.runner.slicer.push(every_qth(events, self._q_front, offset)):
@@ -206,6 +209,7 @@ class OnlineSlam:
         self._receive()
         while self.max_backlog is not None and self._worker is not None and \
                 self.t_last - self.refined_until > self.max_backlog:
+            self._send_events()
             tic = time.perf_counter()
             self._receive(until="window")
             self._worker.blocked_seconds += time.perf_counter() - tic
@@ -221,6 +225,7 @@ class OnlineSlam:
                 self._worker.stop()
             raise InputError("no events to process")
         if self._worker is not None:
+            self._send_events()
             self._worker.send(("finish",))
             done = self._receive(until="done")
             self._worker.stop()
@@ -239,16 +244,19 @@ class OnlineSlam:
                                       backend.map.raw, backend.windows, None)
         return self._result
 
-    def degrade(self, frontend_keep: int = 1, ba_cap: int | None = None) -> None:
+    def degrade(self, frontend_keep: int = 1, ba_cap: int | None = None, ba_every: int = 1) -> None:
         """Real-time degradation (pipelines/realtime.py): from now on the front-end processes 1 of
         ``frontend_keep`` packets and the BA uses at most ``ba_cap`` events per window (None: the config's cap;
-        0: BA skipped, the window keeps the front-end's poses). ``degrade()`` restores the full computation."""
+        0: BA skipped, the window keeps the front-end's poses) on 1 of ``ba_every`` windows (the others are skipped
+        like ba_cap 0: their strides keep the poses the previous window refined). ``degrade()`` restores the full
+        computation."""
         self.frontend_keep = max(1, int(frontend_keep))
-        self._ba_cap = ba_cap
+        self._ba_cap, self._ba_every = ba_cap, max(1, int(ba_every))
         if self._worker is not None:  # shared memory: acts at the worker's next window, not behind its queue
             self._worker.ba_cap.value = -1 if ba_cap is None else int(ba_cap)
+            self._worker.ba_every.value = self._ba_every
         elif self._feed.backend is not None:
-            self._feed.backend.ba_cap = ba_cap
+            self._feed.backend.ba_cap, self._feed.backend.ba_every = ba_cap, self._ba_every
 
     def wait_ready(self) -> None:
         """With a worker process: wait until it has prepared its kernels (a live source starts after this)."""
@@ -295,6 +303,7 @@ class OnlineSlam:
         if self._result is not None:
             return self._result.map.copy()
         if backend is not None and self._worker is not None:
+            self._send_events()
             self._worker.send(("map",))
             snapshot = self._receive(until="map")
             if snapshot is not None:
@@ -317,6 +326,7 @@ class OnlineSlam:
         backend = self._feed.backend
         backend.push_source_poses([packet.t_ref], self._r_src[None])
         if self._worker is not None:
+            self._send_events()  # every event pushed so far goes before the pose, as in the sequential run
             self._worker.send(("pose", packet.t_ref, self._r_src))
             return
         while backend.ready():
@@ -325,6 +335,13 @@ class OnlineSlam:
             self.backend_seconds += time.perf_counter() - tic
             self.backend_cpu_seconds += time.process_time() - cpu
             self._notify(report)
+
+    def _send_events(self) -> None:
+        """Hand the chunks pushed since the last pose to the worker as one message (a live source or the real-time
+        replay pushes many small chunks; each message costs a pickle, a pipe write and a wake-up of the worker)."""
+        if self._to_send:
+            chunks, self._to_send = self._to_send, []
+            self._worker.send(("events", Events.concatenate(chunks)))
 
     def _receive(self, until: str | None = None):
         """Apply the worker's window messages to the shadow back-end (and call on_window); with ``until`` ("done",
@@ -340,6 +357,7 @@ class OnlineSlam:
                 else:
                     shadow.spline.control_R = np.concatenate([shadow.spline.control_R[:first], tail])
                 shadow._anchor, shadow.window_start = anchor, window_start
+                shadow._drop_source_before_anchor()
                 shadow.windows.append(report)
                 self._notify(report)
             elif kind == until:
@@ -394,8 +412,10 @@ class _BackendProcess:
         self.inbox, self.outbox = ctx.Queue(max(1, queue_size)), ctx.Queue()
         self.inbox.cancel_join_thread()  # never hang at exit on a worker that stopped reading (it failed)
         self.ba_cap = ctx.Value("q", -1, lock=False)  # the back-end's ba_cap (-1: None), set by OnlineSlam.degrade
+        self.ba_every = ctx.Value("q", 1, lock=False)  # and its ba_every
         self.proc = ctx.Process(target=_backend_worker, daemon=True,
-                                args=(camera, config, runtime.num_threads(), self.inbox, self.outbox, self.ba_cap))
+                                args=(camera, config, runtime.num_threads(), self.inbox, self.outbox, self.ba_cap,
+                                      self.ba_every))
         self.proc.start()
         self.blocked_seconds = 0.0
         self.ready = False  # the worker has prepared its kernels
@@ -445,9 +465,10 @@ class _BackendProcess:
             self.proc.terminate()
 
 
-def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, ba_cap) -> None:
+def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, ba_cap, ba_every) -> None:
     """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R), ("map",) (send a
-    copy of the map) and ("finish",); ``ba_cap`` is shared memory (OnlineSlam.degrade), read before each step."""
+    copy of the map) and ("finish",); ``ba_cap``, ``ba_every``: shared memory (OnlineSlam.degrade), read before each
+    step."""
     try:
         from ti_cmax.kernels import runtime
 
@@ -458,16 +479,25 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
         feed = _BackendFeed(camera, config, lambda t0: np.eye(3))
         seconds = step_cpu = 0.0
         loops_applied = 0  # an applied loop moves control poses before the window: send them all then
+        # per-stage costs of the worker loop: receive (waiting for input and unpickling it: wall; unpickling: CPU),
+        # events (bearings and the window buffer), send (the window messages); the back-end's own stages beside
+        clock = StageClock()
+        last_done, waited = time.perf_counter(), 0.0  # busy_seconds of a window: wall since the last one - waited
         while True:
-            kind, *args = inbox.get()
+            tic = time.perf_counter()
+            with clock("receive"):
+                kind, *args = inbox.get()
+            waited += time.perf_counter() - tic
             if kind == "events":
-                feed.push(args[0])
+                with clock("events"):
+                    feed.push(args[0])
                 continue
             backend = feed.backend
             if kind == "map":  # OnlineSlam.map(): a copy of the map of the events settled so far
                 outbox.put(("map", backend.map.raw.copy() if backend is not None else None))
                 continue
             backend.ba_cap = None if ba_cap.value < 0 else int(ba_cap.value)  # OnlineSlam.degrade
+            backend.ba_every = int(ba_every.value)
             tic, cpu = time.perf_counter(), time.process_time()
             if kind == "pose":
                 backend.push_source_poses([args[0]], args[1][None])
@@ -482,16 +512,21 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
             spline = backend.spline
             applied = backend.loop.summary()["applied"] if backend.loop is not None else 0
             for report in backend.windows[new:]:
+                now = time.perf_counter()
+                report.busy_seconds, last_done, waited = max(0.0, now - last_done - waited), now, 0.0
                 # control poses before the window's first free one (minus one) did not change, unless a loop was
                 # closed
                 first = 0 if applied > loops_applied else \
                     max(0, int(np.floor((report.t_start - spline.t0) / spline.dt)) - 1)
                 loops_applied = applied
-                outbox.put(("window", report, first, spline.control_R[first:].copy(), backend._anchor,
-                            backend.window_start, (spline.degree, spline.t0, spline.dt)))
+                with clock("send"):
+                    outbox.put(("window", report, first, spline.control_R[first:].copy(), backend._anchor,
+                                backend.window_start, (spline.degree, spline.t0, spline.dt)))
             if kind == "finish":
+                worker_report = _backend_report(backend, seconds)
+                worker_report["worker_stages"] = clock.summary()
                 outbox.put(("done", {
-                    "report": _backend_report(backend, seconds), "spline": spline, "map": backend.map.raw,
+                    "report": worker_report, "spline": spline, "map": backend.map.raw,
                     "windows": backend.windows, "trajectory": backend.trajectory(config.output.trajectory_rate),
                     "seconds": seconds, "step_cpu_seconds": step_cpu, "compile_seconds": compile_s,
                     "cpu_seconds": time.process_time() - cpu0,

@@ -143,7 +143,12 @@ class SO3Spline:
         n = self.degree
         b, db = cumulative_basis(n, u)
         ctrl = self.control_R
-        omegas = np.stack([so3.log(np.swapaxes(ctrl[s + j - 1], -1, -2) @ ctrl[s + j]) for j in range(1, n + 1)], 1)
+        # Omega depends on the control index only: one log per distinct index, not per time (many times share a
+        # segment; the same matrices give the same logs, so the values are unchanged)
+        first, inverse = np.unique(s, return_inverse=True)
+        idx = first[:, None] + np.arange(n + 1)  # (F, n + 1): the control poses of each distinct index
+        rel = np.swapaxes(ctrl[idx[:, :-1]], -1, -2) @ ctrl[idx[:, 1:]]  # (F, n, 3, 3), one log call for all
+        omegas = so3.log(rel)[inverse.reshape(-1)]
         prods = [ctrl[s]]
         for j in range(1, n + 1):
             prods.append(prods[-1] @ so3.exp(b[:, j, None] * omegas[:, j - 1]))
@@ -247,9 +252,13 @@ class SO3Spline:
 
         # lift
         r_off = rotations[0]
-        x = so3.log(r_off.T @ self.control_R)
-        y = so3.log(r_off.T @ rotations)
         s, u = self.support(times)
+        # lift only the poses the fit reads (the samples' supports, the free poses and their second-difference
+        # neighbours): the earlier ones never enter it, and a long trajectory has thousands
+        lo = max(0, min(int(s.min()), first_free - 2))
+        x = np.zeros((self.num_control, 3))
+        x[lo:] = so3.log(r_off.T @ self.control_R[lo:])
+        y = so3.log(r_off.T @ rotations)
         w = blending_basis(self.degree, u)  # (K, order)
         a, rhs = self._design(s, w, free, x, y)
         reg = self._second_difference(free, x)
@@ -322,7 +331,8 @@ class SO3Spline:
         """Rows x_{i-1} - 2 x_i + x_{i+1} touching a free pose: (sparse matrix on free, constant part)."""
         col_of = np.full(self.num_control, -1)
         col_of[free] = np.arange(len(free))
-        centers = [i for i in range(1, self.num_control - 1) if np.any(col_of[i - 1 : i + 2] >= 0)]
+        centers = [i for i in range(max(1, int(free.min()) - 1), self.num_control - 1)
+                   if np.any(col_of[i - 1 : i + 2] >= 0)]
         rows, cols, vals = [], [], []
         const = np.zeros((len(centers), 3))
         for r, i in enumerate(centers):

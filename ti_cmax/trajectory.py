@@ -52,7 +52,11 @@ class Trajectory:
         if len(self.t) == 1:
             return np.broadcast_to(self.R[0], (len(times), 3, 3)).copy()
         clamped = np.clip(times, self.t[0], self.t[-1])
-        return Slerp(self.t, self.rotations)(clamped).as_matrix()
+        # Slerp only over the samples of the intervals queried (its interval of t: searchsorted left - 1, the first
+        # sample itself in interval 0): a query near one time costs O(1), not O(samples); the same values
+        interval = np.maximum(np.searchsorted(self.t, clamped, side="left") - 1, 0)
+        lo, hi = int(interval.min()), int(interval.max()) + 2
+        return Slerp(self.t[lo:hi], Rotation.from_matrix(self.R[lo:hi]))(clamped).as_matrix()
 
     def resampled(self, times: np.ndarray) -> "Trajectory":
         return Trajectory(np.asarray(times, dtype=float), self.at(times))

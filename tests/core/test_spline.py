@@ -157,3 +157,29 @@ def test_fit_extrapolates_poses_that_samples_barely_reach():
     err = np.degrees(so3.geodesic_angle(sp.control_R, clean.control_R))
     assert err[-1] < 1.5, err  # measured: 0.93 deg; with smoothness 1e-6: 43 deg
     assert max(err[0], err[-2]) < 1.5 and err[1:-2].max() < 0.2, err  # poses at the ends see fewer samples
+
+
+@pytest.mark.parametrize("degree", [1, 3])
+def test_omega_once_per_control_index_gives_the_per_time_values(degree):
+    """Omega_{s+j} is computed once per control index the times share, not once per time: the values (hence the
+    poses) must be the very bits of the per-time computation."""
+    spline = random_spline(degree, m=9)
+    start, end = spline.valid_time_range()
+    s, u = spline.support(np.sort(np.random.default_rng(1).uniform(start, end, 300)))
+    ctrl = spline.control_R
+    per_time = np.stack([so3.log(np.swapaxes(ctrl[s + j - 1], -1, -2) @ ctrl[s + j]) for j in range(1, degree + 1)], 1)
+    assert np.array_equal(spline._chain(s, u)[2], per_time)
+
+
+def test_trajectory_query_reads_only_its_intervals_with_the_same_values():
+    """Trajectory.at slerps over the samples of the queried intervals only (O(1) for one time on a long
+    trajectory); the values are those of scipy's Slerp over every sample, bit for bit, at sample times too."""
+    from ti_cmax.trajectory import Trajectory
+
+    rng = np.random.default_rng(2)
+    t = np.cumsum(rng.uniform(0.001, 0.1, 40))
+    traj = Trajectory(t, Rotation.random(40, random_state=3).as_matrix())
+    full = Slerp(traj.t, Rotation.from_matrix(traj.R))
+    queries = np.concatenate([rng.uniform(t[0] - 0.1, t[-1] + 0.1, 20), t[[0, 1, 17, 38, 39]]])
+    for q in [queries, queries[:1], t[[0]], t[[-1]], t[[17]]]:
+        assert np.array_equal(traj.at(q), full(np.clip(q, t[0], t[-1])).as_matrix())

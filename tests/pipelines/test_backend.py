@@ -80,3 +80,29 @@ def test_carried_inverse_hessian_follows_the_free_control_poses():
     np.testing.assert_allclose(np.diag(h)[9:], np.mean(np.diag(h_prev)))
     assert be._carried_inv_hessian(15, 5) is None and be._carried_inv_hessian(9, 5) is None
     assert BackendConfig().backend_optimizer == "bfgs"
+
+
+def test_source_poses_before_the_anchor_are_dropped_and_poses_ahead_unchanged():
+    """On a long stream the back-end keeps only the source poses from its anchor on (memory and the per-packet
+    append stay bounded); pose_at beyond the anchor still reads the re-anchored source at every time."""
+    from ti_cmax import Camera, so3
+    from ti_cmax.config import BackendConfig
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+    from ti_cmax.pipelines.sensor_defaults import resolve_backend
+    from ti_cmax.trajectory import Trajectory
+
+    cfg = resolve_backend(BackendConfig(), Camera(240, 180, 200.0, 200.0, 119.5, 89.5))
+    src_t = 0.01 * np.arange(400)
+    src_R = so3.exp(np.outer(src_t, [0.3, -1.0, 0.5]) + 0.1 * np.sin(np.outer(src_t, [1.0, 2.0, 3.0])))
+    be = SlidingWindowBackend(cfg, 0.0)
+    for k in range(len(src_t)):  # one pose per packet, as from the front-end; no events (no BA)
+        be.push_source_poses(src_t[k:k + 1], src_R[k:k + 1])
+        be.push_events(np.zeros(0), np.zeros((0, 3), np.float32), complete_until=float(src_t[k]))
+        while be.ready():
+            be.step()
+    window = cfg.backend_time_window_size + cfg.backend_sliding_window_stride
+    assert len(be.windows) > 30 and len(be._src_t) <= window / 0.01 + 3
+    t_a, r_src_a, r_spl_a = be._anchor
+    ahead = np.linspace(t_a + 1e-3, src_t[-1], 7)
+    expected = r_spl_a @ r_src_a.T @ Trajectory(src_t, src_R).at(ahead)
+    np.testing.assert_array_equal(be.pose_at(ahead), expected)
