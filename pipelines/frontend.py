@@ -215,6 +215,7 @@ class PacketSlicer:
         self.min_span = float(config.frontend_min_packet_span)
         self.events_read = 0
         self._buf = Events.empty()
+        self._pending: list[Events] = []  # chunks pushed since the buffer was last joined (joined when a packet may be due)
         self._t_last = -np.inf
         self.t_ref: float | None = None  # the next packet's centre (None before the first event)
 
@@ -231,26 +232,42 @@ class PacketSlicer:
             raise InputError(f"event chunks are not in time order (t={chunk.t[0]!r} after {self._t_last!r})")
         self._t_last = float(chunk.t[-1])
         self.events_read += len(chunk)
-        self._buf = Events.concatenate([self._buf, chunk])
+        self._pending.append(chunk)
         if self.t_ref is None:
-            self.t_ref = float(self._buf.t[0]) + 0.5 * self.dt
+            self.t_ref = float(chunk.t[0]) + 0.5 * self.dt
+        # the buffer is joined only when a packet may be final (a live source pushes ~2 ms chunks: joining on
+        # every push copied the whole buffer each time); _known() on the parts equals it on the joined buffer
+        if not self._known():
+            return
+        self._join()
         while self._known():
             yield self._emit()
 
     def flush(self) -> Iterator[Packet]:
         """The stream has ended: yield the packets up to the last event (clipped at the end)."""
+        self._join()
         while self.t_ref is not None and len(self._buf) and self.t_ref <= self._buf.t[-1]:
             yield self._emit()
 
+    def _join(self) -> None:
+        if self._pending:
+            self._buf = Events.concatenate([self._buf, *self._pending])
+            self._pending = []
+
     def _known(self) -> bool:
         """The packet around t_ref is final: N - N/2 events from the centre on, or events later than t_ref + W
-        (then the full packet would span more than W anyway)."""
-        buf, t_ref = self._buf, self.t_ref
-        if len(buf) == 0:
+        (then the full packet would span more than W anyway). Counts over the buffer and the pending chunks."""
+        t_ref = self.t_ref
+        parts = [self._buf, *self._pending]
+        if t_ref is None or not any(len(e) for e in parts):
             return False
-        c = int(buf.index_at(t_ref))
-        enough = len(buf) - c >= self.n - self.n // 2 and buf.t[-1] >= t_ref + 0.5 * self.min_span
-        return enough or buf.t[-1] > t_ref + self.window
+        t_last = self._t_last
+        if t_last > t_ref + self.window:
+            return True
+        if t_last < t_ref + 0.5 * self.min_span:
+            return False
+        after = sum(len(e) - int(e.index_at(t_ref)) for e in parts)  # events at or after the centre
+        return after >= self.n - self.n // 2
 
     def _emit(self) -> Packet:
         buf, t_ref, half = self._buf, self.t_ref, self.n // 2

@@ -268,3 +268,26 @@ def test_stream_regrouping_matches_the_whole_stream():
         np.testing.assert_array_equal(part.t, t[edges[k]:edges[k + 1]])
     assert sum(len(p) == 0 for _, _, p in got) > 3
     assert list(time_intervals([], length)) == [] and list(fixed_count_packets(chunks[:1], 10**6)) == []
+
+
+@pytest.mark.parametrize("min_span", [0.0, 0.04])
+def test_slicer_packets_do_not_depend_on_chunk_size_and_join_lazily(min_span, monkeypatch):
+    """2 ms chunks (a live source) give the same packets as one array, and the buffer is joined only when a packet
+    may be final (joining on every push copied the whole buffer each time)."""
+    rng = np.random.default_rng(3)
+    n = 200_000
+    t = np.sort(rng.uniform(0.0, 0.2, n))  # 1 M ev/s
+    ev = Events(t, rng.integers(0, 240, n), rng.integers(0, 180, n), rng.choice([-1, 1], n))
+    cfg = resolve_frontend(FrontendConfig(frontend_min_packet_span=min_span), CAM)
+
+    def packets(chunks):
+        return [(p.t_ref, p.still, p.events.t.tobytes()) for p in PacketSlicer(cfg)(chunks)]
+
+    whole = packets([ev])
+    joins = []
+    original = Events.concatenate
+    monkeypatch.setattr(Events, "concatenate", classmethod(lambda cls, parts: joins.append(1) or original(parts)))
+    edges = np.searchsorted(t, np.arange(0.0, 0.2, 0.002))
+    small = packets([ev[a:b] for a, b in zip(edges, list(edges[1:]) + [n])])
+    assert small == whole and len(whole) >= 15
+    assert len(joins) <= len(whole) + 2 < len(edges) / 2
