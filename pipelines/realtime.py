@@ -41,8 +41,8 @@ second of data), so c/4 and c/8 on every window saved little.
   process's alone. c < 1 means that process keeps up at this level; the lag drains at rate 1 - c. Of the cost, the
   parts that the next lower level changes are measured too: the BA's wall time (x the ratio of BA windows, x the
   square root of the ratio of BA events: measured sub-linear, see above, so an overestimate; from level 4, where no
-  BA runs, the last BA measured, scaled to the level-3 cap) and the front-end's (x the ratio of packets). The
-  predicted cost of level l - 1 is c(l) minus those parts plus them scaled. Then, with the costs summed over the
+  BA runs, the median of the last ``RELAX_WINDOWS`` BAs measured, scaled to the level-3 cap) and the front-end's
+  (x the ratio of packets). The predicted cost of level l - 1 is c(l) minus those parts plus them scaled. Then, with the costs summed over the
   last windows that cover ``RELAX_WINDOWS`` strides of sensor data: when L < T, L would stay under T within 5
   windows at its rate of change, and the predicted cost of l - 1 is below ``RELAX_HEADROOM`` (0.8: a fifth left
   for event-rate bursts and the machine's other load) in every process: first q halves (while q > 1 only when
@@ -115,7 +115,7 @@ class RealtimeController:
         self.idle_seconds = lambda: 0.0
         self._costs: list[dict] = []  # per window since the last change: {"worker", "main", "ba", "fe"}
         self._mark = None  # (time.monotonic, main idle, front-end seconds, front-end time, worker done_at)
-        self._ba_last = None  # (seconds, events) of the last window with a BA
+        self._ba_recent: list[tuple[float, int]] = []  # (seconds, events) of the last RELAX_WINDOWS windows with a BA
         self.predicted: list[float] = []  # predicted cost of the level below at each relaxation (report)
 
     def due(self, t: float) -> float:
@@ -165,7 +165,7 @@ class RealtimeController:
         now, idle = time.monotonic(), self.idle_seconds()
         mark, self._mark = self._mark, (now, idle, fe_seconds, fe_time, report.done_at)
         if report.ba_seconds > 0 and report.events_used > 0:
-            self._ba_last = (report.ba_seconds, report.events_used)
+            self._ba_recent = (self._ba_recent + [(report.ba_seconds, report.events_used)])[-RELAX_WINDOWS:]
         if mark is None or fe_time is None or mark[3] is None:
             return
         sensor = self.stride / self.speed  # per window: one stride of sensor data, in wall seconds
@@ -210,9 +210,10 @@ class RealtimeController:
         every_now, every_lower = LEVELS[self.level][2], LEVELS[lower][2]
         if cap_now > 0:
             ba_lower = mean["ba"] * math.sqrt(cap_lower / cap_now) * every_now / every_lower
-        elif self._ba_last is not None:  # no BA at this level: the last one measured, at the lower level's cap
-            seconds, events = self._ba_last
-            ba_lower = seconds * math.sqrt(cap_lower / events) / every_lower / (self.stride / self.speed)
+        elif self._ba_recent:  # no BA at this level: the last ones measured (median: one slow window, e.g. the cold
+            # first one or one after skipped strides, would keep the controller at level 4), at the lower level's cap
+            per_root_event = float(np.median([sec / math.sqrt(ev) for sec, ev in self._ba_recent]))
+            ba_lower = per_root_event * math.sqrt(cap_lower) / every_lower / (self.stride / self.speed)
         else:
             ba_lower = 0.0
         fe_lower = mean["fe"] * LEVELS[self.level][0] / LEVELS[lower][0]
