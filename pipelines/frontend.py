@@ -23,15 +23,18 @@ Speed (bounded cost per packet at any event rate): a packet holding more than
 The optimiser starts from the linear prediction 2 omega_{j-1} - omega_{j-2} (``frontend_warm_start``), usually a
 fraction of a pixel from the optimum. ``frontend_optimizer="bfgs"`` (default) keeps the BFGS inverse Hessian of
 the last packet (the scaled cost below changes little from packet to packet), so the first step is a
-quasi-Newton one: about 3 evaluations per packet. ``"cg"`` is the reference's Fletcher-Reeves CG with the
+quasi-Newton one; it stops once its next step would move the farthest event by less than
+``frontend_bfgs_step_tol`` (0.05 px): about 2.2 evaluations per packet. ``"cg"`` is the reference's Fletcher-Reeves CG with the
 "secant" first trial step and a loose line search (tolerance 0.5, at most 4 evaluations): 4-5 evaluations per
 packet instead of 13-16 with the reference's strict line search, for the same accuracy
 (pipelines/bench_frontend.py).
 
-Suspect packets: after the optimisation the contrast at omega = 0 is evaluated once more; a solution that moves
-the packet's farthest event by >= 1 px but raises the contrast by less than ``frontend_min_contrast_gain`` is
-flagged (the events do not constrain omega: e.g. packets far too small for the sensor). Most packets suspect:
-the run's status is "suspect" instead of "ok".
+Suspect packets: after the optimisation of 1 of ``frontend_gain_check_every`` (4) moving packets the contrast at
+omega = 0 is evaluated once more (a whole evaluation: checking every packet cost a quarter of the front-end); a
+solution that moves the packet's farthest event by >= 1 px but raises the contrast by less than
+``frontend_min_contrast_gain`` is flagged (the events do not constrain omega: e.g. packets far too small for the
+sensor). Most checked packets suspect: the run's status is "suspect" instead of "ok". Unchecked packets have gain
+nan and are never suspect.
 
 Scaling (so that the reference's tolerances mean the same across packet sizes and resolutions): the
 optimiser sees x = omega * s with s = f * max_k |dt_k| (f: mean focal length), i.e. x is roughly the
@@ -71,7 +74,7 @@ class FrontendResult:
     evaluations: np.ndarray  # (M,) contrast+gradient evaluations
     still: np.ndarray  # (M,) bool, omega set to 0 by the still-camera rule
     cost: np.ndarray  # (M,) normalised contrast at the solution (nan when still)
-    gain: np.ndarray  # (M,) contrast at the solution over the contrast at omega = 0 (nan when still)
+    gain: np.ndarray  # (M,) contrast at the solution over the contrast at omega = 0 (nan when still or unchecked)
     suspect: np.ndarray  # (M,) bool: the solution moves events by >= 1 px but barely sharpens the IWE
     timing: dict = field(default_factory=dict)  # compile_seconds, wall_seconds, us_per_event, ...
     config: FrontendConfig = field(default_factory=FrontendConfig)
@@ -81,10 +84,10 @@ class FrontendResult:
 
     @property
     def status(self) -> str:
-        """"suspect" when most moving packets are suspect (the IWE does not constrain omega: e.g. packets far too
+        """"suspect" when most checked moving packets are suspect (the IWE does not constrain omega: e.g. packets far too
         small for the sensor), else "ok"."""
-        moving = int(np.count_nonzero(~self.still))
-        return "suspect" if moving and np.count_nonzero(self.suspect) > 0.5 * moving else "ok"
+        checked = int(np.count_nonzero(~self.still & ~np.isnan(self.gain)))  # moving packets whose gain was checked
+        return "suspect" if checked and np.count_nonzero(self.suspect) > 0.5 * checked else "ok"
 
     def trajectory(self) -> Trajectory:
         """Integrate omega (midpoint rule on SO(3)) to R_world_from_camera at the packet times, R(t_0) = I."""
@@ -98,6 +101,7 @@ class FrontendResult:
             "packets": int(len(self.t)),
             "still_packets": int(np.count_nonzero(self.still)),
             "suspect_packets": int(np.count_nonzero(self.suspect)),
+            "checked_packets": int(np.count_nonzero(~self.still & ~np.isnan(self.gain))),
             "median_contrast_gain": float(np.nanmedian(self.gain)) if np.any(~self.still) else 0.0,
             "mean_iterations": float(np.mean(self.iterations)) if len(self.t) else 0.0,
             "mean_evaluations": float(np.mean(self.evaluations)) if len(self.t) else 0.0,
@@ -320,6 +324,7 @@ class AngularVelocityEstimator:
         self.inv_hessian = None  # BFGS: carried from packet to packet (x = pixels of motion, cost normalised)
         self.events_evaluated = 0  # events actually used in the optimisation (after thinning)
         self.event_evaluations = 0  # sum over packets of events used x evaluations (for the cost per event-evaluation)
+        self.packets_estimated = 0  # moving packets so far (the suspect check runs on 1 of frontend_gain_check_every)
 
     def reset(self) -> None:
         """Forget the warm start (after a still packet)."""
@@ -377,7 +382,7 @@ class AngularVelocityEstimator:
                 fun, x0, maximize=True, inv_hessian=self.inv_hessian, init_step=cfg.frontend_cg_init_step,
                 max_iter=cfg.frontend_cg_max_iters, grad_tol=cfg.frontend_cg_grad_tol,
                 rel_cost_tol=cfg.frontend_cg_rel_cost_tol, max_step=cfg.frontend_bfgs_max_step,
-                max_line_evals=cfg.frontend_cg_max_line_evals)
+                max_line_evals=cfg.frontend_cg_max_line_evals, step_tol=cfg.frontend_bfgs_step_tol)
             return res
         return fletcher_reeves(
             fun, x0, maximize=True, init_step=cfg.frontend_cg_init_step,
@@ -392,14 +397,19 @@ class AngularVelocityEstimator:
         w0 = self.warm_start() if omega0 is None else np.asarray(omega0, float)
         res = self._maximize(fun, w0 * s)
         self.omega_prev, self.omega = self.omega, res.x / s
-        # how much the solution sharpens the IWE compared with no motion (one cost-only evaluation)
-        c_zero = self.ws.evaluate(np.zeros(3), self.K, self.config.contrast_measure, with_grad=False)[0] * self._scale
-        self.last_gain = float(res.fun / c_zero) if c_zero > 0 else np.inf
-        # x is the displacement in pixels of the packet's farthest-in-time event: a motion of >= 1 px that gains
-        # less than frontend_min_contrast_gain is not seen in the events (noise-dominated IWE, false optimum)
-        self.last_suspect = bool(np.linalg.norm(res.x) >= 1.0
-                                 and self.last_gain < 1.0 + self.config.frontend_min_contrast_gain)
-        self.event_evaluations += n * (res.evaluations + 1)
+        checked = self.packets_estimated % int(self.config.frontend_gain_check_every) == 0
+        self.packets_estimated += 1
+        self.last_gain, self.last_suspect = np.nan, False
+        if checked:
+            # how much the solution sharpens the IWE compared with no motion (one cost-only evaluation)
+            c_zero = self.ws.evaluate(np.zeros(3), self.K, self.config.contrast_measure, with_grad=False)[0]
+            c_zero *= self._scale
+            self.last_gain = float(res.fun / c_zero) if c_zero > 0 else np.inf
+            # x is the displacement in pixels of the packet's farthest-in-time event: a motion of >= 1 px that gains
+            # less than frontend_min_contrast_gain is not seen in the events (noise-dominated IWE, false optimum)
+            self.last_suspect = bool(np.linalg.norm(res.x) >= 1.0
+                                     and self.last_gain < 1.0 + self.config.frontend_min_contrast_gain)
+        self.event_evaluations += n * (res.evaluations + int(checked))
         return self.omega.copy(), res, res.fun
 
     def contrast_ratio(self, events: Events, t_ref: float, omega) -> tuple[float, np.ndarray]:

@@ -216,6 +216,7 @@ def bfgs(
     max_line_evals: int = 4,
     c1: float = 1e-4,
     c2: float = 0.9,
+    step_tol: float = 0.0,
 ) -> tuple[CGResult, np.ndarray | None]:
     """Minimise (or maximise) fun by BFGS from a given inverse Hessian; returns (result, inverse Hessian).
 
@@ -230,6 +231,8 @@ def bfgs(
     cost change below ``rel_cost_tol`` relative to its magnitude, the latter once H is learnt (carried in, or n
     updates since a cold start). A failed line search returns the best point and None (the next
     problem starts afresh); an update that would lose positive definiteness (s.y <= 0) is skipped.
+    ``step_tol`` > 0 also stops, once H is learnt, when the next quasi-Newton step -H g would be shorter than it
+    (x units): the evaluation that step would cost cannot move the solution by more than that.
     """
     sign = -1.0 if maximize else 1.0
     fc = _Counted(fun, sign)
@@ -298,6 +301,9 @@ def bfgs(
         # cold start): before that, a step may just be short along a direction H underestimates
         if updates >= n and abs(f - f_old) <= rel_cost_tol * max(abs(f_old), 1e-300):
             converged, message = True, "relative cost tolerance reached"
+            break
+        if step_tol > 0 and updates >= n and H is not None and float(np.linalg.norm(H @ g)) < step_tol:
+            converged, message = True, "step tolerance reached"
             break
     best_x, best_f, best_g = fc.best
     if best_f < f:

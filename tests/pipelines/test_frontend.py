@@ -205,7 +205,8 @@ def test_thinning_keeps_the_span_and_the_accuracy(ti_runtime):
     packet (solved tightly: this is about thinning, not the optimiser's tolerance) is still within 2 %."""
     omega = np.array([-0.8, 1.6, 1.1])
     ev = _synthetic_events(omega, 0.0, 0.01, 24000, seed=11)
-    est = AngularVelocityEstimator(CAM, FrontendConfig(frontend_max_packet_events=5000, frontend_cg_rel_cost_tol=1e-7))
+    est = AngularVelocityEstimator(CAM, FrontendConfig(frontend_max_packet_events=5000, frontend_cg_rel_cost_tol=1e-7,
+                                                      frontend_bfgs_step_tol=0.0))
     thin = est.thin(ev)
     assert len(thin) <= 5000 and len(thin) >= 4000 and thin.duration > 0.99 * ev.duration
     w, res, _ = est.estimate(ev, 0.005)

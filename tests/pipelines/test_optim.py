@@ -104,3 +104,21 @@ def test_bfgs_maximizes_caps_steps_and_never_returns_a_worse_point():
     # a cost that only gets worse away from the start: the start is returned
     res, h = bfgs(lambda x: (float(np.sum(np.abs(x))) + 1.0, np.sign(x) + 0.5), np.zeros(2), max_iter=5)
     assert res.fun <= 1.0 and h is None
+
+
+def test_bfgs_step_tolerance_saves_the_confirming_evaluation():
+    """With a learnt inverse Hessian, step_tol stops when the next quasi-Newton step would be shorter than it:
+    fewer evaluations, and the solution is within about that distance of the optimum."""
+    c = np.array([0.3, -0.2, 0.1])
+
+    def f(x):  # smooth, not quadratic: the Hessian changes along the way
+        d = x - c
+        return float(np.sum(np.cosh(d))), np.sinh(d)
+
+    h = np.eye(3)  # the inverse Hessian at the optimum (cosh'' = 1 there)
+    loose, _ = bfgs(f, np.zeros(3), inv_hessian=h, grad_tol=1e-12, rel_cost_tol=0.0, step_tol=1e-2)
+    tight, _ = bfgs(f, np.zeros(3), inv_hessian=h, grad_tol=1e-12, rel_cost_tol=0.0)
+    assert loose.message == "step tolerance reached"
+    assert loose.evaluations < tight.evaluations
+    assert np.linalg.norm(loose.x - c) < 2e-2
+    np.testing.assert_allclose(tight.x, c, atol=1e-8)

@@ -96,12 +96,15 @@ def test_noise_packet_far_from_the_warm_start_is_suspect(ti_runtime):
     noise = Events(np.sort(rng.uniform(0, 0.01, n)), rng.integers(0, HD.width, n).astype(np.uint16),
                    rng.integers(0, HD.height, n).astype(np.uint16), np.ones(n))
     runner = FrontendRunner(HD, SlamConfig().frontend)
-    for k in range(3):
+    every = runner.config.frontend_gain_check_every
+    for k in range(2 * every):
         runner.estimator.omega = np.array([1.5, -1.0, 0.5])  # the motion of the packets before
         runner.process(Packet(0.005 + 0.01 * k, noise, 0.01, False))
     res = runner.result()
-    assert res.suspect.all() and np.all(res.gain < 1.02) and res.status == "suspect"
-    assert res.summary()["suspect_packets"] == 3
+    checked = np.arange(2 * every) % every == 0  # 1 of frontend_gain_check_every packets is checked
+    assert res.suspect[checked].all() and np.all(res.gain[checked] < 1.02) and res.status == "suspect"
+    assert not res.suspect[~checked].any() and np.isnan(res.gain[~checked]).all()
+    assert res.summary()["suspect_packets"] == res.summary()["checked_packets"] == 2
 
 
 @pytest.mark.slow
