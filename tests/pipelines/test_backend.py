@@ -65,7 +65,9 @@ def test_backend_rejects_bad_line_search_settings(field, value):
 
 def test_carried_inverse_hessian_follows_the_free_control_poses():
     """The next window frees control poses 2..6 where the last one freed 0..4: the shared poses 2..4 keep their
-    blocks, the new poses 5, 6 start uncoupled with the mean diagonal; nothing shared gives a cold start."""
+    blocks, the new poses 5, 6 start uncoupled with the mean diagonal; nothing shared (windows without a BA in
+    between) takes the last inverse Hessian as the template pose by pose; a window behind the last one, or no BA
+    yet, gives a cold start."""
     from ti_cmax.config import BackendConfig
     from ti_cmax.pipelines.backend import SlidingWindowBackend
 
@@ -78,7 +80,14 @@ def test_carried_inverse_hessian_follows_the_free_control_poses():
     np.testing.assert_array_equal(h[:9, :9], h_prev[6:, 6:])
     np.testing.assert_array_equal(h[9:, :9], 0.0)
     np.testing.assert_allclose(np.diag(h)[9:], np.mean(np.diag(h_prev)))
-    assert be._carried_inv_hessian(15, 5) is None and be._carried_inv_hessian(9, 5) is None
+    np.testing.assert_array_equal(be._carried_inv_hessian(15, 5), h_prev)
+    h = be._carried_inv_hessian(30, 7)  # more free poses than the template: the rest start uncoupled
+    np.testing.assert_array_equal(h[:15, :15], h_prev)
+    np.testing.assert_array_equal(h[15:, :15], 0.0)
+    np.testing.assert_allclose(np.diag(h)[15:], np.mean(np.diag(h_prev)))
+    assert be._carried_inv_hessian(9, 5) is None
+    be._inv_hessian = None
+    assert be._carried_inv_hessian(12, 5) is None
     assert BackendConfig().backend_optimizer == "bfgs"
 
 
