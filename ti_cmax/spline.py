@@ -26,8 +26,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from . import so3
 from .trajectory import Trajectory
@@ -305,9 +303,7 @@ class SO3Spline:
                 rows.append(3 * np.nonzero(is_free)[0] + d)
                 cols.append(3 * c[is_free] + d)
                 vals.append(w[is_free, j])
-        a = sp.csr_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * k, 3 * len(free))
-        )
+        a = _matrix(np.concatenate(vals), np.concatenate(rows), np.concatenate(cols), (3 * k, 3 * len(free)))
         return a, rhs.reshape(-1)
 
     def _jacobian_matrix(self, s, jac, free):
@@ -323,9 +319,7 @@ class SO3Spline:
                     rows.append(3 * sel + d)
                     cols.append(3 * c[sel] + e)
                     vals.append(jac[sel, j, d, e])
-        return sp.csr_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * k, 3 * len(free))
-        )
+        return _matrix(np.concatenate(vals), np.concatenate(rows), np.concatenate(cols), (3 * k, 3 * len(free)))
 
     def _second_difference(self, free, x):
         """Rows x_{i-1} - 2 x_i + x_{i+1} touching a free pose: (sparse matrix on free, constant part)."""
@@ -344,12 +338,34 @@ class SO3Spline:
                         vals.append(coef)
                 else:
                     const[r] += coef * x[idx]
-        d = sp.csr_matrix((vals, (rows, cols)), shape=(3 * len(centers), 3 * len(free)))
+        d = _matrix(np.asarray(vals, float), np.asarray(rows, np.int64), np.asarray(cols, np.int64),
+                    (3 * len(centers), 3 * len(free)))
         return d, const.reshape(-1)
 
     @staticmethod
     def _solve(a, rhs, reg, weight):
         d, const = reg
-        lhs = (a.T @ a + weight * (d.T @ d) + 1e-12 * sp.identity(a.shape[1])).tocsc()
         b = a.T @ rhs - weight * (d.T @ const)
+        if isinstance(a, np.ndarray):
+            return np.linalg.solve(a.T @ a + weight * (d.T @ d) + 1e-12 * np.eye(a.shape[1]), b)
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as spla
+
+        lhs = (a.T @ a + weight * (d.T @ d) + 1e-12 * sp.identity(a.shape[1])).tocsc()
         return np.atleast_1d(spla.spsolve(lhs, b))
+
+
+DENSE_FIT_COLUMNS = 300  # fits over at most this many parameters (100 free poses) solve dense
+
+
+def _matrix(vals, rows, cols, shape):
+    """The fit's matrix from (value, row, col) triplets (duplicates summed): dense for the sliding window's small
+    fits (a few dozen parameters: numpy, and no scipy.sparse import, ~0.1 s of every run's start-up), sparse (CSR)
+    for whole-trajectory fits (thousands of poses)."""
+    if shape[1] <= DENSE_FIT_COLUMNS:
+        out = np.zeros(shape)
+        np.add.at(out, (rows, cols), vals)
+        return out
+    import scipy.sparse as sp
+
+    return sp.csr_matrix((vals, (rows, cols)), shape=shape)

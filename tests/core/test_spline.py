@@ -173,7 +173,9 @@ def test_omega_once_per_control_index_gives_the_per_time_values(degree):
 
 def test_trajectory_query_reads_only_its_intervals_with_the_same_values():
     """Trajectory.at slerps over the samples of the queried intervals only (O(1) for one time on a long
-    trajectory); the values are those of scipy's Slerp over every sample, bit for bit, at sample times too."""
+    trajectory); the values are those of a slerp over every sample, bit for bit, at sample times too, and
+    scipy's Slerp's to rounding."""
+    from ti_cmax import so3
     from ti_cmax.trajectory import Trajectory
 
     rng = np.random.default_rng(2)
@@ -182,4 +184,48 @@ def test_trajectory_query_reads_only_its_intervals_with_the_same_values():
     full = Slerp(traj.t, Rotation.from_matrix(traj.R))
     queries = np.concatenate([rng.uniform(t[0] - 0.1, t[-1] + 0.1, 20), t[[0, 1, 17, 38, 39]]])
     for q in [queries, queries[:1], t[[0]], t[[-1]], t[[17]]]:
-        assert np.array_equal(traj.at(q), full(np.clip(q, t[0], t[-1])).as_matrix())
+        assert np.array_equal(traj.at(q), so3.slerp(traj.t, traj.R, np.clip(q, t[0], t[-1])))
+        np.testing.assert_allclose(traj.at(q), full(np.clip(q, t[0], t[-1])).as_matrix(), atol=1e-14)
+
+
+def test_so3_quaternions_log_and_slerp_match_scipy():
+    """so3's own matrix <-> quaternion, log and slerp (scipy.spatial is not imported by a run: start-up) agree with
+    scipy's Rotation and Slerp, at tiny angles and near pi too."""
+    rng = np.random.default_rng(5)
+    phi = rng.normal(size=(500, 3))
+    phi *= (rng.uniform(0, np.pi, 500) / np.linalg.norm(phi, axis=1))[:, None]
+    phi[:5] *= 1e-9
+    phi[5:10] *= (np.pi - 1e-7) / np.linalg.norm(phi[5:10], axis=1)[:, None]
+    r = Rotation.from_rotvec(phi).as_matrix()
+    np.testing.assert_allclose(so3.log(r), phi, atol=1e-12)
+    np.testing.assert_allclose(so3.to_quat_xyzw(r), Rotation.from_matrix(r).as_quat(), atol=1e-14)
+    q = rng.normal(size=(50, 4))
+    np.testing.assert_allclose(so3.from_quat_xyzw(q), Rotation.from_quat(q).as_matrix(), atol=1e-14)
+    t = np.sort(rng.uniform(0, 1, 30))
+    query = rng.uniform(t[0], t[-1], 100)
+    np.testing.assert_allclose(so3.slerp(t, r[:30], query), Slerp(t, Rotation.from_matrix(r[:30]))(query).as_matrix(),
+                               atol=1e-14)
+
+
+def test_small_fits_solve_dense_and_match_the_sparse_path():
+    """The sliding window's fits (<= DENSE_FIT_COLUMNS parameters) solve dense, whole-trajectory fits sparse: the
+    same control poses to rounding."""
+    import ti_cmax.spline as S
+
+    rng = np.random.default_rng(4)
+    t = np.linspace(0.0, 0.9, 120)
+    rots = so3_exp_path(t, rng)
+    dense = S.SO3Spline.fit(3, 0.05, t, rots)
+    saved = S.DENSE_FIT_COLUMNS
+    try:
+        S.DENSE_FIT_COLUMNS = 0
+        sparse = S.SO3Spline.fit(3, 0.05, t, rots)
+    finally:
+        S.DENSE_FIT_COLUMNS = saved
+    assert 3 * dense.num_control <= saved
+    np.testing.assert_allclose(dense.control_R, sparse.control_R, atol=1e-10)
+
+
+def so3_exp_path(t, rng):
+    w = rng.normal(size=3)
+    return so3.exp(np.outer(t, w) + 0.2 * np.sin(np.outer(t, [3.0, 5.0, 7.0])))

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from .. import so3
 from ..errors import InputError
 from ..trajectory import Trajectory
 
@@ -100,7 +100,7 @@ def read_tum(path) -> Trajectory:
         i = int(np.argmax(norms < 1e-9))
         raise InputError(f"data row {i + 1} has a zero quaternion", source=source)
     _sorted_times(d[:, 0], source, strict=True)
-    return Trajectory(d[:, 0], Rotation.from_quat(d[:, 4:8]).as_matrix())
+    return Trajectory(d[:, 0], so3.from_quat_xyzw(d[:, 4:8]))
 
 
 # IMU ---------------------------------------------------------------------------------------------
