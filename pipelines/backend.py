@@ -56,6 +56,7 @@ class WindowReport:
     rejected: bool = False  # the correction exceeded backend_max_correction and was not applied
     seconds: float = 0.0
     skipped: bool = False  # BA skipped by the real-time controller (ba_cap = 0): front-end poses kept
+    cut_short: bool = False  # BA stopped at the real-time controller's time budget (ba_budget): its best point kept
     done_at: float = 0.0  # time.monotonic() when the window completed (the same clock in every process)
     ba_seconds: float = 0.0  # wall time of the BA (part of ``seconds``)
     busy_seconds: float | None = None  # worker process: wall time it worked since the previous window (not waiting)
@@ -229,6 +230,7 @@ class SlidingWindowBackend:
         # backend_max_window_events (None: the config's); 0 skips the BA (the window keeps its initialization)
         self.ba_cap: int | None = None
         self.ba_every = 1  # real-time degradation: the BA runs on 1 of ba_every windows (the others: as ba_cap = 0)
+        self.ba_budget: float | None = None  # real-time degradation: a BA starts no iteration after this many seconds
 
     # ---- input streams -------------------------------------------------------------------------------------------
     def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
@@ -452,13 +454,14 @@ class SlidingWindowBackend:
             g = np.einsum("nji,nj->ni", so3.left_jacobian(delta), grad[first_free:])
             return var * scale, g.reshape(-1) * scale
 
+        deadline = None if self.ba_budget is None else time.monotonic() + self.ba_budget
         if cfg.backend_optimizer == "bfgs":
             warm = self._carried_inv_hessian(first_free, n_free)
             result, h = bfgs(
                 objective, np.zeros(3 * n_free), maximize=True, inv_hessian=warm,
                 init_step=self._init_step(), max_iter=cfg.backend_cg_max_iters, grad_tol=cfg.backend_cg_grad_tol,
                 rel_cost_tol=cfg.backend_cg_rel_cost_tol, max_step=cfg.backend_bfgs_max_step,
-                max_line_evals=cfg.backend_cg_max_line_evals)
+                max_line_evals=cfg.backend_cg_max_line_evals, deadline=deadline)
             self._inv_hessian = None if h is None else (first_free, h)
         else:
             result = fletcher_reeves(
@@ -486,6 +489,7 @@ class SlidingWindowBackend:
         report.optimized = True
         report.iterations = result.iterations
         report.evaluations = result.evaluations
+        report.cut_short = result.message == "time budget reached"
         self.events_optimized += len(ev_t)
         self._anchor_at(self._anchor[0])
 

@@ -12,6 +12,7 @@ len(x) iterations and whenever it is not a descent direction (standard for FR, a
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -217,6 +218,7 @@ def bfgs(
     c1: float = 1e-4,
     c2: float = 0.9,
     step_tol: float = 0.0,
+    deadline: float | None = None,
 ) -> tuple[CGResult, np.ndarray | None]:
     """Minimise (or maximise) fun by BFGS from a given inverse Hessian; returns (result, inverse Hessian).
 
@@ -233,6 +235,8 @@ def bfgs(
     problem starts afresh); an update that would lose positive definiteness (s.y <= 0) is skipped.
     ``step_tol`` > 0 also stops, once H is learnt, when the next quasi-Newton step -H g would be shorter than it
     (x units): the evaluation that step would cost cannot move the solution by more than that.
+    ``deadline`` (a ``time.monotonic()`` value): no new iteration starts after it (a real-time budget); the best
+    point so far is returned, message "time budget reached".
     """
     sign = -1.0 if maximize else 1.0
     fc = _Counted(fun, sign)
@@ -248,6 +252,9 @@ def bfgs(
     while it < max_iter:
         if np.linalg.norm(g) < grad_tol:
             converged, message = True, "gradient tolerance reached"
+            break
+        if deadline is not None and it > 0 and time.monotonic() > deadline:
+            message = "time budget reached"
             break
         it += 1
         p = None if H is None else -(H @ g)

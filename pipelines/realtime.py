@@ -22,6 +22,11 @@ bound M = ``realtime_max_lag``): degradation level l in 0..4:
     4 | 1 of 4            | BA skipped (the window keeps the integrated front-end's poses; its events still go
                           |   into the map)
 
+At levels 1-4 a window's BA also has a time budget of one stride of sensor time in wall seconds (``ba_budget``): it
+starts no BFGS iteration after it and keeps its best point so far (report: ``ba_windows_cut_short``). A BA that
+needs longer, typically a cold start without carried curvature (~25 evaluations instead of 2-6: 2 s on a VGA window
+at 12 M ev/s), would otherwise add its excess to the lag all at once.
+
 A window without its BA (levels 2-3: every other one) settles its stride with the poses the previous window
 refined (that stride was the second half of the previous window), so each stride is still refined once. Fewer BA
 windows rather than ever fewer BA events: the BA's cost is mostly per evaluation (the local map over the window's
@@ -109,7 +114,7 @@ class RealtimeController:
         self._fe_tick = self._fe_lag = None
         self._window_events = None
         self.ba_used = self.ba_offline = 0  # BA events used, and what the offline run would use
-        self.windows_skipped = self.windows_sampled = 0
+        self.windows_skipped = self.windows_sampled = self.windows_cut = 0
         # headroom (module docstring): per-window costs at the current level, the main process's idle time
         # (sleeping until events are due + waiting for the worker; set by run_realtime) and the BA's seconds/event
         self.idle_seconds = lambda: 0.0
@@ -130,6 +135,12 @@ class RealtimeController:
             return 0
         base = self.cap if self.cap > 0 else (window_events or self.floor)
         return int(max(self.floor, base // divisor))
+
+    def ba_budget(self) -> float | None:
+        """Seconds a window's BA may take at the current level: none at level 0 (the offline computation), else one
+        stride of sensor time in wall seconds (a BA that needs longer, e.g. a cold start without carried curvature:
+        ~25 evaluations, 2 s on a VGA window, would add its excess to the lag; it keeps its best point so far)."""
+        return None if self.level == 0 else self.stride / self.speed
 
     def on_window(self, report) -> None:
         """After every completed window: record lag and latency, then apply the rule."""
@@ -153,6 +164,7 @@ class RealtimeController:
             self.ba_used += report.events_used
             self.windows_skipped += int(report.skipped)
             self.windows_sampled += int(0 < report.events_used < offline)
+            self.windows_cut += int(report.cut_short)
         self._window_events = report.num_events
         self._measure(report)
         self._control(lag)
@@ -260,7 +272,7 @@ class RealtimeController:
             self._costs = []  # costs are measured afresh at the new level
             if self.online is not None:
                 self.online.degrade(LEVELS[self.level][0], self.ba_cap(self.level, self._window_events),
-                                    LEVELS[self.level][2])
+                                    LEVELS[self.level][2], self.ba_budget())
 
     def summary(self) -> dict:
         lags = np.asarray(self.lags) if self.lags else np.zeros(1)
@@ -273,6 +285,7 @@ class RealtimeController:
             "level_sensor_seconds": {str(k): v for k, v in enumerate(self.level_seconds)},
             "degraded_fraction": float(1.0 - self.level_seconds[0] / sensor) if sensor > 0 else 0.0,
             "ba_windows_skipped": self.windows_skipped, "ba_windows_sampled_below_cap": self.windows_sampled,
+            "ba_windows_cut_short": self.windows_cut,
             "ba_events_fraction": self.ba_used / self.ba_offline if self.ba_offline else 1.0,
             "input_thinned_sensor_seconds": self.thinned_seconds, "input_max_thinning": self.max_thinning,
             # wall seconds of work per sensor second in the last windows (main process, worker, the BA's and the

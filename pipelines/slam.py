@@ -176,6 +176,7 @@ class OnlineSlam:
         self.frontend_keep = 1
         self._ba_cap: int | None = None  # the back-end's ba_cap and ba_every (see SlidingWindowBackend)
         self._ba_every = 1
+        self._ba_budget: float | None = None
         self.packets_seen = self.packets_skipped = 0
         self._result: SlamResult | None = None
         # with a worker: push() also waits while the events sent run more than this many sensor seconds ahead of
@@ -197,7 +198,7 @@ class OnlineSlam:
         offset = self.events_read
         if self._worker is None:
             self._feed.push(events)
-            self._feed.backend.ba_cap, self._feed.backend.ba_every = self._ba_cap, self._ba_every
+            self._apply_degradation(self._feed.backend)
         else:
             if self._feed.backend is None:
                 self._feed.backend = SlidingWindowBackend(self.config.backend, float(events.t[0]), np.eye(3))
@@ -244,19 +245,24 @@ class OnlineSlam:
                                       backend.map.raw, backend.windows, None)
         return self._result
 
-    def degrade(self, frontend_keep: int = 1, ba_cap: int | None = None, ba_every: int = 1) -> None:
+    def degrade(self, frontend_keep: int = 1, ba_cap: int | None = None, ba_every: int = 1,
+                ba_budget: float | None = None) -> None:
         """Real-time degradation (pipelines/realtime.py): from now on the front-end processes 1 of
         ``frontend_keep`` packets and the BA uses at most ``ba_cap`` events per window (None: the config's cap;
         0: BA skipped, the window keeps the front-end's poses) on 1 of ``ba_every`` windows (the others are skipped
-        like ba_cap 0: their strides keep the poses the previous window refined). ``degrade()`` restores the full
-        computation."""
+        like ba_cap 0: their strides keep the poses the previous window refined), and starts no BFGS iteration
+        after ``ba_budget`` seconds (None: no budget). ``degrade()`` restores the full computation."""
         self.frontend_keep = max(1, int(frontend_keep))
-        self._ba_cap, self._ba_every = ba_cap, max(1, int(ba_every))
+        self._ba_cap, self._ba_every, self._ba_budget = ba_cap, max(1, int(ba_every)), ba_budget
         if self._worker is not None:  # shared memory: acts at the worker's next window, not behind its queue
             self._worker.ba_cap.value = -1 if ba_cap is None else int(ba_cap)
             self._worker.ba_every.value = self._ba_every
+            self._worker.ba_budget.value = -1.0 if ba_budget is None else float(ba_budget)
         elif self._feed.backend is not None:
-            self._feed.backend.ba_cap, self._feed.backend.ba_every = ba_cap, self._ba_every
+            self._apply_degradation(self._feed.backend)
+
+    def _apply_degradation(self, backend) -> None:
+        backend.ba_cap, backend.ba_every, backend.ba_budget = self._ba_cap, self._ba_every, self._ba_budget
 
     def wait_ready(self) -> None:
         """With a worker process: wait until it has prepared its kernels (a live source starts after this)."""
@@ -413,9 +419,10 @@ class _BackendProcess:
         self.inbox.cancel_join_thread()  # never hang at exit on a worker that stopped reading (it failed)
         self.ba_cap = ctx.Value("q", -1, lock=False)  # the back-end's ba_cap (-1: None), set by OnlineSlam.degrade
         self.ba_every = ctx.Value("q", 1, lock=False)  # and its ba_every
+        self.ba_budget = ctx.Value("d", -1.0, lock=False)  # and its ba_budget (-1: None)
         self.proc = ctx.Process(target=_backend_worker, daemon=True,
-                                args=(camera, config, runtime.num_threads(), self.inbox, self.outbox, self.ba_cap,
-                                      self.ba_every))
+                                args=(camera, config, runtime.num_threads(), self.inbox, self.outbox,
+                                      (self.ba_cap, self.ba_every, self.ba_budget)))
         self.proc.start()
         self.blocked_seconds = 0.0
         self.ready = False  # the worker has prepared its kernels
@@ -465,10 +472,10 @@ class _BackendProcess:
             self.proc.terminate()
 
 
-def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, ba_cap, ba_every) -> None:
+def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, degradation) -> None:
     """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R), ("map",) (send a
-    copy of the map) and ("finish",); ``ba_cap``, ``ba_every``: shared memory (OnlineSlam.degrade), read before each
-    step."""
+    copy of the map) and ("finish",); ``degradation``: the back-end's ba_cap, ba_every and ba_budget in shared memory
+    (-1: None; set by OnlineSlam.degrade), read before each step."""
     try:
         from ti_cmax.kernels import runtime
 
@@ -496,8 +503,10 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
             if kind == "map":  # OnlineSlam.map(): a copy of the map of the events settled so far
                 outbox.put(("map", backend.map.raw.copy() if backend is not None else None))
                 continue
-            backend.ba_cap = None if ba_cap.value < 0 else int(ba_cap.value)  # OnlineSlam.degrade
-            backend.ba_every = int(ba_every.value)
+            ba_cap, ba_every, ba_budget = (v.value for v in degradation)  # OnlineSlam.degrade
+            backend.ba_cap = None if ba_cap < 0 else int(ba_cap)
+            backend.ba_every = int(ba_every)
+            backend.ba_budget = None if ba_budget < 0 else float(ba_budget)
             tic, cpu = time.perf_counter(), time.process_time()
             if kind == "pose":
                 backend.push_source_poses([args[0]], args[1][None])

@@ -122,3 +122,16 @@ def test_bfgs_step_tolerance_saves_the_confirming_evaluation():
     assert loose.evaluations < tight.evaluations
     assert np.linalg.norm(loose.x - c) < 2e-2
     np.testing.assert_allclose(tight.x, c, atol=1e-8)
+
+
+def test_bfgs_deadline_returns_the_best_point_so_far():
+    """A real-time budget: past the deadline no new iteration starts; the result is the best point evaluated."""
+    import time
+
+    c = np.array([3.0, -2.0, 1.0])
+    f = _quadratic(np.diag([1.0, 5.0, 20.0]), np.diag([1.0, 5.0, 20.0]) @ c)
+    full, _ = bfgs(f, np.zeros(3), grad_tol=1e-10, rel_cost_tol=0.0, max_step=10.0)
+    cut, _ = bfgs(f, np.zeros(3), grad_tol=1e-10, rel_cost_tol=0.0, max_step=10.0, deadline=time.monotonic() - 1.0)
+    assert full.converged and cut.message == "time budget reached" and not cut.converged
+    assert cut.iterations == 1 and cut.evaluations < full.evaluations
+    assert cut.fun < f(np.zeros(3))[0]  # one step was taken and kept

@@ -63,7 +63,7 @@ def _report(t_end, lag, ctl, n=100_000, busy=0.05, ba=0.0):
         ctl.online.frontend_until = t_end
     return SimpleNamespace(t_start=t_end - 0.2, t_end=t_end, num_events=n, events_used=n if ba else 0,
                            optimized=ba > 0, rejected=False, skipped=ba == 0, done_at=ctl.due(t_end) + lag,
-                           ba_seconds=ba, busy_seconds=busy, seconds=busy)
+                           ba_seconds=ba, busy_seconds=busy, seconds=busy, cut_short=False)
 
 
 def test_controller_rule():
@@ -73,7 +73,8 @@ def test_controller_rule():
     cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
     ctl = R.RealtimeController(cfg, 1.0)
     calls = []
-    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every: calls.append((keep, cap, every)), frontend_until=0.1,
+    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every, budget: calls.append((keep, cap, every, budget)),
+                                 frontend_until=0.1,
                                  runner=SimpleNamespace(seconds=0.0))
     ctl.wall0, ctl.t0 = 100.0, 0.0
     t = 0.2
@@ -81,7 +82,8 @@ def test_controller_rule():
         ctl.on_window(_report(t, lag, ctl, busy=0.08, ba=0.05))
         t += 0.1
     assert ctl.level == 4 and ctl.thinning == 1
-    assert calls == [(1, 100_000, 1), (2, 100_000, 2), (4, 50_000, 2), (4, 0, 1)]
+    # from level 1 on, a window's BA has one stride of wall time (0.1 s at speed 1)
+    assert calls == [(1, 100_000, 1, 0.1), (2, 100_000, 2, 0.1), (4, 50_000, 2, 0.1), (4, 0, 1, 0.1)]
     ctl.on_window(_report(t, 1.5, ctl))  # beyond the hard bound and rising: hand over 1 of 2 events
     t += 0.1
     assert ctl.thinning == 2
@@ -96,7 +98,7 @@ def test_controller_rule():
         assert ctl.level == 4  # the last BA (0.05 s for 100 000 events) x sqrt(1/2) / 2 per 0.1 s stride = 0.18
         ctl.on_window(_report(t, 0.2, ctl))  # under the target (not under half of it: relaxing needs headroom)
         t += 0.1
-    assert ctl.level == 3 and calls[-1] == (4, 50_000, 2)  # 3 windows after the last change
+    assert ctl.level == 3 and calls[-1] == (4, 50_000, 2, 0.1)  # 3 windows after the last change
     assert ctl.predicted[-1] == pytest.approx(0.5 + 0.05 * np.sqrt(0.5) / 2 / 0.1, rel=0.02)
     for _ in range(6):  # level 3 costs 0.9, 0.1 of it in the BA: level 2 (x sqrt 2) would cost 0.94; no relaxing
         ctl.on_window(_report(t, 0.1, ctl, n=50_000, busy=0.09, ba=0.01))
@@ -105,7 +107,7 @@ def test_controller_rule():
     for _ in range(3):  # less busy (0.6): level 2 is predicted at 0.64 and is taken
         ctl.on_window(_report(t, 0.1, ctl, n=50_000, busy=0.06, ba=0.01))
         t += 0.1
-    assert ctl.level == 2 and calls[-1] == (2, 100_000, 2)
+    assert ctl.level == 2 and calls[-1] == (2, 100_000, 2, 0.1)
     s = ctl.summary()
     assert s["max_lag_s"] == pytest.approx(1.5) and s["level_sensor_seconds"]["4"] > 0 and s["input_max_thinning"] == 2
     assert s["latency_max_s"] == pytest.approx(1.6)  # the lag plus the stride whose events got their first pose
