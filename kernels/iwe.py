@@ -39,8 +39,8 @@ d(exp(phi) b)/dphi = -[exp(phi) b]x Jl(phi) with phi = omega dt, so an event con
 dt * Jl(phi)^T (x' x a), x' the rotated bearing and a = (dpix/dx')^T (dC/dpix).
 
 Kernels are generated per dtype (f32 for speed, f64 for finite-difference checks), blur taps and sensor
-size (compile-time constants); images and the packet buffer are fields allocated once per workspace.
-:func:`contrast_numpy` is the float64 numpy twin (test oracle).
+size (compile-time constants); images and per-event buffers are fields allocated once per workspace, the
+packet (N, 4) is an ndarray argument read in place. :func:`contrast_numpy` is the float64 numpy twin (test oracle).
 """
 import functools
 
@@ -87,7 +87,6 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
     h, w = height, width
     w4 = -(-w // _LANES) * _LANES  # row length rounded up to whole groups of _LANES outputs
     wi = w4 + 2 * r2  # I is padded by r2 zero columns each side (and up to the next group on the right)
-    ev = ti.Vector.field(4, f, shape=capacity)  # bx, by, bz, dt
     wp = ti.Vector.field(8, f, shape=capacity)  # pass 1 -> pass 3: u, v, x'(3), B, C, 1/z (u = -2: not in the image)
     img = ti.field(f, shape=(parts * h, wi))  # copy p holds rows [p h, (p + 1) h)
     tmp = ti.field(f, shape=(h + 2 * pady, w4 + 2))
@@ -115,11 +114,10 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
         return a, b, c
 
     @ti.func
-    def warp(k, wx, wy, wz):
-        """Rotated bearing exp([w]x dt_k) b_k, phi = w dt_k, dt_k, B, C."""
-        e = ev[k]
-        bk = ti.Vector([e[0], e[1], e[2]])
-        dk = e[3]
+    def warp(ev: ti.template(), k, wx, wy, wz):
+        """Rotated bearing exp([w]x dt_k) b_k, phi = w dt_k, dt_k, B, C (ev: the packet, rows bx, by, bz, dt_k)."""
+        bk = ti.Vector([ev[k, 0], ev[k, 1], ev[k, 2]])
+        dk = ev[k, 3]
         phi = ti.Vector([wx * dk, wy * dk, wz * dk])
         a, b, c = coeffs(phi.dot(phi))
         pb = phi.cross(bk)
@@ -127,13 +125,8 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
         return xr, phi, dk, b, c
 
     @ti.kernel
-    def load(src: ti.types.ndarray(dtype=f, ndim=2), n: ti.i32):
-        for k in range(n):
-            ev[k] = ti.Vector([src[k, 0], src[k, 1], src[k, 2], src[k, 3]])
-
-    @ti.kernel
-    def evaluate(n: ti.i32, wx: f, wy: f, wz: f, fx: f, fy: f, cx: f, cy: f, measure: ti.i32,
-                 with_grad: ti.i32, res: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+    def evaluate(ev: ti.types.ndarray(dtype=f, ndim=2), n: ti.i32, wx: f, wy: f, wz: f, fx: f, fy: f, cx: f, cy: f,
+                 measure: ti.i32, with_grad: ti.i32, res: ti.types.ndarray(dtype=ti.f64, ndim=1)):
         """res[:6] = sum of weights, cost term, gradient (3), events landing (a kernel's vector return costs ~70 us
         of Python per launch; an ndarray argument ~15)."""
         # pass 1: warp and vote (in-bounds neighbours only). Part p votes events [p*chunk, (p+1)*chunk) into its own
@@ -144,7 +137,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
             sw = f(0.0)
             cnt = 0
             for k in range(k0, k1):
-                xr, _phi, _dk, bb, cc = warp(k, wx, wy, wz)
+                xr, _phi, _dk, bb, cc = warp(ev, k, wx, wy, wz)
                 wp[k][0] = f(-2.0)
                 if xr[2] > f(1e-6):
                     iz = f(1.0) / xr[2]
@@ -224,7 +217,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                         b = q[5]
                         c = q[6]
                         iz = q[7]
-                        dk = ev[k][3]
+                        dk = ev[k, 3]
                         phi = ti.Vector([wx * dk, wy * dk, wz * dk])
                         av = ti.Vector([fx * gu * iz, fy * gv * iz,
                                         -(fx * gu * xr[0] + fy * gv * xr[1]) * iz * iz])
@@ -249,19 +242,20 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
             res[q] = out[q]
 
     @ti.kernel
-    def render(n: ti.i32, wx: f, wy: f, wz: f, fx: f, fy: f, cx: f, cy: f, dst: ti.types.ndarray(dtype=f, ndim=2)):
+    def render(ev: ti.types.ndarray(dtype=f, ndim=2), n: ti.i32, wx: f, wy: f, wz: f, fx: f, fy: f, cx: f, cy: f,
+               dst: ti.types.ndarray(dtype=f, ndim=2)):
         """Unblurred IWE I into dst (h, w) (zeroed here), for display and tests."""
         for i, j in ti.ndrange(h, w):
             dst[i, j] = f(0.0)
         for k in range(n):
-            xr, _phi, _dk, _b, _c = warp(k, wx, wy, wz)
+            xr, _phi, _dk, _b, _c = warp(ev, k, wx, wy, wz)
             if xr[2] > f(1e-6):
                 u = fx * xr[0] / xr[2] + cx
                 v = fy * xr[1] / xr[2] + cy
                 if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
                     bl.vote(dst, u, v, f(1.0), ATOMIC)
 
-    return load, evaluate, render
+    return evaluate, render
 
 
 class IWEWorkspace:
@@ -287,6 +281,7 @@ class IWEWorkspace:
         self._kernels = None
         self._res = np.zeros(8)  # evaluate's results
         self.n = 0
+        self._packed = np.zeros((1, 4), self.dtype)  # the current packet (read by the kernels in place)
 
     def _ensure(self):
         if self._kernels is None:
@@ -298,9 +293,9 @@ class IWEWorkspace:
     def compile(self) -> None:
         """Build (or fetch from the offline cache) the kernels an estimation uses, e.g. to time compilation apart
         (not ``iwe``'s display kernel: every command pays the start-up)."""
-        load, evaluate, _render = self._ensure()
+        evaluate, _render = self._ensure()
         self.set_packet(np.zeros((1, 3)) + [0, 0, 1], np.zeros(1))
-        evaluate(1, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0, 1, self._res)
+        evaluate(self._packed, 1, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0, 1, self._res)
 
     def set_packet(self, bearings: np.ndarray, dts: np.ndarray) -> None:
         """Upload one packet: bearings (N, 3) and relative times dt_k = t_k - t_ref (N,)."""
@@ -312,24 +307,26 @@ class IWEWorkspace:
         self.set_packed(packed, n)
 
     def set_packed(self, packed: np.ndarray, n: int | None = None) -> None:
-        """Upload one packet as a C-contiguous (>= N, 4) array of this workspace's dtype: bx, by, bz, dt_k."""
+        """Set the packet: a C-contiguous (>= N, 4) array of this workspace's dtype, rows bx, by, bz, dt_k. The
+        kernels read it in place (kept by reference: do not modify it while evaluating; copying it into a field
+        cost 0.13-0.24 ms per packet, more than the extra ndarray argument of each evaluation)."""
         n = len(packed) if n is None else int(n)
+        if packed.dtype != self.dtype or not packed.flags.c_contiguous or packed.ndim != 2 or packed.shape[1] != 4:
+            raise ValueError(f"packed must be a C-contiguous (N, 4) {self.dtype} array")
         if n > self.capacity:
             self.capacity = 1 << int(np.ceil(np.log2(n)))
             self._kernels = None
-        load = self._ensure()[0]
-        if len(packed) == 0:
-            packed = np.zeros((1, 4), self.dtype)
-        load(packed, n)
+        self._ensure()  # built (or rebuilt for the capacity) at the upload, as before the first evaluation
+        self._packed = packed if len(packed) else np.zeros((1, 4), self.dtype)
         self.n = n
 
     def evaluate(self, omega, K, measure: str = "variance", with_grad: bool = True):
         """(contrast, gradient (3,), number of events landing in the image) at omega; raw contrast as in
         the module docstring (normalise in the caller). The gradient is zero when with_grad is False."""
-        evaluate = self._ensure()[1]
+        evaluate = self._ensure()[0]
         mid = measure_id(measure)
         o = self._res
-        evaluate(self.n, float(omega[0]), float(omega[1]), float(omega[2]),
+        evaluate(self._packed, self.n, float(omega[0]), float(omega[1]), float(omega[2]),
                  float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), mid, int(bool(with_grad)), o)
         npix = float(self.width * self.height)
         # pass 3 summed w (H - mu') = <I, G2 I> - mu' sum(I), mu' = mu (variance) or 0: that is C * Np
@@ -339,9 +336,9 @@ class IWEWorkspace:
     def iwe(self, omega, K, blurred: bool = True) -> np.ndarray:
         """Image of warped events of the current packet at omega, (height, width) float64;
         blurred with G (zero padding) unless ``blurred`` is False."""
-        render = self._ensure()[2]
+        render = self._ensure()[1]
         dst = np.zeros((self.height, self.width), self.dtype)
-        render(self.n, float(omega[0]), float(omega[1]), float(omega[2]),
+        render(self._packed, self.n, float(omega[0]), float(omega[1]), float(omega[2]),
                float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), dst)
         img = dst.astype(np.float64)
         return _blur_np(img, gaussian_taps(self.blur_sigma, self.truncate)) if blurred else img
