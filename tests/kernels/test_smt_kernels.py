@@ -100,11 +100,15 @@ def _batch_args(s, dtype, b):
             s["grad"].astype(dtype), s["cov"].astype(dtype), s["updates"])
 
 
+@pytest.mark.parametrize("pos_var", [0.0, 1.0 / 6.0])
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_ekf_accumulate_matches_numpy(ti_runtime, scene, dtype):
+def test_ekf_accumulate_matches_numpy(ti_runtime, scene, dtype, pos_var):
     b = scene["nb"] - 1
-    ref = ks.ekf_accumulate_numpy(scene["R"], *_batch_args(scene, np.float64, b), C, SIGMA, HUBER)
-    out = ks.ekf_accumulate(scene["R"], *_batch_args(scene, dtype, b), C, SIGMA, HUBER)
+    ref = ks.ekf_accumulate_numpy(scene["R"], *_batch_args(scene, np.float64, b), C, SIGMA, HUBER, pos_var)
+    out = ks.ekf_accumulate(scene["R"], *_batch_args(scene, dtype, b), C, SIGMA, HUBER, pos_var)
+    if pos_var:  # the crossing-position variance |g|^2 pos_var is in S: less information than without it
+        base = ks.ekf_accumulate_numpy(scene["R"], *_batch_args(scene, np.float64, b), C, SIGMA, HUBER)
+        assert ref[0] + ref[3] + ref[5] < base[0] + base[3] + base[5]
     assert ref[9] > 15 and ref[10] > 8  # enough valid and supported measurements to mean something
     if dtype == np.float64:
         np.testing.assert_allclose(out, ref, rtol=1e-8, atol=1e-9)
@@ -118,8 +122,8 @@ def test_pf_loglik_matches_numpy(ti_runtime, scene, dtype):
     rng = np.random.default_rng(1)
     parts = so3.exp(rng.normal(scale=0.003, size=(7, 3))) @ scene["R"]
     b = scene["nb"] - 1
-    ref = ks.pf_loglik_numpy(parts, *_batch_args(scene, np.float64, b), C, SIGMA, FLOOR)
-    out = ks.pf_loglik(parts, *_batch_args(scene, dtype, b), C, SIGMA, FLOOR)
+    ref = ks.pf_loglik_numpy(parts, *_batch_args(scene, np.float64, b), C, SIGMA, FLOOR, 1.0 / 6.0)
+    out = ks.pf_loglik(parts, *_batch_args(scene, dtype, b), C, SIGMA, FLOOR, 1.0 / 6.0)
     if dtype == np.float64:
         np.testing.assert_allclose(out, ref, rtol=1e-9)
     else:
@@ -181,7 +185,7 @@ def test_ekf_track_matches_numpy(ti_runtime, scene, dtype, model):
                   np.ascontiguousarray(scene["bearings"], dt_), scene["pix"], scene["pol"], state, uv, cnt,
                   scene["grad"].astype(dt_), scene["cov"].astype(dt_), scene["updates"], C, SIGMA, OUTLIER, MIN_DISP,
                   90.0, HUBER, 0.0, 0.0, 20.0, 2, sR, sw, sP, velocity_reference, np.zeros(len(cnt), np.int32),
-                  state_a=sa, q_jerk=1000.0)
+                  state_a=sa, q_jerk=1000.0, position_var=1.0 / 6.0)
         out[impl] = (h64[b_track:].copy(), diag, sP[0].copy(), sw[0].copy(), None if sa is None else sa[0].copy())
     tol = 1e-9 if dtype == np.float64 else 2e-4
     rt = 1e-6 if dtype == np.float64 else 0.05
@@ -198,6 +202,9 @@ def test_ekf_track_matches_numpy(ti_runtime, scene, dtype, model):
         assert not np.allclose(out["numpy"][4], [30.0, -20.0, 10.0])
     if dtype == np.float64:
         np.testing.assert_array_equal(out["taichi"][1][:, :3], out["numpy"][1][:, :3])
+        if velocity_reference:  # the innovation-consistency statistic (numerator, denominator > 0)
+            np.testing.assert_allclose(out["taichi"][1][:, 5:7], out["numpy"][1][:, 5:7], rtol=1e-6, atol=1e-9)
+            assert np.all(out["numpy"][1][:, 6] > 0)
 
 
 @pytest.mark.parametrize("accel", [None, [300.0, -200.0, 100.0]])
