@@ -142,10 +142,30 @@ def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, repo
     }
 
 
+def run_at_level(dataset: Path, cfg, level: int):
+    """CMax-SLAM on dataset with the real-time controller's degradation ``level`` (pipelines/realtime.LEVELS: 1 of
+    k front-end packets, BA cap divided, BA on 1 of m windows; 4: BA skipped) held from the first event, offline:
+    what ``--realtime`` computes on a machine that cannot keep up at that level, without the wall clock."""
+    from ti_cmax.io import open_dataset
+
+    from .realtime import LEVELS, RealtimeController
+    from .slam import OnlineSlam
+    from .sensor_defaults import resolve_config
+
+    ds = open_dataset(dataset)
+    online = OnlineSlam(ds.camera, cfg)
+    keep, _divisor, every = LEVELS[level]
+    online.degrade(keep, RealtimeController(resolve_config(cfg, ds.camera), 1.0).ba_cap(level), every)
+    for chunk in ds.iter_events(cfg.dataset.chunk_size):
+        online.push(chunk)
+    return online.close()
+
+
 def bench(dataset: Path, overrides: list[str], out: Path | None = None, modes=(False, True),
-          saved: bool = False) -> list[dict]:
+          saved: bool = False, level: int = 0) -> list[dict]:
     """Rows of CMax-SLAM on dataset in each mode; with out, each mode's trajectory, report and row are written
-    to out (``saved``: evaluate the trajectory and report already there instead of running)."""
+    to out (``saved``: evaluate the trajectory and report already there instead of running). ``level``: the
+    real-time degradation level held throughout (``run_at_level``; 0: the offline computation, ``run_slam``)."""
     import json
 
     from ti_cmax.config import SlamConfig, load_config
@@ -163,7 +183,8 @@ def bench(dataset: Path, overrides: list[str], out: Path | None = None, modes=(F
             ds = open_dataset(dataset)
             cfg = load_config(SlamConfig, None, list(overrides) + [f"loop_closure={str(on).lower()}"])
             cpu = time.process_time()
-            res = run_slam(ds.iter_events(cfg.dataset.chunk_size), ds.camera, cfg)
+            res = run_at_level(dataset, cfg, level) if level else \
+                run_slam(ds.iter_events(cfg.dataset.chunk_size), ds.camera, cfg)
             traj, report, cpu = res.trajectory, res.report, time.process_time() - cpu
             if out is not None:  # for plots of the error over time
                 out.mkdir(parents=True, exist_ok=True)
@@ -216,6 +237,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sequences", default=",".join(DEFAULT_SEQUENCES))
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="key=value")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--level", type=int, default=0, choices=range(5), help="hold the real-time controller's "
+                    "degradation level (pipelines/realtime.LEVELS; 4: BA skipped, front-end poses) from the start")
     ap.add_argument("--modes", default="off,on", help="loop closure modes to run (off, on or off,on)")
     ap.add_argument("--out", type=Path, help="write each mode's trajectory and report.json here (OUT/SEQUENCE/)")
     ap.add_argument("--saved", action="store_true", help="evaluate the trajectories and reports under --out "
@@ -232,7 +255,8 @@ def main(argv=None) -> int:
         tic = time.perf_counter()
         data = _dataset(args.cache, spec)
         modes = [m == "on" for m in args.modes.split(",")]
-        rows += bench(data, args.overrides, args.out / data.name if args.out else None, modes, args.saved)
+        rows += bench(data, args.overrides, args.out / data.name if args.out else None, modes, args.saved,
+                      args.level)
         print(f"{spec}: {time.perf_counter() - tic:.0f} s", file=sys.stderr)
         print(format_rows(rows), flush=True)
     return 0
