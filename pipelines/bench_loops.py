@@ -1,7 +1,7 @@
 """Benchmark of loop closure (issue 15; a command, not a test): CMax-SLAM with loop_closure=false and =true.
 
     python -m ti_cmax.pipelines.bench_loops --cache DIR [--sequences SPEC,...] [--set key=value ...] [--threads N]
-        [--modes off,on] [--out RUNS [--saved | --summarize]]
+        [--modes off,on] [--level L] [--out RUNS [--saved | --summarize] [--trace STEP]]
 
 A SPEC is sensor:scene:duration:trajectory[:turns[:wobble]][:key=value...] (e.g. DAVIS240C:bay:12:pan:2.2:0.5, or
 DAVIS240C:city:5:random for a sequence without revisits; key=value: any simulator field, e.g. seed=1,
@@ -103,6 +103,31 @@ def jump_at_revisit(gt, est, t_revisit: float | None) -> float | None:
     d_est = np.swapaxes(est.at(t), 1, 2) @ est.at(t + 0.1)
     d_gt = np.swapaxes(gt.at(t), 1, 2) @ gt.at(t + 0.1)
     return float(np.degrees(so3.geodesic_angle(d_est, d_gt)).max()) if len(t) else None
+
+
+def error_trace(gt, est, step: float = 0.5) -> str:
+    """Error over time (text lines), for where the error comes from: time, true pan angle (deg, about the vertical),
+    the absolute error after the start alignment of ``evaluate_rotations`` (deg), its world-frame rotation vector
+    (R_est R_gt^T, deg: x, y = yaw, z) and the error left once its mean is removed (deg): drift shows as an error
+    that grows with time, a start-up offset as a constant one that the mean removes."""
+    from scipy.spatial.transform import Rotation
+
+    from ti_cmax.metrics import evaluate_rotations
+
+    err = evaluate_rotations(gt, est)
+    aligned = est.aligned_to(gt, err.t0)
+    t = np.arange(max(gt.t_start, est.t_start) + 0.05, min(gt.t_end, est.t_end), step)
+    e = Rotation.from_matrix(aligned.at(t) @ np.swapaxes(gt.at(t), 1, 2))
+    mean = e.mean()
+    left = np.degrees((mean.inv() * e).magnitude())
+    z = gt.at(t)[:, :, 2]
+    pan = np.degrees(np.unwrap(np.arctan2(z[:, 0], z[:, 2])))
+    vec = np.degrees(e.as_rotvec())
+    lines = [f"abs RMSE {err.abs_rmse_deg:.3f} deg; mean removed {np.sqrt(np.mean(left ** 2)):.3f} deg",
+             "    t    pan    abs     ex     ey     ez  -mean"]
+    lines += [f"{t[i]:5.2f} {pan[i]:6.0f} {np.degrees(e[i].magnitude()):6.3f} {vec[i, 0]:6.3f} {vec[i, 1]:6.3f} "
+              f"{vec[i, 2]:6.3f} {left[i]:6.3f}" for i in range(len(t))]
+    return "\n".join(lines)
 
 
 def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, report: dict,
@@ -244,6 +269,8 @@ def main(argv=None) -> int:
     ap.add_argument("--saved", action="store_true", help="evaluate the trajectories and reports under --out "
                     "instead of running")
     ap.add_argument("--summarize", action="store_true", help="only print the table of the runs under --out")
+    ap.add_argument("--trace", type=float, default=0.0, metavar="STEP", help="with --out: also print each mode's "
+                    "error over time every STEP s (error_trace) from the trajectories there")
     args = ap.parse_args(argv)
     if args.summarize:
         print(summarize(args.out))
@@ -258,6 +285,12 @@ def main(argv=None) -> int:
         rows += bench(data, args.overrides, args.out / data.name if args.out else None, modes, args.saved,
                       args.level)
         print(f"{spec}: {time.perf_counter() - tic:.0f} s", file=sys.stderr)
+        if args.trace and args.out:
+            from ti_cmax.io import read_tum
+
+            for m in args.modes.split(","):
+                print(f"{data.name} loop closure {m}: " + error_trace(read_tum(data / "groundtruth.txt"),
+                      read_tum(args.out / data.name / f"trajectory_{m}.txt"), args.trace), flush=True)
         print(format_rows(rows), flush=True)
     return 0
 

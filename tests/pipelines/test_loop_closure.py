@@ -287,3 +287,14 @@ def test_registration_events_follow_the_sensor_and_need_a_resolved_config():
                                                  backend_max_window_events=-1), 0.0)
     with pytest.raises(ValueError, match="resolved"):
         LoopCloser(LoopClosureConfig(loop_closure=True), backend)
+
+
+def test_bench_level_holds_the_realtime_degradation(short_dataset):
+    """bench_loops --level 4 (the drift benchmark's setting): the real-time controller's last level held offline,
+    every window keeps the front-end's poses (BA skipped)."""
+    from ti_cmax.config import SlamConfig
+    from ti_cmax.pipelines.bench_loops import run_at_level
+
+    res = run_at_level(short_dataset, SlamConfig(), 4)
+    backend = res.report["backend"]
+    assert backend["windows"] > 5 and backend["windows_optimized"] == 0
