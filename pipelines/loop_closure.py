@@ -25,7 +25,8 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    only the drift since, against the corrected map) and the recent events by the chain pose graph ``so3.spread_correction``
    (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of
    the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
-   spline, so later windows align to one consistent map.
+   spline, so later windows align to one consistent map (the global map at once: the rebuilt old map plus the
+   recent strides' votes, blurred once; stride by stride only with pixel freezing).
 
 Every candidate goes into ``loops`` (time, correction, confidence, accepted, applied, reason) for report.json.
 """
