@@ -198,6 +198,27 @@ class GlobalMap:
         self.g_sum += float(new_blur.sum() - old_blur.sum())
         self.g_sq += float(np.sum(new_blur * new_blur) - np.sum(old_blur * old_blur))
 
+    def set_raw(self, raw: np.ndarray) -> None:
+        """Replace I_G by ``raw`` ((h, w) float32, taken over) and recompute B(I_G), its sums, N_e and the event area
+        at once, on the rows holding votes (loop closure's rebuild: one blur instead of one per stride). Without
+        pixel freezing only (its first-seen times need the strides in time order)."""
+        if self.first_seen is not None:
+            raise ValueError("set_raw: not with pixel freezing (settle the strides in order instead)")
+        self.raw = np.ascontiguousarray(raw, dtype=np.float32)
+        self.blurred = np.zeros_like(self.raw)
+        rows = np.flatnonzero(self.raw.any(axis=1))
+        self.g_sum = self.g_sq = self.n_events = self.area = 0.0
+        if len(rows) == 0:
+            return
+        band = slice(max(int(rows[0]) - blur_radius(self.sigma), 0),
+                     min(int(rows[-1]) + blur_radius(self.sigma) + 1, self.height))
+        blur_region(self.raw, self.blurred, band, np.arange(self.width), self.sigma)
+        blurred = self.blurred[band].astype(np.float64)
+        self.g_sum, self.g_sq = float(blurred.sum()), float(np.sum(blurred * blurred))
+        voted = self.raw[rows].astype(np.float64)
+        self.n_events = float(voted.sum())
+        self.area = float(np.sum(1.0 - np.exp(voted / -self.lambda0)))
+
 
 class SlidingWindowBackend:
     """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""

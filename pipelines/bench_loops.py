@@ -1,7 +1,7 @@
 """Benchmark of loop closure (issue 15; a command, not a test): CMax-SLAM with loop_closure=false and =true.
 
     python -m ti_cmax.pipelines.bench_loops --cache DIR [--sequences SPEC,...] [--set key=value ...] [--threads N]
-        [--modes off,on] [--out RUNS [--saved | --summarize]]
+        [--modes off,on] [--level L] [--out RUNS [--saved | --summarize] [--trace STEP]]
 
 A SPEC is sensor:scene:duration:trajectory[:turns[:wobble]][:key=value...] (e.g. DAVIS240C:bay:12:pan:2.2:0.5, or
 DAVIS240C:city:5:random for a sequence without revisits; key=value: any simulator field, e.g. seed=1,
@@ -105,6 +105,31 @@ def jump_at_revisit(gt, est, t_revisit: float | None) -> float | None:
     return float(np.degrees(so3.geodesic_angle(d_est, d_gt)).max()) if len(t) else None
 
 
+def error_trace(gt, est, step: float = 0.5) -> str:
+    """Error over time (text lines), for where the error comes from: time, true pan angle (deg, about the vertical),
+    the absolute error after the start alignment of ``evaluate_rotations`` (deg), its world-frame rotation vector
+    (R_est R_gt^T, deg: x, y = yaw, z) and the error left once its mean is removed (deg): drift shows as an error
+    that grows with time, a start-up offset as a constant one that the mean removes."""
+    from scipy.spatial.transform import Rotation
+
+    from ti_cmax.metrics import evaluate_rotations
+
+    err = evaluate_rotations(gt, est)
+    aligned = est.aligned_to(gt, err.t0)
+    t = np.arange(max(gt.t_start, est.t_start) + 0.05, min(gt.t_end, est.t_end), step)
+    e = Rotation.from_matrix(aligned.at(t) @ np.swapaxes(gt.at(t), 1, 2))
+    mean = e.mean()
+    left = np.degrees((mean.inv() * e).magnitude())
+    z = gt.at(t)[:, :, 2]
+    pan = np.degrees(np.unwrap(np.arctan2(z[:, 0], z[:, 2])))
+    vec = np.degrees(e.as_rotvec())
+    lines = [f"abs RMSE {err.abs_rmse_deg:.3f} deg; mean removed {np.sqrt(np.mean(left ** 2)):.3f} deg",
+             "    t    pan    abs     ex     ey     ez  -mean"]
+    lines += [f"{t[i]:5.2f} {pan[i]:6.0f} {np.degrees(e[i].magnitude()):6.3f} {vec[i, 0]:6.3f} {vec[i, 1]:6.3f} "
+              f"{vec[i, 2]:6.3f} {left[i]:6.3f}" for i in range(len(t))]
+    return "\n".join(lines)
+
+
 def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, report: dict,
                  cpu_seconds: float | None = None) -> dict:
     """One table row from a run's trajectory and report.json (the map rendered along the trajectory);
@@ -142,10 +167,30 @@ def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, repo
     }
 
 
+def run_at_level(dataset: Path, cfg, level: int):
+    """CMax-SLAM on dataset with the real-time controller's degradation ``level`` (pipelines/realtime.LEVELS: 1 of
+    k front-end packets, BA cap divided, BA on 1 of m windows; 4: BA skipped) held from the first event, offline:
+    what ``--realtime`` computes on a machine that cannot keep up at that level, without the wall clock."""
+    from ti_cmax.io import open_dataset
+
+    from .realtime import LEVELS, RealtimeController
+    from .slam import OnlineSlam
+    from .sensor_defaults import resolve_config
+
+    ds = open_dataset(dataset)
+    online = OnlineSlam(ds.camera, cfg)
+    keep, _divisor, every = LEVELS[level]
+    online.degrade(keep, RealtimeController(resolve_config(cfg, ds.camera), 1.0).ba_cap(level), every)
+    for chunk in ds.iter_events(cfg.dataset.chunk_size):
+        online.push(chunk)
+    return online.close()
+
+
 def bench(dataset: Path, overrides: list[str], out: Path | None = None, modes=(False, True),
-          saved: bool = False) -> list[dict]:
+          saved: bool = False, level: int = 0) -> list[dict]:
     """Rows of CMax-SLAM on dataset in each mode; with out, each mode's trajectory, report and row are written
-    to out (``saved``: evaluate the trajectory and report already there instead of running)."""
+    to out (``saved``: evaluate the trajectory and report already there instead of running). ``level``: the
+    real-time degradation level held throughout (``run_at_level``; 0: the offline computation, ``run_slam``)."""
     import json
 
     from ti_cmax.config import SlamConfig, load_config
@@ -163,7 +208,8 @@ def bench(dataset: Path, overrides: list[str], out: Path | None = None, modes=(F
             ds = open_dataset(dataset)
             cfg = load_config(SlamConfig, None, list(overrides) + [f"loop_closure={str(on).lower()}"])
             cpu = time.process_time()
-            res = run_slam(ds.iter_events(cfg.dataset.chunk_size), ds.camera, cfg)
+            res = run_at_level(dataset, cfg, level) if level else \
+                run_slam(ds.iter_events(cfg.dataset.chunk_size), ds.camera, cfg)
             traj, report, cpu = res.trajectory, res.report, time.process_time() - cpu
             if out is not None:  # for plots of the error over time
                 out.mkdir(parents=True, exist_ok=True)
@@ -216,11 +262,15 @@ def main(argv=None) -> int:
     ap.add_argument("--sequences", default=",".join(DEFAULT_SEQUENCES))
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="key=value")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--level", type=int, default=0, choices=range(5), help="hold the real-time controller's "
+                    "degradation level (pipelines/realtime.LEVELS; 4: BA skipped, front-end poses) from the start")
     ap.add_argument("--modes", default="off,on", help="loop closure modes to run (off, on or off,on)")
     ap.add_argument("--out", type=Path, help="write each mode's trajectory and report.json here (OUT/SEQUENCE/)")
     ap.add_argument("--saved", action="store_true", help="evaluate the trajectories and reports under --out "
                     "instead of running")
     ap.add_argument("--summarize", action="store_true", help="only print the table of the runs under --out")
+    ap.add_argument("--trace", type=float, default=0.0, metavar="STEP", help="with --out: also print each mode's "
+                    "error over time every STEP s (error_trace) from the trajectories there")
     args = ap.parse_args(argv)
     if args.summarize:
         print(summarize(args.out))
@@ -232,8 +282,15 @@ def main(argv=None) -> int:
         tic = time.perf_counter()
         data = _dataset(args.cache, spec)
         modes = [m == "on" for m in args.modes.split(",")]
-        rows += bench(data, args.overrides, args.out / data.name if args.out else None, modes, args.saved)
+        rows += bench(data, args.overrides, args.out / data.name if args.out else None, modes, args.saved,
+                      args.level)
         print(f"{spec}: {time.perf_counter() - tic:.0f} s", file=sys.stderr)
+        if args.trace and args.out:
+            from ti_cmax.io import read_tum
+
+            for m in args.modes.split(","):
+                print(f"{data.name} loop closure {m}: " + error_trace(read_tum(data / "groundtruth.txt"),
+                      read_tum(args.out / data.name / f"trajectory_{m}.txt"), args.trace), flush=True)
         print(format_rows(rows), flush=True)
     return 0
 

@@ -25,7 +25,8 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    only the drift since, against the corrected map) and the recent events by the chain pose graph ``so3.spread_correction``
    (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of
    the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
-   spline, so later windows align to one consistent map.
+   spline, so later windows align to one consistent map (the global map at once: the rebuilt old map plus the
+   recent strides' votes, blurred once; stride by stride only with pixel freezing).
 
 Every candidate goes into ``loops`` (time, correction, confidence, accepted, applied, reason) for report.json.
 """
@@ -83,9 +84,9 @@ class _RawMap(GlobalMap):
     event area of ``GlobalMap`` are neither kept nor updated (a third less memory: 2 instead of 3 float32 maps,
     268 MB instead of 402 MB at 8192 x 4096, and no blur or exp per aged stride). Same votes as GlobalMap.add."""
 
-    def __init__(self, width: int, height: int):
+    def __init__(self, width: int, height: int, raw: np.ndarray | None = None):
         self.width, self.height = width, height
-        self.raw = np.zeros((height, width), np.float32)
+        self.raw = np.zeros((height, width), np.float32) if raw is None else raw
         self._scratch = np.zeros((height, width), np.float32)  # stays zero between calls
         self._occ = (np.zeros(width, np.int32), np.zeros(height, np.int32))
 
@@ -371,17 +372,23 @@ class LoopCloser:
         tic = time.perf_counter()
         backend = self.backend
         bs = backend.cfg.event_batch_size
+        freeze = backend.map.first_seen is not None
         backend.map = self.old = None  # free the old maps first: peak memory holds one set of maps, not two
-        backend.map = self._new_map()
         self.old = _RawMap(self.backend.width, self.backend.height)
         self.age[:] = -np.inf
         self.visit[:] = -np.inf
-        for i, chunk in enumerate(self.chunks):
-            t, b, weight, t0, moving = chunk
-            _, rot = self._rotations(t)
-            backend.map.add(b, rot, bs, t0, moving, weight=weight)
-            if i < self._n_old:
-                self._age_chunk(chunk)
+        for chunk in self.chunks[:self._n_old]:
+            self._age_chunk(chunk)
+        backend.map = self._new_map()
+        if freeze:  # first-seen times: every stride in time order, as the back-end settled them
+            for t, b, weight, t0, moving in self.chunks:
+                backend.map.add(b, self._rotations(t)[1], bs, t0, moving, weight=weight)
+        else:  # the global map is the old map plus the recent strides' votes: one blur at the end (GlobalMap.set_raw)
+            acc = _RawMap(self.backend.width, self.backend.height, raw=self.old.raw.copy())
+            acc._scratch = self.old._scratch  # zero between calls: one scratch map for both
+            for t, b, weight, _t0, _moving in self.chunks[self._n_old:]:
+                acc.add(b, self._rotations(t)[1], bs, weight=weight)
+            backend.map.set_raw(acc.raw)
         self.profile["rebuild"] += time.perf_counter() - tic
 
     # ---- report ----------------------------------------------------------------------------------------------------

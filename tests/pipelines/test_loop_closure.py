@@ -232,6 +232,23 @@ def test_old_map_holds_the_global_maps_weighted_votes(ti_runtime):
     assert not old._scratch.any()
 
 
+def test_rebuilt_map_set_at_once_equals_the_settled_one(ti_runtime):
+    """The rebuild after a loop sets I_G at once (GlobalMap.set_raw: one blur): the same blurred map, sums, event
+    count and event area as settling the strides one by one; refused with pixel freezing."""
+    from ti_cmax.pipelines.backend import GlobalMap
+
+    t, b = _events(seed=4, duration=1.0)
+    ref, at_once = GlobalMap(512, 256, 1.0, 1.0), GlobalMap(512, 256, 1.0, 1.0)
+    for k, weight in enumerate((1.0, 2.5, 1.5)):
+        ref.add(b, _pan(t[::100] + 1.2 * k), 100, 0.0, weight=weight)  # three strides, across the wrap
+    at_once.set_raw(ref.raw.copy())
+    np.testing.assert_allclose(at_once.blurred, ref.blurred, rtol=1e-5, atol=1e-6)
+    for name in ("g_sum", "g_sq", "n_events", "area"):
+        assert getattr(at_once, name) == pytest.approx(getattr(ref, name), rel=1e-6), name
+    with pytest.raises(ValueError):
+        GlobalMap(512, 256, 1.0, 1.0, max_update_time=1.0).set_raw(ref.raw.copy())
+
+
 def test_verification_crops_are_exact():
     """The verification's shortcuts on large maps: the old map blurred on its rows alone equals the full-map blur
     (with its sums), and the column box of the old regions is the shortest cyclic interval, across the wrap."""
@@ -270,3 +287,14 @@ def test_registration_events_follow_the_sensor_and_need_a_resolved_config():
                                                  backend_max_window_events=-1), 0.0)
     with pytest.raises(ValueError, match="resolved"):
         LoopCloser(LoopClosureConfig(loop_closure=True), backend)
+
+
+def test_bench_level_holds_the_realtime_degradation(short_dataset):
+    """bench_loops --level 4 (the drift benchmark's setting): the real-time controller's last level held offline,
+    every window keeps the front-end's poses (BA skipped)."""
+    from ti_cmax.config import SlamConfig
+    from ti_cmax.pipelines.bench_loops import run_at_level
+
+    res = run_at_level(short_dataset, SlamConfig(), 4)
+    backend = res.report["backend"]
+    assert backend["windows"] > 5 and backend["windows_optimized"] == 0
