@@ -204,3 +204,28 @@ def test_controller_jumps_past_the_bound_and_hears_a_slow_front_end():
     assert slow.level == 2
     slow.on_frontend(slow.due(0.3) + 0.05, 0.3)  # the front-end alone never relaxes
     assert slow.level == 2
+
+
+def test_with_a_worker_the_front_end_skips_packets_only_while_it_falls_behind():
+    """With a back-end worker the front-end has its own core: the levels degrade the BA, and the front-end's packets
+    are skipped (the level's 1 of k) only once its own lag exceeds the target; it takes every packet again when its
+    lag is under half the target and the main process would cost under RELAX_HEADROOM with all of them."""
+    cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
+    ctl = R.RealtimeController(cfg, 1.0, worker=True)
+    calls = []
+    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every, budget: calls.append((keep, cap, every)),
+                                 frontend_until=0.1, runner=SimpleNamespace(seconds=0.0))
+    ctl.idle_seconds = lambda: 0.0
+    ctl.wall0, ctl.t0 = 100.0, 0.0
+    t = 0.2
+    for lag in (0.5, 0.6, 0.7):  # the worker is late: the BA degrades, the front-end keeps every packet
+        ctl.on_window(_report(t, lag, ctl, busy=0.08, ba=0.05))
+        t += 0.1
+    assert ctl.level == 3 and [c[0] for c in calls] == [1, 1, 1]
+    ctl.on_frontend(ctl.due(t) + 0.4, t)  # now the front-end is 0.4 s behind: level 4, and its packets are skipped
+    assert ctl.level == 4 and calls[-1][0] == 4
+    ctl._fe_lag = 0.0  # caught up; the main process is nearly idle (its costs: run the windows with no main work)
+    for _ in range(4):
+        ctl.on_window(_report(t, 0.1, ctl))
+        t += 0.1
+    assert not ctl.fe_skipping and calls[-1][0] == 1
