@@ -86,8 +86,13 @@ class FrontendResult:
     def status(self) -> str:
         """"suspect" when most checked moving packets are suspect (the IWE does not constrain omega: e.g. packets far too
         small for the sensor), else "ok"."""
-        checked = int(np.count_nonzero(~self.still & ~np.isnan(self.gain)))  # moving packets whose gain was checked
+        checked = int(np.count_nonzero(self.checked))
         return "suspect" if checked and np.count_nonzero(self.suspect) > 0.5 * checked else "ok"
+
+    @property
+    def checked(self) -> np.ndarray:
+        """(M,) bool: moving packets whose contrast gain over omega = 0 was evaluated (the suspect check)."""
+        return ~self.still & ~np.isnan(self.gain)
 
     def trajectory(self) -> Trajectory:
         """Integrate omega (midpoint rule on SO(3)) to R_world_from_camera at the packet times, R(t_0) = I."""
@@ -101,7 +106,7 @@ class FrontendResult:
             "packets": int(len(self.t)),
             "still_packets": int(np.count_nonzero(self.still)),
             "suspect_packets": int(np.count_nonzero(self.suspect)),
-            "checked_packets": int(np.count_nonzero(~self.still & ~np.isnan(self.gain))),
+            "checked_packets": int(np.count_nonzero(self.checked)),
             "median_contrast_gain": float(np.nanmedian(self.gain)) if np.any(~self.still) else 0.0,
             "mean_iterations": float(np.mean(self.iterations)) if len(self.t) else 0.0,
             "mean_evaluations": float(np.mean(self.evaluations)) if len(self.t) else 0.0,

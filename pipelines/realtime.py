@@ -156,7 +156,7 @@ class RealtimeController:
         mean = self.mean_costs()
         if mean is None:
             return False
-        return mean["main"] + mean["fe"] * (LEVELS[self.level][0] - 1) < RELAX_HEADROOM
+        return mean["main"] + mean["fe"] * (self.fe_keep() - 1) < RELAX_HEADROOM
 
     def ba_budget(self) -> float | None:
         """Seconds a window's BA may take at the current level: none at level 0 (the offline computation), else one

@@ -355,14 +355,15 @@ class SO3Spline:
         return np.atleast_1d(spla.spsolve(lhs, b))
 
 
-DENSE_FIT_COLUMNS = 300  # fits over at most this many parameters (100 free poses) solve dense
+DENSE_FIT_COLUMNS = 300  # fits over at most this many parameters (100 free poses) solve dense...
+DENSE_FIT_CELLS = 2_000_000  # ... when the dense matrix stays small too (16 MB: e.g. 1 kHz IMU samples over 100 poses)
 
 
 def _matrix(vals, rows, cols, shape):
     """The fit's matrix from (value, row, col) triplets (duplicates summed): dense for the sliding window's small
     fits (a few dozen parameters: numpy, and no scipy.sparse import, ~0.1 s of every run's start-up), sparse (CSR)
-    for whole-trajectory fits (thousands of poses)."""
-    if shape[1] <= DENSE_FIT_COLUMNS:
+    for whole-trajectory fits (thousands of poses) and for many samples (the dense matrix would grow with them)."""
+    if shape[1] <= DENSE_FIT_COLUMNS and shape[0] * shape[1] <= DENSE_FIT_CELLS:
         out = np.zeros(shape)
         np.add.at(out, (rows, cols), vals)
         return out
