@@ -35,7 +35,7 @@ from ti_cmax.metrics import event_area_percent
 
 from . import bilinear
 from .bilinear import ADD, bilinear_funcs
-from .blur import TRUNCATE, blur_radius, gaussian_taps
+from .blur import TRUNCATE, blur_radius, gaussian_taps, separable_blur
 from .runtime import ensure_init, num_threads, ti
 from .spline import spline_funcs
 
@@ -195,15 +195,15 @@ def _proj_funcs(dtype):
 
 
 @functools.cache
-def _iwe_kernels(dtype, degree: int, radius: int):
-    """Kernels of one cost/gradient evaluation for one dtype, spline degree and blur radius (taps unrolled)."""
+def _iwe_kernels(dtype, degree: int):
+    """Kernels of one cost/gradient evaluation for one dtype and spline degree (the blurs run in OpenCV between
+    them: kernels/blur.py)."""
     spl = spline_funcs(dtype, degree)
     bl = bilinear_funcs(dtype)
     project, project_jacobian = _proj_funcs(dtype)
     mat3 = ti.types.matrix(3, 3, dtype)
     vec3 = ti.types.vector(3, dtype)
     order = degree + 1
-    taps_t = ti.types.vector(2 * radius + 1, dtype)
 
     @ti.kernel
     def k_project(
@@ -259,71 +259,24 @@ def _iwe_kernels(dtype, degree: int, radius: int):
             bbox[b, 2] = rmin
             bbox[b, 3] = rmax
 
-    @ti.func
-    def blur_cols(src: ti.template(), taps, wrap, dst: ti.template()):
-        """Blur along u, one row per task: cyclic when the buffer is the full width, else zero padding."""
-        bh, bw = src.shape[0], src.shape[1]
-        for i in range(bh):
-            for j in range(bw):
-                acc = ti.cast(0.0, dtype)
-                if j >= radius and j < bw - radius:
-                    for k in ti.static(range(-radius, radius + 1)):
-                        acc += taps[k + radius] * src[i, j + k]
-                else:
-                    for k in ti.static(range(-radius, radius + 1)):
-                        jj = j + k
-                        if wrap:
-                            if jj < 0:
-                                jj += bw
-                            elif jj >= bw:
-                                jj -= bw
-                        if jj >= 0 and jj < bw:
-                            acc += taps[k + radius] * src[i, jj]
-                dst[i, j] = acc
-
-    @ti.func
-    def blur_rows(src: ti.template(), taps, dst: ti.template()):
-        """Blur along v (zero padding: the buffer's rows reach the map border or beyond the support)."""
-        bh, bw = src.shape[0], src.shape[1]
-        for i in range(bh):
-            if i >= radius and i < bh - radius:
-                for j in range(bw):
-                    acc = ti.cast(0.0, dtype)
-                    for k in ti.static(range(-radius, radius + 1)):
-                        acc += taps[k + radius] * src[i + k, j]
-                    dst[i, j] = acc
-            else:
-                for j in range(bw):
-                    acc = ti.cast(0.0, dtype)
-                    for k in ti.static(range(-radius, radius + 1)):
-                        if i + k >= 0 and i + k < bh:
-                            acc += taps[k + radius] * src[i + k, j]
-                    dst[i, j] = acc
-
     @ti.kernel
     def k_local_map(
         uv: ti.types.ndarray(dtype=dtype, ndim=2),
         c0: ti.i32,
         r0: ti.i32,
         width: ti.i32,
-        taps: taps_t,
-        wrap: ti.i32,
-        gmap: ti.types.ndarray(dtype=dtype, ndim=2),
-        use_g: ti.i32,
         lambda0: dtype,
         votes: ti.types.ndarray(dtype=dtype, ndim=2),
         buf: ti.types.ndarray(dtype=dtype, ndim=2),
-        tmp: ti.types.ndarray(dtype=dtype, ndim=2),
         stats: ti.types.ndarray(dtype=ti.f64, ndim=2),
     ):
-        """Vote I_L into the window buffer, blur it (result in buf), per-row sums of L, L^2, L G, of the raw votes and
-        of their event area 1 - exp(-I / lambda0) (float64; the last two give the density of I_L for alpha; the
-        area only when lambda0 >= 0, i.e. when the caller needs it (-1 otherwise): an exp per buffer pixel).
+        """Vote I_L into the window buffer ``buf`` (unblurred), with per-row sums of the raw votes and of their event
+        area 1 - exp(-I / lambda0) (float64; they give the density of I_L for alpha; the area only when lambda0 >= 0,
+        i.e. when the caller needs it (-1 otherwise): an exp per buffer pixel).
 
         ``votes`` holds P = rows / bh copies of the buffer: part p votes events [p n/P, (p+1) n/P) into copy p with
         plain load/add/store, then the copies are summed in a fixed order (no float atomics, which were measured
-        2x slower than serial voting here, and bit-reproducible for a given P). Top-level loops run one after
-        the other (one launch instead of five).
+        2x slower than serial voting here, and bit-reproducible for a given P).
         """
         bh, bw = buf.shape[0], buf.shape[1]
         parts = votes.shape[0] // bh  # votes arrives zeroed (np.zeros: a struct-for clear cost 10 ns per pixel)
@@ -345,10 +298,22 @@ def _iwe_kernels(dtype, degree: int, radius: int):
                 raw += ti.cast(acc, ti.f64)
                 if lambda0 >= 0:
                     area += ti.cast(ti.cast(1.0, dtype) - ti.exp(-acc / lambda0), ti.f64)
-            stats[i, 3] = raw
-            stats[i, 4] = area
-        blur_cols(buf, taps, wrap, tmp)
-        blur_rows(tmp, taps, buf)
+            stats[i, 0] = raw
+            stats[i, 1] = area
+
+    @ti.kernel
+    def k_stats(
+        lmap: ti.types.ndarray(dtype=dtype, ndim=2),
+        gmap: ti.types.ndarray(dtype=dtype, ndim=2),
+        alpha: dtype,
+        r0: ti.i32,
+        c0: ti.i32,
+        comb: ti.types.ndarray(dtype=dtype, ndim=2),
+        stats: ti.types.ndarray(dtype=ti.f64, ndim=2),
+    ):
+        """Per-row float64 sums of L = B(I_L), L^2 and L G over the window, and comb = L + alpha G there (the
+        gradient's image before its mean is taken out)."""
+        bh, bw = lmap.shape[0], lmap.shape[1]
         gw = gmap.shape[1]
         for i in range(bh):
             gi = ti.min(r0 + i, gmap.shape[0] - 1)
@@ -356,29 +321,27 @@ def _iwe_kernels(dtype, degree: int, radius: int):
             s2 = ti.cast(0.0, ti.f64)
             s3 = ti.cast(0.0, ti.f64)
             for j in range(bw):
-                val = ti.cast(buf[i, j], ti.f64)
+                lv = lmap[i, j]
+                val = ti.cast(lv, ti.f64)
                 s1 += val
                 s2 += val * val
-                if use_g:
+                if alpha != 0:
                     cj = c0 + j
                     if cj >= gw:
                         cj -= gw
-                    s3 += val * ti.cast(gmap[gi, cj], ti.f64)
+                    g = gmap[gi, cj]
+                    s3 += val * ti.cast(g, ti.f64)
+                    lv += alpha * g
+                comb[i, j] = lv
             stats[i, 0] = s1
             stats[i, 1] = s2
             stats[i, 2] = s3
 
     @ti.kernel
     def k_gradient(
-        lmap: ti.types.ndarray(dtype=dtype, ndim=2),
-        gmap: ti.types.ndarray(dtype=dtype, ndim=2),
-        alpha: dtype,
-        mu: dtype,
+        wmap: ti.types.ndarray(dtype=dtype, ndim=2),
         r0: ti.i32,
         c0: ti.i32,
-        taps: taps_t,
-        wrap: ti.i32,
-        tmp: ti.types.ndarray(dtype=dtype, ndim=2),
         xw: ti.types.ndarray(dtype=vec3, ndim=1),
         uv: ti.types.ndarray(dtype=dtype, ndim=2),
         jac: ti.types.ndarray(dtype=mat3, ndim=2),
@@ -388,35 +351,23 @@ def _iwe_kernels(dtype, degree: int, radius: int):
         sv: dtype,
         out: ti.types.ndarray(dtype=vec3, ndim=2),
     ):
-        """W = B(L + alpha G - mu) on the window (overwrites lmap), then per batch g_b = sum_e X'_e x dC/dX'_e
-        and out[b, k] = J_bk^T g_b."""
-        bh, bw = lmap.shape[0], lmap.shape[1]
-        gw = gmap.shape[1]
-        for i in range(bh):
-            for j in range(bw):
-                val = lmap[i, j] - mu
-                if alpha != 0:
-                    cj = c0 + j
-                    if cj >= gw:
-                        cj -= gw
-                    val += alpha * gmap[r0 + i, cj]
-                tmp[i, j] = val
-        blur_cols(tmp, taps, wrap, lmap)
-        blur_rows(lmap, taps, tmp)  # tmp = W
+        """Per batch g_b = sum_e X'_e x dC/dX'_e from W = B(L + alpha G - mu) on the window, and
+        out[b, k] = J_bk^T g_b."""
+        bh = wmap.shape[0]
         n_ev = xw.shape[0]
         for b in range(jac.shape[0]):
             g = vec3(0, 0, 0)
             for e in range(b * batch_size, ti.min((b + 1) * batch_size, n_ev)):
                 i0, j0, fu, fv = bl.split(uv[e, 0], uv[e, 1])
                 la, lb = bl.wrap_cols(i0 - c0, width)
-                _, gu, gv = bl.interp(bl.gather(tmp, 0, bh, j0 - r0, la, lb, 1, 1, -1), fu, fv)
+                _, gu, gv = bl.interp(bl.gather(wmap, 0, bh, j0 - r0, la, lb, 1, 1, -1), fu, fv)
                 x = xw[e]
                 du, dv = project_jacobian(x, su, sv)
                 g += x.cross(gu * du + gv * dv)
             for k in ti.static(range(order)):
                 out[b, k] = jac[b, k].transpose() @ g
 
-    return dict(project=k_project, local_map=k_local_map, gradient=k_gradient)
+    return dict(project=k_project, local_map=k_local_map, stats=k_stats, gradient=k_gradient)
 
 
 @functools.cache
@@ -595,6 +546,7 @@ class PanoIWE:
             raise ValueError(f"{nb} batches of {batch_size} do not match {len(self.bearings)} events")
         self.sigma = float(sigma)
         self.taps = gaussian_taps(self.sigma)
+        self.taps_d = self.taps.astype(self.dtype)
         self.radius = (len(self.taps) - 1) // 2
         self.n_px = self.width * self.height
         self.su, self.sv = self.width / (2 * math.pi), self.height / math.pi
@@ -612,7 +564,7 @@ class PanoIWE:
         else:
             self.alpha, self.g_sum, self.g_sq = 0.0, 0.0, 0.0
             self.gmap = np.zeros((1, 1), dtype=self.dtype)
-        self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree, self.radius)
+        self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree)
         n, order = len(self.bearings), self.degree + 1
         self._jac = np.zeros((nb, order, 3, 3), dtype=self.dtype)
         self._xw = np.zeros((n, 3), dtype=self.dtype)
@@ -670,22 +622,24 @@ class PanoIWE:
             return ctrl, None, None, self._constant_var()
         r0, c0, bh, bw, wrap = win
         lmap = np.empty((bh, bw), dtype=self.dtype)
-        tmp = np.empty_like(lmap)
         votes = np.zeros((self.parts * bh, bw), dtype=self.dtype)  # calloc: zero pages, no pass over memory
-        stats = np.empty((bh, 5))
-        k["local_map"](self._uv, c0, r0, self.width, self.taps, wrap, self.gmap, int(self.alpha != 0),
-                       self._density_ref[1] if self._density_ref is not None else -1.0,  # event area: first call only
-                       votes, lmap, tmp, stats)
-        s_l, s_ll, s_lg, raw, area = stats.sum(axis=0)
+        stats = np.empty((bh, 3))
+        k["local_map"](self._uv, c0, r0, self.width, self._density_ref[1] if self._density_ref is not None else -1.0,
+                       votes, lmap, stats)  # the event area only at the first call (alpha from the density)
         if self._density_ref is not None:  # the first evaluation: alpha from the density of this local map
+            raw, area = stats[:, :2].sum(axis=0)
             rho_g, _ = self._density_ref
             self.alpha = float(raw / area / rho_g) if area > 0 else 0.0
             self._density_ref = None
+        separable_blur(lmap, self.taps_d, wrap_cols=bool(wrap), out=lmap)
+        comb = np.empty_like(lmap)  # L + alpha G, for the gradient
+        k["stats"](lmap, self.gmap, self.alpha, r0, c0, comb, stats)
+        s_l, s_ll, s_lg = stats.sum(axis=0)
         mu = (s_l + self.alpha * self.g_sum) / self.n_px
         # sum over all px of (L + aG - mu)^2 = sum (aG - mu)^2 + sum_buf (L^2 + 2 L (aG - mu))
         base = self.alpha**2 * self.g_sq - 2 * self.alpha * mu * self.g_sum + self.n_px * mu * mu
         var = (base + s_ll + 2 * self.alpha * s_lg - 2 * mu * s_l) / self.n_px
-        return ctrl, (r0, c0, bh, bw, wrap), (lmap, tmp, mu), float(var)
+        return ctrl, (r0, c0, bh, bw, wrap), (lmap, comb, mu), float(var)
 
     def _constant_var(self):
         """Variance without local votes (no events, or none in the map)."""
@@ -706,9 +660,11 @@ class PanoIWE:
         if win is None:
             return var, grad
         r0, c0, bh, bw, wrap = win
-        lmap, tmp, mu = maps
-        self._k["gradient"](lmap, self.gmap, self.alpha, mu, r0, c0, self.taps, wrap, tmp, self._xw, self._uv,
-                            self._jac, self.batch_size, self.width, self.su, self.sv, self._gb)
+        _, comb, mu = maps
+        comb -= self.dtype.type(mu)
+        wmap = separable_blur(comb, self.taps_d, wrap_cols=bool(wrap), out=comb)  # W = B(L + alpha G - mu)
+        self._k["gradient"](wmap, r0, c0, self._xw, self._uv, self._jac, self.batch_size, self.width, self.su, self.sv,
+                            self._gb)
         gb = self._gb.astype(np.float64)
         for j in range(self.degree + 1):
             grad += np.stack([np.bincount(self.batch_s + j, gb[:, j, d], minlength=len(ctrl)) for d in range(3)], 1)

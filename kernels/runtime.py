@@ -134,6 +134,9 @@ def ensure_init() -> None:
         )
     _state["initialized"] = True
     _state["threads"] = threads
+    from .blur import set_blur_threads
+
+    set_blur_threads(threads)
 
 
 # Taichi 1.7.4 runs a CPU range-for of N iterations as tasks of max(512, ceil(N / threads)) consecutive
