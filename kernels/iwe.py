@@ -18,29 +18,29 @@ g * g (zero padding on the sensor is then exact; the outer taps below 1e-5 of th
 
     dC/domega = (2/Np) sum_k sum_{n in nbrs(k)} (H_n - mu) dw_kn/dpix . dpix_k/domega,  H = G2 I
 
-(mu = 0 for the mean square). So one evaluation = one Taichi launch with three passes:
-  1. events: warp, bilinear vote into I, sum of weights (-> mu); the events are split into P parts
-             (P = thread count), each voting into its own copy of I with plain load/add/store: no float
+(mu = 0 for the mean square). So one evaluation = two Taichi launches around one OpenCV blur:
+  1. events (kernel ``vote``): warp, bilinear vote into I, sum of weights (-> mu); the events are split into P
+             parts (P = thread count), each voting into its own copy of I with plain load/add/store: no float
              atomics (compare-and-swap loops on CPU) and a deterministic sum. The projection (u, v), the
              rotated bearing and the Rodrigues coefficients are kept per event for pass 3;
-  2. pixels: T = horizontal G2 blur of sum_p I_p, 8 outputs per (row, group) iteration so LLVM can use SIMD;
-             then the copies are cleared for the next evaluation;
-  3. events: H at the four neighbours by the vertical G2 taps gathered from T, then the cost term w.H
-             and the gradient 3-vector from the stored warp, partial sums per group of 8 events
-             (no gradient image).
+  2. pixels: H = G2 (sum_p I_p), OpenCV's separable filter with zero padding (kernels/blur.py: SIMD; Taichi's
+             CPU loops are scalar, and its 13-tap horizontal pass plus a 14-row gather per event cost more:
+             per evaluation 1.0-1.1 -> 0.95-1.0 ms on 240 x 180, 2.6 -> 2.2-2.6 on 640 x 480, 5.4 -> 3.5 on
+             1280 x 720, 20 000 events, 1 thread);
+  3. events (kernel ``gather``): H at the four neighbours, then the cost term w.H and the gradient 3-vector
+             from the stored warp, partial sums per group of 8 events (no gradient image).
 Taichi 1.7.4's CPU range-for runs as tasks of >= 512 consecutive iterations, one thread each (see
-kernels/runtime.py), so a loop over the 2 parts or a few hundred rows would run on one thread: pass 1 loops over
-PART_TASK iterations per part (whole parts per task), passes 2 and 3 over (row, group) and event groups.
-Partial sums are stored per iteration and added in a fixed order: a result does not depend on the schedule.
-The vertical blur is never materialised: gathering it per event beats a full image pass with stores,
-which Taichi's CPU backend does not vectorise (measured; see the front-end issue note).
+kernels/runtime.py), so a loop over the 2 parts would run on one thread: pass 1 loops over PART_TASK iterations
+per part (whole parts per task), pass 3 over event groups. Partial sums are stored per iteration and added in a
+fixed order: a result does not depend on the schedule. The scalars of a launch travel in one small f64 ndarray
+(an ndarray argument costs ~15-20 us of Python per launch, a scalar ~3).
 
 d(exp(phi) b)/dphi = -[exp(phi) b]x Jl(phi) with phi = omega dt, so an event contributes
 dt * Jl(phi)^T (x' x a), x' the rotated bearing and a = (dpix/dx')^T (dC/dpix).
 
-Kernels are generated per dtype (f32 for speed, f64 for finite-difference checks), blur taps and sensor
-size (compile-time constants); images and per-event buffers are fields allocated once per workspace, the
-packet (N, 4) is an ndarray argument read in place. :func:`contrast_numpy` is the float64 numpy twin (test oracle).
+Kernels are generated per dtype (f32 for speed, f64 for finite-difference checks) and sensor
+size (compile-time constants); per-event buffers are fields allocated once per workspace, the images numpy arrays
+(for OpenCV), the packet (N, 4) an ndarray argument read in place. :func:`contrast_numpy` is the float64 numpy twin (test oracle).
 """
 import functools
 
@@ -48,13 +48,12 @@ import numpy as np
 
 from ti_cmax.kernels import bilinear
 from ti_cmax.kernels.bilinear import ADD, ATOMIC, bilinear_funcs
-from ti_cmax.kernels.blur import gaussian_taps
+from ti_cmax.kernels.blur import gaussian_taps, separable_blur
 from ti_cmax.kernels.runtime import PART_TASK, check_parts, ensure_init, num_threads, part_slice, ti
 
 MEASURES = {"variance": 0, "mean_square": 1}
 _DTYPES = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
 _GROUP = 8  # events per pass-3 iteration (its partial sums in f32, then f64 in order)
-_LANES = 8  # outputs per step of the horizontal blur
 
 
 GRAM_TAP_FLOOR = 1e-5  # taps of g * g below this fraction of its centre are dropped
@@ -77,19 +76,13 @@ def measure_id(measure: str) -> int:
 
 
 @functools.cache
-def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int, parts: int):
-    """Fields and kernels for one float type, blur, sensor size, packet capacity and number of vote parts
-    (compiled once)."""
+def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int):
+    """Fields and kernels for one float type, sensor size, packet capacity and number of vote parts (compiled
+    once). The images are ndarrays (numpy) so that OpenCV blurs them between the two kernels."""
     f = ti.f32 if dtype_name == "f32" else ti.f64
     bl = bilinear_funcs(f)
-    r2 = (len(taps2) - 1) // 2  # radius of the G2 taps
-    pady = r2 + 1  # T rows padded so the vertical gather needs no bounds checks (y0 may be -1)
     h, w = height, width
-    w4 = -(-w // _LANES) * _LANES  # row length rounded up to whole groups of _LANES outputs
-    wi = w4 + 2 * r2  # I is padded by r2 zero columns each side (and up to the next group on the right)
     wp = ti.Vector.field(8, f, shape=capacity)  # pass 1 -> pass 3: u, v, x'(3), B, C, 1/z (u = -2: not in the image)
-    img = ti.field(f, shape=(parts * h, wi))  # copy p holds rows [p h, (p + 1) h)
-    tmp = ti.field(f, shape=(h + 2 * pady, w4 + 2))
     out = ti.field(ti.f64, shape=8)
     psum = ti.Vector.field(2, ti.f64, shape=parts * PART_TASK)  # pass 1 partials: sum of weights, events landing
     gsum = ti.Vector.field(4, f, shape=(capacity + _GROUP - 1) // _GROUP)  # pass 3 partials per event group
@@ -125,13 +118,17 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
         return xr, phi, dk, b, c
 
     @ti.kernel
-    def evaluate(ev: ti.types.ndarray(dtype=f, ndim=2), n: ti.i32, wx: f, wy: f, wz: f, fx: f, fy: f, cx: f, cy: f,
-                 measure: ti.i32, with_grad: ti.i32, res: ti.types.ndarray(dtype=ti.f64, ndim=1)):
-        """res[:6] = sum of weights, cost term, gradient (3), events landing (a kernel's vector return costs ~70 us
-        of Python per launch; an ndarray argument ~15)."""
-        # pass 1: warp and vote (in-bounds neighbours only). Part p votes events [p*chunk, (p+1)*chunk) into its own
-        # copy of I with plain load/add/store (float atomics are compare-and-swap loops on CPU); each CPU task
-        # holds whole parts (kernels/runtime.py), so one thread writes each copy, in event order (deterministic)
+    def vote(ev: ti.types.ndarray(dtype=f, ndim=2), img: ti.types.ndarray(dtype=f, ndim=2),
+             prm: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+        """Pass 1: warp and vote (in-bounds neighbours only) into the zeroed copies of I in ``img``. Part p votes
+        events [p*chunk, (p+1)*chunk) into its own copy (rows [p h, (p+1) h)) with plain load/add/store (float
+        atomics are compare-and-swap loops on CPU); each CPU task holds whole parts (kernels/runtime.py), so one
+        thread writes each copy, in event order (deterministic). Then mu's sums, serially in a fixed order.
+        ``prm`` = n, omega (3), fx, fy, cx, cy, measure, with_grad, then the results (see gather): an ndarray
+        argument costs ~15-20 us of Python per launch, a scalar ~3."""
+        n = ti.cast(prm[0], ti.i32)
+        wx, wy, wz = ti.cast(prm[1], f), ti.cast(prm[2], f), ti.cast(prm[3], f)
+        fx, fy, cx, cy = ti.cast(prm[4], f), ti.cast(prm[5], f), ti.cast(prm[6], f), ti.cast(prm[7], f)
         for it in range(parts * PART_TASK):
             part, k0, k1 = part_slice(it, n, parts)
             sw = f(0.0)
@@ -146,22 +143,9 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                     if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
                         wp[k] = ti.Vector([u, v, xr[0], xr[1], xr[2], bb, cc, iz])
                         x0, y0, ax, ay = bl.split(u, v)
-                        xi = x0 + r2  # padded column: always within [r2-1, r2+w]; u in (-1, w) needs 2 checks
-                        sw += bl.scatter(img, part * h, h, y0, xi, xi + 1, x0 >= 0, x0 + 1 < w, ax, ay, f(1.0), ADD)
+                        sw += bl.scatter(img, part * h, h, y0, x0, x0 + 1, x0 >= 0, x0 + 1 < w, ax, ay, f(1.0), ADD)
                         cnt += 1
             psum[it] = ti.Vector([ti.cast(sw, ti.f64), ti.cast(cnt, ti.f64)])
-        # pass 2: horizontal G2 blur of sum_p I_p into T, _LANES outputs per (row, group) iteration (SIMD; enough
-        # iterations for several tasks)
-        for i, jg in ti.ndrange(h, w4 // _LANES):
-            j = jg * _LANES
-            s = ti.Vector([f(0.0)] * _LANES)
-            for c in ti.static(range(2 * r2 + 1)):
-                for q in ti.static(range(_LANES)):
-                    for p in ti.static(range(parts)):
-                        s[q] += f(taps2[c]) * img[p * h + i, j + c + q]
-            for q in ti.static(range(_LANES)):
-                tmp[i + pady, j + q + 1] = s[q]
-        # serial sums of the per-iteration partials (fixed order: the same bits whatever the schedule); mu
         ti.loop_config(serialize=True)
         for _ in range(1):
             acc1 = ti.Vector([0.0, 0.0], ti.f64)
@@ -169,10 +153,18 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                 acc1 += psum[it]
             out[0] = acc1[0]
             out[5] = acc1[1]
-        # the copies of I are cleared for the next evaluation
-        for i, j in ti.ndrange(parts * h, wi):
-            img[i, j] = f(0.0)
-        # pass 3: cost and gradient, gathering the vertical G2 taps from T per event, _GROUP events per iteration
+
+    @ti.kernel
+    def gather(ev: ti.types.ndarray(dtype=f, ndim=2), himg: ti.types.ndarray(dtype=f, ndim=2),
+               prm: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+        """Pass 3: cost and gradient from H = G2 I at each event's four neighbours, _GROUP events per iteration;
+        prm[10:16] = sum of weights, cost term, gradient (3), events landing (a kernel's vector return costs ~70 us
+        of Python per launch)."""
+        n = ti.cast(prm[0], ti.i32)
+        wx, wy, wz = ti.cast(prm[1], f), ti.cast(prm[2], f), ti.cast(prm[3], f)
+        fx, fy = ti.cast(prm[4], f), ti.cast(prm[5], f)
+        measure = ti.cast(prm[8], ti.i32)
+        with_grad = ti.cast(prm[9], ti.i32)
         npix = f(float(h * w))
         mu = f(0.0)
         if measure == 0:
@@ -186,31 +178,15 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                 v = q[1]
                 if u > f(-1.0):  # stored by pass 1 (no second warp)
                     x0, y0, ax, ay = bl.split(u, v)
-                    mx0 = f(x0 >= 0)
-                    mx1 = f(x0 + 1 < w)
-                    my0 = f(y0 >= 0)
-                    my1 = f(y0 + 1 < h)
-                    # H at (y0, x0), (y0, x0+1), (y0+1, x0), (y0+1, x0+1); T row of y is y + pady
-                    h00 = f(0.0)
-                    h01 = f(0.0)
-                    h10 = f(0.0)
-                    h11 = f(0.0)
-                    base = y0 + pady - r2
-                    for rr in ti.static(range(2 * r2 + 2)):
-                        t0 = tmp[base + rr, x0 + 1]
-                        t1 = tmp[base + rr, x0 + 2]
-                        if ti.static(rr <= 2 * r2):
-                            h00 += f(taps2[rr]) * t0
-                            h01 += f(taps2[rr]) * t1
-                        if ti.static(rr >= 1):
-                            h10 += f(taps2[rr - 1]) * t0
-                            h11 += f(taps2[rr - 1]) * t1
-                    h00 = my0 * mx0 * (h00 - mu)
-                    h01 = my0 * mx1 * (h01 - mu)
-                    h10 = my1 * mx0 * (h10 - mu)
-                    h11 = my1 * mx1 * (h11 - mu)
+                    oka, okb = bl.col_ok(x0, w)
+                    hv = bl.gather(himg, 0, h, y0, x0, x0 + 1, oka, okb, -1)
+                    # neighbours outside the image are dropped (weight 0), the others carry H - mu'
+                    for dj, di in ti.static(ti.ndrange(2, 2)):
+                        yy = y0 + dj
+                        keep = yy >= 0 and yy < h and (oka if di == 0 else okb)
+                        hv[2 * dj + di] = f(keep) * (hv[2 * dj + di] - mu)
                     # cost term sum_n w_n (H_n - mu'): sums to <I, G2 I> - mu' sum(I) = C * Np
-                    wsum, gu, gv = bl.interp(ti.Vector([h00, h01, h10, h11]), ax, ay)
+                    wsum, gu, gv = bl.interp(hv, ax, ay)
                     acc[3] += wsum
                     if with_grad != 0:
                         xr = ti.Vector([q[2], q[3], q[4]])
@@ -239,7 +215,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
             out[4] = acc3[2]
             out[1] = acc3[3]
         for q in range(6):
-            res[q] = out[q]
+            prm[10 + q] = out[q]
 
     @ti.kernel
     def render(ev: ti.types.ndarray(dtype=f, ndim=2), n: ti.i32, wx: f, wy: f, wz: f, fx: f, fy: f, cx: f, cy: f,
@@ -255,7 +231,7 @@ def _build(dtype_name: str, taps2: tuple, height: int, width: int, capacity: int
                 if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
                     bl.vote(dst, u, v, f(1.0), ATOMIC)
 
-    return evaluate, render
+    return vote, gather, render
 
 
 class IWEWorkspace:
@@ -272,14 +248,14 @@ class IWEWorkspace:
         self.dtype = np.dtype(dtype)
         if self.dtype not in _DTYPES:
             raise ValueError(f"dtype must be float32 or float64, got {self.dtype}")
-        self.taps2 = tuple(float(v) for v in gram_taps(blur_sigma, truncate))
+        self.taps2 = gram_taps(blur_sigma, truncate).astype(self.dtype)
         self.blur_sigma = float(blur_sigma)
         self.truncate = float(truncate)
         self.capacity = 1 << max(10, int(np.ceil(np.log2(max(int(capacity), 1)))))
         # copies of I voted into without atomics by one parallel part each (default: the Taichi thread count)
         self.parts = int(parts) if parts else None
         self._kernels = None
-        self._res = np.zeros(8)  # evaluate's results
+        self._prm = np.zeros(16)  # evaluate's parameters and results (kernel arguments)
         self.n = 0
         self._packed = np.zeros((1, 4), self.dtype)  # the current packet (read by the kernels in place)
 
@@ -287,15 +263,17 @@ class IWEWorkspace:
         if self._kernels is None:
             ensure_init()
             parts = check_parts(self.parts or max(1, min(8, num_threads())))
-            self._kernels = _build(_DTYPES[self.dtype], self.taps2, self.height, self.width, self.capacity, parts)
+            self._kernels = _build(_DTYPES[self.dtype], self.height, self.width, self.capacity, parts)
+            self._img = np.zeros((parts * self.height, self.width), self.dtype)  # the parts' copies of I
+            self._parts = parts
         return self._kernels
 
     def compile(self) -> None:
         """Build (or fetch from the offline cache) the kernels an estimation uses, e.g. to time compilation apart
         (not ``iwe``'s display kernel: every command pays the start-up)."""
-        evaluate, _render = self._ensure()
+        self._ensure()
         self.set_packet(np.zeros((1, 3)) + [0, 0, 1], np.zeros(1))
-        evaluate(self._packed, 1, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0, 1, self._res)
+        self.evaluate(np.zeros(3), np.eye(3))
 
     def set_packet(self, bearings: np.ndarray, dts: np.ndarray) -> None:
         """Upload one packet: bearings (N, 3) and relative times dt_k = t_k - t_ref (N,)."""
@@ -323,11 +301,17 @@ class IWEWorkspace:
     def evaluate(self, omega, K, measure: str = "variance", with_grad: bool = True):
         """(contrast, gradient (3,), number of events landing in the image) at omega; raw contrast as in
         the module docstring (normalise in the caller). The gradient is zero when with_grad is False."""
-        evaluate = self._ensure()[0]
-        mid = measure_id(measure)
-        o = self._res
-        evaluate(self._packed, self.n, float(omega[0]), float(omega[1]), float(omega[2]),
-                 float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), mid, int(bool(with_grad)), o)
+        vote, gather, _ = self._ensure()
+        prm = self._prm
+        prm[:10] = (self.n, omega[0], omega[1], omega[2], K[0, 0], K[1, 1], K[0, 2], K[1, 2], measure_id(measure),
+                    bool(with_grad))
+        img = self._img
+        vote(self._packed, img, prm)
+        total = img if self._parts == 1 else img.reshape(self._parts, self.height, self.width).sum(axis=0)
+        himg = separable_blur(total, self.taps2)  # pass 2: H = G2 I (zero padding: exact, see the module docstring)
+        img.fill(0)  # the copies of I for the next evaluation
+        gather(self._packed, himg, prm)
+        o = prm[10:16]
         npix = float(self.width * self.height)
         # pass 3 summed w (H - mu') = <I, G2 I> - mu' sum(I), mu' = mu (variance) or 0: that is C * Np
         cost = o[1] / npix
@@ -336,7 +320,7 @@ class IWEWorkspace:
     def iwe(self, omega, K, blurred: bool = True) -> np.ndarray:
         """Image of warped events of the current packet at omega, (height, width) float64;
         blurred with G (zero padding) unless ``blurred`` is False."""
-        render = self._ensure()[1]
+        render = self._ensure()[2]
         dst = np.zeros((self.height, self.width), self.dtype)
         render(self._packed, self.n, float(omega[0]), float(omega[1]), float(omega[2]),
                float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), dst)
