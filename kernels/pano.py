@@ -496,8 +496,7 @@ def blur_region(raw: np.ndarray, blurred: np.ndarray, rows: slice, cols: np.ndar
     n_in = w if full_width else len(cols) + 2 * r
     src = np.zeros((r1 - r0, n_in), np.float64)
     src[lo - r0 : hi - r0] = raw[lo:hi, in_cols]
-    out = gaussian_filter1d(src, sigma, axis=1, mode="wrap" if full_width else "constant", truncate=TRUNCATE)
-    out = gaussian_filter1d(out, sigma, axis=0, mode="constant", cval=0.0, truncate=TRUNCATE)
+    out = separable_blur(src, gaussian_taps(sigma), wrap_cols=full_width)  # float64, = scipy's gaussian_filter1d
     out = out[r : r + (rows.stop - rows.start)]
     if not full_width:
         out = out[:, r : r + len(cols)]
