@@ -257,12 +257,17 @@ class RealtimeController:
         return max(main, mean["worker"] + (ba_lower - mean["ba"]))
 
     def on_frontend(self, now: float, t: float | None) -> None:
-        """After every push: the front-end's lag (now - due(its last packet's time)), once per stride of its progress,
-        is the rule's second input (a slow front-end delays the windows, so they alone would react late). It only
-        escalates: relaxing waits for windows."""
-        if t is None or self.wall0 is None or (self._fe_tick is not None and t < self._fe_tick + self.stride):
+        """After every push: the front-end's lag (now - due(its last packet's time)), once per stride of its progress
+        or of wall time, whichever comes first, is the rule's second input (a slow front-end delays the windows, so
+        they alone would react late; and a front-end several times slower than the sensor takes several strides of
+        wall time per stride of progress: VGA at 12.6 M ev/s gave its first tick 0.6 s after the start, with the lag
+        already 0.58 s). It only escalates: relaxing waits for windows."""
+        if t is None or self.wall0 is None:
             return
-        self._fe_tick = t
+        if self._fe_tick is not None and t < self._fe_tick[0] + self.stride \
+                and now < self._fe_tick[1] + self.stride / self.speed:
+            return
+        self._fe_tick = (t, now)
         self._fe_lag = now - self.due(t)
         self._control(self._fe_lag, "frontend")
 
@@ -276,7 +281,8 @@ class RealtimeController:
             self.level = MAX_LEVEL  # beyond the hard bound: the last level at once
         elif lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL:
             self.level += 1
-        elif self.level == MAX_LEVEL and lag > self.bound and lag + DRAIN_WINDOWS * change > self.bound:
+        elif self.level == MAX_LEVEL and lag > self.target and prev is not None \
+                and lag + DRAIN_WINDOWS * change > self.target:
             self.thinning = min(MAX_INPUT_THINNING, 2 * self.thinning)
         elif source == "window" and lag < self.target and lag + DRAIN_WINDOWS * change < self.target \
                 and (self._fe_lag or 0.0) < self.target:
@@ -383,8 +389,11 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                     sleep_s += wait
                     idle["sleep"] = sleep_s
                 continue
-            handed_until = s_now
             i = int(np.searchsorted(pending.t, s_now, side="right"))
+            # the sensor time handed over: the last due event, not the clock (behind schedule, a read chunk of 50 000
+            # events is only 4 ms at 12.6 M ev/s; waiting a slice after each one throttled the replay to ~2/3 of
+            # the sensor's rate, so VGA's lag grew at level 4 with 1 of 16 events)
+            handed_until = float(pending.t[i - 1])
             batch, pending = pending[:i], pending[i:]
             q = ctl.thinning
             if q > 1:

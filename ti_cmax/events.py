@@ -16,6 +16,13 @@ def _as(a, dtype) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=dtype)
 
 
+def signed_polarity(p: np.ndarray) -> np.ndarray:
+    """Polarities (0/1, -1/+1 or bool) as int8 {-1, +1}: p > 0 -> +1, else -1 (in int8 throughout: 1 ns per
+    event instead of 8.5 for np.where's int64 temporary; reading is a real-time cost at 12 M ev/s)."""
+    out = np.greater(p, 0).view(np.int8)  # bool -> 0/1 bytes, no copy
+    return out * np.int8(2) - np.int8(1)
+
+
 @dataclass(frozen=True, eq=False)
 class Events:
     t: np.ndarray
@@ -33,7 +40,7 @@ class Events:
         object.__setattr__(self, "y", _as(self.y, xy_dtype))
         p = np.asarray(self.p)
         if p.dtype != np.int8:
-            p = np.where(p > 0, 1, -1).astype(np.int8)
+            p = signed_polarity(p)
         object.__setattr__(self, "p", _as(p, np.int8))
 
     # construction -------------------------------------------------------------------------

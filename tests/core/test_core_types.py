@@ -90,3 +90,13 @@ def test_trajectory_interpolation_and_alignment():
     assert np.allclose(shifted.aligned_to(traj, 0.5).R, traj.R, atol=1e-12)
     with pytest.raises(InputError, match="increase strictly"):
         Trajectory(np.array([0.0, 0.0]), np.stack([np.eye(3)] * 2))
+
+
+def test_signed_polarity_from_every_stored_form():
+    from ti_cmax.events import signed_polarity
+
+    for stored in (np.array([0, 1, 1, 0], np.uint8), np.array([-1, 1, 1, -1], np.int16),
+                   np.array([False, True, True, False]), np.array([0.0, 1.0, 1.0, 0.0], np.float32)):
+        out = signed_polarity(stored)
+        assert out.dtype == np.int8
+        np.testing.assert_array_equal(out, [-1, 1, 1, -1])

@@ -198,9 +198,9 @@ def test_controller_jumps_past_the_bound_and_hears_a_slow_front_end():
     slow.wall0, slow.t0 = 100.0, 0.0
     slow.on_frontend(slow.due(0.05) + 0.5, 0.05)  # the front-end alone is late: escalate before any window
     assert slow.level == 1
-    slow.on_frontend(slow.due(0.1) + 0.6, 0.1)  # less than a stride later: no new decision
+    slow.on_frontend(slow.due(0.1) + 0.45, 0.1)  # less than a stride of progress and of wall time: no new decision
     assert slow.level == 1
-    slow.on_frontend(slow.due(0.16) + 0.7, 0.16)
+    slow.on_frontend(slow.due(0.05) + 0.7, 0.05)  # no progress, but a stride of wall time later: heard, and later
     assert slow.level == 2
     slow.on_frontend(slow.due(0.3) + 0.05, 0.3)  # the front-end alone never relaxes
     assert slow.level == 2

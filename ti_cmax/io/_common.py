@@ -203,7 +203,6 @@ def infer_sensor_size(max_x: float, max_y: float, source: str,
 
 def polarity_from_values(p: np.ndarray, source: str) -> np.ndarray:
     """Map stored polarities (0/1, -1/+1 or bool) to int8 {-1, +1}."""
-    p = np.asarray(p)
-    if p.dtype == np.bool_:
-        return np.where(p, 1, -1).astype(np.int8)
-    return np.where(p > 0, 1, -1).astype(np.int8)
+    from ti_cmax.events import signed_polarity
+
+    return signed_polarity(np.asarray(p))

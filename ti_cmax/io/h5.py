@@ -165,7 +165,12 @@ class H5Events:
     def _times(self, raw: np.ndarray) -> np.ndarray:
         if np.issubdtype(raw.dtype, np.integer):
             return (raw.astype(np.int64) + self.t_offset_raw) * self.t_scale
-        return (raw.astype(np.float64) + self.t_offset_raw) * self.t_scale
+        t = raw.astype(np.float64, copy=False)  # a fresh array from the read: the arithmetic may run in place
+        if self.t_offset_raw:
+            t += self.t_offset_raw
+        if self.t_scale != 1:
+            t *= self.t_scale
+        return t
 
     def camera(self) -> Camera | None:
         if self.intrinsics is None or self.sensor_size is None:
@@ -222,11 +227,13 @@ class H5Events:
                 t = self._times(dt[i:j])
                 x, y = dx[i:j], dy[i:j]
                 if self.integer_xy:
-                    if (x.size and (x.min() < 0 or x.max() > 65535)) or (y.size and (y.min() < 0 or y.max() > 65535)):
+                    wide = x.dtype.itemsize > 2 or x.dtype.kind == "i" or y.dtype.itemsize > 2 or y.dtype.kind == "i"
+                    if wide and ((x.size and (x.min() < 0 or x.max() > 65535))
+                                 or (y.size and (y.min() < 0 or y.max() > 65535))):
                         raise InputError(f"events {i}..{j}: pixel coordinates outside 0..65535", source=self.source)
-                    x, y = x.astype(np.uint16), y.astype(np.uint16)
+                    x, y = x.astype(np.uint16, copy=False), y.astype(np.uint16, copy=False)
                 else:
-                    x, y = x.astype(np.float32), y.astype(np.float32)
+                    x, y = x.astype(np.float32, copy=False), y.astype(np.float32, copy=False)
                 yield Block(Events(t, x, y, polarity_from_values(dp[i:j], self.source)), None, i)
                 i = j
 
