@@ -227,37 +227,36 @@ def _iwe_kernels(dtype, degree: int):
         interval [bbox0, bbox1) (unwrapped integers, bbox1 - bbox0 <= w); rows [bbox2, bbox3] clamped to the map.
         """
         n_ev = bearings.shape[0]
-        half = width // 2
+        half = ti.cast(width // 2, dtype)
+        fw = ti.cast(width, dtype)
         for b in range(batch_s.shape[0]):
             r = spl.pose_jacobians(ctrl, batch_s[b], batch_u[b], jac_out, b)
-            ref = -1
-            dmin = 0
-            dmax = 0
-            rmin = height
-            rmax = -1
-            for e in range(b * batch_size, ti.min((b + 1) * batch_size, n_ev)):
+            e0 = b * batch_size
+            pu0, _ = project(r @ bearings[ti.min(e0, n_ev - 1)], width, height, su, sv)
+            ref = ti.floor(pu0)  # columns relative to the batch's first event
+            dmin = ti.cast(0.0, dtype)
+            dmax = ti.cast(0.0, dtype)
+            vmin = ti.cast(height, dtype)
+            vmax = ti.cast(-1.0, dtype)
+            for e in range(e0, ti.min(e0 + batch_size, n_ev)):
                 x = r @ bearings[e]
                 pu, pv = project(x, width, height, su, sv)
                 xw_out[e] = x
                 uv_out[e, 0] = pu
                 uv_out[e, 1] = pv
-                i0 = ti.cast(ti.floor(pu), ti.i32)
-                j0 = ti.cast(ti.floor(pv), ti.i32)
-                if ref < 0:
-                    ref = i0
-                d = i0 - ref
-                if d > half:
-                    d -= width
-                elif d <= -half:
-                    d += width
+                # float min/max and selects (branch-free; the integer form with branches cost more per event)
+                d = pu - ref
+                d = ti.select(d > half, d - fw, d)
+                d = ti.select(d <= -half, d + fw, d)
                 dmin = ti.min(dmin, d)
                 dmax = ti.max(dmax, d)
-                rmin = ti.min(rmin, ti.max(j0, 0))
-                rmax = ti.max(rmax, ti.min(j0 + 1, height - 1))
-            bbox[b, 0] = ref + dmin
-            bbox[b, 1] = ref + dmax + 2  # the right neighbour column is touched too
-            bbox[b, 2] = rmin
-            bbox[b, 3] = rmax
+                vmin = ti.min(vmin, pv)
+                vmax = ti.max(vmax, pv)
+            iref = ti.cast(ref, ti.i32)
+            bbox[b, 0] = iref + ti.cast(ti.floor(dmin), ti.i32)
+            bbox[b, 1] = iref + ti.cast(ti.floor(dmax), ti.i32) + 2  # the right neighbour column is touched too
+            bbox[b, 2] = ti.max(ti.cast(ti.floor(vmin), ti.i32), 0)
+            bbox[b, 3] = ti.min(ti.cast(ti.floor(vmax), ti.i32) + 1, height - 1)
 
     @ti.kernel
     def k_local_map(
