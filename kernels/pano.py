@@ -183,10 +183,10 @@ def _proj_funcs(dtype):
     def project_jacobian(x, su, sv):
         """Rows d u / d X' and d v / d X' (paper Eq. 27-29 with the pixel scaling)."""
         rho2 = x[0] * x[0] + x[2] * x[2]
-        rho = ti.sqrt(rho2)
         r2 = rho2 + x[1] * x[1]
-        a = su / rho2
-        c = sv / (rho * r2)
+        inv_rho = ti.rsqrt(rho2)
+        a = su * inv_rho * inv_rho
+        c = sv * inv_rho / r2
         du = vec3(x[2] * a, 0, -x[0] * a)
         dv = vec3(-x[0] * x[1] * c, rho2 * c, -x[2] * x[1] * c)
         return du, dv
