@@ -328,6 +328,25 @@ class RealtimeController:
         }
 
 
+def _wake_time(first_pending: float, s_now: float, handed_until: float, slice_s: float, t0: float) -> float | None:
+    """Sensor time the replay sleeps until before its next hand-over, or None to hand over now: when nothing is due,
+    or less than one slice (``realtime_chunk``) of events is due since the last hand-over, it waits for the next
+    slice boundary (the loop would otherwise hand over whatever its own few microseconds let through: 43 000 pushes
+    of ~90 events for 4 s of 1 M ev/s, each paying a push's fixed cost)."""
+    if first_pending <= s_now and s_now >= handed_until + slice_s:
+        return None
+    k = math.ceil((first_pending - t0) / slice_s)
+    return max(t0 + k * slice_s, first_pending, handed_until + slice_s)
+
+
+def _take_due(pending: Events, s_now: float) -> tuple[Events, Events, float]:
+    """(the due events, the rest, the sensor time handed over). That time is the last due event's, not the clock:
+    behind schedule, a read chunk of 50 000 events is only 4 ms at 12.6 M ev/s, and waiting a slice after each one
+    throttled the replay to ~2/3 of the sensor's rate (VGA's lag grew even at level 4 with 1 of 16 events)."""
+    i = int(np.searchsorted(pending.t, s_now, side="right"))
+    return pending[:i], pending[i:], float(pending.t[i - 1])
+
+
 def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = SlamConfig(), *,
                  backend_process: bool = False, progress_total: float | None = None, log=None):
     """CMax-SLAM on a recording replayed in sensor time (module docstring); returns the SlamResult with a
@@ -377,24 +396,15 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                 if log is not None:
                     log(f"replaying in sensor time (speed {speed:g}x) from t = {ctl.t0:.6f} s")
             s_now = ctl.t0 + (now - ctl.wall0) * speed
-            # nothing due, or less than one slice of realtime_chunk since the last hand-over: sleep until the next
-            # slice is (behind schedule, the loop would otherwise hand over whatever its own few microseconds let
-            # through: 43 000 pushes of ~90 events for 4 s of 1 M ev/s, each paying a push's fixed cost)
-            if pending.t[0] > s_now or s_now < handed_until + rt.realtime_chunk:
-                k = math.ceil((float(pending.t[0]) - ctl.t0) / rt.realtime_chunk)
-                wait = ctl.due(max(ctl.t0 + k * rt.realtime_chunk, float(pending.t[0]),
-                                   handed_until + rt.realtime_chunk)) - now
+            wake = _wake_time(float(pending.t[0]), s_now, handed_until, rt.realtime_chunk, ctl.t0)
+            if wake is not None:
+                wait = ctl.due(wake) - now
                 if wait > 0:
                     time.sleep(wait)
                     sleep_s += wait
                     idle["sleep"] = sleep_s
                 continue
-            i = int(np.searchsorted(pending.t, s_now, side="right"))
-            # the sensor time handed over: the last due event, not the clock (behind schedule, a read chunk of 50 000
-            # events is only 4 ms at 12.6 M ev/s; waiting a slice after each one throttled the replay to ~2/3 of
-            # the sensor's rate, so VGA's lag grew at level 4 with 1 of 16 events)
-            handed_until = float(pending.t[i - 1])
-            batch, pending = pending[:i], pending[i:]
+            batch, pending, handed_until = _take_due(pending, s_now)
             q = ctl.thinning
             if q > 1:
                 kept = every_qth(batch, q, handed + dropped)

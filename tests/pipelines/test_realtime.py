@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from ti_cmax.config import SlamConfig, load_config
+from ti_cmax.events import Events
 from ti_cmax.pipelines import realtime as R
 from ti_cmax.pipelines.slam import OnlineSlam, run_slam
 
@@ -229,3 +230,17 @@ def test_with_a_worker_the_front_end_skips_packets_only_while_it_falls_behind():
         ctl.on_window(_report(t, 0.1, ctl))
         t += 0.1
     assert not ctl.fe_skipping and calls[-1][0] == 1
+
+
+def test_replay_behind_schedule_hands_over_without_waiting():
+    """Behind schedule the replay hands over read chunk after read chunk; keeping up it waits a slice between
+    hand-overs. (Taking the clock as the time handed over made it wait a slice after every chunk: at 12.6 M ev/s a
+    50 000-event chunk is 4 ms of data, so the replay ran at ~2/3 of the sensor's rate and the lag grew.)"""
+    chunk = Events(np.arange(50) * 1e-4, np.zeros(50, np.uint16), np.zeros(50, np.uint16), np.ones(50, np.int8))
+    s_now = 0.5  # 0.5 s behind: the whole chunk (5 ms of data) is due
+    batch, rest, handed = R._take_due(chunk, s_now)
+    assert len(batch) == 50 and len(rest) == 0 and handed == pytest.approx(49e-4)
+    assert R._wake_time(0.0050, s_now, handed, 0.002, 0.0) is None  # the next chunk goes at once
+    # keeping up: the last hand-over was at the clock; wait for the next slice boundary
+    assert R._wake_time(0.5001, 0.5001, 0.5, 0.002, 0.0) == pytest.approx(0.502)
+    assert R._wake_time(0.7, 0.5, 0.49, 0.002, 0.0) == pytest.approx(0.7)  # nothing due until 0.7
