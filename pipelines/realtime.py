@@ -306,7 +306,7 @@ class RealtimeController:
             self._costs = []  # costs are measured afresh at the new level
             if self.online is not None:
                 self.online.degrade(self.fe_keep(), self.ba_cap(self.level, self._window_events),
-                                    LEVELS[self.level][2], self.ba_budget())
+                                    LEVELS[self.level][2], self.ba_budget(), self.thinning)
 
     def summary(self) -> dict:
         lags = np.asarray(self.lags) if self.lags else np.zeros(1)

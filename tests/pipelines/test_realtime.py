@@ -74,7 +74,7 @@ def test_controller_rule():
     cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
     ctl = R.RealtimeController(cfg, 1.0)
     calls = []
-    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every, budget: calls.append((keep, cap, every, budget)),
+    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every, budget, thinning=1: calls.append((keep, cap, every, budget)),
                                  frontend_until=0.1,
                                  runner=SimpleNamespace(seconds=0.0))
     ctl.wall0, ctl.t0 = 100.0, 0.0
@@ -214,7 +214,7 @@ def test_with_a_worker_the_front_end_skips_packets_only_while_it_falls_behind():
     cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
     ctl = R.RealtimeController(cfg, 1.0, worker=True)
     calls = []
-    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every, budget: calls.append((keep, cap, every)),
+    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every, budget, thinning=1: calls.append((keep, cap, every)),
                                  frontend_until=0.1, runner=SimpleNamespace(seconds=0.0))
     ctl.idle_seconds = lambda: 0.0
     ctl.wall0, ctl.t0 = 100.0, 0.0
@@ -244,3 +244,14 @@ def test_replay_behind_schedule_hands_over_without_waiting():
     # keeping up: the last hand-over was at the clock; wait for the next slice boundary
     assert R._wake_time(0.5001, 0.5001, 0.5, 0.002, 0.0) == pytest.approx(0.502)
     assert R._wake_time(0.7, 0.5, 0.49, 0.002, 0.0) == pytest.approx(0.7)  # nothing due until 0.7
+
+
+def test_input_thinning_keeps_the_packets_time_span(short_sequence):
+    """Handing over 1 of q events, the front-end's packets take N / q of them (their span stays, their cost falls with
+    the input); degrade() restores N."""
+    online = OnlineSlam(short_sequence.camera, load_config(SlamConfig, None, ["pano_height=256"]))
+    n = online.runner.slicer.n
+    online.degrade(4, 0, 1, 0.1, input_thinning=8)
+    assert online.runner.slicer.n == n // 8
+    online.degrade()
+    assert online.runner.slicer.n == n
