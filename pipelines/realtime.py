@@ -281,6 +281,10 @@ class RealtimeController:
             self.level = MAX_LEVEL  # beyond the hard bound: the last level at once
         elif lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL:
             self.level += 1
+            # heard from the front-end's lag: on to the next level that changes the front-end's work (a level that
+            # only degrades the BA cannot help a front-end that is behind; VGA took 4 ticks, ~0.5 s, to level 4)
+            while source == "frontend" and self.level < MAX_LEVEL and LEVELS[self.level][0] == LEVELS[old[0]][0]:
+                self.level += 1
         elif self.level == MAX_LEVEL and lag > self.target and prev is not None \
                 and lag + DRAIN_WINDOWS * change > self.target:
             self.thinning = min(MAX_INPUT_THINNING, 2 * self.thinning)

@@ -197,14 +197,15 @@ def test_controller_jumps_past_the_bound_and_hears_a_slow_front_end():
     assert ctl.level == R.MAX_LEVEL
     slow = R.RealtimeController(cfg, 1.0)
     slow.wall0, slow.t0 = 100.0, 0.0
-    slow.on_frontend(slow.due(0.05) + 0.5, 0.05)  # the front-end alone is late: escalate before any window
-    assert slow.level == 1
+    # the front-end alone is late: escalate before any window, straight to level 2 (level 1 only halves the BA)
+    slow.on_frontend(slow.due(0.05) + 0.5, 0.05)
+    assert slow.level == 2
     slow.on_frontend(slow.due(0.1) + 0.45, 0.1)  # less than a stride of progress and of wall time: no new decision
-    assert slow.level == 1
+    assert slow.level == 2
     slow.on_frontend(slow.due(0.05) + 0.7, 0.05)  # no progress, but a stride of wall time later: heard, and later
-    assert slow.level == 2
+    assert slow.level == 3
     slow.on_frontend(slow.due(0.3) + 0.05, 0.3)  # the front-end alone never relaxes
-    assert slow.level == 2
+    assert slow.level == 3
 
 
 def test_with_a_worker_the_front_end_skips_packets_only_while_it_falls_behind():
