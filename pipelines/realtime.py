@@ -34,10 +34,11 @@ region), not per event (1 M ev/s, one thread: 216k / 108k / 54k events per windo
 second of data), so c/4 and c/8 on every window saved little.
 
 - L > T and L would not be back under T within 5 windows at its current rate of change (L - L_prev per window):
-  l += 1; at l = 4, when L > M and would not be back under M within 5 windows: hand over only 1 of q events (q
-  doubles, at most 16) - the hard bound, for when even level 4 is slower than the sensor. (A falling lag is given
-  time to drain: escalating on every late window overshoots, since a backlog takes windows to clear even once the
-  system is faster than the sensor.)
+  l += 1; at l = 4, the same condition hands over only 1 of q events (q doubles, at most 16), for when even level 4
+  is slower than the sensor (until 2026-12-02 only above M: the lag passed M before thinning began), and the
+  front-end's packets take N / q events (their span kept). (A falling lag is given time to drain: escalating on
+  every late window overshoots, since a backlog takes windows to clear even once the system is faster than the
+  sensor.)
 - L > M: l = 4 at once;
 - relaxing, on the measured headroom: the cost of a level is the wall time a process works per wall second of
   sensor data, c = busy / (stride / speed), measured per window for the back-end worker (its wall time not spent
@@ -55,8 +56,9 @@ second of data), so c/4 and c/8 on every window saved little.
   under T / 2 no longer relaxes on its own: after the start-up transient a window completes at least one BA after
   its end, so that threshold was rarely met even with spare time, and was met by a backlog that had drained at a
   level still too costly.
-The front-end's lag (now - due(time of its last packet)), taken once per stride of its progress, is a second input
-to the escalating rules: when the front-end is the bottleneck, windows complete too rarely to react in time.
+The front-end's lag (now - due(time of its last packet)), taken once per stride of its progress or of wall time, is a
+second input to the escalating rules: when the front-end is the bottleneck, windows complete too rarely to react in
+time; an escalation it causes goes on to the next level that changes the front-end's work.
 Costs that do not scale with events (a front-end packet's optimisation, a window's BA) are cut first: levels 1-4 keep
 every event in the map; q (the hard bound) also cuts the per-event costs. Front-end packets are skipped because their
 cost is mostly per evaluation, not per event (thinning a packet's events saves little). report.json's "realtime"
