@@ -16,9 +16,10 @@ bound M = ``realtime_max_lag``): degradation level l in 0..4:
 
     l | front-end packets | BA events per window (cap c: backend_max_window_events; floor: realtime_min_window_events)
     0 | all               | c on every window (the offline computation)
-    1 | all               | c / 2 on every window
-    2 | 1 of 2            | c / 2 on 1 of 2 windows
-    3 | 1 of 4            | c / 4 on 1 of 2 windows
+    1 | all               | c on every window, with the BA's time budget (below): only a window whose BA would take
+                          |   longer than a stride (a cold start, a burst) is cut short
+    2 | all               | c / 2 on every window
+    3 | 1 of 2            | c / 2 on 1 of 2 windows
     4 | 1 of 4            | BA skipped (the window keeps the integrated front-end's poses; its events still go
                           |   into the map)
 
@@ -27,7 +28,11 @@ starts no BFGS iteration after it and keeps its best point so far (report: ``ba_
 needs longer, typically a cold start without carried curvature (~25 evaluations instead of 2-6: 2 s on a VGA window
 at 12 M ev/s), would otherwise add its excess to the lag all at once.
 
-A window without its BA (levels 2-3: every other one) settles its stride with the poses the previous window
+The levels cut the cheapest computation first: the budget touches only slow windows; halving the BA events saves
+~15 % of its cost (per-evaluation work dominates, below); skipping every other BA window 50 %. (Until 2026-12-02
+level 1 halved the events and level 3 kept c / 4 on 1 of 2 windows with 1 of 4 packets: a step that saved little.)
+
+A window without its BA (level 3: every other one) settles its stride with the poses the previous window
 refined (that stride was the second half of the previous window), so each stride is still refined once. Fewer BA
 windows rather than ever fewer BA events: the BA's cost is mostly per evaluation (the local map over the window's
 region), not per event (1 M ev/s, one thread: 216k / 108k / 54k events per window cost 0.77 / 0.66 / 0.50 CPU s per
@@ -94,7 +99,7 @@ RELAX_WINDOWS = 3  # windows at a level before it may be lowered (and over which
 RELAX_HEADROOM = 0.8  # a level is relaxed only when the lower one is predicted to cost below this (per process)
 DRAIN_WINDOWS = 5  # a lag above target that falls back under it within this many windows needs no escalation
 # level -> (1 of k front-end packets, BA cap divisor (0: BA skipped), BA on 1 of m windows)
-LEVELS = {0: (1, 1, 1), 1: (1, 2, 1), 2: (2, 2, 2), 3: (4, 4, 2), 4: (4, 0, 1)}
+LEVELS = {0: (1, 1, 1), 1: (1, 1, 1), 2: (1, 2, 1), 3: (2, 2, 2), 4: (4, 0, 1)}  # level 1: the BA budget only
 
 
 class RealtimeController:

@@ -84,7 +84,8 @@ def test_controller_rule():
         t += 0.1
     assert ctl.level == 4 and ctl.thinning == 1
     # from level 1 on, a window's BA has one stride of wall time (0.1 s at speed 1)
-    assert calls == [(1, 100_000, 1, 0.1), (2, 100_000, 2, 0.1), (4, 50_000, 2, 0.1), (4, 0, 1, 0.1)]
+    # (level 1: the budget alone; 2: half the events; 3: half the BA windows and packets; 4: no BA)
+    assert calls == [(1, None, 1, 0.1), (1, 100_000, 1, 0.1), (2, 100_000, 2, 0.1), (4, 0, 1, 0.1)]
     ctl.on_window(_report(t, 1.5, ctl))  # beyond the hard bound and rising: hand over 1 of 2 events
     t += 0.1
     assert ctl.thinning == 2
@@ -95,20 +96,20 @@ def test_controller_rule():
         ctl.on_window(_report(t, 0.1, ctl))
         t += 0.1
     assert ctl.thinning == 1 and ctl.level == 4
-    for _ in range(2):  # level 4 costs 0.5 of the wall time; level 3 adds a BA of 50 000 events on 1 of 2 windows:
-        assert ctl.level == 4  # the last BA (0.05 s for 100 000 events) x sqrt(1/2) / 2 per 0.1 s stride = 0.18
+    for _ in range(2):  # level 4 costs 0.5 of the wall time; level 3 adds a BA of 100 000 events on 1 of 2 windows:
+        assert ctl.level == 4  # the last BA (0.05 s for 100 000 events) / 2 per 0.1 s stride = 0.25
         ctl.on_window(_report(t, 0.2, ctl))  # under the target (not under half of it: relaxing needs headroom)
         t += 0.1
-    assert ctl.level == 3 and calls[-1] == (4, 50_000, 2, 0.1)  # 3 windows after the last change
-    assert ctl.predicted[-1] == pytest.approx(0.5 + 0.05 * np.sqrt(0.5) / 2 / 0.1, rel=0.02)
-    for _ in range(6):  # level 3 costs 0.9, 0.1 of it in the BA: level 2 (x sqrt 2) would cost 0.94; no relaxing
+    assert ctl.level == 3 and calls[-1] == (2, 100_000, 2, 0.1)  # 3 windows after the last change
+    assert ctl.predicted[-1] == pytest.approx(0.5 + 0.05 / 2 / 0.1, rel=0.02)
+    for _ in range(6):  # level 3 costs 0.9, 0.1 of it in the BA: level 2 (a BA on every window) would cost 1.0
         ctl.on_window(_report(t, 0.1, ctl, n=50_000, busy=0.09, ba=0.01))
         t += 0.1
     assert ctl.level == 3
-    for _ in range(3):  # less busy (0.6): level 2 is predicted at 0.64 and is taken
+    for _ in range(3):  # less busy (0.6): level 2 is predicted at 0.7 and is taken
         ctl.on_window(_report(t, 0.1, ctl, n=50_000, busy=0.06, ba=0.01))
         t += 0.1
-    assert ctl.level == 2 and calls[-1] == (2, 100_000, 2, 0.1)
+    assert ctl.level == 2 and calls[-1] == (1, 100_000, 1, 0.1)
     s = ctl.summary()
     assert s["max_lag_s"] == pytest.approx(1.5) and s["level_sensor_seconds"]["4"] > 0 and s["input_max_thinning"] == 2
     assert s["latency_max_s"] == pytest.approx(1.6)  # the lag plus the stride whose events got their first pose
@@ -197,15 +198,15 @@ def test_controller_jumps_past_the_bound_and_hears_a_slow_front_end():
     assert ctl.level == R.MAX_LEVEL
     slow = R.RealtimeController(cfg, 1.0)
     slow.wall0, slow.t0 = 100.0, 0.0
-    # the front-end alone is late: escalate before any window, straight to level 2 (level 1 only halves the BA)
+    # the front-end alone is late: escalate before any window, straight to level 3 (levels 1-2 only degrade the BA)
     slow.on_frontend(slow.due(0.05) + 0.5, 0.05)
-    assert slow.level == 2
+    assert slow.level == 3
     slow.on_frontend(slow.due(0.1) + 0.45, 0.1)  # less than a stride of progress and of wall time: no new decision
-    assert slow.level == 2
+    assert slow.level == 3
     slow.on_frontend(slow.due(0.05) + 0.7, 0.05)  # no progress, but a stride of wall time later: heard, and later
-    assert slow.level == 3
+    assert slow.level == 4
     slow.on_frontend(slow.due(0.3) + 0.05, 0.3)  # the front-end alone never relaxes
-    assert slow.level == 3
+    assert slow.level == 4
 
 
 def test_with_a_worker_the_front_end_skips_packets_only_while_it_falls_behind():
