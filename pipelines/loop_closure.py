@@ -115,6 +115,8 @@ class LoopCloser:
         self.chunks: list[tuple[np.ndarray, np.ndarray, float, float, bool]] = []  # (t, b, weight, t0, moving)
         self._n_old = 0  # chunks already voted into the old map and the age map
         self._stored = 0
+        self._thinned = 0  # times every chunk was thinned by 2 (a checkpoint holds the chunks as they were)
+        self._checkpoint = None  # (old map, age, visit) after a rebuild: the next rebuild starts there (_rebuild)
         self._next_check = backend.t_start + config.loop_min_age + config.loop_recent_time
         self._interval = config.loop_recent_time  # time from one verification to the next check
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
@@ -135,6 +137,7 @@ class LoopCloser:
         if self._stored > self.cfg.loop_max_stored_events:
             self.chunks = [(c[0][::2], c[1][::2], c[2] * len(c[0]) / len(c[0][::2]), c[3], c[4]) for c in self.chunks]
             self._stored = sum(len(c[0]) for c in self.chunks)
+            self._thinned += 1
         self._spent(tic, cpu)
         self.profile["store"] += time.perf_counter() - tic
 
@@ -190,7 +193,9 @@ class LoopCloser:
         t, b, weight, t0, moving = chunk
         _, rot = self._rotations(t)
         self.old.add(b, rot, self.backend.cfg.event_batch_size, weight=weight)
-        cells = np.unique(self._cells(b, rot))
+        hit = np.zeros(self.age.size, bool)
+        hit[self._cells(b, rot)] = True
+        cells = np.flatnonzero(hit)  # np.unique's cells (sorted), without its sort
         new_visit = self.age.flat[cells] < float(t[0]) - self.cfg.loop_min_age  # never observed, or long ago
         self.visit.flat[cells[new_visit]] = float(t[0])
         self.age.flat[cells] = np.maximum(self.age.flat[cells], float(t[-1]))
@@ -287,9 +292,14 @@ class LoopCloser:
         self.profile["register"] += time.perf_counter() - tic
         # correlation of the registered recent map with the old map over the old regions, on local texture: on the
         # box around them (rows, and the cyclic column interval) with a margin for the texture filter and the shifts
+        # (the box of the old regions the registered recent map covers: the correlation reads nothing else)
         margin = 4 * _TEXTURE + int(math.ceil(max(_RING)))
-        band = slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h))
-        cols = _cyclic_span(mask[band].any(axis=0), margin)
+        both = mask & (problem.local_map(so3.exp(phi) @ base) > 0)
+        if not both.any():
+            both = mask
+        rows_both = np.flatnonzero(both.any(axis=1))
+        band = slice(max(int(rows_both[0]) - margin, 0), min(int(rows_both[-1]) + margin + 1, h))
+        cols = _cyclic_span(both[band].any(axis=0), margin)
         wrap = len(cols) == w  # the whole width: columns wrap
         g_tex = local_texture(problem.gmap[band][:, cols], _TEXTURE, wrap_columns=wrap)
         m_band = mask[band][:, cols]
@@ -368,17 +378,31 @@ class LoopCloser:
                 "t_spread_from": float(knots[i0])}
 
     def _rebuild(self) -> None:
-        """Global map, old map and age map from the stored subsamples along the (corrected) spline."""
+        """Global map, old map and age map from the stored subsamples along the (corrected) spline.
+
+        The old map and the age map are rebuilt from the checkpoint the last rebuild left (its maps after aging
+        its chunks, and the control poses then) when the correction left the poses of those chunks unchanged:
+        every later loop closes only the drift since the last one (``_apply``), so only the chunks aged since are
+        voted again, not every chunk since the start. Same votes in the same order: the same maps, bit for bit.
+        """
         tic = time.perf_counter()
         backend = self.backend
         bs = backend.cfg.event_batch_size
         freeze = backend.map.first_seen is not None
-        backend.map = self.old = None  # free the old maps first: peak memory holds one set of maps, not two
-        self.old = _RawMap(self.backend.width, self.backend.height)
-        self.age[:] = -np.inf
-        self.visit[:] = -np.inf
-        for chunk in self.chunks[:self._n_old]:
+        start = self._checkpoint_start()
+        backend.map = self.old = None  # free the old maps first: peak memory holds one set of maps (+ the checkpoint)
+        if start > 0:
+            raw, age, visit = self._checkpoint[1:4]
+            self.old = _RawMap(self.backend.width, self.backend.height, raw=raw.copy())
+            self.age[:], self.visit[:] = age, visit
+        else:
+            self.old = _RawMap(self.backend.width, self.backend.height)
+            self.age[:] = -np.inf
+            self.visit[:] = -np.inf
+        for chunk in self.chunks[start:self._n_old]:
             self._age_chunk(chunk)
+        self._checkpoint = (self._n_old, self.old.raw.copy(), self.age.copy(), self.visit.copy(),
+                            backend.spline.control_R.copy(), self._thinned)
         backend.map = self._new_map()
         if freeze:  # first-seen times: every stride in time order, as the back-end settled them
             for t, b, weight, t0, moving in self.chunks:
@@ -390,6 +414,21 @@ class LoopCloser:
                 acc.add(b, self._rotations(t)[1], bs, weight=weight)
             backend.map.set_raw(acc.raw)
         self.profile["rebuild"] += time.perf_counter() - tic
+
+    def _checkpoint_start(self) -> int:
+        """Chunks the checkpoint holds when none of their poses changed since it was taken (0: rebuild all)."""
+        if self._checkpoint is None:
+            return 0
+        n, _raw, _age, _visit, ctrl, thinned = self._checkpoint
+        spline = self.backend.spline
+        if thinned != self._thinned or n > self._n_old or n == 0 or len(ctrl) > spline.num_control:
+            return 0
+        changed = np.flatnonzero(np.any(spline.control_R[:len(ctrl)] != ctrl, axis=(1, 2)))
+        k = int(changed[0]) if len(changed) else len(ctrl)
+        # R(t) depends on control poses s .. s + degree (SO3Spline.support): times before this one kept theirs
+        lead = (spline.degree - 1) // 2
+        t_changed = spline.t0 + (k - spline.degree + lead) * spline.dt
+        return n if float(self.chunks[n - 1][0][-1]) < t_changed else 0
 
     # ---- report ----------------------------------------------------------------------------------------------------
     def summary(self) -> dict:
