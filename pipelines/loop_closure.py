@@ -33,6 +33,7 @@ Every candidate goes into ``loops`` (time, correction, confidence, accepted, app
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -97,6 +98,47 @@ class _RawMap(GlobalMap):
             self.raw[sel] += votes
 
 
+class _Slices:
+    """A function run one slice at a time in a helper thread (a coroutine): the thread runs only from ``resume()``
+    to its next ``pause()`` (or its end) while the caller waits, so exactly one of the two runs at any time (the
+    same computation as a direct call, in the same order; Taichi and numpy see one caller at a time)."""
+
+    def __init__(self, fn):
+        self._go, self._back = threading.Semaphore(0), threading.Semaphore(0)
+        self.done, self.result, self._error = False, None, None
+        self.paused_seconds = 0.0  # wall time the thread spent paused (not working)
+        self._thread = threading.Thread(target=self._run, args=(fn,), daemon=True)
+        self._thread.start()
+
+    def _run(self, fn) -> None:
+        self._go.acquire()
+        try:
+            self.result = fn()
+        except BaseException as exc:  # noqa: BLE001 - raised in the caller by resume()
+            self._error = exc
+        self.done = True
+        self._back.release()
+
+    def in_thread(self) -> bool:
+        return threading.current_thread() is self._thread
+
+    def pause(self) -> None:
+        """In the thread: hand control back to the caller until the next resume()."""
+        tic = time.perf_counter()
+        self._back.release()
+        self._go.acquire()
+        self.paused_seconds += time.perf_counter() - tic
+
+    def resume(self) -> None:
+        """Run the thread until its next pause() or its end (raising its error, if it failed)."""
+        if self.done:
+            return
+        self._go.release()
+        self._back.acquire()
+        if self._error is not None:
+            raise self._error
+
+
 class LoopCloser:
     """Loop detection, verification and correction for one ``SlidingWindowBackend`` (module docstring)."""
 
@@ -121,6 +163,13 @@ class LoopCloser:
         self._interval = config.loop_recent_time  # time from one verification to the next check
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
         self.loops: list[dict] = []
+        # sliced verification (the real-time replay, pipelines/realtime.py): None verifies at once (offline);
+        # else a verification runs in slices (_Slices, one cost evaluation or map step each) of at most this many
+        # wall seconds before each window, and in the back-end worker's idle time (idle_slice), and its result is
+        # applied before the window after it ended
+        self.slice_seconds: float | None = None
+        self._task: _Slices | None = None
+        self._pending = None  # (entry, t, b, old_cells, t_now, verification wall seconds) of the task
         self.seconds = self.cpu_seconds = 0.0
         self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
 
@@ -146,6 +195,13 @@ class LoopCloser:
         events plus the window's, and close it. The window's events are still at their initialized poses: the
         BA has not pulled them to the old map yet (that pull, spread over the windows that enter the old
         regions, is the jump at a loop, and it hides the loop's error from a later check)."""
+        if self._task is not None:  # a sliced verification in flight: its slices first, no new check meanwhile
+            tic, cpu = time.perf_counter(), time.process_time()
+            self._advance(self.slice_seconds)
+            if self._task.done:
+                self._conclude_task()
+            self._spent(tic, cpu)
+            return
         if t1 < self._next_check:
             return
         tic, cpu = time.perf_counter(), time.process_time()
@@ -219,24 +275,92 @@ class LoopCloser:
         if overlap < cfg.loop_min_overlap:
             self._interval = cfg.loop_recent_time
             return
-        tic = time.perf_counter()
         entry = {"time": float(t_now), "overlap": overlap}
+        if self.slice_seconds is not None:  # in slices: before this window and the next ones, and when idle
+            self._task = _Slices(lambda: self.verify(t, b, old_cells))
+            # the age and visit maps as detected: strides aged while the verification runs (the recent events
+            # among them) must not make the old visit look recent (_apply)
+            self._pending = [entry, t, b, old_cells, t_now, 0.0, (self.age.copy(), self.visit.copy())]
+            self._advance(self.slice_seconds)
+            if self._task.done:
+                self._conclude_task()
+            return
+        tic = time.perf_counter()
         entry.update(self.verify(t, b, old_cells))
         self.profile["verify"] += time.perf_counter() - tic
+        self._conclude(entry, t, b, old_cells, t_now, time.perf_counter() - tic)
+
+    # ---- sliced verification (real time) ----------------------------------------------------------------------
+    def _advance(self, budget: float | None) -> None:
+        """Run slices of the verification in flight until it ends or ``budget`` wall seconds are used (None: to
+        its end); at least one (progress without idle time too)."""
+        tic = time.perf_counter()
+        while not self._task.done:
+            self._task.resume()
+            if budget is not None and time.perf_counter() - tic >= budget:
+                break
+        spent = time.perf_counter() - tic
+        self._pending[5] += spent
+        self.profile["verify"] += spent
+
+    def _slice_point(self) -> None:
+        """Where a sliced verification may pause (no-op otherwise)."""
+        task = self._task
+        if task is not None and task.in_thread():
+            task.pause()
+
+    def _paused(self) -> float:
+        """Wall seconds a sliced verification spent paused so far (0 offline): not its work."""
+        task = self._task
+        return task.paused_seconds if task is not None and task.in_thread() else 0.0
+
+    def pending(self) -> bool:
+        """A sliced verification is in flight and has work left (``idle_slice`` would run some)."""
+        return self._task is not None and not self._task.done
+
+    def idle_slice(self) -> None:
+        """One slice of the verification in flight (the back-end worker calls this while no input waits); its
+        result is applied before the next window."""
+        if self.pending():
+            tic, cpu = time.perf_counter(), time.process_time()
+            self._task.resume()
+            self._pending[5] += time.perf_counter() - tic
+            self.profile["verify"] += time.perf_counter() - tic
+            self._spent(tic, cpu)
+
+    def drain(self) -> None:
+        """Finish the verification in flight at once (the end of the stream: its result applies to the last
+        windows)."""
+        if self.pending():
+            tic, cpu = time.perf_counter(), time.process_time()
+            self._advance(None)
+            self._spent(tic, cpu)
+
+    def _conclude_task(self) -> None:
+        task, (entry, t, b, old_cells, t_now, seconds, ages) = self._task, self._pending
+        self._task = self._pending = None
+        entry.update(task.result)
+        entry["sliced"] = True
+        self._conclude(entry, t, b, old_cells, t_now, seconds, ages)
+
+    def _conclude(self, entry: dict, t, b, old_cells, t_now: float, seconds: float, ages=None) -> None:
+        """The decision on a verified candidate: apply it or not; the next check's time; the report entry."""
+        cfg = self.cfg
+        tic = time.perf_counter()
         px = 2 * np.pi / self.backend.width
         if entry["accepted"] and entry["correction_deg"] < np.degrees(cfg.loop_min_correction_px * px):
             entry["applied"], entry["reason"] = False, "correction below loop_min_correction_px"
         elif entry["accepted"] and entry["confidence"] - entry["confidence_before"] < cfg.loop_min_gain:
             entry["applied"], entry["reason"] = False, "correlation gain below loop_min_gain"
         elif entry["accepted"]:
-            entry.update(self._apply(t, b, old_cells, np.asarray(entry.pop("_phi")), t_now))
+            entry.update(self._apply(t, b, old_cells, np.asarray(entry.pop("_phi")), t_now, ages))
         entry.pop("_phi", None)
         # while the revisit goes on and the map stays consistent, verify less and less often (up to once per
         # loop_min_age): the cost of a long revisit stays bounded; an applied loop starts again at loop_recent_time
         recent = cfg.loop_recent_time
         self._interval = recent if entry.get("applied") else min(2 * self._interval, max(cfg.loop_min_age, recent))
         self._next_check = t_now + self._interval
-        entry["seconds"] = time.perf_counter() - tic
+        entry["seconds"] = seconds + time.perf_counter() - tic
         self.loops.append(entry)
 
     def verify(self, t: np.ndarray, b: np.ndarray, old_cells: np.ndarray) -> dict:
@@ -245,7 +369,8 @@ class LoopCloser:
         Returns correction_deg, confidence (correlation at the optimum), confidence_before (at no correction),
         peak_ratio, accepted, reason and ``_phi`` (the correction's rotation vector, world frame, left).
         """
-        cfg, bcfg, spline = self.cfg, self.backend.cfg, self.backend.spline
+        # a copy: the poses as they are now, also when the verification runs in slices between later windows
+        cfg, bcfg, spline = self.cfg, self.backend.cfg, self.backend.spline.copy()
         w, h = self.backend.width, self.backend.height
         mask = np.repeat(np.repeat(old_cells, _CELL, axis=0), _CELL, axis=1)[:h, :w]
         rows = np.flatnonzero(mask.any(axis=1))
@@ -257,10 +382,11 @@ class LoopCloser:
         s, u = spline.support(mids)
         base = spline.control_R.copy()
         phi = np.zeros(3)
-        tic = time.perf_counter()
+        tic, paused0 = time.perf_counter(), self._paused()
         levels = [f for f in (4, 2, 1) if w % f == 0 and h % f == 0 and (w // f >= 256 or f == 1)]
         problem = None
         for f in levels:
+            self._slice_point()
             g = g_raw.reshape(h // f, f, w // f, f).sum(axis=(1, 3)) if f > 1 else g_raw
             local = vote_map(b, so3.exp(phi) @ spline.evaluate_at(s, u), w // f, h // f,
                              batch_size=bcfg.event_batch_size)
@@ -276,6 +402,7 @@ class LoopCloser:
             scale = 1.0 / var0 if var0 > 0 else 1.0
 
             def objective(x, problem=problem, scale=scale):
+                self._slice_point()
                 var, grad = problem.cost_and_grad(so3.exp(x) @ base)
                 # one common left increment of every control pose moves the whole trajectory by it
                 return var * scale, so3.left_jacobian(x).T @ grad.sum(axis=0) * scale
@@ -289,7 +416,8 @@ class LoopCloser:
                 return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
                         "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
                         "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
-        self.profile["register"] += time.perf_counter() - tic
+        self.profile["register"] += time.perf_counter() - tic - (self._paused() - paused0)
+        self._slice_point()
         # correlation of the registered recent map with the old map over the old regions, on local texture: on the
         # box around them (rows, and the cyclic column interval) with a margin for the texture filter and the shifts
         # (the box of the old regions the registered recent map covers: the correlation reads nothing else)
@@ -321,7 +449,9 @@ class LoopCloser:
             lmap = problem.local_map(so3.exp(x) @ base)[band][:, cols]
             return lmap, local_texture(lmap, _TEXTURE, wrap_columns=wrap)
 
+        self._slice_point()
         at_opt = maps_at(phi)
+        self._slice_point()
         conf = ncc(*at_opt)
         # uniqueness: the registered recent map shifted by _RING map pixels in 4 directions each (a second peak
         # there: repeated texture, a false loop). Shifting the map (not re-voting at rotated poses) costs one
@@ -341,12 +471,16 @@ class LoopCloser:
             ok, reason = False, "correction above loop_max_correction"
         else:
             ok, reason = True, "accepted"
-        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": ncc(*maps_at(np.zeros(3))),
+        self._slice_point()
+        before = ncc(*maps_at(np.zeros(3)))
+        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": before,
                 "peak_ratio": float(peak), "accepted": ok, "applied": False, "reason": reason, "_phi": phi.tolist()}
 
     # ---- correction ----------------------------------------------------------------------------------------------
-    def _apply(self, t, b, old_cells, phi, t_now) -> dict:
-        """Spread the correction over the control poses since the old visit; rebuild the maps."""
+    def _apply(self, t, b, old_cells, phi, t_now, ages=None) -> dict:
+        """Spread the correction over the control poses since the old visit; rebuild the maps. ``ages``: the
+        (age, visit) maps at detection (None: the current ones)."""
+        age, visit = ages if ages is not None else (self.age, self.visit)
         backend = self.backend
         spline = backend.spline
         corr = so3.exp(phi)
@@ -358,7 +492,7 @@ class LoopCloser:
         # the correction was measured by the recent events on the old regions, against the last visit there: the
         # old map of a region stands for the poses of that whole visit, zero correction at its middle
         hit = cells[on_old]
-        t_old = float(np.median(0.5 * (self.visit.flat[hit] + self.age.flat[hit])))
+        t_old = float(np.median(0.5 * (visit.flat[hit] + age.flat[hit])))
         t_ref = float(np.median(t[on_old]))
         t_a = max(t_old, self._closed_until)
         if t_ref <= t_a:
@@ -434,5 +568,5 @@ class LoopCloser:
     def summary(self) -> dict:
         return {"candidates": len(self.loops), "accepted": sum(e["accepted"] for e in self.loops),
                 "applied": sum(bool(e.get("applied")) for e in self.loops), "seconds": self.seconds,
-                "cpu_seconds": self.cpu_seconds,
+                "cpu_seconds": self.cpu_seconds, "unfinished": int(self.pending()),
                 "stored_events": int(self._stored), "seconds_by_part": dict(self.profile)}
