@@ -28,6 +28,16 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    spline, so later windows align to one consistent map (the global map at once: the rebuilt old map plus the
    recent strides' votes, blurred once; stride by stride only with pixel freezing).
 
+   The old map and the age map restart from the checkpoint the last rebuild left when the correction left its
+   strides' poses unchanged (every later loop closes only the drift since the last one), so a rebuild votes the
+   strides aged since, not every stride since the start (bitwise the same maps).
+5. real time (``slice_seconds``, set by ``ti-cmax slam --realtime``): the verification and the rebuild after it run
+   in slices (a helper thread run as a coroutine, strictly alternating with the back-end: one cost evaluation, map
+   step or stored stride per slice) for at most ``slice_seconds`` before each window and in the back-end worker's
+   idle time; the result is applied before the window after the verification ends (to the poses then: at level 4,
+   without BA, the same trajectory as at once), with the age map as detected; the old maps serve meanwhile. No
+   new check while one is in flight. Offline (None) all runs at once.
+
 Every candidate goes into ``loops`` (time, correction, confidence, accepted, applied, reason) for report.json.
 """
 from __future__ import annotations
@@ -148,6 +158,7 @@ class LoopCloser:
             raise ValueError("the loop closer needs a config resolved for the camera (sensor_defaults.resolve_config)")
         self.cfg, self.backend = config, backend
         freeze = backend.map.max_update_time
+        self._freeze = freeze is not None  # pixel freezing: the rebuilt global map settles every stride in order
         self._new_map = lambda: GlobalMap(backend.width, backend.height, backend.cfg.backend_blur_sigma,
                                           backend.cfg.lambda0, freeze)
         w, h = backend.width, backend.height
@@ -168,9 +179,10 @@ class LoopCloser:
         # wall seconds before each window, and in the back-end worker's idle time (idle_slice), and its result is
         # applied before the window after it ended
         self.slice_seconds: float | None = None
-        self._task: _Slices | None = None
-        self._pending = None  # (entry, t, b, old_cells, t_now, verification wall seconds) of the task
+        self._task: _Slices | None = None  # the verification or map rebuild in flight
+        self._pending: dict | None = None  # what its conclusion needs (_conclude_task)
         self.seconds = self.cpu_seconds = 0.0
+        self.longest_call = (0.0, 0.0)  # (wall, CPU) seconds of the longest hook call (_spent)
         self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
 
     # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
@@ -195,7 +207,7 @@ class LoopCloser:
         events plus the window's, and close it. The window's events are still at their initialized poses: the
         BA has not pulled them to the old map yet (that pull, spread over the windows that enter the old
         regions, is the jump at a loop, and it hides the loop's error from a later check)."""
-        if self._task is not None:  # a sliced verification in flight: its slices first, no new check meanwhile
+        if self._task is not None:  # a sliced verification or rebuild in flight: its slices, no new check meanwhile
             tic, cpu = time.perf_counter(), time.process_time()
             self._advance(self.slice_seconds)
             if self._task.done:
@@ -224,8 +236,11 @@ class LoopCloser:
     def _spent(self, tic: float, cpu: float) -> None:
         """Add the wall and CPU time since (tic, cpu) to the loop closer's totals (CPU time: comparable on a
         loaded machine, where wall time is not)."""
-        self.seconds += time.perf_counter() - tic
-        self.cpu_seconds += time.process_time() - cpu
+        wall, used = time.perf_counter() - tic, time.process_time() - cpu
+        self.seconds += wall
+        self.cpu_seconds += used
+        # the longest the loop closer held the back-end in one call (a stall of the windows behind it)
+        self.longest_call = (max(self.longest_call[0], wall), max(self.longest_call[1], used))
 
     # ---- detection and verification ----------------------------------------------------------------------------
     def _rotations(self, t: np.ndarray, ctrl_left: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -245,16 +260,19 @@ class LoopCloser:
         cj = (u // _CELL).astype(np.int64) % self.age.shape[1]
         return ci * self.age.shape[1] + cj
 
-    def _age_chunk(self, chunk) -> None:
+    def _age_chunk(self, chunk, maps=None) -> None:
+        """Vote a stored chunk into the old map and mark its cells in the age and visit maps (``maps``: into
+        (old, age, visit) instead of the loop closer's own)."""
+        old, age, visit = maps if maps is not None else (self.old, self.age, self.visit)
         t, b, weight, t0, moving = chunk
         _, rot = self._rotations(t)
-        self.old.add(b, rot, self.backend.cfg.event_batch_size, weight=weight)
-        hit = np.zeros(self.age.size, bool)
+        old.add(b, rot, self.backend.cfg.event_batch_size, weight=weight)
+        hit = np.zeros(age.size, bool)
         hit[self._cells(b, rot)] = True
         cells = np.flatnonzero(hit)  # np.unique's cells (sorted), without its sort
-        new_visit = self.age.flat[cells] < float(t[0]) - self.cfg.loop_min_age  # never observed, or long ago
-        self.visit.flat[cells[new_visit]] = float(t[0])
-        self.age.flat[cells] = np.maximum(self.age.flat[cells], float(t[-1]))
+        new_visit = age.flat[cells] < float(t[0]) - self.cfg.loop_min_age  # never observed, or long ago
+        visit.flat[cells[new_visit]] = float(t[0])
+        age.flat[cells] = np.maximum(age.flat[cells], float(t[-1]))
 
     def _recent_events(self, ev_t, ev_b) -> tuple[np.ndarray, np.ndarray]:
         """The stored events not aged yet, then (ev_t, ev_b); thinned to loop_registration_events."""
@@ -280,7 +298,8 @@ class LoopCloser:
             self._task = _Slices(lambda: self.verify(t, b, old_cells))
             # the age and visit maps as detected: strides aged while the verification runs (the recent events
             # among them) must not make the old visit look recent (_apply)
-            self._pending = [entry, t, b, old_cells, t_now, 0.0, (self.age.copy(), self.visit.copy())]
+            self._pending = {"kind": "verify", "entry": entry, "args": (t, b, old_cells, t_now), "seconds": 0.0,
+                             "ages": (self.age.copy(), self.visit.copy())}
             self._advance(self.slice_seconds)
             if self._task.done:
                 self._conclude_task()
@@ -292,56 +311,64 @@ class LoopCloser:
 
     # ---- sliced verification (real time) ----------------------------------------------------------------------
     def _advance(self, budget: float | None) -> None:
-        """Run slices of the verification in flight until it ends or ``budget`` wall seconds are used (None: to
-        its end); at least one (progress without idle time too)."""
+        """Run slices of the task in flight until it ends or ``budget`` wall seconds are used (None: to its end);
+        at least one (progress without idle time too)."""
         tic = time.perf_counter()
         while not self._task.done:
             self._task.resume()
             if budget is not None and time.perf_counter() - tic >= budget:
                 break
-        spent = time.perf_counter() - tic
-        self._pending[5] += spent
-        self.profile["verify"] += spent
+        self._count(time.perf_counter() - tic)
+
+    def _count(self, spent: float) -> None:
+        self._pending["seconds"] += spent
+        self.profile[self._pending["kind"]] += spent
 
     def _slice_point(self) -> None:
-        """Where a sliced verification may pause (no-op otherwise)."""
+        """Where a sliced task may pause (no-op otherwise)."""
         task = self._task
         if task is not None and task.in_thread():
             task.pause()
 
     def _paused(self) -> float:
-        """Wall seconds a sliced verification spent paused so far (0 offline): not its work."""
+        """Wall seconds a sliced task spent paused so far (0 offline): not its work."""
         task = self._task
         return task.paused_seconds if task is not None and task.in_thread() else 0.0
 
     def pending(self) -> bool:
-        """A sliced verification is in flight and has work left (``idle_slice`` would run some)."""
+        """A sliced task is in flight and has work left (``idle_slice`` would run some)."""
         return self._task is not None and not self._task.done
 
     def idle_slice(self) -> None:
-        """One slice of the verification in flight (the back-end worker calls this while no input waits); its
-        result is applied before the next window."""
+        """One slice of the task in flight (the back-end worker calls this while no input waits); its result is
+        used before the next window."""
         if self.pending():
             tic, cpu = time.perf_counter(), time.process_time()
             self._task.resume()
-            self._pending[5] += time.perf_counter() - tic
-            self.profile["verify"] += time.perf_counter() - tic
+            self._count(time.perf_counter() - tic)
             self._spent(tic, cpu)
 
     def drain(self) -> None:
-        """Finish the verification in flight at once (the end of the stream: its result applies to the last
-        windows)."""
-        if self.pending():
-            tic, cpu = time.perf_counter(), time.process_time()
+        """Finish the tasks in flight at once (the end of the stream: the result applies to the last windows)."""
+        tic, cpu = time.perf_counter(), time.process_time()
+        while self._task is not None:
             self._advance(None)
-            self._spent(tic, cpu)
+            self._conclude_task()
+        self.seconds += time.perf_counter() - tic  # (not a stall of the windows: none follow)
+        self.cpu_seconds += time.process_time() - cpu
 
     def _conclude_task(self) -> None:
-        task, (entry, t, b, old_cells, t_now, seconds, ages) = self._task, self._pending
+        task, pending = self._task, self._pending
         self._task = self._pending = None
+        if pending["kind"] == "rebuild":
+            tic = time.perf_counter()
+            self._finish_rebuild(task.result, pending["n_old"], pending["thinned"])
+            self.profile["rebuild"] += time.perf_counter() - tic
+            return
+        entry = pending["entry"]
         entry.update(task.result)
         entry["sliced"] = True
-        self._conclude(entry, t, b, old_cells, t_now, seconds, ages)
+        self._conclude(entry, *pending["args"], pending["seconds"], pending["ages"])
 
     def _conclude(self, entry: dict, t, b, old_cells, t_now: float, seconds: float, ages=None) -> None:
         """The decision on a verified candidate: apply it or not; the next check's time; the report entry."""
@@ -447,6 +474,7 @@ class LoopCloser:
 
         def maps_at(x):
             lmap = problem.local_map(so3.exp(x) @ base)[band][:, cols]
+            self._slice_point()
             return lmap, local_texture(lmap, _TEXTURE, wrap_columns=wrap)
 
         self._slice_point()
@@ -505,7 +533,13 @@ class LoopCloser:
         steps = so3.geodesic_angle(ctrl[i0:i1], ctrl[i0 + 1:i1 + 1]) + 0.01 * spline.dt
         ctrl[i0:i1 + 1] = so3.spread_correction(steps, phi) @ ctrl[i0:i1 + 1]
         ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
-        self._rebuild()
+        if self.slice_seconds is None:
+            self._rebuild()
+        else:  # in slices too (the old map from the stored strides: the bulk of it); the old maps serve meanwhile
+            n_old, thinned = self._n_old, self._thinned
+            self._task = _Slices(lambda: self._rebuild_old(n_old))
+            self._pending = {"kind": "rebuild", "n_old": n_old, "thinned": thinned, "seconds": 0.0}
+            self._advance(self.slice_seconds)
         backend._anchor_at(backend._anchor[0])
         self._closed_until = float(t[-1])
         return {"applied": True, "reason": "accepted", "t_old": t_old, "t_ref": t_ref,
@@ -520,25 +554,39 @@ class LoopCloser:
         voted again, not every chunk since the start. Same votes in the same order: the same maps, bit for bit.
         """
         tic = time.perf_counter()
-        backend = self.backend
-        bs = backend.cfg.event_batch_size
-        freeze = backend.map.first_seen is not None
-        start = self._checkpoint_start()
-        backend.map = self.old = None  # free the old maps first: peak memory holds one set of maps (+ the checkpoint)
+        n_old = self._n_old
+        self.backend.map = self.old = None  # free the old maps first: peak memory holds one set (+ the checkpoint)
+        self._finish_rebuild(self._rebuild_old(n_old), n_old, self._thinned)
+        self.profile["rebuild"] += time.perf_counter() - tic
+
+    def _rebuild_old(self, n_old: int):
+        """(old map, age map, visit map) of chunks[:n_old] along the spline: from the checkpoint when it holds
+        unchanged poses, else from scratch (new maps: the current ones stay in use while this runs in slices)."""
+        w, h = self.backend.width, self.backend.height
+        start = self._checkpoint_start(n_old)
         if start > 0:
             raw, age, visit = self._checkpoint[1:4]
-            self.old = _RawMap(self.backend.width, self.backend.height, raw=raw.copy())
-            self.age[:], self.visit[:] = age, visit
+            maps = (_RawMap(w, h, raw=raw.copy()), age.copy(), visit.copy())
         else:
-            self.old = _RawMap(self.backend.width, self.backend.height)
-            self.age[:] = -np.inf
-            self.visit[:] = -np.inf
-        for chunk in self.chunks[start:self._n_old]:
-            self._age_chunk(chunk)
+            maps = (_RawMap(w, h), np.full_like(self.age, -np.inf), np.full_like(self.visit, -np.inf))
+        for chunk in self.chunks[start:n_old]:
+            self._slice_point()
+            self._age_chunk(chunk, maps)
+        return maps
+
+    def _finish_rebuild(self, maps, n_old: int, thinned: int) -> None:
+        """Take the rebuilt (old, age, visit) maps of chunks[:n_old] (aging the chunks aged since), keep them as
+        the checkpoint, and set the global map: the old map plus the recent strides' votes."""
+        backend = self.backend
+        bs = backend.cfg.event_batch_size
+        for chunk in self.chunks[n_old:self._n_old]:  # aged while the rebuild ran in slices
+            self._age_chunk(chunk, maps)
+        self.old, self.age, self.visit = maps
         self._checkpoint = (self._n_old, self.old.raw.copy(), self.age.copy(), self.visit.copy(),
-                            backend.spline.control_R.copy(), self._thinned)
+                            backend.spline.control_R.copy(), thinned)
+        backend.map = None  # (offline, already freed by _rebuild)
         backend.map = self._new_map()
-        if freeze:  # first-seen times: every stride in time order, as the back-end settled them
+        if self._freeze:  # first-seen times: every stride in time order, as the back-end settled them
             for t, b, weight, t0, moving in self.chunks:
                 backend.map.add(b, self._rotations(t)[1], bs, t0, moving, weight=weight)
         else:  # the global map is the old map plus the recent strides' votes: one blur at the end (GlobalMap.set_raw)
@@ -547,15 +595,16 @@ class LoopCloser:
             for t, b, weight, _t0, _moving in self.chunks[self._n_old:]:
                 acc.add(b, self._rotations(t)[1], bs, weight=weight)
             backend.map.set_raw(acc.raw)
-        self.profile["rebuild"] += time.perf_counter() - tic
 
-    def _checkpoint_start(self) -> int:
-        """Chunks the checkpoint holds when none of their poses changed since it was taken (0: rebuild all)."""
+    def _checkpoint_start(self, n_old: int | None = None) -> int:
+        """Chunks the checkpoint holds when none of their poses changed since it was taken and it holds at most
+        n_old (default: all aged; 0: rebuild all)."""
         if self._checkpoint is None:
             return 0
         n, _raw, _age, _visit, ctrl, thinned = self._checkpoint
         spline = self.backend.spline
-        if thinned != self._thinned or n > self._n_old or n == 0 or len(ctrl) > spline.num_control:
+        n_old = self._n_old if n_old is None else n_old
+        if thinned != self._thinned or n > n_old or n == 0 or len(ctrl) > spline.num_control:
             return 0
         changed = np.flatnonzero(np.any(spline.control_R[:len(ctrl)] != ctrl, axis=(1, 2)))
         k = int(changed[0]) if len(changed) else len(ctrl)
@@ -568,5 +617,6 @@ class LoopCloser:
     def summary(self) -> dict:
         return {"candidates": len(self.loops), "accepted": sum(e["accepted"] for e in self.loops),
                 "applied": sum(bool(e.get("applied")) for e in self.loops), "seconds": self.seconds,
-                "cpu_seconds": self.cpu_seconds, "unfinished": int(self.pending()),
+                "cpu_seconds": self.cpu_seconds, "unfinished": int(self._task is not None),
+                "longest_call_seconds": self.longest_call[0], "longest_call_cpu_seconds": self.longest_call[1],
                 "stored_events": int(self._stored), "seconds_by_part": dict(self.profile)}

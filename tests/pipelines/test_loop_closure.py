@@ -329,7 +329,7 @@ def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_r
     """In real time (LoopCloser.slice_seconds) a verification runs in slices: one before each window here (budget
     0) and 5 in the idle time after it: the registration finds what the verification at once finds (the same poses and maps as detected,
     bit for bit), each slice a small part of the whole, the result applies windows later and still removes the
-    drift."""
+    drift; the map rebuild after it, in slices as well, equals the rebuild at once."""
     import time
 
     from ti_cmax.pipelines import loop_closure
@@ -362,7 +362,36 @@ def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_r
         assert first[key] == ref[key], key
     assert len(calls) > 20 and max(calls) < 0.5 * ref["seconds"]  # many slices, each a small part of the whole
     applied = [e for e in sliced.loop.loops if e["applied"]]
-    assert applied and not sliced.loop.pending()
+    assert applied
+    lc = sliced.loop
+    lc.drain()  # the end of the stream: a map rebuild still in flight (in slices too) at once
+    assert lc._task is None and not lc.pending()
+    # the rebuild in slices (the old map meanwhile in use, the strides aged meanwhile caught up) equals one at once
+    got = (lc.old.raw.copy(), lc.age.copy(), lc.visit.copy(), sliced.map.raw.copy())
+    lc._checkpoint, lc.slice_seconds = None, None
+    lc._rebuild()
+    for a, b in zip(got, (lc.old.raw, lc.age, lc.visit, sliced.map.raw)):
+        np.testing.assert_array_equal(a, b)
     # the drift is removed as well: the error at the end of the run within 25 % of the at-once run's plus 0.1 deg
     t_end = np.array([DURATION - 0.5])
     assert _error(sliced, t_end)[0] < 1.25 * _error(at_once, t_end)[0] + 0.1 < np.degrees(DRIFT) * 0.5
+
+
+def test_backend_worker_runs_sliced_verifications(short_sequence):
+    """With a back-end worker process and loop_slice_seconds (what `slam --realtime` sets), every verification runs
+    in slices there (between windows and while idle) and reaches report.json's "loops" (short checks forced by
+    loop_min_age=0.3 s on a 1.2 s sequence)."""
+    from ti_cmax.config import SlamConfig, load_config
+    from ti_cmax.pipelines.slam import OnlineSlam
+
+    cfg = load_config(SlamConfig, None, ["loop_closure=true", "loop_min_age=0.3", "loop_recent_time=0.2"])
+    online = OnlineSlam(short_sequence.camera, cfg, backend_process=True, loop_slice_seconds=0.0)
+    ev = short_sequence.events
+    for i in range(0, len(ev), 50_000):
+        online.push(ev[i:i + 50_000])
+    result = online.close()
+    loops = result.report["loops"]
+    assert loops and all(e["sliced"] for e in loops), loops
+    assert all(e["reason"] for e in loops)
+    summary = result.report["backend"]["loop_closure"]
+    assert summary["candidates"] == len(loops) and summary["longest_call_cpu_seconds"] > 0
