@@ -75,6 +75,17 @@ def _blur_rows(raw: np.ndarray, r0: int, r1: int, sigma: float) -> tuple[np.ndar
     return out, (float(band.sum()), float(np.sum(band * band)))
 
 
+def _downsample(raw: np.ndarray, rows: np.ndarray, f: int) -> np.ndarray:
+    """The map summed over f x f pixel blocks (h and w multiples of f), of a map that is zero outside ``rows``
+    (sorted): only the blocks holding those rows are summed (the same sums as over the whole map)."""
+    h, w = raw.shape
+    out = np.zeros((h // f, w // f), raw.dtype)
+    if len(rows):
+        a, b = int(rows[0]) // f, int(rows[-1]) // f + 1
+        out[a:b] = raw[a * f:b * f].reshape(b - a, f, w // f, f).sum(axis=(1, 3))
+    return out
+
+
 def _cyclic_span(used: np.ndarray, margin: int) -> np.ndarray:
     """Column indices of the shortest cyclic interval holding every True column of ``used``, widened by margin on
     both sides (all columns when that covers the width)."""
@@ -414,7 +425,7 @@ class LoopCloser:
         problem = None
         for f in levels:
             self._slice_point()
-            g = g_raw.reshape(h // f, f, w // f, f).sum(axis=(1, 3)) if f > 1 else g_raw
+            g = _downsample(g_raw, rows, f) if f > 1 else g_raw
             local = vote_map(b, so3.exp(phi) @ spline.evaluate_at(s, u), w // f, h // f,
                              batch_size=bcfg.event_batch_size)
             # the old map is zero beyond its rows: densities and blur on those rows only (large maps)
@@ -459,23 +470,30 @@ class LoopCloser:
         g_tex = local_texture(problem.gmap[band][:, cols], _TEXTURE, wrap_columns=wrap)
         m_band = mask[band][:, cols]
 
-        def ncc(lmap, tex, shift=(0, 0)):
-            """Correlation over the old regions of the recent map's texture (shifted by (rows, columns)) with
-            the old map's."""
+        def ncc(tex, covered, shift=(0, 0)):
+            """Correlation over the old regions of the recent map's texture (shifted by (rows, columns); on the
+            pixels its map covers) with the old map's. The shifted texture is read where the selection needs it,
+            as np.roll's copy would hold it there (the same values in the same order)."""
             if shift != (0, 0):
-                lmap, tex = (np.roll(x, shift, axis=(0, 1)) for x in (lmap, tex))
-            sel = m_band & (lmap > 1e-3 * float(lmap.max()))
-            if sel.sum() < 16:
+                covered = np.roll(covered, shift, axis=(0, 1))
+            sel = m_band & covered
+            if np.count_nonzero(sel) < 16:
                 return 0.0
-            a, c = tex[sel], g_tex[sel]
+            if shift == (0, 0):
+                a = tex[sel]
+            else:
+                r, c = np.nonzero(sel)
+                a = tex[(r - shift[0]) % tex.shape[0], (c - shift[1]) % tex.shape[1]]
+            c = g_tex[sel]
             a, c = a - a.mean(), c - c.mean()
             den = math.sqrt(float(a @ a) * float(c @ c))
             return float(a @ c) / den if den > 0 else 0.0
 
         def maps_at(x):
+            """(texture, covered pixels) of the recent map at correction x."""
             lmap = problem.local_map(so3.exp(x) @ base)[band][:, cols]
             self._slice_point()
-            return lmap, local_texture(lmap, _TEXTURE, wrap_columns=wrap)
+            return local_texture(lmap, _TEXTURE, wrap_columns=wrap), lmap > 1e-3 * float(lmap.max())
 
         self._slice_point()
         at_opt = maps_at(phi)

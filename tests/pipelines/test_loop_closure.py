@@ -254,7 +254,8 @@ def test_rebuilt_map_set_at_once_equals_the_settled_one(ti_runtime):
 
 def test_verification_crops_are_exact():
     """The verification's shortcuts on large maps: the old map blurred on its rows alone equals the full-map blur
-    (with its sums), and the column box of the old regions is the shortest cyclic interval, across the wrap."""
+    (with its sums), its block sums on those rows equal the full map's, and the column box of the old regions is
+    the shortest cyclic interval, across the wrap."""
     from ti_cmax.kernels.pano import blur_map
     from ti_cmax.pipelines.loop_closure import _blur_rows, _cyclic_span
 
@@ -265,6 +266,12 @@ def test_verification_crops_are_exact():
     full = blur_map(g, 1.0)
     np.testing.assert_allclose(blurred, full, atol=1e-5)
     np.testing.assert_allclose([total, squares], [full.sum(), np.sum(full ** 2)], rtol=1e-5)
+    # the pyramid's block sums on the rows holding votes alone: the whole map's sums, bit for bit
+    from ti_cmax.pipelines.loop_closure import _downsample
+
+    rows = np.arange(20, 31)
+    for f in (2, 4):
+        np.testing.assert_array_equal(_downsample(g, rows, f), g.reshape(64 // f, f, 128 // f, f).sum(axis=(1, 3)))
     used = np.zeros(128, bool)
     used[[2, 3, 125]] = True
     assert _cyclic_span(used, 4).tolist() == [(c % 128) for c in range(121, 136)]
