@@ -360,7 +360,9 @@ class LoopCloser:
             self._spent(tic, cpu)
 
     def drain(self) -> None:
-        """Finish the tasks in flight at once (the end of the stream: the result applies to the last windows)."""
+        """Finish the tasks in flight at once and verify at once from now on (the end of the stream: the results
+        apply to the last windows, none is left unfinished)."""
+        self.slice_seconds = None
         tic, cpu = time.perf_counter(), time.process_time()
         while self._task is not None:
             self._advance(None)
@@ -373,7 +375,7 @@ class LoopCloser:
         self._task = self._pending = None
         if pending["kind"] == "rebuild":
             tic = time.perf_counter()
-            self._finish_rebuild(task.result, pending["n_old"], pending["thinned"])
+            self._finish_rebuild(*task.result, pending["thinned"])
             self.profile["rebuild"] += time.perf_counter() - tic
             return
         entry = pending["entry"]
@@ -505,6 +507,7 @@ class LoopCloser:
         ring = []
         for r in _RING:
             for a in np.arange(4) * np.pi / 2 + (np.pi / 4 if r > _RING[0] else 0.0):
+                self._slice_point()
                 ring.append(ncc(*at_opt, shift=(int(round(r * math.sin(a))), int(round(r * math.cos(a))))))
         best_ring = max(ring)
         peak = conf / best_ring if best_ring > 0 else np.inf
@@ -555,7 +558,7 @@ class LoopCloser:
             self._rebuild()
         else:  # in slices too (the old map from the stored strides: the bulk of it); the old maps serve meanwhile
             n_old, thinned = self._n_old, self._thinned
-            self._task = _Slices(lambda: self._rebuild_old(n_old))
+            self._task = _Slices(lambda: self._rebuild_in_slices(n_old))
             self._pending = {"kind": "rebuild", "n_old": n_old, "thinned": thinned, "seconds": 0.0}
             self._advance(self.slice_seconds)
         backend._anchor_at(backend._anchor[0])
@@ -574,8 +577,28 @@ class LoopCloser:
         tic = time.perf_counter()
         n_old = self._n_old
         self.backend.map = self.old = None  # free the old maps first: peak memory holds one set (+ the checkpoint)
-        self._finish_rebuild(self._rebuild_old(n_old), n_old, self._thinned)
+        self._finish_rebuild(self._rebuild_old(n_old), n_old, None, 0, self._thinned)
         self.profile["rebuild"] += time.perf_counter() - tic
+
+    def _rebuild_in_slices(self, n_old: int):
+        """The rebuild's bulk as a sliced task: the old maps of chunks[:n_old], then of the chunks aged since,
+        and the recent strides' votes on a copy of that old map (the global map's raw votes so far); returns
+        _finish_rebuild's arguments (it adds what was aged or stored after this)."""
+        maps = self._rebuild_old(n_old)
+        n_aged = n_old
+        while n_aged < self._n_old:  # aged while this ran (read between slices: the back-end is paused)
+            self._slice_point()
+            self._age_chunk(self.chunks[n_aged], maps)
+            n_aged += 1
+        if self._freeze:
+            return maps, n_aged, None, 0
+        acc = _RawMap(self.backend.width, self.backend.height, raw=maps[0].raw.copy())
+        acc._scratch = maps[0]._scratch  # zero between calls: one scratch map for both
+        n_voted = len(self.chunks)
+        for t, b, weight, _t0, _moving in self.chunks[n_aged:n_voted]:
+            self._slice_point()
+            acc.add(b, self._rotations(t)[1], self.backend.cfg.event_batch_size, weight=weight)
+        return maps, n_aged, acc, n_voted
 
     def _rebuild_old(self, n_old: int):
         """(old map, age map, visit map) of chunks[:n_old] along the spline: from the checkpoint when it holds
@@ -592,9 +615,11 @@ class LoopCloser:
             self._age_chunk(chunk, maps)
         return maps
 
-    def _finish_rebuild(self, maps, n_old: int, thinned: int) -> None:
+    def _finish_rebuild(self, maps, n_old: int, acc, n_voted: int, thinned: int) -> None:
         """Take the rebuilt (old, age, visit) maps of chunks[:n_old] (aging the chunks aged since), keep them as
-        the checkpoint, and set the global map: the old map plus the recent strides' votes."""
+        the checkpoint, and set the global map: the old map plus the recent strides' votes (``acc``: a copy of
+        the old map of chunks[:n_old] holding the votes of chunks[n_old:n_voted] already; None: none yet). The
+        same additions in the same order either way: the same maps."""
         backend = self.backend
         bs = backend.cfg.event_batch_size
         for chunk in self.chunks[n_old:self._n_old]:  # aged while the rebuild ran in slices
@@ -608,9 +633,11 @@ class LoopCloser:
             for t, b, weight, t0, moving in self.chunks:
                 backend.map.add(b, self._rotations(t)[1], bs, t0, moving, weight=weight)
         else:  # the global map is the old map plus the recent strides' votes: one blur at the end (GlobalMap.set_raw)
-            acc = _RawMap(self.backend.width, self.backend.height, raw=self.old.raw.copy())
-            acc._scratch = self.old._scratch  # zero between calls: one scratch map for both
-            for t, b, weight, _t0, _moving in self.chunks[self._n_old:]:
+            if acc is None:
+                acc = _RawMap(self.backend.width, self.backend.height, raw=self.old.raw.copy())
+                acc._scratch = self.old._scratch  # zero between calls: one scratch map for both
+                n_voted = self._n_old
+            for t, b, weight, _t0, _moving in self.chunks[n_voted:]:
                 acc.add(b, self._rotations(t)[1], bs, weight=weight)
             backend.map.set_raw(acc.raw)
 
