@@ -192,8 +192,11 @@ class LoopCloser:
         self.slice_seconds: float | None = None
         self._task: _Slices | None = None  # the verification or map rebuild in flight
         self._pending: dict | None = None  # what its conclusion needs (_conclude_task)
+        self._task_spline = None  # a sliced rebuild's corrected copy of the spline (the back-end's gets it at the end)
+        self.corrections = 0  # loop corrections applied to the back-end's control poses so far
         self.seconds = self.cpu_seconds = 0.0
         self.longest_call = (0.0, 0.0)  # (wall, CPU) seconds of the longest hook call (_spent)
+        self._drained = False  # a sliced run's stream has ended (drain)
         self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
 
     # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
@@ -250,13 +253,22 @@ class LoopCloser:
         wall, used = time.perf_counter() - tic, time.process_time() - cpu
         self.seconds += wall
         self.cpu_seconds += used
-        # the longest the loop closer held the back-end in one call (a stall of the windows behind it)
-        self.longest_call = (max(self.longest_call[0], wall), max(self.longest_call[1], used))
+        # the longest the loop closer held the back-end in one call (a stall of the windows behind it; after a
+        # sliced run's end-of-stream drain no window follows the last ones)
+        if not self._drained:
+            self.longest_call = (max(self.longest_call[0], wall), max(self.longest_call[1], used))
 
     # ---- detection and verification ----------------------------------------------------------------------------
+    def _spline(self):
+        """The spline the votes go along: the corrected copy in a sliced rebuild's thread, else the back-end's."""
+        task = self._task
+        if self._task_spline is not None and task is not None and task.in_thread():
+            return self._task_spline
+        return self.backend.spline
+
     def _rotations(self, t: np.ndarray, ctrl_left: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(batch mid-times clipped to the spline, per-batch rotations) of events at times t."""
-        spline = self.backend.spline
+        spline = self._spline()
         start, end = spline.valid_time_range()
         mids = np.clip(batch_mid_times(t, self.backend.cfg.event_batch_size), start, end)
         rot = spline.evaluate(mids)
@@ -362,6 +374,7 @@ class LoopCloser:
     def drain(self) -> None:
         """Finish the tasks in flight at once and verify at once from now on (the end of the stream: the results
         apply to the last windows, none is left unfinished)."""
+        self._drained = self._drained or self.slice_seconds is not None
         self.slice_seconds = None
         tic, cpu = time.perf_counter(), time.process_time()
         while self._task is not None:
@@ -375,6 +388,8 @@ class LoopCloser:
         self._task = self._pending = None
         if pending["kind"] == "rebuild":
             tic = time.perf_counter()
+            self._task_spline = None
+            self._correct(self.backend.spline, pending["correction"])  # the poses initialized meanwhile too
             self._finish_rebuild(*task.result, pending["thinned"])
             self.profile["rebuild"] += time.perf_counter() - tic
             return
@@ -552,19 +567,34 @@ class LoopCloser:
         ctrl = spline.control_R
         # edge weights of the chain pose graph: rotation travelled, plus a little time (drift while nearly still)
         steps = so3.geodesic_angle(ctrl[i0:i1], ctrl[i0 + 1:i1 + 1]) + 0.01 * spline.dt
-        ctrl[i0:i1 + 1] = so3.spread_correction(steps, phi) @ ctrl[i0:i1 + 1]
-        ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
+        correction = (i0, i1, so3.spread_correction(steps, phi), corr)
         if self.slice_seconds is None:
+            self._correct(spline, correction)
             self._rebuild()
-        else:  # in slices too (the old map from the stored strides: the bulk of it); the old maps serve meanwhile
+        else:  # in slices too, along a corrected copy; the back-end keeps its poses and maps (consistent with
+            # each other, for the BA of the windows meanwhile) until the rebuilt maps replace them with the correction
             n_old, thinned = self._n_old, self._thinned
-            self._task = _Slices(lambda: self._rebuild_in_slices(n_old))
-            self._pending = {"kind": "rebuild", "n_old": n_old, "thinned": thinned, "seconds": 0.0}
+            self._task_spline = self._correct(spline.copy(), correction)
+            n_chunks = len(self.chunks)  # the strides the copy holds poses for
+            self._task = _Slices(lambda: self._rebuild_in_slices(n_old, n_chunks))
+            self._pending = {"kind": "rebuild", "n_old": n_old, "thinned": thinned, "seconds": 0.0,
+                             "correction": correction}
             self._advance(self.slice_seconds)
-        backend._anchor_at(backend._anchor[0])
         self._closed_until = float(t[-1])
         return {"applied": True, "reason": "accepted", "t_old": t_old, "t_ref": t_ref,
                 "t_spread_from": float(knots[i0])}
+
+    def _correct(self, spline, correction):
+        """Apply a loop's correction (i0, i1, spread rotations of poses i0..i1, rotation of the later poses) to a
+        spline's control poses (and, on the back-end's, re-anchor its source poses); returns the spline."""
+        i0, i1, spread, corr = correction
+        ctrl = spline.control_R
+        ctrl[i0:i1 + 1] = spread @ ctrl[i0:i1 + 1]
+        ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
+        if spline is self.backend.spline:
+            self.backend._anchor_at(self.backend._anchor[0])
+            self.corrections += 1
+        return spline
 
     def _rebuild(self) -> None:
         """Global map, old map and age map from the stored subsamples along the (corrected) spline.
@@ -580,13 +610,14 @@ class LoopCloser:
         self._finish_rebuild(self._rebuild_old(n_old), n_old, None, 0, self._thinned)
         self.profile["rebuild"] += time.perf_counter() - tic
 
-    def _rebuild_in_slices(self, n_old: int):
-        """The rebuild's bulk as a sliced task: the old maps of chunks[:n_old], then of the chunks aged since,
-        and the recent strides' votes on a copy of that old map (the global map's raw votes so far); returns
+    def _rebuild_in_slices(self, n_old: int, n_chunks: int):
+        """The rebuild's bulk as a sliced task, along the corrected copy of the spline: the old maps of
+        chunks[:n_old], then of the chunks aged since, and the votes of the recent ones (up to n_chunks, the
+        strides the copy has poses for) on a copy of that old map (the global map's raw votes); returns
         _finish_rebuild's arguments (it adds what was aged or stored after this)."""
         maps = self._rebuild_old(n_old)
         n_aged = n_old
-        while n_aged < self._n_old:  # aged while this ran (read between slices: the back-end is paused)
+        while n_aged < min(self._n_old, n_chunks):  # aged meanwhile (read between slices: the back-end is paused)
             self._slice_point()
             self._age_chunk(self.chunks[n_aged], maps)
             n_aged += 1
@@ -594,7 +625,7 @@ class LoopCloser:
             return maps, n_aged, None, 0
         acc = _RawMap(self.backend.width, self.backend.height, raw=maps[0].raw.copy())
         acc._scratch = maps[0]._scratch  # zero between calls: one scratch map for both
-        n_voted = len(self.chunks)
+        n_voted = max(min(len(self.chunks), n_chunks), n_aged)
         for t, b, weight, _t0, _moving in self.chunks[n_aged:n_voted]:
             self._slice_point()
             acc.add(b, self._rotations(t)[1], self.backend.cfg.event_batch_size, weight=weight)
@@ -647,7 +678,7 @@ class LoopCloser:
         if self._checkpoint is None:
             return 0
         n, _raw, _age, _visit, ctrl, thinned = self._checkpoint
-        spline = self.backend.spline
+        spline = self._spline()
         n_old = self._n_old if n_old is None else n_old
         if thinned != self._thinned or n > n_old or n == 0 or len(ctrl) > spline.num_control:
             return 0

@@ -534,7 +534,7 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
             seconds += time.perf_counter() - tic
             step_cpu += time.process_time() - cpu
             spline = backend.spline
-            applied = backend.loop.summary()["applied"] if backend.loop is not None else 0
+            applied = backend.loop.corrections if backend.loop is not None else 0
             for report in backend.windows[new:]:
                 now = time.perf_counter()
                 report.busy_seconds, last_done, waited = max(0.0, now - last_done - waited), now, 0.0
