@@ -1,7 +1,7 @@
 """Benchmark of loop closure (issue 15; a command, not a test): CMax-SLAM with loop_closure=false and =true.
 
     python -m ti_cmax.pipelines.bench_loops --cache DIR [--sequences SPEC,...] [--set key=value ...] [--threads N]
-        [--modes off,on] [--level L] [--out RUNS [--saved | --summarize] [--trace STEP]]
+        [--modes off,on] [--level L] [--loop-slice S] [--out RUNS [--saved | --summarize] [--trace STEP]]
 
 A SPEC is sensor:scene:duration:trajectory[:turns[:wobble]][:key=value...] (e.g. DAVIS240C:bay:12:pan:2.2:0.5, or
 DAVIS240C:city:5:random for a sequence without revisits; key=value: any simulator field, e.g. seed=1,
@@ -16,6 +16,9 @@ seconds with the loop closer's part and the increase over loop_closure=false (CP
 than wall time, but it still varies by about 10 % between runs on a loaded machine). With --out, each mode's
 trajectory, report.json and row are kept (RUNS/SEQUENCE/), for plots of the error over time and for --summarize
 (the table of all rows there). The 1-minute load average is printed: timings are only comparable on an idle machine.
+``--loop-slice S`` runs each loop verification and map rebuild in slices of at most S wall seconds before each window
+(LoopCloser.slice_seconds, as the real-time replay does, here without idle time; 0: one slice per window): what the
+slicing costs in accuracy, and the longest the loop closer holds the back-end in one call ("longest call").
 """
 from __future__ import annotations
 
@@ -163,14 +166,16 @@ def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, repo
         "loop_us_per_event": lc.get("seconds", 0.0) * 1e6 / max(n, 1), "load_1min": os.getloadavg()[0],
         "cpu_seconds": cpu_seconds, "loop_cpu_seconds": lc.get("cpu_seconds", 0.0),
         "loop_seconds_by_part": lc.get("seconds_by_part", {}),
+        "loop_longest_call_cpu_seconds": lc.get("longest_call_cpu_seconds"),
         "jump_deg": jump_at_revisit(gt, trajectory, first_revisit_time(gt)),
     }
 
 
-def run_at_level(dataset: Path, cfg, level: int):
+def run_at_level(dataset: Path, cfg, level: int, loop_slice: float | None = None):
     """CMax-SLAM on dataset with the real-time controller's degradation ``level`` (pipelines/realtime.LEVELS: 1 of
     k front-end packets, BA cap divided, BA on 1 of m windows; 4: BA skipped) held from the first event, offline:
-    what ``--realtime`` computes on a machine that cannot keep up at that level, without the wall clock."""
+    what ``--realtime`` computes on a machine that cannot keep up at that level, without the wall clock.
+    ``loop_slice``: loop verifications in slices (OnlineSlam's loop_slice_seconds; None: at once)."""
     from ti_cmax.io import open_dataset
 
     from .realtime import LEVELS, RealtimeController
@@ -178,7 +183,7 @@ def run_at_level(dataset: Path, cfg, level: int):
     from .sensor_defaults import resolve_config
 
     ds = open_dataset(dataset)
-    online = OnlineSlam(ds.camera, cfg)
+    online = OnlineSlam(ds.camera, cfg, loop_slice_seconds=loop_slice)
     keep, _divisor, every = LEVELS[level]
     online.degrade(keep, RealtimeController(resolve_config(cfg, ds.camera), 1.0).ba_cap(level), every)
     for chunk in ds.iter_events(cfg.dataset.chunk_size):
@@ -187,7 +192,7 @@ def run_at_level(dataset: Path, cfg, level: int):
 
 
 def bench(dataset: Path, overrides: list[str], out: Path | None = None, modes=(False, True),
-          saved: bool = False, level: int = 0) -> list[dict]:
+          saved: bool = False, level: int = 0, loop_slice: float | None = None) -> list[dict]:
     """Rows of CMax-SLAM on dataset in each mode; with out, each mode's trajectory, report and row are written
     to out (``saved``: evaluate the trajectory and report already there instead of running). ``level``: the
     real-time degradation level held throughout (``run_at_level``; 0: the offline computation, ``run_slam``)."""
@@ -208,7 +213,7 @@ def bench(dataset: Path, overrides: list[str], out: Path | None = None, modes=(F
             ds = open_dataset(dataset)
             cfg = load_config(SlamConfig, None, list(overrides) + [f"loop_closure={str(on).lower()}"])
             cpu = time.process_time()
-            res = run_at_level(dataset, cfg, level) if level else \
+            res = run_at_level(dataset, cfg, level, loop_slice) if level or loop_slice is not None else \
                 run_slam(ds.iter_events(cfg.dataset.chunk_size), ds.camera, cfg)
             traj, report, cpu = res.trajectory, res.report, time.process_time() - cpu
             if out is not None:  # for plots of the error over time
@@ -228,8 +233,8 @@ def format_rows(rows: list[dict]) -> str:
     not inflate as it does wall time), the loop closer's part, and the increase over the same sequence's off row."""
     lines = ["| sequence | loop closure | abs RMSE deg | rel RMSE deg/s | 0.1 s step err: jump at revisit / max / "
              "median deg | EA% | GM | loops applied / accepted / candidates | BE us/ev (loop part) | FE us/ev "
-             "| loop share % | CPU s (loop part) / vs off | load |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| loop share % | CPU s (loop part) / vs off | longest call CPU s | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     cpu_off = {r["sequence"]: r.get("cpu_seconds") for r in rows if not r["loop_closure"]}
     for r in rows:
         cpu, ref = r.get("cpu_seconds"), cpu_off.get(r["sequence"])
@@ -239,12 +244,13 @@ def format_rows(rows: list[dict]) -> str:
         total = r["backend_us_per_event"] + r["frontend_us_per_event"]
         share = 100 * r["loop_us_per_event"] / total if total > 0 else 0.0
         accepted = sum(bool(e.get("accepted")) for e in r.get("loops", []))
+        longest = "-" if r.get("loop_longest_call_cpu_seconds") is None else f"{r['loop_longest_call_cpu_seconds']:.3f}"
         lines.append(
             f"| {r['sequence']} | {'on' if r['loop_closure'] else 'off'} | {r['abs_rmse_deg']:.3f} | "
             f"{r['rel_rmse_deg_per_s']:.3f} | {jump} / {r['step_max_deg']:.3f} / {r['step_median_deg']:.3f} | "
             f"{r['ea_percent']:.3f} | {r['gm']:.4f} | {r['loops_applied']} / {accepted} / {r['loops_candidates']} | "
             f"{r['backend_us_per_event']:.2f} ({r['loop_us_per_event']:.2f}) | {r['frontend_us_per_event']:.2f} | "
-            f"{share:.1f} | {cpu_text} | {r['load_1min']:.1f} |")
+            f"{share:.1f} | {cpu_text} | {longest} | {r['load_1min']:.1f} |")
     return "\n".join(lines)
 
 
@@ -264,6 +270,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--level", type=int, default=0, choices=range(5), help="hold the real-time controller's "
                     "degradation level (pipelines/realtime.LEVELS; 4: BA skipped, front-end poses) from the start")
+    ap.add_argument("--loop-slice", type=float, default=None, metavar="S", help="loop verifications and map "
+                    "rebuilds in slices of at most S wall s before each window, as in real time (0: one slice)")
     ap.add_argument("--modes", default="off,on", help="loop closure modes to run (off, on or off,on)")
     ap.add_argument("--out", type=Path, help="write each mode's trajectory and report.json here (OUT/SEQUENCE/)")
     ap.add_argument("--saved", action="store_true", help="evaluate the trajectories and reports under --out "
@@ -283,7 +291,7 @@ def main(argv=None) -> int:
         data = _dataset(args.cache, spec)
         modes = [m == "on" for m in args.modes.split(",")]
         rows += bench(data, args.overrides, args.out / data.name if args.out else None, modes, args.saved,
-                      args.level)
+                      args.level, args.loop_slice)
         print(f"{spec}: {time.perf_counter() - tic:.0f} s", file=sys.stderr)
         if args.trace and args.out:
             from ti_cmax.io import read_tum

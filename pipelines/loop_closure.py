@@ -28,11 +28,22 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    spline, so later windows align to one consistent map (the global map at once: the rebuilt old map plus the
    recent strides' votes, blurred once; stride by stride only with pixel freezing).
 
+   The old map and the age map restart from the checkpoint the last rebuild left when the correction left its
+   strides' poses unchanged (every later loop closes only the drift since the last one), so a rebuild votes the
+   strides aged since, not every stride since the start (bitwise the same maps).
+5. real time (``slice_seconds``, set by ``ti-cmax slam --realtime``): the verification and the rebuild after it run
+   in slices (a helper thread run as a coroutine, strictly alternating with the back-end: one cost evaluation, map
+   step or stored stride per slice) for at most ``slice_seconds`` before each window and in the back-end worker's
+   idle time; the result is applied before the window after the verification ends (to the poses then: at level 4,
+   without BA, the same trajectory as at once), with the age map as detected; the old maps serve meanwhile. No
+   new check while one is in flight. Offline (None) all runs at once.
+
 Every candidate goes into ``loops`` (time, correction, confidence, accepted, applied, reason) for report.json.
 """
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -62,6 +73,17 @@ def _blur_rows(raw: np.ndarray, r0: int, r1: int, sigma: float) -> tuple[np.ndar
     blur_region(raw, out, rows, np.arange(w), sigma)
     band = out[rows].astype(np.float64)
     return out, (float(band.sum()), float(np.sum(band * band)))
+
+
+def _downsample(raw: np.ndarray, rows: np.ndarray, f: int) -> np.ndarray:
+    """The map summed over f x f pixel blocks (h and w multiples of f), of a map that is zero outside ``rows``
+    (sorted): only the blocks holding those rows are summed (the same sums as over the whole map)."""
+    h, w = raw.shape
+    out = np.zeros((h // f, w // f), raw.dtype)
+    if len(rows):
+        a, b = int(rows[0]) // f, int(rows[-1]) // f + 1
+        out[a:b] = raw[a * f:b * f].reshape(b - a, f, w // f, f).sum(axis=(1, 3))
+    return out
 
 
 def _cyclic_span(used: np.ndarray, margin: int) -> np.ndarray:
@@ -97,6 +119,47 @@ class _RawMap(GlobalMap):
             self.raw[sel] += votes
 
 
+class _Slices:
+    """A function run one slice at a time in a helper thread (a coroutine): the thread runs only from ``resume()``
+    to its next ``pause()`` (or its end) while the caller waits, so exactly one of the two runs at any time (the
+    same computation as a direct call, in the same order; Taichi and numpy see one caller at a time)."""
+
+    def __init__(self, fn):
+        self._go, self._back = threading.Semaphore(0), threading.Semaphore(0)
+        self.done, self.result, self._error = False, None, None
+        self.paused_seconds = 0.0  # wall time the thread spent paused (not working)
+        self._thread = threading.Thread(target=self._run, args=(fn,), daemon=True)
+        self._thread.start()
+
+    def _run(self, fn) -> None:
+        self._go.acquire()
+        try:
+            self.result = fn()
+        except BaseException as exc:  # noqa: BLE001 - raised in the caller by resume()
+            self._error = exc
+        self.done = True
+        self._back.release()
+
+    def in_thread(self) -> bool:
+        return threading.current_thread() is self._thread
+
+    def pause(self) -> None:
+        """In the thread: hand control back to the caller until the next resume()."""
+        tic = time.perf_counter()
+        self._back.release()
+        self._go.acquire()
+        self.paused_seconds += time.perf_counter() - tic
+
+    def resume(self) -> None:
+        """Run the thread until its next pause() or its end (raising its error, if it failed)."""
+        if self.done:
+            return
+        self._go.release()
+        self._back.acquire()
+        if self._error is not None:
+            raise self._error
+
+
 class LoopCloser:
     """Loop detection, verification and correction for one ``SlidingWindowBackend`` (module docstring)."""
 
@@ -106,6 +169,7 @@ class LoopCloser:
             raise ValueError("the loop closer needs a config resolved for the camera (sensor_defaults.resolve_config)")
         self.cfg, self.backend = config, backend
         freeze = backend.map.max_update_time
+        self._freeze = freeze is not None  # pixel freezing: the rebuilt global map settles every stride in order
         self._new_map = lambda: GlobalMap(backend.width, backend.height, backend.cfg.backend_blur_sigma,
                                           backend.cfg.lambda0, freeze)
         w, h = backend.width, backend.height
@@ -115,11 +179,24 @@ class LoopCloser:
         self.chunks: list[tuple[np.ndarray, np.ndarray, float, float, bool]] = []  # (t, b, weight, t0, moving)
         self._n_old = 0  # chunks already voted into the old map and the age map
         self._stored = 0
+        self._thinned = 0  # times every chunk was thinned by 2 (a checkpoint holds the chunks as they were)
+        self._checkpoint = None  # (old map, age, visit) after a rebuild: the next rebuild starts there (_rebuild)
         self._next_check = backend.t_start + config.loop_min_age + config.loop_recent_time
         self._interval = config.loop_recent_time  # time from one verification to the next check
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
         self.loops: list[dict] = []
+        # sliced verification (the real-time replay, pipelines/realtime.py): None verifies at once (offline);
+        # else a verification runs in slices (_Slices, one cost evaluation or map step each) of at most this many
+        # wall seconds before each window, and in the back-end worker's idle time (idle_slice), and its result is
+        # applied before the window after it ended
+        self.slice_seconds: float | None = None
+        self._task: _Slices | None = None  # the verification or map rebuild in flight
+        self._pending: dict | None = None  # what its conclusion needs (_conclude_task)
+        self._task_spline = None  # a sliced rebuild's corrected copy of the spline (the back-end's gets it at the end)
+        self.corrections = 0  # loop corrections applied to the back-end's control poses so far
         self.seconds = self.cpu_seconds = 0.0
+        self.longest_call = (0.0, 0.0)  # (wall, CPU) seconds of the longest hook call (_spent)
+        self._drained = False  # a sliced run's stream has ended (drain)
         self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
 
     # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
@@ -135,6 +212,7 @@ class LoopCloser:
         if self._stored > self.cfg.loop_max_stored_events:
             self.chunks = [(c[0][::2], c[1][::2], c[2] * len(c[0]) / len(c[0][::2]), c[3], c[4]) for c in self.chunks]
             self._stored = sum(len(c[0]) for c in self.chunks)
+            self._thinned += 1
         self._spent(tic, cpu)
         self.profile["store"] += time.perf_counter() - tic
 
@@ -143,6 +221,13 @@ class LoopCloser:
         events plus the window's, and close it. The window's events are still at their initialized poses: the
         BA has not pulled them to the old map yet (that pull, spread over the windows that enter the old
         regions, is the jump at a loop, and it hides the loop's error from a later check)."""
+        if self._task is not None:  # a sliced verification or rebuild in flight: its slices, no new check meanwhile
+            tic, cpu = time.perf_counter(), time.process_time()
+            self._advance(self.slice_seconds)
+            if self._task.done:
+                self._conclude_task()
+            self._spent(tic, cpu)
+            return
         if t1 < self._next_check:
             return
         tic, cpu = time.perf_counter(), time.process_time()
@@ -165,13 +250,25 @@ class LoopCloser:
     def _spent(self, tic: float, cpu: float) -> None:
         """Add the wall and CPU time since (tic, cpu) to the loop closer's totals (CPU time: comparable on a
         loaded machine, where wall time is not)."""
-        self.seconds += time.perf_counter() - tic
-        self.cpu_seconds += time.process_time() - cpu
+        wall, used = time.perf_counter() - tic, time.process_time() - cpu
+        self.seconds += wall
+        self.cpu_seconds += used
+        # the longest the loop closer held the back-end in one call (a stall of the windows behind it; after a
+        # sliced run's end-of-stream drain no window follows the last ones)
+        if not self._drained:
+            self.longest_call = (max(self.longest_call[0], wall), max(self.longest_call[1], used))
 
     # ---- detection and verification ----------------------------------------------------------------------------
+    def _spline(self):
+        """The spline the votes go along: the corrected copy in a sliced rebuild's thread, else the back-end's."""
+        task = self._task
+        if self._task_spline is not None and task is not None and task.in_thread():
+            return self._task_spline
+        return self.backend.spline
+
     def _rotations(self, t: np.ndarray, ctrl_left: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(batch mid-times clipped to the spline, per-batch rotations) of events at times t."""
-        spline = self.backend.spline
+        spline = self._spline()
         start, end = spline.valid_time_range()
         mids = np.clip(batch_mid_times(t, self.backend.cfg.event_batch_size), start, end)
         rot = spline.evaluate(mids)
@@ -186,14 +283,19 @@ class LoopCloser:
         cj = (u // _CELL).astype(np.int64) % self.age.shape[1]
         return ci * self.age.shape[1] + cj
 
-    def _age_chunk(self, chunk) -> None:
+    def _age_chunk(self, chunk, maps=None) -> None:
+        """Vote a stored chunk into the old map and mark its cells in the age and visit maps (``maps``: into
+        (old, age, visit) instead of the loop closer's own)."""
+        old, age, visit = maps if maps is not None else (self.old, self.age, self.visit)
         t, b, weight, t0, moving = chunk
         _, rot = self._rotations(t)
-        self.old.add(b, rot, self.backend.cfg.event_batch_size, weight=weight)
-        cells = np.unique(self._cells(b, rot))
-        new_visit = self.age.flat[cells] < float(t[0]) - self.cfg.loop_min_age  # never observed, or long ago
-        self.visit.flat[cells[new_visit]] = float(t[0])
-        self.age.flat[cells] = np.maximum(self.age.flat[cells], float(t[-1]))
+        old.add(b, rot, self.backend.cfg.event_batch_size, weight=weight)
+        hit = np.zeros(age.size, bool)
+        hit[self._cells(b, rot)] = True
+        cells = np.flatnonzero(hit)  # np.unique's cells (sorted), without its sort
+        new_visit = age.flat[cells] < float(t[0]) - self.cfg.loop_min_age  # never observed, or long ago
+        visit.flat[cells[new_visit]] = float(t[0])
+        age.flat[cells] = np.maximum(age.flat[cells], float(t[-1]))
 
     def _recent_events(self, ev_t, ev_b) -> tuple[np.ndarray, np.ndarray]:
         """The stored events not aged yet, then (ev_t, ev_b); thinned to loop_registration_events."""
@@ -214,24 +316,106 @@ class LoopCloser:
         if overlap < cfg.loop_min_overlap:
             self._interval = cfg.loop_recent_time
             return
-        tic = time.perf_counter()
         entry = {"time": float(t_now), "overlap": overlap}
+        if self.slice_seconds is not None:  # in slices: before this window and the next ones, and when idle
+            self._task = _Slices(lambda: self.verify(t, b, old_cells))
+            # the age and visit maps as detected: strides aged while the verification runs (the recent events
+            # among them) must not make the old visit look recent (_apply)
+            self._pending = {"kind": "verify", "entry": entry, "args": (t, b, old_cells, t_now), "seconds": 0.0,
+                             "ages": (self.age.copy(), self.visit.copy())}
+            self._advance(self.slice_seconds)
+            if self._task.done:
+                self._conclude_task()
+            return
+        tic = time.perf_counter()
         entry.update(self.verify(t, b, old_cells))
         self.profile["verify"] += time.perf_counter() - tic
+        self._conclude(entry, t, b, old_cells, t_now, time.perf_counter() - tic)
+
+    # ---- sliced verification (real time) ----------------------------------------------------------------------
+    def _advance(self, budget: float | None) -> None:
+        """Run slices of the task in flight until it ends or ``budget`` wall seconds are used (None: to its end);
+        at least one (progress without idle time too)."""
+        tic = time.perf_counter()
+        while not self._task.done:
+            self._task.resume()
+            if budget is not None and time.perf_counter() - tic >= budget:
+                break
+        self._count(time.perf_counter() - tic)
+
+    def _count(self, spent: float) -> None:
+        self._pending["seconds"] += spent
+        self.profile[self._pending["kind"]] += spent
+
+    def _slice_point(self) -> None:
+        """Where a sliced task may pause (no-op otherwise)."""
+        task = self._task
+        if task is not None and task.in_thread():
+            task.pause()
+
+    def _paused(self) -> float:
+        """Wall seconds a sliced task spent paused so far (0 offline): not its work."""
+        task = self._task
+        return task.paused_seconds if task is not None and task.in_thread() else 0.0
+
+    def pending(self) -> bool:
+        """A sliced task is in flight and has work left (``idle_slice`` would run some)."""
+        return self._task is not None and not self._task.done
+
+    def idle_slice(self) -> None:
+        """One slice of the task in flight (the back-end worker calls this while no input waits); its result is
+        used before the next window."""
+        if self.pending():
+            tic, cpu = time.perf_counter(), time.process_time()
+            self._task.resume()
+            self._count(time.perf_counter() - tic)
+            self._spent(tic, cpu)
+
+    def drain(self) -> None:
+        """Finish the tasks in flight at once and verify at once from now on (the end of the stream: the results
+        apply to the last windows, none is left unfinished)."""
+        self._drained = self._drained or self.slice_seconds is not None
+        self.slice_seconds = None
+        tic, cpu = time.perf_counter(), time.process_time()
+        while self._task is not None:
+            self._advance(None)
+            self._conclude_task()
+        self.seconds += time.perf_counter() - tic  # (not a stall of the windows: none follow)
+        self.cpu_seconds += time.process_time() - cpu
+
+    def _conclude_task(self) -> None:
+        task, pending = self._task, self._pending
+        self._task = self._pending = None
+        if pending["kind"] == "rebuild":
+            tic = time.perf_counter()
+            self._task_spline = None
+            self._correct(self.backend.spline, pending["correction"])  # the poses initialized meanwhile too
+            self._finish_rebuild(*task.result, pending["thinned"])
+            self.profile["rebuild"] += time.perf_counter() - tic
+            return
+        entry = pending["entry"]
+        entry.update(task.result)
+        entry["sliced"] = True
+        self._conclude(entry, *pending["args"], pending["seconds"], pending["ages"])
+
+    def _conclude(self, entry: dict, t, b, old_cells, t_now: float, seconds: float, ages=None) -> None:
+        """The decision on a verified candidate: apply it or not; the next check's time; the report entry."""
+        cfg = self.cfg
+        tic = time.perf_counter()
         px = 2 * np.pi / self.backend.width
         if entry["accepted"] and entry["correction_deg"] < np.degrees(cfg.loop_min_correction_px * px):
             entry["applied"], entry["reason"] = False, "correction below loop_min_correction_px"
         elif entry["accepted"] and entry["confidence"] - entry["confidence_before"] < cfg.loop_min_gain:
             entry["applied"], entry["reason"] = False, "correlation gain below loop_min_gain"
         elif entry["accepted"]:
-            entry.update(self._apply(t, b, old_cells, np.asarray(entry.pop("_phi")), t_now))
+            entry.update(self._apply(t, b, old_cells, np.asarray(entry.pop("_phi")), t_now, ages))
         entry.pop("_phi", None)
         # while the revisit goes on and the map stays consistent, verify less and less often (up to once per
         # loop_min_age): the cost of a long revisit stays bounded; an applied loop starts again at loop_recent_time
         recent = cfg.loop_recent_time
         self._interval = recent if entry.get("applied") else min(2 * self._interval, max(cfg.loop_min_age, recent))
         self._next_check = t_now + self._interval
-        entry["seconds"] = time.perf_counter() - tic
+        entry["seconds"] = seconds + time.perf_counter() - tic
         self.loops.append(entry)
 
     def verify(self, t: np.ndarray, b: np.ndarray, old_cells: np.ndarray) -> dict:
@@ -240,7 +424,8 @@ class LoopCloser:
         Returns correction_deg, confidence (correlation at the optimum), confidence_before (at no correction),
         peak_ratio, accepted, reason and ``_phi`` (the correction's rotation vector, world frame, left).
         """
-        cfg, bcfg, spline = self.cfg, self.backend.cfg, self.backend.spline
+        # a copy: the poses as they are now, also when the verification runs in slices between later windows
+        cfg, bcfg, spline = self.cfg, self.backend.cfg, self.backend.spline.copy()
         w, h = self.backend.width, self.backend.height
         mask = np.repeat(np.repeat(old_cells, _CELL, axis=0), _CELL, axis=1)[:h, :w]
         rows = np.flatnonzero(mask.any(axis=1))
@@ -252,11 +437,12 @@ class LoopCloser:
         s, u = spline.support(mids)
         base = spline.control_R.copy()
         phi = np.zeros(3)
-        tic = time.perf_counter()
+        tic, paused0 = time.perf_counter(), self._paused()
         levels = [f for f in (4, 2, 1) if w % f == 0 and h % f == 0 and (w // f >= 256 or f == 1)]
         problem = None
         for f in levels:
-            g = g_raw.reshape(h // f, f, w // f, f).sum(axis=(1, 3)) if f > 1 else g_raw
+            self._slice_point()
+            g = _downsample(g_raw, rows, f) if f > 1 else g_raw
             local = vote_map(b, so3.exp(phi) @ spline.evaluate_at(s, u), w // f, h // f,
                              batch_size=bcfg.event_batch_size)
             # the old map is zero beyond its rows: densities and blur on those rows only (large maps)
@@ -271,6 +457,7 @@ class LoopCloser:
             scale = 1.0 / var0 if var0 > 0 else 1.0
 
             def objective(x, problem=problem, scale=scale):
+                self._slice_point()
                 var, grad = problem.cost_and_grad(so3.exp(x) @ base)
                 # one common left increment of every control pose moves the whole trajectory by it
                 return var * scale, so3.left_jacobian(x).T @ grad.sum(axis=0) * scale
@@ -284,34 +471,50 @@ class LoopCloser:
                 return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
                         "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
                         "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
-        self.profile["register"] += time.perf_counter() - tic
+        self.profile["register"] += time.perf_counter() - tic - (self._paused() - paused0)
+        self._slice_point()
         # correlation of the registered recent map with the old map over the old regions, on local texture: on the
         # box around them (rows, and the cyclic column interval) with a margin for the texture filter and the shifts
+        # (the box of the old regions the registered recent map covers: the correlation reads nothing else)
         margin = 4 * _TEXTURE + int(math.ceil(max(_RING)))
-        band = slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h))
-        cols = _cyclic_span(mask[band].any(axis=0), margin)
+        both = mask & (problem.local_map(so3.exp(phi) @ base) > 0)
+        if not both.any():
+            both = mask
+        rows_both = np.flatnonzero(both.any(axis=1))
+        band = slice(max(int(rows_both[0]) - margin, 0), min(int(rows_both[-1]) + margin + 1, h))
+        cols = _cyclic_span(both[band].any(axis=0), margin)
         wrap = len(cols) == w  # the whole width: columns wrap
         g_tex = local_texture(problem.gmap[band][:, cols], _TEXTURE, wrap_columns=wrap)
         m_band = mask[band][:, cols]
 
-        def ncc(lmap, tex, shift=(0, 0)):
-            """Correlation over the old regions of the recent map's texture (shifted by (rows, columns)) with
-            the old map's."""
+        def ncc(tex, covered, shift=(0, 0)):
+            """Correlation over the old regions of the recent map's texture (shifted by (rows, columns); on the
+            pixels its map covers) with the old map's. The shifted texture is read where the selection needs it,
+            as np.roll's copy would hold it there (the same values in the same order)."""
             if shift != (0, 0):
-                lmap, tex = (np.roll(x, shift, axis=(0, 1)) for x in (lmap, tex))
-            sel = m_band & (lmap > 1e-3 * float(lmap.max()))
-            if sel.sum() < 16:
+                covered = np.roll(covered, shift, axis=(0, 1))
+            sel = m_band & covered
+            if np.count_nonzero(sel) < 16:
                 return 0.0
-            a, c = tex[sel], g_tex[sel]
+            if shift == (0, 0):
+                a = tex[sel]
+            else:
+                r, c = np.nonzero(sel)
+                a = tex[(r - shift[0]) % tex.shape[0], (c - shift[1]) % tex.shape[1]]
+            c = g_tex[sel]
             a, c = a - a.mean(), c - c.mean()
             den = math.sqrt(float(a @ a) * float(c @ c))
             return float(a @ c) / den if den > 0 else 0.0
 
         def maps_at(x):
+            """(texture, covered pixels) of the recent map at correction x."""
             lmap = problem.local_map(so3.exp(x) @ base)[band][:, cols]
-            return lmap, local_texture(lmap, _TEXTURE, wrap_columns=wrap)
+            self._slice_point()
+            return local_texture(lmap, _TEXTURE, wrap_columns=wrap), lmap > 1e-3 * float(lmap.max())
 
+        self._slice_point()
         at_opt = maps_at(phi)
+        self._slice_point()
         conf = ncc(*at_opt)
         # uniqueness: the registered recent map shifted by _RING map pixels in 4 directions each (a second peak
         # there: repeated texture, a false loop). Shifting the map (not re-voting at rotated poses) costs one
@@ -319,6 +522,7 @@ class LoopCloser:
         ring = []
         for r in _RING:
             for a in np.arange(4) * np.pi / 2 + (np.pi / 4 if r > _RING[0] else 0.0):
+                self._slice_point()
                 ring.append(ncc(*at_opt, shift=(int(round(r * math.sin(a))), int(round(r * math.cos(a))))))
         best_ring = max(ring)
         peak = conf / best_ring if best_ring > 0 else np.inf
@@ -331,12 +535,16 @@ class LoopCloser:
             ok, reason = False, "correction above loop_max_correction"
         else:
             ok, reason = True, "accepted"
-        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": ncc(*maps_at(np.zeros(3))),
+        self._slice_point()
+        before = ncc(*maps_at(np.zeros(3)))
+        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": before,
                 "peak_ratio": float(peak), "accepted": ok, "applied": False, "reason": reason, "_phi": phi.tolist()}
 
     # ---- correction ----------------------------------------------------------------------------------------------
-    def _apply(self, t, b, old_cells, phi, t_now) -> dict:
-        """Spread the correction over the control poses since the old visit; rebuild the maps."""
+    def _apply(self, t, b, old_cells, phi, t_now, ages=None) -> dict:
+        """Spread the correction over the control poses since the old visit; rebuild the maps. ``ages``: the
+        (age, visit) maps at detection (None: the current ones)."""
+        age, visit = ages if ages is not None else (self.age, self.visit)
         backend = self.backend
         spline = backend.spline
         corr = so3.exp(phi)
@@ -348,7 +556,7 @@ class LoopCloser:
         # the correction was measured by the recent events on the old regions, against the last visit there: the
         # old map of a region stands for the poses of that whole visit, zero correction at its middle
         hit = cells[on_old]
-        t_old = float(np.median(0.5 * (self.visit.flat[hit] + self.age.flat[hit])))
+        t_old = float(np.median(0.5 * (visit.flat[hit] + age.flat[hit])))
         t_ref = float(np.median(t[on_old]))
         t_a = max(t_old, self._closed_until)
         if t_ref <= t_a:
@@ -359,41 +567,132 @@ class LoopCloser:
         ctrl = spline.control_R
         # edge weights of the chain pose graph: rotation travelled, plus a little time (drift while nearly still)
         steps = so3.geodesic_angle(ctrl[i0:i1], ctrl[i0 + 1:i1 + 1]) + 0.01 * spline.dt
-        ctrl[i0:i1 + 1] = so3.spread_correction(steps, phi) @ ctrl[i0:i1 + 1]
-        ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
-        self._rebuild()
-        backend._anchor_at(backend._anchor[0])
+        correction = (i0, i1, so3.spread_correction(steps, phi), corr)
+        if self.slice_seconds is None:
+            self._correct(spline, correction)
+            self._rebuild()
+        else:  # in slices too, along a corrected copy; the back-end keeps its poses and maps (consistent with
+            # each other, for the BA of the windows meanwhile) until the rebuilt maps replace them with the correction
+            n_old, thinned = self._n_old, self._thinned
+            self._task_spline = self._correct(spline.copy(), correction)
+            n_chunks = len(self.chunks)  # the strides the copy holds poses for
+            self._task = _Slices(lambda: self._rebuild_in_slices(n_old, n_chunks))
+            self._pending = {"kind": "rebuild", "n_old": n_old, "thinned": thinned, "seconds": 0.0,
+                             "correction": correction}
+            self._advance(self.slice_seconds)
         self._closed_until = float(t[-1])
         return {"applied": True, "reason": "accepted", "t_old": t_old, "t_ref": t_ref,
                 "t_spread_from": float(knots[i0])}
 
+    def _correct(self, spline, correction):
+        """Apply a loop's correction (i0, i1, spread rotations of poses i0..i1, rotation of the later poses) to a
+        spline's control poses (and, on the back-end's, re-anchor its source poses); returns the spline."""
+        i0, i1, spread, corr = correction
+        ctrl = spline.control_R
+        ctrl[i0:i1 + 1] = spread @ ctrl[i0:i1 + 1]
+        ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
+        if spline is self.backend.spline:
+            self.backend._anchor_at(self.backend._anchor[0])
+            self.corrections += 1
+        return spline
+
     def _rebuild(self) -> None:
-        """Global map, old map and age map from the stored subsamples along the (corrected) spline."""
+        """Global map, old map and age map from the stored subsamples along the (corrected) spline.
+
+        The old map and the age map are rebuilt from the checkpoint the last rebuild left (its maps after aging
+        its chunks, and the control poses then) when the correction left the poses of those chunks unchanged:
+        every later loop closes only the drift since the last one (``_apply``), so only the chunks aged since are
+        voted again, not every chunk since the start. Same votes in the same order: the same maps, bit for bit.
+        """
         tic = time.perf_counter()
+        n_old = self._n_old
+        self.backend.map = self.old = None  # free the old maps first: peak memory holds one set (+ the checkpoint)
+        self._finish_rebuild(self._rebuild_old(n_old), n_old, None, 0, self._thinned)
+        self.profile["rebuild"] += time.perf_counter() - tic
+
+    def _rebuild_in_slices(self, n_old: int, n_chunks: int):
+        """The rebuild's bulk as a sliced task, along the corrected copy of the spline: the old maps of
+        chunks[:n_old], then of the chunks aged since, and the votes of the recent ones (up to n_chunks, the
+        strides the copy has poses for) on a copy of that old map (the global map's raw votes); returns
+        _finish_rebuild's arguments (it adds what was aged or stored after this)."""
+        maps = self._rebuild_old(n_old)
+        n_aged = n_old
+        while n_aged < min(self._n_old, n_chunks):  # aged meanwhile (read between slices: the back-end is paused)
+            self._slice_point()
+            self._age_chunk(self.chunks[n_aged], maps)
+            n_aged += 1
+        if self._freeze:
+            return maps, n_aged, None, 0
+        acc = _RawMap(self.backend.width, self.backend.height, raw=maps[0].raw.copy())
+        acc._scratch = maps[0]._scratch  # zero between calls: one scratch map for both
+        n_voted = max(min(len(self.chunks), n_chunks), n_aged)
+        for t, b, weight, _t0, _moving in self.chunks[n_aged:n_voted]:
+            self._slice_point()
+            acc.add(b, self._rotations(t)[1], self.backend.cfg.event_batch_size, weight=weight)
+        return maps, n_aged, acc, n_voted
+
+    def _rebuild_old(self, n_old: int):
+        """(old map, age map, visit map) of chunks[:n_old] along the spline: from the checkpoint when it holds
+        unchanged poses, else from scratch (new maps: the current ones stay in use while this runs in slices)."""
+        w, h = self.backend.width, self.backend.height
+        start = self._checkpoint_start(n_old)
+        if start > 0:
+            raw, age, visit = self._checkpoint[1:4]
+            maps = (_RawMap(w, h, raw=raw.copy()), age.copy(), visit.copy())
+        else:
+            maps = (_RawMap(w, h), np.full_like(self.age, -np.inf), np.full_like(self.visit, -np.inf))
+        for chunk in self.chunks[start:n_old]:
+            self._slice_point()
+            self._age_chunk(chunk, maps)
+        return maps
+
+    def _finish_rebuild(self, maps, n_old: int, acc, n_voted: int, thinned: int) -> None:
+        """Take the rebuilt (old, age, visit) maps of chunks[:n_old] (aging the chunks aged since), keep them as
+        the checkpoint, and set the global map: the old map plus the recent strides' votes (``acc``: a copy of
+        the old map of chunks[:n_old] holding the votes of chunks[n_old:n_voted] already; None: none yet). The
+        same additions in the same order either way: the same maps."""
         backend = self.backend
         bs = backend.cfg.event_batch_size
-        freeze = backend.map.first_seen is not None
-        backend.map = self.old = None  # free the old maps first: peak memory holds one set of maps, not two
-        self.old = _RawMap(self.backend.width, self.backend.height)
-        self.age[:] = -np.inf
-        self.visit[:] = -np.inf
-        for chunk in self.chunks[:self._n_old]:
-            self._age_chunk(chunk)
+        for chunk in self.chunks[n_old:self._n_old]:  # aged while the rebuild ran in slices
+            self._age_chunk(chunk, maps)
+        self.old, self.age, self.visit = maps
+        self._checkpoint = (self._n_old, self.old.raw.copy(), self.age.copy(), self.visit.copy(),
+                            backend.spline.control_R.copy(), thinned)
+        backend.map = None  # (offline, already freed by _rebuild)
         backend.map = self._new_map()
-        if freeze:  # first-seen times: every stride in time order, as the back-end settled them
+        if self._freeze:  # first-seen times: every stride in time order, as the back-end settled them
             for t, b, weight, t0, moving in self.chunks:
                 backend.map.add(b, self._rotations(t)[1], bs, t0, moving, weight=weight)
         else:  # the global map is the old map plus the recent strides' votes: one blur at the end (GlobalMap.set_raw)
-            acc = _RawMap(self.backend.width, self.backend.height, raw=self.old.raw.copy())
-            acc._scratch = self.old._scratch  # zero between calls: one scratch map for both
-            for t, b, weight, _t0, _moving in self.chunks[self._n_old:]:
+            if acc is None:
+                acc = _RawMap(self.backend.width, self.backend.height, raw=self.old.raw.copy())
+                acc._scratch = self.old._scratch  # zero between calls: one scratch map for both
+                n_voted = self._n_old
+            for t, b, weight, _t0, _moving in self.chunks[n_voted:]:
                 acc.add(b, self._rotations(t)[1], bs, weight=weight)
             backend.map.set_raw(acc.raw)
-        self.profile["rebuild"] += time.perf_counter() - tic
+
+    def _checkpoint_start(self, n_old: int | None = None) -> int:
+        """Chunks the checkpoint holds when none of their poses changed since it was taken and it holds at most
+        n_old (default: all aged; 0: rebuild all)."""
+        if self._checkpoint is None:
+            return 0
+        n, _raw, _age, _visit, ctrl, thinned = self._checkpoint
+        spline = self._spline()
+        n_old = self._n_old if n_old is None else n_old
+        if thinned != self._thinned or n > n_old or n == 0 or len(ctrl) > spline.num_control:
+            return 0
+        changed = np.flatnonzero(np.any(spline.control_R[:len(ctrl)] != ctrl, axis=(1, 2)))
+        k = int(changed[0]) if len(changed) else len(ctrl)
+        # R(t) depends on control poses s .. s + degree (SO3Spline.support): times before this one kept theirs
+        lead = (spline.degree - 1) // 2
+        t_changed = spline.t0 + (k - spline.degree + lead) * spline.dt
+        return n if float(self.chunks[n - 1][0][-1]) < t_changed else 0
 
     # ---- report ----------------------------------------------------------------------------------------------------
     def summary(self) -> dict:
         return {"candidates": len(self.loops), "accepted": sum(e["accepted"] for e in self.loops),
                 "applied": sum(bool(e.get("applied")) for e in self.loops), "seconds": self.seconds,
-                "cpu_seconds": self.cpu_seconds,
+                "cpu_seconds": self.cpu_seconds, "unfinished": int(self._task is not None),
+                "longest_call_seconds": self.longest_call[0], "longest_call_cpu_seconds": self.longest_call[1],
                 "stored_events": int(self._stored), "seconds_by_part": dict(self.profile)}

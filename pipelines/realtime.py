@@ -97,6 +97,10 @@ MAX_LEVEL = 4
 MAX_INPUT_THINNING = 16  # deeper thinning leaves front-end packets too sparse (their cost is per packet anyway)
 RELAX_WINDOWS = 3  # windows at a level before it may be lowered (and over which its costs are averaged)
 RELAX_HEADROOM = 0.8  # a level is relaxed only when the lower one is predicted to cost below this (per process)
+# a loop verification (loop closure) runs in slices: at most this share of a stride's wall time before each window
+# (the fifth RELAX_HEADROOM leaves), plus the back-end worker's idle time; at once it would stall the back-end for
+# 1-8 s (DAVIS240C to VGA) and break the lag bound
+LOOP_SLICE_SHARE = 1.0 - RELAX_HEADROOM
 DRAIN_WINDOWS = 5  # a lag above target that falls back under it within this many windows needs no escalation
 # level -> (1 of k front-end packets, BA cap divisor (0: BA skipped), BA on 1 of m windows)
 LEVELS = {0: (1, 1, 1), 1: (1, 1, 1), 2: (1, 2, 1), 3: (2, 2, 2), 4: (4, 0, 1)}  # level 1: the BA budget only
@@ -374,7 +378,8 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     # front-end then runs while the worker does a whole window's BA
     online = OnlineSlam(camera, config, on_window=ctl.on_window, backend_process=backend_process,
                         queue_size=100_000,
-                        max_backlog=2 * be.backend_time_window_size + be.backend_sliding_window_stride)
+                        max_backlog=2 * be.backend_time_window_size + be.backend_sliding_window_stride,
+                        loop_slice_seconds=LOOP_SLICE_SHARE * be.backend_sliding_window_stride / speed)
     ctl.online = online
     idle = {"sleep": 0.0}
     ctl.idle_seconds = lambda: idle["sleep"] + (online._worker.blocked_seconds if online._worker is not None else 0.0)

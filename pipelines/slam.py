@@ -56,8 +56,9 @@ class _BackendFeed:
     """Passes event chunks through unchanged while feeding them (downsampled by backend_event_sample_rate, with
     bearings) to the back-end, which it creates at the first event. Counts the events read."""
 
-    def __init__(self, camera: Camera, config: SlamConfig, r_start_of):
+    def __init__(self, camera: Camera, config: SlamConfig, r_start_of, loop_slice_seconds: float | None = None):
         self.camera, self.config, self.r_start_of = camera, config, r_start_of
+        self.loop_slice_seconds = loop_slice_seconds  # LoopCloser.slice_seconds (None: verify at once)
         self.backend: SlidingWindowBackend | None = None
         self.events_read = 0
 
@@ -69,6 +70,7 @@ class _BackendFeed:
             self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0))
             if self.config.loop.loop_closure:  # loop closure on revisits (pipelines/loop_closure.py)
                 self.backend.loop = LoopCloser(self.config.loop, self.backend)
+                self.backend.loop.slice_seconds = self.loop_slice_seconds
         sub = every_qth(chunk, int(self.config.backend.backend_event_sample_rate), self.events_read)
         self.events_read += len(chunk)
         self.backend.push_events(sub.t, self.camera.bearings(sub.x, sub.y), complete_until=float(chunk.t[-1]))
@@ -142,7 +144,8 @@ class OnlineSlam:
     """
 
     def __init__(self, camera: Camera, config: SlamConfig = SlamConfig(), *, on_window=None,
-                 backend_process: bool = False, queue_size: int = 16, max_backlog: float | None = None):
+                 backend_process: bool = False, queue_size: int = 16, max_backlog: float | None = None,
+                 loop_slice_seconds: float | None = None):
         self._wall0 = time.perf_counter()
         if backend_process:
             from ti_cmax.kernels import runtime
@@ -153,7 +156,9 @@ class OnlineSlam:
         self.on_window = on_window
         self.runner = FrontendRunner(camera, config.frontend)
         self._packet_events = self.runner.slicer.n  # N of the resolved config (degrade's input thinning divides it)
-        self._worker = _BackendProcess(camera, config, queue_size) if backend_process else None
+        # loop_slice_seconds: loop verifications in slices of at most this many wall seconds per window (and in the
+        # worker's idle time) instead of at once (LoopCloser.slice_seconds; the real-time replay)
+        self._worker = _BackendProcess(camera, config, queue_size, loop_slice_seconds) if backend_process else None
         cpu0 = time.process_time()
         self.compile_seconds = self.runner.compile() + (0.0 if backend_process else _compile_backend(config))
         # what the process paid before the first event: imports, ti.init, kernel preparation (CPU seconds, which
@@ -163,7 +168,7 @@ class OnlineSlam:
                         "process_cpu_seconds": time.process_time()}
         # sequential: the back-end itself; with a worker: a shadow fed with the source poses and the worker's
         # refined splines, for pose() only (it never refines)
-        self._feed = _BackendFeed(camera, config, lambda t0: np.eye(3))
+        self._feed = _BackendFeed(camera, config, lambda t0: np.eye(3), loop_slice_seconds)
         self._q_front = int(config.frontend.frontend_event_sample_rate)
         self._r_src = np.eye(3)
         self._t_prev: float | None = None
@@ -237,6 +242,8 @@ class OnlineSlam:
         backend = self._feed.backend
         done = len(backend.windows)
         tic, cpu = time.perf_counter(), time.process_time()
+        if backend.loop is not None:  # the end of the stream: a sliced verification in flight at once
+            backend.loop.drain()
         backend.finish()
         self.backend_seconds += time.perf_counter() - tic
         self.backend_cpu_seconds += time.process_time() - cpu
@@ -414,7 +421,7 @@ class _BackendProcess:
     """The back-end in a spawned worker process (a forked one would hang after ti.init), connected by a bounded
     queue of inputs (``send`` blocks while it is full: back-pressure, nothing dropped) and a queue of results."""
 
-    def __init__(self, camera: Camera, config: SlamConfig, queue_size: int):
+    def __init__(self, camera: Camera, config: SlamConfig, queue_size: int, loop_slice_seconds: float | None = None):
         import multiprocessing as mp
 
         from ti_cmax.kernels import runtime
@@ -427,7 +434,7 @@ class _BackendProcess:
         self.ba_budget = ctx.Value("d", -1.0, lock=False)  # and its ba_budget (-1: None)
         self.proc = ctx.Process(target=_backend_worker, daemon=True,
                                 args=(camera, config, runtime.num_threads(), self.inbox, self.outbox,
-                                      (self.ba_cap, self.ba_every, self.ba_budget)))
+                                      (self.ba_cap, self.ba_every, self.ba_budget), loop_slice_seconds))
         self.proc.start()
         self.blocked_seconds = 0.0
         self.ready = False  # the worker has prepared its kernels
@@ -477,10 +484,12 @@ class _BackendProcess:
             self.proc.terminate()
 
 
-def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, degradation) -> None:
+def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, degradation,
+                    loop_slice_seconds: float | None = None) -> None:
     """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R), ("map",) (send a
     copy of the map) and ("finish",); ``degradation``: the back-end's ba_cap, ba_every and ba_budget in shared memory
-    (-1: None; set by OnlineSlam.degrade), read before each step."""
+    (-1: None; set by OnlineSlam.degrade), read before each step. With ``loop_slice_seconds`` a loop verification
+    runs in slices (LoopCloser.slice_seconds): also one slice at a time while no message waits (idle time)."""
     try:
         from ti_cmax.kernels import runtime
 
@@ -488,7 +497,7 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
         cpu0 = time.process_time()
         compile_s = _compile_backend(config)
         outbox.put(("ready", compile_s))
-        feed = _BackendFeed(camera, config, lambda t0: np.eye(3))
+        feed = _BackendFeed(camera, config, lambda t0: np.eye(3), loop_slice_seconds)
         seconds = step_cpu = 0.0
         loops_applied = 0  # an applied loop moves control poses before the window: send them all then
         # per-stage costs of the worker loop: receive (waiting for input and unpickling it: wall; unpickling: CPU),
@@ -496,6 +505,10 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
         clock = StageClock()
         last_done, waited = time.perf_counter(), 0.0  # busy_seconds of a window: wall since the last one - waited
         while True:
+            loop = feed.backend.loop if feed.backend is not None else None
+            while loop is not None and loop.pending() and inbox.empty():  # idle: the verification in flight
+                with clock("loop_idle"):
+                    loop.idle_slice()
             tic = time.perf_counter()
             with clock("receive"):
                 kind, *args = inbox.get()
@@ -520,11 +533,13 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
                     backend.step()
             else:
                 new = len(backend.windows)
+                if backend.loop is not None:  # the end of the stream: the verification in flight at once
+                    backend.loop.drain()
                 backend.finish()
             seconds += time.perf_counter() - tic
             step_cpu += time.process_time() - cpu
             spline = backend.spline
-            applied = backend.loop.summary()["applied"] if backend.loop is not None else 0
+            applied = backend.loop.corrections if backend.loop is not None else 0
             for report in backend.windows[new:]:
                 now = time.perf_counter()
                 report.busy_seconds, last_done, waited = max(0.0, now - last_done - waited), now, 0.0

@@ -77,9 +77,10 @@ def _spline(trajectory, dt=0.05, duration=DURATION):
     return spline
 
 
-def _run(t_ev, b_ev, trajectory, loop_cfg=LOOP, duration=DURATION):
+def _run(t_ev, b_ev, trajectory, loop_cfg=LOOP, duration=DURATION, idle_slices=0):
     """Settle every stride of the events along the given trajectory (a spline fitted to it, no BA) with a loop
-    closer attached, as the back-end does after each window."""
+    closer attached, as the back-end does after each window (``idle_slices``: then that many slices of a sliced
+    verification in flight, as the worker runs while idle)."""
     from ti_cmax.pipelines.backend import SlidingWindowBackend
     from ti_cmax.pipelines.loop_closure import LoopCloser
 
@@ -96,6 +97,8 @@ def _run(t_ev, b_ev, trajectory, loop_cfg=LOOP, duration=DURATION):
         be.loop.before_window(k * stride, k * stride + cfg.backend_time_window_size)
         be._settle(k * stride, (k + 1) * stride, still=False)
         be.loop.after_window((k + 1) * stride)
+        for _ in range(idle_slices):
+            be.loop.idle_slice()
     return be
 
 
@@ -251,7 +254,8 @@ def test_rebuilt_map_set_at_once_equals_the_settled_one(ti_runtime):
 
 def test_verification_crops_are_exact():
     """The verification's shortcuts on large maps: the old map blurred on its rows alone equals the full-map blur
-    (with its sums), and the column box of the old regions is the shortest cyclic interval, across the wrap."""
+    (with its sums), its block sums on those rows equal the full map's, and the column box of the old regions is
+    the shortest cyclic interval, across the wrap."""
     from ti_cmax.kernels.pano import blur_map
     from ti_cmax.pipelines.loop_closure import _blur_rows, _cyclic_span
 
@@ -262,6 +266,12 @@ def test_verification_crops_are_exact():
     full = blur_map(g, 1.0)
     np.testing.assert_allclose(blurred, full, atol=1e-5)
     np.testing.assert_allclose([total, squares], [full.sum(), np.sum(full ** 2)], rtol=1e-5)
+    # the pyramid's block sums on the rows holding votes alone: the whole map's sums, bit for bit
+    from ti_cmax.pipelines.loop_closure import _downsample
+
+    rows = np.arange(20, 31)
+    for f in (2, 4):
+        np.testing.assert_array_equal(_downsample(g, rows, f), g.reshape(64 // f, f, 128 // f, f).sum(axis=(1, 3)))
     used = np.zeros(128, bool)
     used[[2, 3, 125]] = True
     assert _cyclic_span(used, 4).tolist() == [(c % 128) for c in range(121, 136)]
@@ -298,3 +308,98 @@ def test_bench_level_holds_the_realtime_degradation(short_dataset):
     res = run_at_level(short_dataset, SlamConfig(), 4)
     backend = res.report["backend"]
     assert backend["windows"] > 5 and backend["windows_optimized"] == 0
+
+
+def test_checkpointed_rebuild_equals_the_full_one(ti_runtime):
+    """After several applied loops (each later one rebuilt from the last rebuild's checkpoint), the old map, the
+    age and visit maps and the global map equal a rebuild of every stored stride from scratch, bit for bit."""
+    duration, turns = 7.5, 2.3
+    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
+    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
+    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    be = _run(t_ev, b_ev, drifted, duration=duration)
+    lc = be.loop
+    assert sum(bool(e["applied"]) for e in lc.loops) >= 3, lc.loops
+    assert lc._checkpoint_start() > 0  # the last rebuild left a checkpoint the next one would use
+    lc._rebuild()  # from the checkpoint
+    got = (lc.old.raw.copy(), lc.age.copy(), lc.visit.copy(), be.map.raw.copy())
+    lc._checkpoint = None
+    lc._rebuild()  # every stride from scratch
+    for a, b in zip(got, (lc.old.raw, lc.age, lc.visit, be.map.raw)):
+        np.testing.assert_array_equal(a, b)
+    # a correction that moves the checkpoint's poses invalidates it
+    be.spline.control_R[2] = so3.exp(np.array([0.0, 1e-3, 0.0])) @ be.spline.control_R[2]
+    assert lc._checkpoint_start() == 0
+
+
+def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_runtime):
+    """In real time (LoopCloser.slice_seconds) a verification runs in slices: one before each window here (budget
+    0) and 5 in the idle time after it: the registration finds what the verification at once finds (the same poses and maps as detected,
+    bit for bit), each slice a small part of the whole, the result applies windows later and still removes the
+    drift; the map rebuild after it, in slices as well, equals the rebuild at once."""
+    import time
+
+    from ti_cmax.pipelines import loop_closure
+
+    t_ev, b_ev = _events()
+    at_once = _run(t_ev, b_ev, _drifted)
+    calls = []
+    original = loop_closure._Slices.resume
+
+    def resume(self):
+        tic = time.perf_counter()
+        original(self)
+        calls.append(time.perf_counter() - tic)
+
+    loop_closure._Slices.resume = resume
+    old_init = loop_closure.LoopCloser.__init__
+
+    def init(self, *a, **k):
+        old_init(self, *a, **k)
+        self.slice_seconds = 0.0
+
+    loop_closure.LoopCloser.__init__ = init
+    try:
+        sliced = _run(t_ev, b_ev, _drifted, idle_slices=5)
+    finally:
+        loop_closure._Slices.resume, loop_closure.LoopCloser.__init__ = original, old_init
+    first, ref = sliced.loop.loops[0], at_once.loop.loops[0]
+    assert first["sliced"] and first["time"] == ref["time"]
+    for key in ("correction_deg", "confidence", "confidence_before", "peak_ratio", "accepted"):
+        assert first[key] == ref[key], key
+    assert len(calls) > 20 and max(calls) < 0.5 * ref["seconds"]  # many slices, each a small part of the whole
+    applied = [e for e in sliced.loop.loops if e["applied"]]
+    assert applied
+    lc = sliced.loop
+    lc.drain()  # the end of the stream: a map rebuild still in flight (in slices too) at once
+    assert lc._task is None and not lc.pending()
+    # the rebuild in slices (the old map meanwhile in use, the strides aged meanwhile caught up) equals one at once
+    got = (lc.old.raw.copy(), lc.age.copy(), lc.visit.copy(), sliced.map.raw.copy())
+    lc._checkpoint, lc.slice_seconds = None, None
+    lc._rebuild()
+    for a, b in zip(got, (lc.old.raw, lc.age, lc.visit, sliced.map.raw)):
+        np.testing.assert_array_equal(a, b)
+    # the drift is removed as well: the error at the end of the run within 25 % of the at-once run's plus 0.1 deg
+    t_end = np.array([DURATION - 0.5])
+    assert _error(sliced, t_end)[0] < 1.25 * _error(at_once, t_end)[0] + 0.1 < np.degrees(DRIFT) * 0.5
+
+
+def test_backend_worker_runs_sliced_verifications(short_sequence):
+    """With a back-end worker process and loop_slice_seconds (what `slam --realtime` sets), the verifications run
+    in slices there (between windows and while idle) and reaches report.json's "loops" (short checks forced by
+    loop_min_age=0.3 s on a 1.2 s sequence)."""
+    from ti_cmax.config import SlamConfig, load_config
+    from ti_cmax.pipelines.slam import OnlineSlam
+
+    cfg = load_config(SlamConfig, None, ["loop_closure=true", "loop_min_age=0.3", "loop_recent_time=0.2"])
+    online = OnlineSlam(short_sequence.camera, cfg, backend_process=True, loop_slice_seconds=0.0)
+    ev = short_sequence.events
+    for i in range(0, len(ev), 50_000):
+        online.push(ev[i:i + 50_000])
+    result = online.close()
+    loops = result.report["loops"]
+    # sliced until the end of the stream (then the last windows verify at once: LoopCloser.drain)
+    assert loops and loops[0].get("sliced") and all(e.get("sliced") for e in loops[:-1]), loops
+    assert all(e["reason"] for e in loops)
+    summary = result.report["backend"]["loop_closure"]
+    assert summary["candidates"] == len(loops) and summary["longest_call_cpu_seconds"] > 0
