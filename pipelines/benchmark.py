@@ -121,6 +121,12 @@ SUITES = {
         SequenceSpec("town222", "DAVIS240C", "town", 3.0, 222),
         SequenceSpec("bay223", "DAVIS240C", "bay", 3.0, 223),
         SequenceSpec("street224", "DAVIS240C", "street", 3.0, 224),
+        # session 8 (per-batch acceleration steps, crossing-position noise on), declared on 2026-12-02 04:01 UTC
+        # before any method ran on them
+        SequenceSpec("city231", "DAVIS240C", "city", 3.0, 231),
+        SequenceSpec("bay232", "DAVIS240C", "bay", 3.0, 232),
+        SequenceSpec("town233", "DAVIS240C", "town", 3.0, 233),
+        SequenceSpec("bicycle234", "DAVIS240C", "bicycle", 3.0, 234),
     ),
 }
 SUITE = SUITES["paper"]

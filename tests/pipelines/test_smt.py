@@ -189,6 +189,41 @@ def test_config_loads_with_nested_mapping_keys():
         load_config(SmtConfig, None, ["num_particles=0"])
 
 
+def test_ekf_acceleration_steps_are_per_batch_not_per_second(monkeypatch):
+    """The acceleration's random-walk step is acceleration_step_std per batch whatever the batch lasts (module doc):
+    the kernel gets the jerk intensity step / sqrt(mean batch duration of the call), so batches 4x shorter (a 4x
+    higher event rate) double it; acceleration_step_std = 0 keeps angular_jerk_std per second (session 6)."""
+    from types import SimpleNamespace
+
+    from ti_cmax.pipelines.baselines import smt as smt_module
+
+    seen = []
+
+    def fake_track(*args, **kwargs):
+        seen.append(trk.q_jerk)
+        return np.zeros((args[4] - args[3], 7))
+
+    monkeypatch.setattr(smt_module.ks, "ekf_track", fake_track)
+    mapper = SimpleNamespace(gradient=None, covariance=None, updates=None,
+                             config=SimpleNamespace(outlier_distance_px=10.0))
+    mids = np.concatenate([np.arange(11) * 4e-4, 4e-3 + np.arange(1, 11) * 1e-4])  # 400 us, then 100 us batches
+    ctx = SimpleNamespace(mids=mids, mapper=mapper, **{k: None for k in (
+        "hist", "hist64", "batch_size", "bearings", "pix", "pol", "refs", "ref_uv", "ref_n", "contrast", "sigma",
+        "min_disp", "max_lat", "ref_src", "max_events", "position_var")})
+    cfg = SmtConfig(acceleration_step_std=10.0)  # opt-in (module doc)
+    assert cfg.motion_model == "constant_acceleration"
+    trk = smt_module.EkfTracker(np.eye(3), cfg, None)
+    trk.run(1, 11, ctx)
+    trk.run(11, 21, ctx)
+    step = cfg.acceleration_step_std
+    np.testing.assert_allclose(seen, [step / np.sqrt(4e-4), step / np.sqrt(1e-4)], rtol=1e-9)
+    assert trk.jerk_used == seen
+    seen.clear()
+    trk = smt_module.EkfTracker(np.eye(3), SmtConfig(acceleration_step_std=0.0), None)
+    trk.run(11, 21, ctx)
+    assert seen == [SmtConfig().angular_jerk_std] and trk.jerk_used == []
+
+
 # --- the mapping EKF through the SMT path: a ramp edge swept by a panning camera --------------------------------
 W, H = 256, 128
 A, S, C = 1.5, 15.0, 0.1  # log intensity M = A clip((u - U0) / S, -1, 1), threshold C
