@@ -89,7 +89,7 @@ def _cache_kernel_sources() -> None:
 
 _cache_kernel_sources()
 
-_state = {"initialized": False, "threads": None}
+_state = {"initialized": False, "threads": None, "chosen": False}
 
 
 def set_num_threads(n: int | None) -> None:
@@ -97,6 +97,7 @@ def set_num_threads(n: int | None) -> None:
     if _state["initialized"] and n != _state["threads"]:
         raise RuntimeError("Taichi is already initialized; set the thread count before the first kernel")
     _state["threads"] = n
+    _state["chosen"] = n is not None
 
 
 def share_cores(processes: int) -> None:
@@ -107,6 +108,11 @@ def share_cores(processes: int) -> None:
     if _state["initialized"] or _state["threads"] or os.environ.get("TI_CMAX_THREADS"):
         return
     _state["threads"] = max(1, (os.cpu_count() or 1) // max(1, int(processes)))
+
+
+def threads_chosen() -> bool:
+    """Whether the user chose the thread count (set_num_threads / --threads, or TI_CMAX_THREADS)."""
+    return bool(_state["chosen"] or os.environ.get("TI_CMAX_THREADS"))
 
 
 def num_threads() -> int:
@@ -167,4 +173,4 @@ def part_slice(it, n, parts):
     return part, k0, k1
 
 
-__all__ = ["ti", "ensure_init", "set_num_threads", "num_threads", "share_cores", "PART_TASK", "check_parts", "part_slice"]
+__all__ = ["ti", "ensure_init", "set_num_threads", "num_threads", "threads_chosen", "share_cores", "PART_TASK", "check_parts", "part_slice"]

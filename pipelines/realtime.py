@@ -78,6 +78,7 @@ interleaved runs each, events used 0.24-0.32 vs 0.25-0.30 before, rel error rati
 from __future__ import annotations
 
 import math
+import os
 import time
 from typing import Iterable
 
@@ -87,6 +88,7 @@ from ti_cmax.camera import Camera
 from ti_cmax.config import SlamConfig
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
+from ti_cmax.kernels import runtime
 from ti_cmax.progress import progress
 
 from .frontend import every_qth
@@ -343,6 +345,15 @@ class RealtimeController:
         }
 
 
+def _worker_threads() -> int | None:
+    """Taichi threads of the back-end worker in real time: every core unless a thread count was chosen (None: the
+    chosen one). The main process sleeps most of the time (it waits for events to be due), so the back-end, the larger
+    cost, can use the other core too (2 M ev/s, four interleaved pairs: events used 0.35 / 0.41 / 0.41 / 0.39 with one
+    worker thread, 0.88 / 0.85 / 0.55 / 0.46 with two, lag max 0.35-0.45 vs 0.33-0.37 s). Offline --parallel keeps
+    half the cores each: there both processes are busy, and oversubscribed Taichi pools wait."""
+    return None if runtime.threads_chosen() else max(1, os.cpu_count() or 1)
+
+
 def _wake_time(first_pending: float, s_now: float, handed_until: float, slice_s: float, t0: float) -> float | None:
     """Sensor time the replay sleeps until before its next hand-over, or None to hand over now: when nothing is due,
     or less than one slice (``realtime_chunk``) of events is due since the last hand-over, it waits for the next
@@ -376,10 +387,12 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     # with a worker, push() waits while the events sent run more than two windows and a stride ahead of the
     # worker's last window (bounded in sensor time: a chunk of the catch-up phase holds READ_EVENTS events); the
     # front-end then runs while the worker does a whole window's BA
+    worker_threads = _worker_threads() if backend_process else None
     online = OnlineSlam(camera, config, on_window=ctl.on_window, backend_process=backend_process,
                         queue_size=100_000,
                         max_backlog=2 * be.backend_time_window_size + be.backend_sliding_window_stride,
-                        loop_slice_seconds=LOOP_SLICE_SHARE * be.backend_sliding_window_stride / speed)
+                        loop_slice_seconds=LOOP_SLICE_SHARE * be.backend_sliding_window_stride / speed,
+                        worker_threads=worker_threads)
     ctl.online = online
     idle = {"sleep": 0.0}
     ctl.idle_seconds = lambda: idle["sleep"] + (online._worker.blocked_seconds if online._worker is not None else 0.0)
@@ -473,6 +486,8 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                               **result.report["backend"].get("worker_stages", {}).get("cpu_seconds", {})},
         "sleep_seconds": sleep_s,
         "wall_seconds": (time.monotonic() - ctl.wall0) if ctl.wall0 is not None else 0.0,
+        "threads": {"main_process": runtime.num_threads(),
+                    **({"backend_process": worker_threads or runtime.num_threads()} if backend_process else {})},
     }
     result.report["realtime"] = report
     return result

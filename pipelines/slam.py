@@ -145,7 +145,7 @@ class OnlineSlam:
 
     def __init__(self, camera: Camera, config: SlamConfig = SlamConfig(), *, on_window=None,
                  backend_process: bool = False, queue_size: int = 16, max_backlog: float | None = None,
-                 loop_slice_seconds: float | None = None):
+                 loop_slice_seconds: float | None = None, worker_threads: int | None = None):
         self._wall0 = time.perf_counter()
         if backend_process:
             from ti_cmax.kernels import runtime
@@ -158,7 +158,9 @@ class OnlineSlam:
         self._packet_events = self.runner.slicer.n  # N of the resolved config (degrade's input thinning divides it)
         # loop_slice_seconds: loop verifications in slices of at most this many wall seconds per window (and in the
         # worker's idle time) instead of at once (LoopCloser.slice_seconds; the real-time replay)
-        self._worker = _BackendProcess(camera, config, queue_size, loop_slice_seconds) if backend_process else None
+        # worker_threads: the worker's Taichi threads (default: this process's count)
+        self._worker = _BackendProcess(camera, config, queue_size, loop_slice_seconds, worker_threads) \
+            if backend_process else None
         cpu0 = time.process_time()
         self.compile_seconds = self.runner.compile() + (0.0 if backend_process else _compile_backend(config))
         # what the process paid before the first event: imports, ti.init, kernel preparation (CPU seconds, which
@@ -421,7 +423,8 @@ class _BackendProcess:
     """The back-end in a spawned worker process (a forked one would hang after ti.init), connected by a bounded
     queue of inputs (``send`` blocks while it is full: back-pressure, nothing dropped) and a queue of results."""
 
-    def __init__(self, camera: Camera, config: SlamConfig, queue_size: int, loop_slice_seconds: float | None = None):
+    def __init__(self, camera: Camera, config: SlamConfig, queue_size: int, loop_slice_seconds: float | None = None,
+                 threads: int | None = None):
         import multiprocessing as mp
 
         from ti_cmax.kernels import runtime
@@ -433,7 +436,7 @@ class _BackendProcess:
         self.ba_every = ctx.Value("q", 1, lock=False)  # and its ba_every
         self.ba_budget = ctx.Value("d", -1.0, lock=False)  # and its ba_budget (-1: None)
         self.proc = ctx.Process(target=_backend_worker, daemon=True,
-                                args=(camera, config, runtime.num_threads(), self.inbox, self.outbox,
+                                args=(camera, config, threads or runtime.num_threads(), self.inbox, self.outbox,
                                       (self.ba_cap, self.ba_every, self.ba_budget), loop_slice_seconds))
         self.proc.start()
         self.blocked_seconds = 0.0

@@ -259,3 +259,13 @@ def test_input_thinning_keeps_the_packets_time_span(short_sequence):
     assert online.runner.slicer.n == n // 8
     online.degrade()
     assert online.runner.slicer.n == n
+
+
+def test_the_real_time_worker_takes_every_core_unless_threads_were_chosen(monkeypatch):
+    from ti_cmax.kernels import runtime
+
+    monkeypatch.delenv("TI_CMAX_THREADS", raising=False)
+    monkeypatch.setitem(runtime._state, "chosen", False)
+    assert R._worker_threads() == max(1, os.cpu_count() or 1)
+    monkeypatch.setenv("TI_CMAX_THREADS", "1")
+    assert R._worker_threads() is None  # the chosen count, as for the main process
