@@ -546,7 +546,6 @@ class PanoIWE:
             raise ValueError(f"{nb} batches of {batch_size} do not match {len(self.bearings)} events")
         self.sigma = float(sigma)
         self.taps = gaussian_taps(self.sigma)
-        self.taps_d = self.taps.astype(self.dtype)
         self.radius = (len(self.taps) - 1) // 2
         self.n_px = self.width * self.height
         self.su, self.sv = self.width / (2 * math.pi), self.height / math.pi
@@ -631,7 +630,7 @@ class PanoIWE:
             rho_g, _ = self._density_ref
             self.alpha = float(raw / area / rho_g) if area > 0 else 0.0
             self._density_ref = None
-        separable_blur(lmap, self.taps_d, wrap_cols=bool(wrap), out=lmap)
+        separable_blur(lmap, self.taps, wrap_cols=bool(wrap), out=lmap)
         comb = np.empty_like(lmap)  # L + alpha G, for the gradient
         k["stats"](lmap, self.gmap, self.alpha, r0, c0, comb, stats)
         s_l, s_ll, s_lg = stats.sum(axis=0)
@@ -662,7 +661,7 @@ class PanoIWE:
         r0, c0, bh, bw, wrap = win
         _, comb, mu = maps
         comb -= self.dtype.type(mu)
-        wmap = separable_blur(comb, self.taps_d, wrap_cols=bool(wrap), out=comb)  # W = B(L + alpha G - mu)
+        wmap = separable_blur(comb, self.taps, wrap_cols=bool(wrap), out=comb)  # W = B(L + alpha G - mu)
         self._k["gradient"](wmap, r0, c0, self._xw, self._uv, self._jac, self.batch_size, self.width, self.su, self.sv,
                             self._gb)
         gb = self._gb.astype(np.float64)
