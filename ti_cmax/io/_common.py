@@ -13,7 +13,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from ..errors import InputError
-from ..events import Events
+from ..events import Events, signed_polarity
 
 
 @dataclass
@@ -66,7 +66,7 @@ class ScannedSource(NoCompanions):
     @staticmethod
     def _events(a: np.ndarray) -> Events:
         """Records with fields t (us), x, y, on (bool) -> Events."""
-        return Events(a["t"].astype(np.float64) * 1e-6, a["x"], a["y"], np.where(a["on"], 1, -1).astype(np.int8))
+        return Events(a["t"].astype(np.float64) * 1e-6, a["x"], a["y"], signed_polarity(a["on"]))
 
     def _scan(self):
         if self._summary is None:
@@ -199,10 +199,3 @@ def infer_sensor_size(max_x: float, max_y: float, source: str,
         )
     _, w, h = min(fits)
     return int(w), int(h)
-
-
-def polarity_from_values(p: np.ndarray, source: str) -> np.ndarray:
-    """Map stored polarities (0/1, -1/+1 or bool) to int8 {-1, +1}."""
-    from ti_cmax.events import signed_polarity
-
-    return signed_polarity(np.asarray(p))

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError, missing_extra
-from ..events import Events
+from ..events import Events, signed_polarity
 from ..trajectory import Trajectory
 from ._common import Block, grouped_blocks
 from .text import ImuData
@@ -116,7 +116,7 @@ class BagSource:
     @staticmethod
     def _events(a) -> Events:
         t = a["sec"].astype(np.float64) + 1e-9 * a["nsec"].astype(np.float64)
-        return Events(t, a["x"], a["y"], np.where(a["p"] > 0, 1, -1).astype(np.int8))
+        return Events(t, a["x"], a["y"], signed_polarity(a["p"]))
 
     def time_range(self):
         first = last = None

@@ -25,8 +25,8 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
-from ..events import Events
-from ._common import Block, polarity_from_values
+from ..events import Events, signed_polarity
+from ._common import Block
 
 try:  # registers compression filters (Blosc, ZSTD, ...) with HDF5 when installed
     import hdf5plugin  # noqa: F401
@@ -234,7 +234,7 @@ class H5Events:
                     x, y = x.astype(np.uint16, copy=False), y.astype(np.uint16, copy=False)
                 else:
                     x, y = x.astype(np.float32, copy=False), y.astype(np.float32, copy=False)
-                yield Block(Events(t, x, y, polarity_from_values(dp[i:j], self.source)), None, i)
+                yield Block(Events(t, x, y, signed_polarity(dp[i:j])), None, i)
                 i = j
 
 

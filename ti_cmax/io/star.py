@@ -27,7 +27,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
-from ..events import Events
+from ..events import Events, signed_polarity
 from ..trajectory import Trajectory
 
 CALIB_MATRIX_NAMES = ("calibration.txt", "calib_matrix.txt", "calib.txt")
@@ -238,7 +238,7 @@ def iter_star_events(path, chunk_bytes: int = _BLOCK_BYTES) -> Iterator[Events]:
                     raise InputError("polarity must be 0/1 or -1/+1", source=source)
                 prev_t = float(t[-1])
                 yield Events(t, d[:, 1].astype(np.float32), d[:, 2].astype(np.float32),
-                             np.where(pv > 0, 1, -1).astype(np.int8))
+                             signed_polarity(pv))
             line += buf.count(b"\n")
 
 
