@@ -112,6 +112,12 @@ class _RawMap(GlobalMap):
         self._scratch = np.zeros((height, width), np.float32)  # stays zero between calls
         self._occ = (np.zeros(width, np.int32), np.zeros(height, np.int32))
 
+    def copy(self) -> "_RawMap":
+        """A copy of the raw votes sharing the scratch map (zero between calls: one for both)."""
+        twin = _RawMap(self.width, self.height, raw=self.raw.copy())
+        twin._scratch = self._scratch
+        return twin
+
     def add(self, bearings, rotations, batch_size: int, weight: float = 1.0) -> None:
         taken = self._take_votes(bearings, rotations, batch_size, 0, weight)
         if taken is not None:
@@ -623,8 +629,7 @@ class LoopCloser:
             n_aged += 1
         if self._freeze:
             return maps, n_aged, None, 0
-        acc = _RawMap(self.backend.width, self.backend.height, raw=maps[0].raw.copy())
-        acc._scratch = maps[0]._scratch  # zero between calls: one scratch map for both
+        acc = maps[0].copy()
         n_voted = max(min(len(self.chunks), n_chunks), n_aged)
         for t, b, weight, _t0, _moving in self.chunks[n_aged:n_voted]:
             self._slice_point()
@@ -665,8 +670,7 @@ class LoopCloser:
                 backend.map.add(b, self._rotations(t)[1], bs, t0, moving, weight=weight)
         else:  # the global map is the old map plus the recent strides' votes: one blur at the end (GlobalMap.set_raw)
             if acc is None:
-                acc = _RawMap(self.backend.width, self.backend.height, raw=self.old.raw.copy())
-                acc._scratch = self.old._scratch  # zero between calls: one scratch map for both
+                acc = self.old.copy()
                 n_voted = self._n_old
             for t, b, weight, _t0, _moving in self.chunks[n_voted:]:
                 acc.add(b, self._rotations(t)[1], bs, weight=weight)
