@@ -174,7 +174,8 @@ def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, repo
 def run_at_level(dataset: Path, cfg, level: int, loop_slice: float | None = None):
     """CMax-SLAM on dataset with the real-time controller's degradation ``level`` (pipelines/realtime.LEVELS: 1 of
     k front-end packets, BA cap divided, BA on 1 of m windows; 4: BA skipped) held from the first event, offline:
-    what ``--realtime`` computes on a machine that cannot keep up at that level, without the wall clock.
+    what ``--realtime`` computes on a machine that cannot keep up at that level, without the wall clock (so without
+    the BA's time budget: level 1, the budget alone, computes as level 0 here).
     ``loop_slice``: loop verifications in slices (OnlineSlam's loop_slice_seconds; None: at once)."""
     from ti_cmax.io import open_dataset
 
