@@ -244,7 +244,8 @@ class LocalExecutor:
     """``jobs`` = 1: calls run in this process, in order (in one spawned process if this one's Taichi already
     runs with another thread count than ``threads``). More: a spawn process pool of ``jobs`` workers with
     ``threads`` Taichi threads each (default: the CPU count divided among the workers). A worker that dies
-    (crash, out of memory) fails only the calls it was running (each is retried once in a fresh pool)."""
+    (crash, out of memory) fails only the call it was running: the calls in flight with it are retried one at a time
+    in a fresh pool, and the one that kills its worker again alone is reported failed."""
 
     name = "local"
 
@@ -294,46 +295,50 @@ class LocalExecutor:
                                    initializer=_pool_initializer, initargs=(self.threads,))
 
     def _pool(self, fn, args_list):
+        """Calls run ``jobs`` at a time. When a worker dies the whole pool breaks and every call in flight fails
+        with it, the innocent ones too; those calls are retried one at a time (after the first pass), so a call
+        that kills its worker again alone is the one reported failed, and never the calls that ran beside it."""
         from concurrent.futures import FIRST_COMPLETED, wait
         from concurrent.futures.process import BrokenProcessPool
 
         queue = list(range(len(args_list)))[::-1]  # pop() takes the next one
-        attempts = {i: 0 for i in queue}
+        alone: list = []  # calls in flight when the pool broke: retried one at a time
         pool = self._new_pool()
         inflight: dict = {}
+        lost = "worker process died (crash or out of memory), twice"
         try:
-            while queue or inflight:
+            while queue or alone or inflight:
                 while queue and len(inflight) < self.jobs:  # submit only what can run now: a broken pool
                     i = queue.pop()                          # then fails only the calls that were running
-                    attempts[i] += 1
                     inflight[pool.submit(call_in_worker, fn, args_list[i], self.threads)] = i
+                if not queue and alone and not inflight:
+                    i = alone.pop(0)
+                    inflight[pool.submit(call_in_worker, fn, args_list[i], self.threads)] = -1 - i
                 self.running = len(inflight)
                 done, _ = wait(list(inflight), return_when=FIRST_COMPLETED)
                 broken = False
                 for fut in done:
                     i = inflight.pop(fut)
+                    retried, i = i < 0, (-1 - i if i < 0 else i)
                     try:
                         value = fut.result()
                     except BrokenProcessPool:
                         broken = True
-                        if attempts[i] < 2:
-                            queue.append(i)
+                        if retried:
+                            yield i, False, lost
                         else:
-                            yield i, False, "worker process died (crash or out of memory), twice"
+                            alone.append(i)
                         continue
                     except Exception as exc:  # noqa: BLE001
-                        self.running = min(len(inflight) + len(queue), self.jobs)
+                        self.running = min(len(inflight) + len(queue) + len(alone), self.jobs)
                         yield i, False, _error_text(exc)
                         continue
-                    self.running = min(len(inflight) + len(queue), self.jobs)
+                    self.running = min(len(inflight) + len(queue) + len(alone), self.jobs)
                     yield i, True, value
                 if broken:
                     for fut, i in list(inflight.items()):  # the pool is gone: these were running too
                         inflight.pop(fut)
-                        if attempts[i] < 2:
-                            queue.append(i)
-                        else:
-                            yield i, False, "worker process died (crash or out of memory), twice"
+                        alone.append(i)  # never a retried call: those run alone
                     pool.shutdown(wait=False, cancel_futures=True)
                     pool = self._new_pool()
         except BaseException:

@@ -2,6 +2,7 @@
 tasks, a failing task or a dying worker is reported while the others finish."""
 import json
 import os
+import time
 
 import pytest
 
@@ -86,12 +87,16 @@ def test_rerun_skips_finished_tasks_and_reports_failures(tmp_path, tiny_cfg, ti_
 
 
 def _maybe_die(i):
+    if i == 0:
+        time.sleep(1.0)  # still running beside call 1 when its worker dies (and the pool with it)
     if i == 1:
+        time.sleep(0.2)
         os._exit(3)  # a worker lost mid-task (crash, out of memory)
     return i * 10
 
 
 def test_local_pool_survives_a_dying_worker():
+    """Only the call that kills its worker fails, also the one that ran beside it when the pool broke."""
     ex = T.LocalExecutor(jobs=2, threads=1)
     out = {i: (ok, v) for i, ok, v in ex.results(_maybe_die, [(0,), (1,), (2,), (3,)])}
     assert out[0] == (True, 0) and out[2] == (True, 20) and out[3] == (True, 30)
