@@ -26,7 +26,12 @@ bound M = ``realtime_max_lag``): degradation level l in 0..4:
 At levels 1-4 a window's BA also has a time budget of one stride of sensor time in wall seconds (``ba_budget``): it
 starts no BFGS iteration after it and keeps its best point so far (report: ``ba_windows_cut_short``). A BA that
 needs longer, typically a cold start without carried curvature (~25 evaluations instead of 2-6: 2 s on a VGA window
-at 12 M ev/s), would otherwise add its excess to the lag all at once.
+at 12 M ev/s), would otherwise add its excess to the lag all at once. At level 0 the budget is half the lag target
+T / 2: a window completes one BA after its end is due, so a BA longer than that puts the lag near or over the target
+by itself. Only the cold first window reaches it at 1-2 M ev/s on a DAVIS240C (0.28-0.31 s with 25 evaluations; the
+others take 0.04-0.10 s): unbudgeted it put the lag at 0.34-0.39 s, which drains by only ~0.03 s per window at 2 M
+ev/s, and the window-to-window jitter then escalated to level 2-3 for 1-3 s (events used 0.34-0.96 in three runs,
+0.85-1.00 with the budget). A large target (e.g. 1000 s) leaves level 0 the offline computation.
 
 The levels cut the cheapest computation first: the budget touches only slow windows; halving the BA events saves
 ~15 % of its cost (per-evaluation work dominates, below); skipping every other BA window 50 %. (Until 2026-12-02
@@ -171,11 +176,11 @@ class RealtimeController:
             return False
         return mean["main"] + mean["fe"] * (self.fe_keep() - 1) < RELAX_HEADROOM
 
-    def ba_budget(self) -> float | None:
-        """Seconds a window's BA may take at the current level: none at level 0 (the offline computation), else one
-        stride of sensor time in wall seconds (a BA that needs longer, e.g. a cold start without carried curvature:
-        ~25 evaluations, 2 s on a VGA window, would add its excess to the lag; it keeps its best point so far)."""
-        return None if self.level == 0 else self.stride / self.speed
+    def ba_budget(self) -> float:
+        """Seconds a window's BA may take at the current level (module docstring): half the lag target at level 0,
+        else one stride of sensor time in wall seconds (a BA that needs longer, e.g. a cold start without carried
+        curvature: ~25 evaluations, 2 s on a VGA window, would add its excess to the lag; it keeps its best point)."""
+        return 0.5 * self.target if self.level == 0 else self.stride / self.speed
 
     def on_window(self, report) -> None:
         """After every completed window: record lag and latency, then apply the rule."""
@@ -321,9 +326,13 @@ class RealtimeController:
         if (self.level, self.thinning, self.fe_skipping) != old:
             self._since_change = 0
             self._costs = []  # costs are measured afresh at the new level
-            if self.online is not None:
-                self.online.degrade(self.fe_keep(), self.ba_cap(self.level, self._window_events),
-                                    LEVELS[self.level][2], self.ba_budget(), self.thinning)
+            self.apply()
+
+    def apply(self) -> None:
+        """Set OnlineSlam's degradation to the current level and thinning."""
+        if self.online is not None:
+            self.online.degrade(self.fe_keep(), self.ba_cap(self.level, self._window_events),
+                                LEVELS[self.level][2], self.ba_budget(), self.thinning)
 
     def summary(self) -> dict:
         lags = np.asarray(self.lags) if self.lags else np.zeros(1)
@@ -394,6 +403,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                         loop_slice_seconds=LOOP_SLICE_SHARE * be.backend_sliding_window_stride / speed,
                         worker_threads=worker_threads)
     ctl.online = online
+    ctl.apply()  # level 0's BA budget
     idle = {"sleep": 0.0}
     ctl.idle_seconds = lambda: idle["sleep"] + (online._worker.blocked_seconds if online._worker is not None else 0.0)
     online.wait_ready()  # the sensor clock starts once both processes can work
@@ -468,7 +478,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
         # sampled below the configured cap); else the smaller of the stages' fractions times the handed-over one
         "events_used_fraction": input_fraction * min(fe_fraction, summary["ba_events_fraction"]),
         **summary,
-        "degradation_applied": bool(summary["degraded_fraction"] > 0 or dropped > 0),
+        "degradation_applied": bool(summary["degraded_fraction"] > 0 or dropped > 0 or summary["ba_windows_cut_short"]),
         "frontend_packets": int(online.packets_seen), "frontend_packets_skipped": int(online.packets_skipped),
         "input_events_dropped": int(dropped),
         "min_window_events": int(rt.realtime_min_window_events),
