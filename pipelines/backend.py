@@ -83,43 +83,49 @@ class StageClock:
 
 
 class _Buffer:
-    """Growing column buffer (times + bearings) that drops its settled head cheaply. Pushed chunks are kept in a list
-    and joined once when read (a window's range), not on every push: a live source pushes many small chunks (2 ms
-    slices in the real-time replay), and joining each into a window's worth of events copied the buffer every time."""
+    """Growing column buffer (times + bearings) that drops its settled head cheaply: the columns live in arrays with
+    spare room at the end, a push copies only its own events in (amortized doubling), and dropping the head moves a
+    start index; the live part is moved to the front only when the spare room runs out. (Joining a list of pushed
+    chunks onto the buffer on every read copied the whole buffer, ~2 windows of events, each time: 1.5 ms per read
+    at 2 M ev/s, 3 reads per window.)"""
 
     def __init__(self):
-        self._t, self._b = np.zeros(0), np.zeros((0, 3), np.float32)
-        self._parts: list[tuple[np.ndarray, np.ndarray]] = []
-
-    def _join(self) -> None:
-        if self._parts:
-            self._t = np.concatenate([self._t] + [t for t, _ in self._parts])
-            self._b = np.concatenate([self._b] + [b for _, b in self._parts])
-            self._parts = []
+        self._tt, self._bb = np.zeros(0), np.zeros((0, 3), np.float32)
+        self._start = self._end = 0
 
     @property
     def t(self) -> np.ndarray:
-        self._join()
-        return self._t
+        return self._tt[self._start:self._end]
 
     @property
     def b(self) -> np.ndarray:
-        self._join()
-        return self._b
+        return self._bb[self._start:self._end]
 
     def push(self, t: np.ndarray, b: np.ndarray) -> None:
-        if len(t):  # copies: a live source may refill its arrays after the call
-            self._parts.append((np.array(t, dtype=np.float64), np.array(b, dtype=np.float32)))
+        """Append copies (a live source may refill its arrays after the call)."""
+        n = len(t)
+        if not n:
+            return
+        live = self._end - self._start
+        if self._end + n > len(self._tt):
+            cap = max(2 * (live + n), 1024)
+            tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
+            tt[:live], bb[:live] = self.t, self.b
+            self._tt, self._bb, self._start, self._end = tt, bb, 0, live
+        self._tt[self._end:self._end + n] = t
+        self._bb[self._end:self._end + n] = b
+        self._end += n
 
     def drop_before(self, t: float) -> None:
-        i = int(np.searchsorted(self.t, t, side="left"))
-        if i:
-            self._t, self._b = self._t[i:], self._b[i:]
+        self._start += int(np.searchsorted(self.t, t, side="left"))
 
     def range(self, t0: float, t1: float, include_end: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        i0 = int(np.searchsorted(self.t, t0, side="left"))
-        i1 = int(np.searchsorted(self._t, t1, side="right" if include_end else "left"))
-        return self._t[i0:i1], self._b[i0:i1]
+        """Views of the events in [t0, t1) (or [t0, t1]). They stay valid: the buffer never writes where a view
+        can look (pushes go past the end; a full buffer moves to new arrays)."""
+        times = self.t
+        i0 = int(np.searchsorted(times, t0, side="left"))
+        i1 = int(np.searchsorted(times, t1, side="right" if include_end else "left"))
+        return times[i0:i1], self.b[i0:i1]
 
 
 class GlobalMap:

@@ -115,3 +115,30 @@ def test_source_poses_before_the_anchor_are_dropped_and_poses_ahead_unchanged():
     ahead = np.linspace(t_a + 1e-3, src_t[-1], 7)
     expected = r_spl_a @ r_src_a.T @ Trajectory(src_t, src_R).at(ahead)
     np.testing.assert_array_equal(be.pose_at(ahead), expected)
+
+
+def test_event_buffer_ranges_drops_and_views_stay_valid():
+    """The back-end's event buffer: ranges and drops equal slicing the concatenated stream, a view taken before
+    later pushes (and a regrowth) still shows the same events, and memory follows the live part, not the stream."""
+    from ti_cmax.pipelines.backend import _Buffer
+
+    rng = np.random.default_rng(0)
+    t_all = np.cumsum(rng.random(20_000) * 1e-4)
+    b_all = rng.random((20_000, 3)).astype(np.float32)
+    buf, start, view, most = _Buffer(), 0, None, 0
+    for i0 in range(0, len(t_all), 700):  # chunks of 700 events; drop the head every few chunks
+        buf.push(t_all[i0:i0 + 700], b_all[i0:i0 + 700])
+        end = min(i0 + 700, len(t_all))
+        if view is None and i0 >= 2100:
+            view = (buf.range(t_all[1000], t_all[1500]), t_all[1000:1500].copy())
+        if i0 % 2800 == 2100:
+            start = int(np.searchsorted(t_all[:end], t_all[i0] - 0.02, side="left"))
+            buf.drop_before(t_all[i0] - 0.02)
+        assert np.array_equal(buf.t, t_all[start:end]) and np.array_equal(buf.b, b_all[start:end])
+        t0, t1 = t_all[(start + end) // 2], t_all[end - 1]
+        rt, rb = buf.range(t0, t1, include_end=True)
+        assert np.array_equal(rt, t_all[(start + end) // 2:end]) and np.array_equal(rb, b_all[(start + end) // 2:end])
+        most = max(most, end - start)
+        assert len(buf._tt) <= 2 * (most + 700) + 1024  # bounded by the live events, not the 20 000 pushed
+    (vt, _), expected = view
+    assert np.array_equal(vt, expected)
