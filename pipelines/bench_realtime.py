@@ -78,8 +78,10 @@ def _degradation(rt: dict) -> str:
     if not rt["degradation_applied"]:
         return "none"
     levels = ", ".join(f"L{k} {v:.1f}s" for k, v in rt["level_sensor_seconds"].items() if v > 0 and k != "0")
-    parts = [levels, f"FE {1 - rt['frontend_packets_skipped'] / max(rt['frontend_packets'], 1):.0%} of packets",
-             f"BA events {rt['ba_events_fraction']:.0%}, {rt['ba_windows_skipped']} BA skipped"]
+    parts = [levels] if levels else []
+    parts += [f"FE {1 - rt['frontend_packets_skipped'] / max(rt['frontend_packets'], 1):.0%} of packets",
+              f"BA events {rt['ba_events_fraction']:.0%}, {rt['ba_windows_skipped']} BA skipped, "
+              f"{rt['ba_windows_cut_short']} cut short"]
     if rt["input_events_dropped"]:
         parts.append(f"input 1/{rt['input_max_thinning']} at most, {rt['input_thinned_sensor_seconds']:.1f}s")
     return "; ".join(parts)

@@ -506,10 +506,11 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
 def describe(report: dict) -> str:
     """One line for the command's summary."""
     levels = {k: v for k, v in report["level_sensor_seconds"].items() if v > 0 and k != "0"}
-    degr = ("none" if not report["degradation_applied"] else
-            ", ".join(f"level {k} {v:.1f} s" for k, v in levels.items())
-            + (f", {report['frontend_packets_skipped']} packets skipped" if report["frontend_packets_skipped"] else "")
-            + (f", {report['ba_windows_skipped']} BA skipped" if report["ba_windows_skipped"] else "")
-            + (f", {report['input_events_dropped']} events dropped" if report["input_events_dropped"] else ""))
+    parts = [f"level {k} {v:.1f} s" for k, v in levels.items()]
+    for key, what in (("frontend_packets_skipped", "packets skipped"), ("ba_windows_skipped", "BA skipped"),
+                      ("ba_windows_cut_short", "BA cut short"), ("input_events_dropped", "events dropped")):
+        if report[key]:
+            parts.append(f"{report[key]} {what}")
+    degr = ", ".join(parts) if report["degradation_applied"] else "none"
     return (f"real time: lag max {report['max_lag_s']:.3f} s, mean {report['mean_lag_s']:.3f} s; latency mean "
             f"{report['latency_mean_s']:.3f} s; events used {report['events_used_fraction']:.3f}; degradation: {degr}")

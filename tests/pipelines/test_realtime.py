@@ -273,3 +273,17 @@ def test_the_real_time_worker_takes_every_core_unless_threads_were_chosen(monkey
     assert R._worker_threads() == max(1, os.cpu_count() or 1)
     monkeypatch.setenv("TI_CMAX_THREADS", "1")
     assert R._worker_threads() is None  # the chosen count, as for the main process
+
+
+def test_summaries_name_a_cut_short_cold_window():
+    """A run whose only degradation is level 0's budget cutting a BA short (the cold first window) says so, in the
+    command's line and the benchmark's table."""
+    from ti_cmax.pipelines.bench_realtime import _degradation
+
+    rt = {"max_lag_s": 0.2, "mean_lag_s": 0.1, "latency_mean_s": 0.15, "events_used_fraction": 1.0,
+          "level_sensor_seconds": {"0": 4.0, "1": 0.0, "2": 0.0, "3": 0.0, "4": 0.0}, "degradation_applied": True,
+          "frontend_packets": 400, "frontend_packets_skipped": 0, "ba_windows_skipped": 0, "ba_windows_cut_short": 1,
+          "ba_events_fraction": 1.0, "input_events_dropped": 0}
+    assert R.describe(rt).endswith("degradation: 1 BA cut short")
+    assert _degradation(rt) == "FE 100% of packets; BA events 100%, 0 BA skipped, 1 cut short"
+    assert R.describe({**rt, "degradation_applied": False, "ba_windows_cut_short": 0}).endswith("degradation: none")
