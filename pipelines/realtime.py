@@ -30,8 +30,9 @@ at 12 M ev/s), would otherwise add its excess to the lag all at once. At level 0
 T / 2: a window completes one BA after its end is due, so a BA longer than that puts the lag near or over the target
 by itself. Only the cold first window reaches it at 1-2 M ev/s on a DAVIS240C (0.28-0.31 s with 25 evaluations; the
 others take 0.04-0.10 s): unbudgeted it put the lag at 0.34-0.39 s, which drains by only ~0.03 s per window at 2 M
-ev/s, and the window-to-window jitter then escalated to level 2-3 for 1-3 s (events used 0.34-0.96 in three runs,
-0.85-1.00 with the budget). A large target (e.g. 1000 s) leaves level 0 the offline computation.
+ev/s, and the window-to-window jitter then escalated to level 2-3 for 1-3 s (six interleaved pairs at 2 M ev/s: events
+used 0.34-1.00 without, 0.85-1.00 with the budget; lag max 0.32-0.55 -> 0.20-0.33 s). A large target (e.g. 1000 s)
+leaves level 0 the offline computation.
 
 The levels cut the cheapest computation first: the budget touches only slow windows; halving the BA events saves
 ~15 % of its cost (per-evaluation work dominates, below); skipping every other BA window 50 %. (Until 2026-12-02
