@@ -109,6 +109,10 @@ RELAX_HEADROOM = 0.8  # a level is relaxed only when the lower one is predicted 
 # (the fifth RELAX_HEADROOM leaves), plus the back-end worker's idle time; at once it would stall the back-end for
 # 1-8 s (DAVIS240C to VGA) and break the lag bound
 LOOP_SLICE_SHARE = 1.0 - RELAX_HEADROOM
+# the controller's per-window trace (``ti-cmax slam --realtime`` writes it as realtime_windows.csv): what it read and
+# what it decided, the figures behind every real-time tuning in this module's docstring
+TRACE_COLUMNS = ("t_start", "t_end", "lag_s", "level", "input_thinning", "events", "ba_events", "ba_seconds",
+                 "ba_evaluations", "ba_cut_short", "ba_skipped", "worker_busy_seconds", "frontend_lag_s", "next_level")
 DRAIN_WINDOWS = 5  # a lag above target that falls back under it within this many windows needs no escalation
 # level -> (1 of k front-end packets, BA cap divisor (0: BA skipped), BA on 1 of m windows)
 LEVELS = {0: (1, 1, 1), 1: (1, 1, 1), 2: (1, 2, 1), 3: (2, 2, 2), 4: (4, 0, 1)}  # level 1: the BA budget only
@@ -151,6 +155,7 @@ class RealtimeController:
         self._mark = None  # (time.monotonic, main idle, front-end seconds, front-end time, worker done_at)
         self._ba_recent: list[tuple[float, int]] = []  # (seconds, events) of the last RELAX_WINDOWS windows with a BA
         self.predicted: list[float] = []  # predicted cost of the level below at each relaxation (report)
+        self.trace: list[tuple] = []  # one row per completed window (TRACE_COLUMNS): realtime_windows.csv
 
     def due(self, t: float) -> float:
         """Wall time (time.monotonic) at which sensor time t is handed over."""
@@ -208,7 +213,11 @@ class RealtimeController:
             self.windows_cut += int(report.cut_short)
         self._window_events = report.num_events
         self._measure(report)
+        level, thinning = self.level, self.thinning  # in force while this window ran
         self._control(lag)
+        self.trace.append((report.t_start, end, lag, level, thinning, report.num_events, report.events_used,
+                           report.ba_seconds, report.evaluations, int(report.cut_short), int(report.skipped),
+                           report.busy_seconds, self._fe_lag, self.level))
 
     def _measure(self, report) -> None:
         """Costs (wall seconds of work per wall second of sensor data) of this window at the current level."""
@@ -501,6 +510,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                     **({"backend_process": worker_threads or runtime.num_threads()} if backend_process else {})},
     }
     result.report["realtime"] = report
+    result.realtime_trace = ctl.trace
     return result
 
 

@@ -42,6 +42,7 @@ class SlamResult:
     report: dict
     frontend: FrontendResult | None = None
     windows: list = field(default_factory=list)
+    realtime_trace: list = field(default_factory=list)  # real-time replay: realtime.TRACE_COLUMNS per window
 
     def rotation_at(self, times) -> np.ndarray:
         """R_world_from_camera at any times within the trajectory (the spline itself, not the samples)."""

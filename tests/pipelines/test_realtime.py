@@ -28,6 +28,7 @@ def test_realtime_cli_writes_sane_lag_fields(short_dataset, tmp_path, capsys):
 
     out = tmp_path / "rt"
     assert main(["slam", str(short_dataset), "--out", str(out), "--realtime", "--quiet", *SMALL]) == 0
+    assert main(["slam", str(short_dataset), "--out", str(tmp_path / "offline"), "--quiet", *SMALL]) == 0
     assert "real time: lag max" in capsys.readouterr().out
     rt = _realtime(out)
     assert rt["windows"] >= 8
@@ -41,6 +42,16 @@ def test_realtime_cli_writes_sane_lag_fields(short_dataset, tmp_path, capsys):
     assert sum(rt["level_sensor_seconds"].values()) == pytest.approx(1.2, abs=0.15)
     assert rt["degradation_applied"] == (rt["degraded_fraction"] > 0 or rt["input_events_dropped"] > 0
                                          or rt["ba_windows_cut_short"] > 0)
+    # the controller's per-window trace: one row per window, the lags of the report, levels in range
+    import csv
+
+    with open(out / "realtime_windows.csv", newline="") as fh:
+        trace = list(csv.DictReader(fh))
+    assert tuple(trace[0]) == R.TRACE_COLUMNS and len(trace) == rt["windows"]
+    lags = [float(r["lag_s"]) for r in trace]
+    assert max(lags) == pytest.approx(rt["max_lag_s"], abs=1e-5) and float(trace[-1]["t_end"]) > 1.0
+    assert all(0 <= int(r["level"]) <= R.MAX_LEVEL and int(r["events"]) >= int(r["ba_events"]) for r in trace)
+    assert not (tmp_path / "offline" / "realtime_windows.csv").exists()
 
 
 def test_slow_consumer_degrades_and_bounds_the_lag(short_sequence):

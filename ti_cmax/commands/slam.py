@@ -49,7 +49,22 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
         report["camera"] = camera.to_dict()
     report["peak_rss_mb"] = peak_rss_mb()  # of the whole process so far
     (out / "report.json").write_text(json.dumps(report, indent=2, default=float))
+    if result.realtime_trace:
+        write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
     save_config(cfg, out / "config.yaml")
+
+
+def write_realtime_trace(path: Path, rows: list) -> None:
+    """The real-time controller's per-window trace (pipelines/realtime.TRACE_COLUMNS), one CSV row per window."""
+    import csv
+
+    from ..pipelines.realtime import TRACE_COLUMNS
+
+    with open(path, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(TRACE_COLUMNS)
+        for row in rows:
+            writer.writerow(["" if v is None else f"{v:.6g}" if isinstance(v, float) else v for v in row])
 
 
 def print_derived(report: dict) -> None:
