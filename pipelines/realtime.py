@@ -15,7 +15,7 @@ Controller (one rule, applied after every completed window, with lag L, target T
 bound M = ``realtime_max_lag``): degradation level l in 0..4:
 
     l | front-end packets | BA events per window (cap c: backend_max_window_events; floor: realtime_min_window_events)
-    0 | all               | c on every window (the offline computation)
+    0 | all               | c on every window (the offline computation; the BA budget T / 2, below)
     1 | all               | c on every window, with the BA's time budget (below): only a window whose BA would take
                           |   longer than a stride (a cold start, a burst) is cut short
     2 | all               | c / 2 on every window
