@@ -42,9 +42,9 @@ benchmark`` with ground truth, 1024 x 512 map):
   The filter's own w std is 0.05-0.07 rad/s (0.15-0.2 before): still overconfident by 3-10x.
   ``constant_velocity`` keeps the previous model.
 * Acceleration steps per batch, not per second (``acceleration_step_std`` s_b = 10 rad/s^2; session 8; the default
-  since session 9, see the end of this item): the acceleration is a random walk whose step has the std s_b in every batch, whatever the
-  batch lasts; the kernel gets the jerk intensity q_j = s_b / sqrt(dt) at each call's mean batch duration dt (report
-  ``angular_jerk_std_range``). Rule: every batch carries about the same information (``batch_size`` events under the
+  since session 9, see the end of this item): the acceleration is a random walk whose step has the std s_b in every
+  batch, whatever the batch lasts; the kernel gets the jerk intensity q_j = s_b / sqrt(dt) at each call's mean batch
+  duration dt (report ``angular_jerk_std_range``). Rule: every batch carries about the same information (``batch_size`` events under the
   same noise model), and a Kalman filter's gains are set by the process noise per update against the measurement
   noise per update (the tracking index of Bar-Shalom, Li & Kirubarajan, Estimation with Applications to Tracking and
   Navigation, 2001, ch. 6), so a fixed step per batch gives the filter a memory of a fixed number of events at any
@@ -225,8 +225,8 @@ class SmtConfig(Params):
     pf_outlier_density: float = param(0.05, "PF: floor added to each event's Gaussian likelihood (robustness)", gt=0)
     pf_resample_ess: float = param(0.5, "resample when ESS < this x num_particles", ge=0, le=1)
     seed: int = param(0, "random seed of the particle filter")
-    crossing_position_var: float = param(1.0 / 6.0, "variance of where a segment's two level crossings lie within their "
-                                         "map pixels: S += this |g|^2 (module doc: 1/6 = 2 x 1/12; 0: off)",
+    crossing_position_var: float = param(1.0 / 6.0, "variance of where a segment's two level crossings lie within "
+                                         "their map pixels: S += this |g|^2 (module doc: 1/6 = 2 x 1/12; 0: off)",
                                          unit="map px^2", ge=0)
     gain_calibration_seconds: float = param(0.1, "end of the bootstrap that calibrates the map gain (0: gain 1)",
                                             unit="s", ge=0)
