@@ -100,8 +100,9 @@ SUITES = {
         SequenceSpec("vga-12m", "VGA", "city", 2.0, 24,
                      options=(("max_angular_velocity", 1.48), ("random_ramp_start", 1.0))),
     ),
-    # held-out DAVIS240C sequences for the SMT baselines (issue 16): simulator defaults (random motion up to
-    # 5 rad/s), 3 s each, seeds 201-204, declared on 2026-12-01 before any method ran on them (below: later ones)
+    # held-out DAVIS240C (and two DVS128) sequences for the SMT baselines (issue 16): simulator defaults (random
+    # motion up to 5 rad/s), 3 s each, seeds 201-204, declared on 2026-12-01 before any method ran on them (below:
+    # later ones)
     "heldout": make_suite(
         SequenceSpec("city201", "DAVIS240C", "city", 3.0, 201),
         SequenceSpec("street202", "DAVIS240C", "street", 3.0, 202),
@@ -127,6 +128,15 @@ SUITES = {
         SequenceSpec("bay232", "DAVIS240C", "bay", 3.0, 232),
         SequenceSpec("town233", "DAVIS240C", "town", 3.0, 233),
         SequenceSpec("bicycle234", "DAVIS240C", "bicycle", 3.0, 234),
+        # session 9 (slow-drift test, per-batch acceleration steps and crossing-position noise the defaults), declared
+        # on 2026-12-02 07:10 UTC before any method ran on them; the last two are DVS128 playroom-like (the drift
+        # test's contrast optimum is noisiest on the small sensor)
+        SequenceSpec("city241", "DAVIS240C", "city", 3.0, 241),
+        SequenceSpec("street242", "DAVIS240C", "street", 3.0, 242),
+        SequenceSpec("bay243", "DAVIS240C", "bay", 3.0, 243),
+        SequenceSpec("bicycle244", "DAVIS240C", "bicycle", 3.0, 244),
+        SequenceSpec("town245", "DVS128", "town", 2.5, 245),
+        SequenceSpec("city246", "DVS128", "city", 2.5, 246),
     ),
 }
 SUITE = SUITES["paper"]
