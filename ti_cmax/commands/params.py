@@ -78,7 +78,7 @@ def _fmt(value) -> str:
         return repr(value) if value == "" else value
     if isinstance(value, tuple):
         return "[" + ", ".join(str(v) for v in value) + "]"
-    return f"{value:.12g}" if isinstance(value, float) else str(value)  # 12 digits: 1/6 reads back as itself
+    return f"{value:.12g}" if isinstance(value, float) else str(value)  # 12 digits: 1/6 is 0.166666666667, not 0.166667
 
 
 def format_rows(table, markdown: bool = False) -> str:
