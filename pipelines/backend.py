@@ -217,6 +217,7 @@ class GlobalMap:
         self.g_sum, self.g_sq = float(blurred.sum()), float(np.sum(blurred * blurred))
         voted = self.raw[rows].astype(np.float64)
         self.n_events = float(voted.sum())
+        voted = voted[voted != 0]  # a pixel without votes adds 1 - exp(0) = 0 to the area: no exp for it
         self.area = float(np.sum(1.0 - np.exp(voted / -self.lambda0)))
 
 

@@ -403,3 +403,42 @@ def test_backend_worker_runs_sliced_verifications(short_sequence):
     assert all(e["reason"] for e in loops)
     summary = result.report["backend"]["loop_closure"]
     assert summary["candidates"] == len(loops) and summary["longest_call_cpu_seconds"] > 0
+
+
+def test_texture_and_voted_cells_equal_their_references():
+    """The confidence test's texture (OpenCV blur) equals metrics.local_texture; the age cells read off the old
+    map's votes are the cells holding a vote, for regions at any offset and across the longitude wrap."""
+    from ti_cmax.metrics import local_texture
+    from ti_cmax.pipelines.loop_closure import _CELL, _texture, _voted_cells
+
+    rng = np.random.default_rng(5)
+    img = rng.uniform(0, 1, (40, 70)) * (rng.uniform(size=(40, 70)) < 0.3)
+    for wrap in (False, True):
+        np.testing.assert_allclose(_texture(img, wrap), local_texture(img, 3, wrap_columns=wrap), rtol=1e-9,
+                                   atol=1e-9)
+    w, h = 64, 32
+    for r0, c0, nr, nc in ((5, 61, 9, 11), (0, 0, 32, 64), (3, 6, 7, 5)):
+        votes = (rng.uniform(size=(nr, nc)) < 0.1).astype(np.float32)
+        cols = (c0 + np.arange(nc)) % w
+        rr, cc = np.nonzero(votes)
+        expected = np.unique((r0 + rr) // _CELL * (w // _CELL) + cols[cc] // _CELL)
+        got = _voted_cells(slice(r0, r0 + nr), cols, votes, w // _CELL)
+        assert sorted(got.tolist()) == expected.tolist()
+
+
+def test_checks_after_a_loop_wait_for_the_drift_to_build_up(ti_runtime):
+    """loop_check_drift_px: after an applied loop the next check waits until the drift rate that loop measured
+    has moved the map by that many pixels (at most loop_min_age); 0 checks again after loop_recent_time."""
+    duration, turns = 7.5, 2.3
+    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
+    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
+    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    runs = {px: _run(t_ev, b_ev, drifted, replace(LOOP, loop_check_drift_px=px), duration=duration).loop
+            for px in (0.0, 1e4)}
+    for px, lc in runs.items():
+        applied = [i for i, e in enumerate(lc.loops) if e["applied"]]
+        assert applied, lc.loops
+        gap = LOOP.loop_recent_time if px == 0 else LOOP.loop_min_age
+        for i in applied[:-1]:
+            assert lc.loops[i + 1]["time"] - lc.loops[i]["time"] == pytest.approx(gap, abs=0.11), lc.loops
+    assert len(runs[1e4].loops) < len(runs[0.0].loops)
