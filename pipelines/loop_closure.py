@@ -214,6 +214,7 @@ class LoopCloser:
         self._stored = 0
         self._thinned = 0  # times every chunk was thinned by 2 (a checkpoint holds the chunks as they were)
         self._checkpoint = None  # (old map, age, visit) after a rebuild: the next rebuild starts there (_rebuild)
+        self.checkpoints_advanced = 0  # checkpoints moved past a loop's recent block (_advance_checkpoint)
         self._next_check = backend.t_start + config.loop_min_age + config.loop_recent_time
         self._interval = config.loop_recent_time  # time from one verification to the next check
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
@@ -278,6 +279,7 @@ class LoopCloser:
         tic, cpu = time.perf_counter(), time.process_time()
         recent = self.cfg.loop_recent_time
         while self._n_old < len(self.chunks) and self.chunks[self._n_old][0][-1] < t_now - recent:
+            self._advance_checkpoint()
             self._age_chunk(self.chunks[self._n_old])
             self._n_old += 1
         self.profile["age"] += time.perf_counter() - tic
@@ -740,6 +742,23 @@ class LoopCloser:
             for t, b, weight, _t0, _moving in self.chunks[n_voted:]:
                 acc.add(b, self._rotations(t)[1], bs, weight=weight)
             backend.map.set_raw(acc.raw)
+
+    def _advance_checkpoint(self) -> None:
+        """Before the first stride a later loop may move is aged: the maps now hold the last rebuild's checkpoint
+        plus strides whose poses no later loop changes (before the last applied loop's recent block end, less the
+        spline's support: a later loop spreads from there on), so they become the checkpoint. The next rebuild
+        then votes only the strides since the loop again, not the whole recent block before it (3 ms of copies
+        against ~2.5 ms per stride voted again)."""
+        ck = self._checkpoint
+        if ck is None or self._task is not None or ck[0] >= self._n_old or ck[5] != self._thinned:
+            return
+        spline = self.backend.spline
+        final = self._closed_until - (spline.degree + 2) * spline.dt
+        if self.chunks[self._n_old - 1][0][-1] >= final or self.chunks[self._n_old][0][-1] < final:
+            return  # not at the first stride a later loop may move
+        self._checkpoint = (self._n_old, self.old.raw.copy(), self.age.copy(), self.visit.copy(),
+                            spline.control_R.copy(), self._thinned)
+        self.checkpoints_advanced += 1
 
     def _checkpoint_start(self, n_old: int | None = None) -> int:
         """Chunks the checkpoint holds when none of their poses changed since it was taken and it holds at most

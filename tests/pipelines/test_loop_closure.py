@@ -323,6 +323,7 @@ def test_checkpointed_rebuild_equals_the_full_one(ti_runtime):
     assert lc._checkpoint_start() > 0  # the last rebuild left a checkpoint the next one would use
     lc._rebuild()  # from the checkpoint
     got = (lc.old.raw.copy(), lc.age.copy(), lc.visit.copy(), be.map.raw.copy())
+    assert lc._checkpoint[0] == lc._n_old
     lc._checkpoint = None
     lc._rebuild()  # every stride from scratch
     for a, b in zip(got, (lc.old.raw, lc.age, lc.visit, be.map.raw)):
@@ -330,6 +331,26 @@ def test_checkpointed_rebuild_equals_the_full_one(ti_runtime):
     # a correction that moves the checkpoint's poses invalidates it
     be.spline.control_R[2] = so3.exp(np.array([0.0, 1e-3, 0.0])) @ be.spline.control_R[2]
     assert lc._checkpoint_start() == 0
+
+
+def test_advanced_checkpoint_gives_the_same_run(ti_runtime, monkeypatch):
+    """The checkpoint moved past each loop's recent block (_advance_checkpoint: later rebuilds vote fewer strides)
+    gives the same loops, trajectory and maps, bit for bit, as rebuilding from the last rebuild's checkpoint."""
+    from ti_cmax.pipelines.loop_closure import LoopCloser
+
+    duration, turns = 7.5, 2.3
+    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
+    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
+    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    fast = _run(t_ev, b_ev, drifted, duration=duration)
+    assert fast.loop.checkpoints_advanced >= 2 and sum(bool(e["applied"]) for e in fast.loop.loops) >= 3
+    monkeypatch.setattr(LoopCloser, "_advance_checkpoint", lambda self: None)
+    ref = _run(t_ev, b_ev, drifted, duration=duration)
+    assert [e["correction_deg"] for e in fast.loop.loops] == [e["correction_deg"] for e in ref.loop.loops]
+    np.testing.assert_array_equal(fast.spline.control_R, ref.spline.control_R)
+    for a, b in ((fast.loop.old.raw, ref.loop.old.raw), (fast.loop.age, ref.loop.age),
+                 (fast.loop.visit, ref.loop.visit), (fast.map.raw, ref.map.raw)):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_runtime):
