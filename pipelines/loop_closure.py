@@ -59,6 +59,8 @@ from .backend import GlobalMap
 from .optim import bfgs
 
 _CELL = 4  # map pixels per side of an age cell
+_CELL_EVERY = 4  # the cells a stored stride observed: those of 1 in this many of its events
+_VOTES_PER_SLICE = 8  # aged chunks voted into the old map per slice (~1 ms each) in a sliced verification
 _RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's shifts from the optimum
 _ITERS = 10  # BFGS iterations per pyramid level: 3 unknowns, started near the optimum by the coarser level
 _STEP_TOL = 0.05  # level pixels: BFGS stops when its next step would move the map less (1/20 of the blur)
@@ -95,19 +97,6 @@ def _downsample(raw: np.ndarray, rows: np.ndarray, f: int) -> np.ndarray:
         a, b = int(rows[0]) // f, int(rows[-1]) // f + 1
         out[a:b] = raw[a * f:b * f].reshape(b - a, f, w // f, f).sum(axis=(1, 3))
     return out
-
-
-def _voted_cells(rows: slice, cols: np.ndarray, votes: np.ndarray, cells_per_row: int) -> np.ndarray:
-    """Flat age-cell indices holding a vote of a region's votes (rows slice x one cyclic run of consecutive
-    columns): the cells the events were voted into, read off the votes the old map takes anyway (padded to whole
-    cells, any per cell) instead of projecting every event again. Bilinear votes reach the next pixel, so a cell
-    beside an event's may count as observed too."""
-    top, left = rows.start % _CELL, int(cols[0]) % _CELL
-    nr, nc = -(-(top + votes.shape[0]) // _CELL), -(-(left + votes.shape[1]) // _CELL)
-    occ = np.zeros((nr * _CELL, nc * _CELL), bool)
-    occ[top:top + votes.shape[0], left:left + votes.shape[1]] = votes > 0
-    bi, bj = np.nonzero(occ.reshape(nr, _CELL, nc, _CELL).any(axis=(1, 3)))
-    return (rows.start // _CELL + bi) * cells_per_row + (int(cols[0]) // _CELL + bj) % cells_per_row
 
 
 def _cyclic_span(used: np.ndarray, margin: int) -> np.ndarray:
@@ -210,7 +199,9 @@ class LoopCloser:
         self.visit = np.full_like(self.age, -np.inf)  # start of the last visit (observed after a loop_min_age gap)
         self.old = _RawMap(w, h)  # raw map of the stored events older than the recent block
         self.chunks: list[tuple[np.ndarray, np.ndarray, float, float, bool]] = []  # (t, b, weight, t0, moving)
-        self._n_old = 0  # chunks already voted into the old map and the age map
+        self._n_old = 0  # chunks already aged into the age map
+        self._n_voted = 0  # chunks already voted into the old map (<= _n_old: votes wait for a verification)
+        self._rot_cache: dict[int, np.ndarray] = {}  # aged chunk -> its per-batch rotations, until voted
         self._stored = 0
         self._thinned = 0  # times every chunk was thinned by 2 (a checkpoint holds the chunks as they were)
         self._checkpoint = None  # (old map, age, visit) after a rebuild: the next rebuild starts there (_rebuild)
@@ -250,6 +241,7 @@ class LoopCloser:
             self.chunks = [(c[0][::2], c[1][::2], c[2] * len(c[0]) / len(c[0][::2]), c[3], c[4]) for c in self.chunks]
             self._stored = sum(len(c[0]) for c in self.chunks)
             self._thinned += 1
+            self._rot_cache.clear()  # the batches changed: rotations again when voted
         self._spent(tic, cpu)
         self.profile["store"] += time.perf_counter() - tic
 
@@ -280,7 +272,7 @@ class LoopCloser:
         recent = self.cfg.loop_recent_time
         while self._n_old < len(self.chunks) and self.chunks[self._n_old][0][-1] < t_now - recent:
             self._advance_checkpoint()
-            self._age_chunk(self.chunks[self._n_old])
+            self._rot_cache[self._n_old] = self._age_chunk(self.chunks[self._n_old], vote=False)
             self._n_old += 1
         self.profile["age"] += time.perf_counter() - tic
         self._spent(tic, cpu)
@@ -312,30 +304,49 @@ class LoopCloser:
         rot = spline.evaluate(mids)
         return mids, rot if ctrl_left is None else ctrl_left @ rot
 
-    def _cells(self, b: np.ndarray, rot: np.ndarray) -> np.ndarray:
-        """Flat age-cell index of each event."""
+    def _cells(self, b: np.ndarray, rot: np.ndarray, every: int = 1) -> np.ndarray:
+        """Flat age-cell index of each event (``every``: of 1 in this many)."""
         bs = self.backend.cfg.event_batch_size
-        xw = np.einsum("nij,nj->ni", np.repeat(rot, bs, axis=0)[: len(b)], b.astype(np.float64))
+        if every > 1:
+            idx = np.arange(0, len(b), every)
+            xw = np.einsum("nij,nj->ni", rot[idx // bs], b[idx].astype(np.float64))
+        else:
+            xw = np.einsum("nij,nj->ni", np.repeat(rot, bs, axis=0)[: len(b)], b.astype(np.float64))
         u, v = equirect_numpy(xw, self.backend.width, self.backend.height)
         ci = np.clip((v // _CELL).astype(np.int64), 0, self.age.shape[0] - 1)
         cj = (u // _CELL).astype(np.int64) % self.age.shape[1]
         return ci * self.age.shape[1] + cj
 
-    def _age_chunk(self, chunk, maps=None) -> None:
-        """Vote a stored chunk into the old map and mark its cells in the age and visit maps (``maps``: into
-        (old, age, visit) instead of the loop closer's own)."""
+    def _age_chunk(self, chunk, maps=None, vote: bool = True) -> np.ndarray:
+        """Mark a stored chunk's cells in the age and visit maps and vote it into the old map (``maps``: into
+        (old, age, visit) instead of the loop closer's own; ``vote`` False: the caller votes it later, with the
+        per-batch rotations returned)."""
         old, age, visit = maps if maps is not None else (self.old, self.age, self.visit)
         t, b, weight, t0, moving = chunk
         _, rot = self._rotations(t)
-        region = old.add(b, rot, self.backend.cfg.event_batch_size, weight=weight)
-        if region is None:
-            return
+        if vote:
+            old.add(b, rot, self.backend.cfg.event_batch_size, weight=weight)
         hit = np.zeros(age.size, bool)
-        hit[_voted_cells(*region, age.shape[1])] = True
+        hit[self._cells(b, rot, _CELL_EVERY)] = True
         cells = np.flatnonzero(hit)  # sorted, without np.unique's sort
         new_visit = age.flat[cells] < float(t[0]) - self.cfg.loop_min_age  # never observed, or long ago
         visit.flat[cells[new_visit]] = float(t[0])
         age.flat[cells] = np.maximum(age.flat[cells], float(t[-1]))
+        return rot
+
+    def _vote_aged(self, n: int) -> None:
+        """Vote the aged chunks up to n into the old map. Ageing marks the age and visit maps only (detection
+        reads nothing else); the votes wait for the first verification that reads the old map, so a run without
+        a revisit never casts them. Along the rotations the chunks were aged with: no loop moved their poses
+        since (a rebuild votes every chunk again and empties the queue), so the same votes in the same order."""
+        bs = self.backend.cfg.event_batch_size
+        while self._n_voted < n:
+            if self._n_voted % _VOTES_PER_SLICE == 0:
+                self._slice_point()
+            t, b, weight, _t0, _moving = self.chunks[self._n_voted]
+            rot = self._rot_cache.pop(self._n_voted, None)
+            self.old.add(b, self._rotations(t)[1] if rot is None else rot, bs, weight=weight)
+            self._n_voted += 1
 
     def _recent_events(self, ev_t, ev_b) -> tuple[np.ndarray, np.ndarray]:
         """The stored events not aged yet, then (ev_t, ev_b); thinned to loop_registration_events."""
@@ -358,7 +369,8 @@ class LoopCloser:
             return
         entry = {"time": float(t_now), "overlap": overlap}
         if self.slice_seconds is not None:  # in slices: before this window and the next ones, and when idle
-            self._task = _Slices(lambda: self.verify(t, b, old_cells))
+            n_aged = self._n_old
+            self._task = _Slices(lambda: self.verify(t, b, old_cells, n_aged))
             # the age and visit maps as detected: strides aged while the verification runs (the recent events
             # among them) must not make the old visit look recent (_apply)
             self._pending = {"kind": "verify", "entry": entry, "args": (t, b, old_cells, t_now), "seconds": 0.0,
@@ -368,7 +380,7 @@ class LoopCloser:
                 self._conclude_task()
             return
         tic = time.perf_counter()
-        entry.update(self.verify(t, b, old_cells))
+        entry.update(self.verify(t, b, old_cells, self._n_old))
         self.profile["verify"] += time.perf_counter() - tic
         self._conclude(entry, t, b, old_cells, t_now, time.perf_counter() - tic)
 
@@ -465,8 +477,9 @@ class LoopCloser:
         entry["seconds"] = seconds + time.perf_counter() - tic
         self.loops.append(entry)
 
-    def verify(self, t: np.ndarray, b: np.ndarray, old_cells: np.ndarray) -> dict:
+    def verify(self, t: np.ndarray, b: np.ndarray, old_cells: np.ndarray, n_aged: int | None = None) -> dict:
         """Register events (times t, bearings b) against the old map on ``old_cells`` alone; the decision.
+        ``n_aged``: the chunks aged at detection (the old map's; default all aged so far).
 
         Returns correction_deg, confidence (correlation at the optimum), confidence_before (at no correction),
         peak_ratio, accepted, reason and ``_phi`` (the correction's rotation vector, world frame, left).
@@ -474,6 +487,7 @@ class LoopCloser:
         # a copy: the poses as they are now, also when the verification runs in slices between later windows
         cfg, bcfg, spline = self.cfg, self.backend.cfg, self.backend.spline.copy()
         w, h = self.backend.width, self.backend.height
+        self._vote_aged(self._n_old if n_aged is None else n_aged)
         mask = np.repeat(np.repeat(old_cells, _CELL, axis=0), _CELL, axis=1)[:h, :w]
         rows = np.flatnonzero(mask.any(axis=1))
         if len(rows) == 0:
@@ -728,6 +742,8 @@ class LoopCloser:
         for chunk in self.chunks[n_old:self._n_old]:  # aged while the rebuild ran in slices
             self._age_chunk(chunk, maps)
         self.old, self.age, self.visit = maps
+        self._n_voted = self._n_old  # every aged chunk voted along the corrected poses
+        self._rot_cache.clear()
         self._checkpoint = (self._n_old, self.old.raw.copy(), self.age.copy(), self.visit.copy(),
                             backend.spline.control_R.copy(), thinned)
         backend.map = None  # (offline, already freed by _rebuild)
@@ -756,6 +772,7 @@ class LoopCloser:
         final = self._closed_until - (spline.degree + 2) * spline.dt
         if self.chunks[self._n_old - 1][0][-1] >= final or self.chunks[self._n_old][0][-1] < final:
             return  # not at the first stride a later loop may move
+        self._vote_aged(self._n_old)  # the checkpoint holds the votes of the chunks it counts
         self._checkpoint = (self._n_old, self.old.raw.copy(), self.age.copy(), self.visit.copy(),
                             spline.control_R.copy(), self._thinned)
         self.checkpoints_advanced += 1

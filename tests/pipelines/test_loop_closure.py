@@ -12,7 +12,8 @@ from ti_cmax.spline import SO3Spline
 DURATION, TURNS, RATE = 5.0, 1.3, 120_000  # s, pan turns, events/s
 DRIFT = np.radians(4.0)  # injected drift at the end (grows linearly from 0), about DRIFT_AXIS (world frame)
 DRIFT_AXIS = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
-LOOP = LoopClosureConfig(loop_closure=True, loop_registration_events=20000)  # as resolved for a DAVIS240C
+LOOP = LoopClosureConfig(loop_closure=True, loop_registration_events=20000,  # as resolved for a DAVIS240C
+                         loop_check_drift_px=0.0)  # a check every loop_recent_time after a loop: more loops
 
 
 def _pan(t, duration=DURATION, turns=TURNS):
@@ -426,25 +427,32 @@ def test_backend_worker_runs_sliced_verifications(short_sequence):
     assert summary["candidates"] == len(loops) and summary["longest_call_cpu_seconds"] > 0
 
 
-def test_texture_and_voted_cells_equal_their_references():
-    """The confidence test's texture (OpenCV blur) equals metrics.local_texture; the age cells read off the old
-    map's votes are the cells holding a vote, for regions at any offset and across the longitude wrap."""
+def test_texture_equals_the_metrics_one():
+    """The confidence test's texture (OpenCV blur) equals metrics.local_texture."""
     from ti_cmax.metrics import local_texture
-    from ti_cmax.pipelines.loop_closure import _CELL, _texture, _voted_cells
+    from ti_cmax.pipelines.loop_closure import _texture
 
     rng = np.random.default_rng(5)
     img = rng.uniform(0, 1, (40, 70)) * (rng.uniform(size=(40, 70)) < 0.3)
     for wrap in (False, True):
         np.testing.assert_allclose(_texture(img, wrap), local_texture(img, 3, wrap_columns=wrap), rtol=1e-9,
                                    atol=1e-9)
-    w, h = 64, 32
-    for r0, c0, nr, nc in ((5, 61, 9, 11), (0, 0, 32, 64), (3, 6, 7, 5)):
-        votes = (rng.uniform(size=(nr, nc)) < 0.1).astype(np.float32)
-        cols = (c0 + np.arange(nc)) % w
-        rr, cc = np.nonzero(votes)
-        expected = np.unique((r0 + rr) // _CELL * (w // _CELL) + cols[cc] // _CELL)
-        got = _voted_cells(slice(r0, r0 + nr), cols, votes, w // _CELL)
-        assert sorted(got.tolist()) == expected.tolist()
+
+
+def test_old_map_votes_wait_for_a_verification(ti_runtime):
+    """Ageing marks the age and visit maps only: before any verification no old-map vote is cast (a run without a
+    revisit never pays for them); voted later, the old map equals the one voted at ageing, bit for bit."""
+    from ti_cmax.pipelines.loop_closure import _RawMap
+
+    t_ev, b_ev = _events()
+    lc = _run(t_ev, b_ev, _pan, duration=3.0).loop  # before loop_min_age + loop_recent_time: no check
+    assert not lc.loops and lc._n_old > 10 and lc._n_voted == 0 and not lc.old.raw.any()
+    lc._vote_aged(lc._n_old)
+    eager = (_RawMap(lc.old.width, lc.old.height), np.full_like(lc.age, -np.inf), np.full_like(lc.visit, -np.inf))
+    for chunk in lc.chunks[:lc._n_old]:
+        lc._age_chunk(chunk, eager)
+    for a, b in zip((lc.old.raw, lc.age, lc.visit), (eager[0].raw, eager[1], eager[2])):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_checks_after_a_loop_wait_for_the_drift_to_build_up(ti_runtime):
