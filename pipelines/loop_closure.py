@@ -362,7 +362,7 @@ class LoopCloser:
             return
         old_cells = (self.age > -np.inf) & (self.age < t_now - cfg.loop_min_age)
         _, rot = self._rotations(t)
-        on_old = old_cells.flat[self._cells(b, rot)]
+        on_old = old_cells.flat[self._cells(b, rot, _CELL_EVERY)]  # the fraction: 1 in 4 of the events tells it
         overlap = float(np.mean(on_old))
         if overlap < cfg.loop_min_overlap:
             self._interval = cfg.loop_recent_time
