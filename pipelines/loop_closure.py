@@ -6,16 +6,20 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
 
 1. keeps a subsample of the settled events (at most ``loop_stored_event_rate`` per second, each stride 1 of k with
    weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and, delayed
-   by ``loop_recent_time``, votes them into an *old map* and a coarse map of the time each region was last
-   observed;
+   by ``loop_recent_time``, marks them in a coarse map of the time each region was last observed (the cells of
+   1 in 4 events) and, once a verification reads it, votes them into an *old map* (a run without a revisit never
+   casts those votes);
 2. detection, before every window's BA (at most one verification per ``loop_recent_time``, less often while a
-   revisit goes on without a correction to apply: the interval doubles up to ``loop_min_age``): the recent events
+   revisit goes on without a correction to apply: the interval doubles up to ``loop_min_age``; after an applied
+   loop, the next check waits until the drift rate that loop measured has moved the map by
+   ``loop_check_drift_px``, within the same bounds): the recent events
    (the last ``loop_recent_time`` seconds of settled events plus the window's, at their initialized poses: the
    BA has not pulled them to the old map yet) at their current poses are a revisit candidate when at least
    ``loop_min_overlap`` of them fall on regions observed, and last observed at least ``loop_min_age`` s ago
    (regions without texture give no events, so they are never observed);
 3. verification: one rotation C (left, world frame) registers the recent events against the old map of those
-   regions alone, with the back-end's machinery (``PanoIWE``: Var(B(I_recent) + alpha B(I_old)), Fletcher-Reeves CG),
+   regions alone, with the back-end's machinery (``PanoIWE``: Var(B(I_recent) + alpha B(I_old)), BFGS from the
+   last verification's inverse Hessian),
    coarse to fine. The candidate is accepted when the registered maps correlate (normalized cross-correlation
    over the old regions >= ``loop_min_confidence``), the optimum is unique (that correlation over its best value
    4 and 8 map pixels away >= ``loop_min_peak_ratio``) and |C| <= ``loop_max_correction``;
@@ -131,14 +135,11 @@ class _RawMap(GlobalMap):
         twin._scratch = self._scratch
         return twin
 
-    def add(self, bearings, rotations, batch_size: int, weight: float = 1.0):
-        """Vote; returns (rows slice, column indices, votes there) of the touched region (None: no vote)."""
+    def add(self, bearings, rotations, batch_size: int, weight: float = 1.0) -> None:
         taken = self._take_votes(bearings, rotations, batch_size, 0, weight)
         if taken is not None:
-            rows, cols, sel, votes = taken
+            _rows, _cols, sel, votes = taken
             self.raw[sel] += votes
-            return rows, cols, votes
-        return None
 
 
 class _Slices:
