@@ -670,12 +670,20 @@ class PanoIWE:
         grad *= 2.0 / self.n_px
         return var, grad
 
+    def local_box(self, control_R):
+        """(first row, column indices, blurred local map B(I_L) on that box) at these control poses; None when no
+        event lands in the map. The box only: a crop of a large map costs no full-size array."""
+        _, win, maps, _ = self._forward(control_R)
+        if win is None:
+            return None
+        r0, c0, _bh, bw, _ = win
+        return r0, (c0 + np.arange(bw)) % self.width, maps[0]
+
     def local_map(self, control_R) -> np.ndarray:
         """Full-size blurred local map B(I_L) of this window's events at these control poses (inspection, tests)."""
-        _, win, maps, _ = self._forward(control_R)
+        box = self.local_box(control_R)
         out = np.zeros((self.height, self.width))
-        if win is not None:
-            r0, c0, bh, bw, _ = win
-            cols = (c0 + np.arange(bw)) % self.width
-            out[r0 : r0 + bh][:, cols] = maps[0]
+        if box is not None:
+            r0, cols, lmap = box
+            out[r0 : r0 + len(lmap)][:, cols] = lmap
         return out

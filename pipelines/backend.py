@@ -219,10 +219,12 @@ class GlobalMap:
         band = slice(max(int(rows[0]) - blur_radius(self.sigma), 0),
                      min(int(rows[-1]) + blur_radius(self.sigma) + 1, self.height))
         blur_region(self.raw, self.blurred, band, np.arange(self.width), self.sigma)
-        blurred = self.blurred[band].astype(np.float64)
-        self.g_sum, self.g_sq = float(blurred.sum()), float(np.sum(blurred * blurred))
-        voted = self.raw[rows].astype(np.float64)
-        self.n_events = float(voted.sum())
+        blurred = self.blurred[band]  # sums in float64 without float64 copies of the band
+        self.g_sum = float(np.sum(blurred, dtype=np.float64))
+        self.g_sq = float(np.einsum("ij,ij->", blurred, blurred, dtype=np.float64))
+        voted = self.raw[rows]
+        self.n_events = float(np.sum(voted, dtype=np.float64))
+        voted = voted[voted != 0].astype(np.float64)  # a pixel without votes adds 1 - exp(0) = 0 to the area
         self.area = float(np.sum(1.0 - np.exp(voted / -self.lambda0)))
 
 

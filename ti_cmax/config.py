@@ -278,6 +278,9 @@ class LoopClosureConfig(Params):
     loop_max_correction: float = param(0.1, "larger registrations are rejected as false loops", unit="rad", gt=0)
     loop_min_correction_px: float = param(0.25, "corrections below this are not applied", unit="map px", ge=0)
     loop_min_gain: float = param(0.02, "corrections raising the correlation by less are not applied", ge=0)
+    loop_check_drift_px: float = param(2.0, "after an applied loop, the next check waits until the drift rate that "
+                                            "loop measured has moved the map this far (between loop_recent_time and "
+                                            "loop_min_age; 0: at loop_recent_time)", unit="map px", ge=0)
     loop_registration_events: int = param(0, "recent events used for the registration at most (thinned); derived: "
                                              "20 000 x max(1, pixels / 43200)", unit="events", ge=100,
                                           zero="derived")

@@ -12,7 +12,8 @@ from ti_cmax.spline import SO3Spline
 DURATION, TURNS, RATE = 5.0, 1.3, 120_000  # s, pan turns, events/s
 DRIFT = np.radians(4.0)  # injected drift at the end (grows linearly from 0), about DRIFT_AXIS (world frame)
 DRIFT_AXIS = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
-LOOP = LoopClosureConfig(loop_closure=True, loop_registration_events=20000)  # as resolved for a DAVIS240C
+LOOP = LoopClosureConfig(loop_closure=True, loop_registration_events=20000,  # as resolved for a DAVIS240C
+                         loop_check_drift_px=0.0)  # a check every loop_recent_time after a loop: more loops
 
 
 def _pan(t, duration=DURATION, turns=TURNS):
@@ -323,6 +324,7 @@ def test_checkpointed_rebuild_equals_the_full_one(ti_runtime):
     assert lc._checkpoint_start() > 0  # the last rebuild left a checkpoint the next one would use
     lc._rebuild()  # from the checkpoint
     got = (lc.old.raw.copy(), lc.age.copy(), lc.visit.copy(), be.map.raw.copy())
+    assert lc._checkpoint[0] == lc._n_old
     lc._checkpoint = None
     lc._rebuild()  # every stride from scratch
     for a, b in zip(got, (lc.old.raw, lc.age, lc.visit, be.map.raw)):
@@ -330,6 +332,26 @@ def test_checkpointed_rebuild_equals_the_full_one(ti_runtime):
     # a correction that moves the checkpoint's poses invalidates it
     be.spline.control_R[2] = so3.exp(np.array([0.0, 1e-3, 0.0])) @ be.spline.control_R[2]
     assert lc._checkpoint_start() == 0
+
+
+def test_advanced_checkpoint_gives_the_same_run(ti_runtime, monkeypatch):
+    """The checkpoint moved past each loop's recent block (_advance_checkpoint: later rebuilds vote fewer strides)
+    gives the same loops, trajectory and maps, bit for bit, as rebuilding from the last rebuild's checkpoint."""
+    from ti_cmax.pipelines.loop_closure import LoopCloser
+
+    duration, turns = 7.5, 2.3
+    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
+    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
+    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    fast = _run(t_ev, b_ev, drifted, duration=duration)
+    assert fast.loop.checkpoints_advanced >= 2 and sum(bool(e["applied"]) for e in fast.loop.loops) >= 3
+    monkeypatch.setattr(LoopCloser, "_advance_checkpoint", lambda self: None)
+    ref = _run(t_ev, b_ev, drifted, duration=duration)
+    assert [e["correction_deg"] for e in fast.loop.loops] == [e["correction_deg"] for e in ref.loop.loops]
+    np.testing.assert_array_equal(fast.spline.control_R, ref.spline.control_R)
+    for a, b in ((fast.loop.old.raw, ref.loop.old.raw), (fast.loop.age, ref.loop.age),
+                 (fast.loop.visit, ref.loop.visit), (fast.map.raw, ref.map.raw)):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_runtime):
@@ -403,3 +425,49 @@ def test_backend_worker_runs_sliced_verifications(short_sequence):
     assert all(e["reason"] for e in loops)
     summary = result.report["backend"]["loop_closure"]
     assert summary["candidates"] == len(loops) and summary["longest_call_cpu_seconds"] > 0
+
+
+def test_texture_equals_the_metrics_one():
+    """The confidence test's texture (OpenCV blur) equals metrics.local_texture."""
+    from ti_cmax.metrics import local_texture
+    from ti_cmax.pipelines.loop_closure import _texture
+
+    rng = np.random.default_rng(5)
+    img = rng.uniform(0, 1, (40, 70)) * (rng.uniform(size=(40, 70)) < 0.3)
+    for wrap in (False, True):
+        np.testing.assert_allclose(_texture(img, wrap), local_texture(img, 3, wrap_columns=wrap), rtol=1e-9,
+                                   atol=1e-9)
+
+
+def test_old_map_votes_wait_for_a_verification(ti_runtime):
+    """Ageing marks the age and visit maps only: before any verification no old-map vote is cast (a run without a
+    revisit never pays for them); voted later, the old map equals the one voted at ageing, bit for bit."""
+    from ti_cmax.pipelines.loop_closure import _RawMap
+
+    t_ev, b_ev = _events()
+    lc = _run(t_ev, b_ev, _pan, duration=3.0).loop  # before loop_min_age + loop_recent_time: no check
+    assert not lc.loops and lc._n_old > 10 and lc._n_voted == 0 and not lc.old.raw.any()
+    lc._vote_aged(lc._n_old)
+    eager = (_RawMap(lc.old.width, lc.old.height), np.full_like(lc.age, -np.inf), np.full_like(lc.visit, -np.inf))
+    for chunk in lc.chunks[:lc._n_old]:
+        lc._age_chunk(chunk, eager)
+    for a, b in zip((lc.old.raw, lc.age, lc.visit), (eager[0].raw, eager[1], eager[2])):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_checks_after_a_loop_wait_for_the_drift_to_build_up(ti_runtime):
+    """loop_check_drift_px: after an applied loop the next check waits until the drift rate that loop measured
+    has moved the map by that many pixels (at most loop_min_age); 0 checks again after loop_recent_time."""
+    duration, turns = 7.5, 2.3
+    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
+    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
+    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    runs = {px: _run(t_ev, b_ev, drifted, replace(LOOP, loop_check_drift_px=px), duration=duration).loop
+            for px in (0.0, 1e4)}
+    for px, lc in runs.items():
+        applied = [i for i, e in enumerate(lc.loops) if e["applied"]]
+        assert applied, lc.loops
+        gap = LOOP.loop_recent_time if px == 0 else LOOP.loop_min_age
+        for i in applied[:-1]:
+            assert lc.loops[i + 1]["time"] - lc.loops[i]["time"] == pytest.approx(gap, abs=0.11), lc.loops
+    assert len(runs[1e4].loops) < len(runs[0.0].loops)
