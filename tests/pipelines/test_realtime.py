@@ -76,7 +76,7 @@ def _report(t_end, lag, ctl, n=100_000, busy=0.05, ba=0.0):
         ctl.online.frontend_until = t_end
     return SimpleNamespace(t_start=t_end - 0.2, t_end=t_end, num_events=n, events_used=n if ba else 0,
                            optimized=ba > 0, rejected=False, skipped=ba == 0, done_at=ctl.due(t_end) + lag,
-                           ba_seconds=ba, busy_seconds=busy, seconds=busy, cut_short=False)
+                           ba_seconds=ba, busy_seconds=busy, seconds=busy, cut_short=False, evaluations=4 if ba else 0)
 
 
 def test_controller_rule():
@@ -98,6 +98,9 @@ def test_controller_rule():
         ctl.on_window(_report(t, lag, ctl, busy=0.08, ba=0.05))
         t += 0.1
     assert ctl.level == 4 and ctl.thinning == 1
+    # the trace (realtime_windows.csv): per window the level in force and the one chosen after it
+    assert [(row[3], row[-1]) for row in ctl.trace] == [(0, 1), (1, 2), (2, 3), (3, 4)]
+    assert [row[2] for row in ctl.trace] == pytest.approx([0.5, 0.6, 0.7, 0.8]) and len(ctl.trace[0]) == len(R.TRACE_COLUMNS)
     # from level 1 on, a window's BA has one stride of wall time (0.1 s at speed 1)
     # (level 1: the budget alone; 2: half the events; 3: half the BA windows and packets; 4: no BA)
     assert calls == [(1, None, 1, 0.1), (1, 100_000, 1, 0.1), (2, 100_000, 2, 0.1), (4, 0, 1, 0.1)]

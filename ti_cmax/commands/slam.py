@@ -49,7 +49,7 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
         report["camera"] = camera.to_dict()
     report["peak_rss_mb"] = peak_rss_mb()  # of the whole process so far
     (out / "report.json").write_text(json.dumps(report, indent=2, default=float))
-    if result.realtime_trace:
+    if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
         write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
     save_config(cfg, out / "config.yaml")
 
