@@ -54,7 +54,7 @@ import numpy as np
 
 from ti_cmax import so3
 from ti_cmax.config import LoopClosureConfig
-from ti_cmax.kernels.blur import gaussian_taps, separable_blur
+from ti_cmax.metrics import local_texture
 from ti_cmax.kernels.pano import (
     PanoIWE, batch_mid_times, blur_radius, blur_region, equirect_numpy, event_density,
 )
@@ -80,16 +80,6 @@ def _blur_rows(raw: np.ndarray, r0: int, r1: int, sigma: float) -> tuple[np.ndar
     blur_region(raw, out, rows, np.arange(w), sigma)
     band = out[rows].astype(np.float64)
     return out, (float(band.sum()), float(np.sum(band * band)))
-
-
-def _texture(image: np.ndarray, wrap: bool) -> np.ndarray:
-    """``metrics.local_texture(image, _TEXTURE, wrap)`` with the project's OpenCV blur (SIMD; scipy's filters took
-    8 ms per call on a 0.2 M pixel box): the same kernel and borders, rounding aside."""
-    img = np.asarray(image, dtype=np.float64)
-    taps = gaussian_taps(_TEXTURE)
-    hp = img - separable_blur(img, taps, wrap_cols=wrap)
-    rms = np.sqrt(np.maximum(separable_blur(hp * hp, taps, wrap_cols=wrap), 0.0))
-    return hp / (rms + 1e-3 * float(rms.max()) + 1e-300)
 
 
 def _downsample(raw: np.ndarray, rows: np.ndarray, f: int) -> np.ndarray:
@@ -572,7 +562,7 @@ class LoopCloser:
                     out[ra - band.start:rb - band.start][:, at_col[lcols[keep]]] = lmap[ra - r0:rb - r0][:, keep]
             return out
 
-        g_tex = _texture(problem.gmap[band][:, cols], wrap)
+        g_tex = local_texture(problem.gmap[band][:, cols], _TEXTURE, wrap)
         m_band = mask[band][:, cols]
 
         def ncc(tex, covered, shift=(0, 0)):
@@ -594,7 +584,7 @@ class LoopCloser:
             """(texture, covered pixels) of the recent map (a local box)."""
             lmap = crop(box)
             self._slice_point()
-            return _texture(lmap, wrap), lmap > 1e-3 * float(lmap.max())
+            return local_texture(lmap, _TEXTURE, wrap), lmap > 1e-3 * float(lmap.max())
 
         self._slice_point()
         at_opt = maps_at(box_opt)

@@ -309,11 +309,15 @@ def event_area_percent(image: np.ndarray, lambda0: float = 1.0) -> float:
 def local_texture(image: np.ndarray, sigma: float, wrap_columns: bool = True) -> np.ndarray:
     """Band-pass texture of an image, normalized by its local RMS: (H - G_s H) / sqrt(G_s (H - G_s H)^2), G_s a
     Gaussian of std ``sigma`` px (columns wrap for panoramas). Correlating two such images compares structure, not
-    exposure: a map region observed for longer, or only partly, does not lower the correlation."""
+    exposure: a map region observed for longer, or only partly, does not lower the correlation. The blur is the
+    project's (kernels/blur.py, OpenCV's SIMD filter, truncated like scipy's: scipy's filters took 8 ms per call on a
+    0.2 M pixel box in loop closure's confidence test); zeros beyond the borders."""
+    from ti_cmax.kernels.blur import gaussian_taps, separable_blur
+
     img = np.asarray(image, dtype=np.float64)
-    mode = ("constant", "wrap" if wrap_columns else "constant")
-    hp = img - ndimage.gaussian_filter(img, sigma, mode=mode)
-    rms = np.sqrt(np.maximum(ndimage.gaussian_filter(hp * hp, sigma, mode=mode), 0.0))
+    taps = gaussian_taps(sigma)
+    hp = img - separable_blur(img, taps, wrap_cols=wrap_columns)
+    rms = np.sqrt(np.maximum(separable_blur(hp * hp, taps, wrap_cols=wrap_columns), 0.0))
     return hp / (rms + 1e-3 * float(rms.max()) + 1e-300)
 
 

@@ -427,15 +427,22 @@ def test_backend_worker_runs_sliced_verifications(short_sequence):
     assert summary["candidates"] == len(loops) and summary["longest_call_cpu_seconds"] > 0
 
 
-def test_texture_equals_the_metrics_one():
-    """The confidence test's texture (OpenCV blur) equals metrics.local_texture."""
+def test_texture_equals_the_scipy_twin():
+    """The confidence test's texture (metrics.local_texture, OpenCV blur) equals its scipy twin."""
+    from scipy import ndimage
+
     from ti_cmax.metrics import local_texture
-    from ti_cmax.pipelines.loop_closure import _texture
+
+    def twin(img, sigma, wrap):
+        mode = ("constant", "wrap" if wrap else "constant")
+        hp = img - ndimage.gaussian_filter(img, sigma, mode=mode)
+        rms = np.sqrt(np.maximum(ndimage.gaussian_filter(hp * hp, sigma, mode=mode), 0.0))
+        return hp / (rms + 1e-3 * float(rms.max()) + 1e-300)
 
     rng = np.random.default_rng(5)
     img = rng.uniform(0, 1, (40, 70)) * (rng.uniform(size=(40, 70)) < 0.3)
     for wrap in (False, True):
-        np.testing.assert_allclose(_texture(img, wrap), local_texture(img, 3, wrap_columns=wrap), rtol=1e-9,
+        np.testing.assert_allclose(local_texture(img, 3, wrap_columns=wrap), twin(img, 3, wrap), rtol=1e-9,
                                    atol=1e-9)
 
 
