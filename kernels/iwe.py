@@ -28,7 +28,8 @@ g * g (zero padding on the sensor is then exact; the outer taps below 1e-5 of th
              per evaluation 1.0-1.1 -> 0.95-1.0 ms on 240 x 180, 2.6 -> 2.2-2.6 on 640 x 480, 5.4 -> 3.5 on
              1280 x 720, 20 000 events, 1 thread);
   3. events (kernel ``gather``): H at the four neighbours, then the cost term w.H and the gradient 3-vector
-             from the stored warp, partial sums per group of 8 events (no gradient image).
+             from the stored warp, partial sums per group of 8 events (no gradient image). The cost alone
+             (``with_grad=False``) skips it: <I, H> - mu sum(I) is one dot product of the two images.
 Taichi 1.7.4's CPU range-for runs as tasks of >= 512 consecutive iterations, one thread each (see
 kernels/runtime.py), so a loop over the 2 parts would run on one thread: pass 1 loops over PART_TASK iterations
 per part (whole parts per task), pass 3 over event groups. Partial sums are stored per iteration and added in a
@@ -76,9 +77,12 @@ def measure_id(measure: str) -> int:
 
 
 @functools.cache
-def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int):
+def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, serial: bool):
     """Fields and kernels for one float type, sensor size, packet capacity and number of vote parts (compiled
-    once). The images are ndarrays (numpy) so that OpenCV blurs them between the two kernels."""
+    once). The images are ndarrays (numpy) so that OpenCV blurs them between the two kernels. ``serial`` (one
+    thread): the event loops run on the calling thread; a parallel loop is handed to Taichi's thread pool even
+    with one thread, ~30-40 us per loop on these machines (a serial kernel launch costs ~12 us). The same sums in
+    the same order (the compiled loop may round them differently: not bitwise the parallel build's)."""
     f = ti.f32 if dtype_name == "f32" else ti.f64
     bl = bilinear_funcs(f)
     h, w = height, width
@@ -129,6 +133,7 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int):
         n = ti.cast(prm[0], ti.i32)
         wx, wy, wz = ti.cast(prm[1], f), ti.cast(prm[2], f), ti.cast(prm[3], f)
         fx, fy, cx, cy = ti.cast(prm[4], f), ti.cast(prm[5], f), ti.cast(prm[6], f), ti.cast(prm[7], f)
+        ti.loop_config(serialize=serial)
         for it in range(parts * PART_TASK):
             part, k0, k1 = part_slice(it, n, parts)
             sw = f(0.0)
@@ -153,6 +158,8 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int):
                 acc1 += psum[it]
             out[0] = acc1[0]
             out[5] = acc1[1]
+            prm[10] = acc1[0]
+            prm[15] = acc1[1]
 
     @ti.kernel
     def gather(ev: ti.types.ndarray(dtype=f, ndim=2), himg: ti.types.ndarray(dtype=f, ndim=2),
@@ -170,6 +177,7 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int):
         if measure == 0:
             mu = ti.cast(out[0], f) / npix
         ngroups = (n + _GROUP - 1) // _GROUP
+        ti.loop_config(serialize=serial)
         for grp in range(ngroups):
             acc = ti.Vector([f(0.0), f(0.0), f(0.0), f(0.0)])
             for k in range(grp * _GROUP, ti.min(n, (grp + 1) * _GROUP)):
@@ -214,8 +222,8 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int):
             out[3] = acc3[1]
             out[4] = acc3[2]
             out[1] = acc3[3]
-        for q in range(6):
-            prm[10 + q] = out[q]
+            for q in range(6):  # in the serial block: a loop of its own would be one more thread-pool task
+                prm[10 + q] = out[q]
 
     @ti.kernel
     def render(ev: ti.types.ndarray(dtype=f, ndim=2), n: ti.i32, wx: f, wy: f, wz: f, fx: f, fy: f, cx: f, cy: f,
@@ -263,7 +271,8 @@ class IWEWorkspace:
         if self._kernels is None:
             ensure_init()
             parts = check_parts(self.parts or max(1, min(8, num_threads())))
-            self._kernels = _build(_DTYPES[self.dtype], self.height, self.width, self.capacity, parts)
+            self._kernels = _build(_DTYPES[self.dtype], self.height, self.width, self.capacity, parts,
+                                   num_threads() == 1)
             self._img = np.zeros((parts * self.height, self.width), self.dtype)  # the parts' copies of I
             self._parts = parts
         return self._kernels
@@ -309,10 +318,16 @@ class IWEWorkspace:
         vote(self._packed, img, prm)
         total = img if self._parts == 1 else img.reshape(self._parts, self.height, self.width).sum(axis=0)
         himg = separable_blur(total, self.taps2)  # pass 2: H = G2 I (zero padding: exact, see the module docstring)
+        npix = float(self.width * self.height)
+        if not with_grad:  # the cost alone from the images: <I, G2 I> - mu' sum(I), no pass over the events
+            mu = prm[10] / npix if measure_id(measure) == 0 else 0.0
+            # einsum, not np.dot: a BLAS dot this long wakes OpenBLAS's threads, which then spin beside the kernels
+            cost = (float(np.einsum("ij,ij->", total, himg, dtype=np.float64)) - mu * prm[10]) / npix
+            img.fill(0)
+            return cost, np.zeros(3), int(prm[15])
         img.fill(0)  # the copies of I for the next evaluation
         gather(self._packed, himg, prm)
         o = prm[10:16]
-        npix = float(self.width * self.height)
         # pass 3 summed w (H - mu') = <I, G2 I> - mu' sum(I), mu' = mu (variance) or 0: that is C * Np
         cost = o[1] / npix
         return cost, (2.0 / npix) * o[2:5], int(o[5])
