@@ -1,1 +1,23 @@
 """One module per ``ti-cmax`` subcommand: ``HELP``, ``add_arguments(parser)``, ``run(args) -> int``."""
+
+
+def add_sensor_arguments(parser, topic_help: str = "ROS bag event topic") -> None:
+    """--width, --height, --topic: what a dataset's files may not say (info, convert)."""
+    parser.add_argument("--width", type=int, default=None, help="sensor width (overrides what the files say)")
+    parser.add_argument("--height", type=int, default=None, help="sensor height")
+    parser.add_argument("--topic", default=None, help=topic_help)
+
+
+def dataset_config(args):
+    """The DatasetConfig of --config / --set, with --width, --height and --topic applied."""
+    from dataclasses import replace
+
+    from ..config import load_config
+    from ..io.dataset import DatasetConfig
+
+    cfg = load_config(DatasetConfig, args.config, args.overrides)
+    if args.width or args.height:
+        cfg = replace(cfg, width=args.width or 0, height=args.height or 0)
+    if args.topic:
+        cfg = replace(cfg, topic=args.topic)
+    return cfg

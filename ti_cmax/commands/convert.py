@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import argparse
 
+from . import add_sensor_arguments, dataset_config
+
 HELP = "convert events (ECD txt, HDF5, ROS1 bag, AEDAT4, Prophesee RAW) to HDF5 events/{t,x,y,p} (or ECD text for .txt)"
 
 
@@ -18,29 +20,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--t-end", type=float, default=None, metavar="S", help="keep events with t < S")
     parser.add_argument("--compression", choices=["none", "gzip", "lzf"], default="none",
                         help="HDF5 compression filter (default none: fastest to read)")
-    parser.add_argument("--width", type=int, default=None, help="sensor width (overrides what the files say)")
-    parser.add_argument("--height", type=int, default=None, help="sensor height")
-    parser.add_argument("--topic", default=None, help="ROS bag event topic")
+    add_sensor_arguments(parser)
 
 
 def run(args) -> int:
     import sys
-    from dataclasses import replace
     from pathlib import Path
 
-    from ..config import load_config
     from ..errors import InputError
-    from ..io.dataset import DatasetConfig, open_dataset_from_config
+    from ..io.dataset import open_dataset_from_config
     from ..io.events_txt import EventsTxtWriter
     from ..io.h5 import EventsH5Writer
     from ..outputs import atomic_path
     from ..progress import progress
 
-    cfg = load_config(DatasetConfig, args.config, args.overrides)
-    if args.width or args.height:
-        cfg = replace(cfg, width=args.width or 0, height=args.height or 0)
-    if args.topic:
-        cfg = replace(cfg, topic=args.topic)
+    cfg = dataset_config(args)
     out = Path(args.output)
     suffix = out.suffix.lower()
     if suffix not in (".h5", ".hdf5", ".txt"):

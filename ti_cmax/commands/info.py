@@ -10,15 +10,15 @@ from __future__ import annotations
 import argparse
 import json
 
+from . import add_sensor_arguments, dataset_config
+
 HELP = "print what a dataset holds: events, duration, event rate, sensor size, calibration, ground truth, IMU"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", metavar="DATASET", help="ECD-layout folder or events file (.txt .h5 .bag .aedat4 .raw)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--width", type=int, default=None, help="sensor width (overrides what the files say)")
-    parser.add_argument("--height", type=int, default=None, help="sensor height")
-    parser.add_argument("--topic", default=None, help="ROS bag event topic (default: the only EventArray topic)")
+    add_sensor_arguments(parser, "ROS bag event topic (default: the only EventArray topic)")
     parser.add_argument("--no-check", action="store_true",
                         help="do not read the events (no check of timestamps and pixels; faster on big files)")
 
@@ -104,16 +104,9 @@ def format_info(info: dict) -> str:
 
 
 def run(args) -> int:
-    from dataclasses import replace
+    from ..io.dataset import open_dataset_from_config
 
-    from ..config import load_config
-    from ..io.dataset import DatasetConfig, open_dataset_from_config
-
-    cfg = load_config(DatasetConfig, args.config, args.overrides)
-    if args.width or args.height:
-        cfg = replace(cfg, width=args.width or 0, height=args.height or 0)
-    if args.topic:
-        cfg = replace(cfg, topic=args.topic)
+    cfg = dataset_config(args)
     ds = open_dataset_from_config(args.dataset, cfg)
     info = dataset_info(ds, None if args.no_check else check_events(ds, cfg.chunk_size))
     print(json.dumps(info, indent=2) if args.json else format_info(info))
