@@ -57,8 +57,10 @@ def summarize(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def evaluate_case(spec, root: Path, modes=("parallel",), threads: int | None = None, overrides=()) -> list[dict]:
-    """Offline and real-time runs of one suite sequence; one row per real-time mode."""
+def evaluate_case(spec, root: Path, modes=("parallel",), threads: int | None = None, overrides=(),
+                  tag: str = "") -> list[dict]:
+    """Offline and real-time runs of one suite sequence; one row per real-time mode. The runs go to
+    ROOT/runs/CASE/{offline,realtime-MODE}TAG (a round's tag keeps every round's outputs and trace)."""
     from ti_cmax.io import read_tum
     from ti_cmax.metrics import evaluate_rotations
 
@@ -69,7 +71,7 @@ def evaluate_case(spec, root: Path, modes=("parallel",), threads: int | None = N
     gt = read_tum(seq / "groundtruth.txt")
 
     def run(name: str, flags: tuple) -> tuple[dict, object, list]:
-        out = root / "runs" / spec.name / name
+        out = root / "runs" / spec.name / (name + tag)
         if out.exists():
             shutil.rmtree(out)
         load = [os.getloadavg()[0]]
@@ -161,7 +163,7 @@ def run(out: Path, names: list[str] | None = None, modes=("parallel",), threads:
     rows = []
     for rnd in range(1, rounds + 1):
         for name in names or list(suite):
-            new = evaluate_case(suite[name], out, modes, threads, overrides)
+            new = evaluate_case(suite[name], out, modes, threads, overrides, f"-round{rnd}" if rounds > 1 else "")
             for r in new:
                 r["round"] = rnd
             rows += new
