@@ -193,6 +193,8 @@ class SmtConfig(Params):
     measurement_sigma: float = param(0.1, "std of z = p C around the predicted increment (log intensity)", gt=0)
     min_displacement_px: float = param(1.0, "shortest reference segment (module doc; < 0.05: per event)",
                                        unit="map px", ge=0)
+    max_segment_px: float = param(2.0, "longest reference segment that is a measurement (longer ones restart "
+                                         "without one; module doc)", unit="map px", gt=0)
     max_segment_events: int = param(2, "a reference segment also ends after this many events (module doc; 0: "
                                             "only by length)", ge=0)
     max_latitude_deg: float = param(70.0, "no measurements beyond this latitude (the map's chart is singular at "
@@ -341,12 +343,13 @@ class _Context:
     max_lat: float
     max_events: int
     position_var: float = 0.0  # map px^2 (SmtConfig.crossing_position_var)
+    max_len: float = 10.0  # map px: longer segments restart without a measurement (SmtConfig.max_segment_px)
 
     def select(self, b0: int, b1: int, sel_R: np.ndarray) -> None:
         """References of batches b0..b1-1 under the selection poses sel_R (one per batch)."""
         m = self.mapper
         ks.select_references(self.hist, sel_R, b0, b1, self.batch_size, self.bearings, self.pix, self.pol, self.refs,
-                             m.width, m.height, m.config.outlier_distance_px, self.min_disp, self.max_lat,
+                             m.width, m.height, self.max_len, self.min_disp, self.max_lat,
                              self.ref_uv, self.ref_n, self.ref_src, self.max_events)
 
     def measure_args(self, b: int):
@@ -400,7 +403,7 @@ class EkfTracker:
             self.jerk_used.append(self.q_jerk)
         diag = ks.ekf_track(ctx.hist, ctx.hist64, ctx.mids, b0, b1, ctx.batch_size, ctx.bearings, ctx.pix, ctx.pol,
                             ctx.refs, ctx.ref_uv, ctx.ref_n, m.gradient, m.covariance, m.updates, ctx.contrast,
-                            ctx.sigma, m.config.outlier_distance_px, ctx.min_disp, ctx.max_lat, c.huber, *self.q,
+                            ctx.sigma, ctx.max_len, ctx.min_disp, ctx.max_lat, c.huber, *self.q,
                             c.ekf_iterations, self.state_R, self.state_w, self.state_P, self.velocity_reference,
                             ctx.ref_src, ctx.max_events, self.state_a, self.q_jerk, ctx.position_var)
         diag[:, 3] = np.degrees(np.sqrt(np.maximum(diag[:, 3], 0.0)))
@@ -686,7 +689,8 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
         ctx = _Context(bearings, pix, pol, refs, np.zeros((bs + n, 2), dtype), np.zeros(bs + n, np.int32),
                        np.zeros(bs + n, np.int32), mids,
                        hist, hist64, mapper, c_eff, sigma_eff, bs, cfg.min_displacement_px, cfg.max_latitude_deg,
-                       cfg.max_segment_events, cfg.crossing_position_var)
+                       cfg.max_segment_events, cfg.crossing_position_var,
+                       min(cfg.max_segment_px, mcfg.outlier_distance_px))
         mapped = 1  # local batches already given to the mapper
 
         def feed_mapper(upto: int):
