@@ -126,7 +126,8 @@ def test_textureless_stretch_is_reported_lost(ti_runtime, tmp_path):
     EKF-SMT must end with status "lost" and a lost_at before the far side of the stretch; what it returns
     before is accurate. Declared before the first run. (Session 9, per-batch acceleration steps and crossing noise
     on: the speed runs ~7 % low from 0.75 s; the slow-drift test reports lost at 0.70 s, 0.50 deg up to there; without
-    it lost at 1.40 s by the contrast ratio, 5.1 deg.)"""
+    it lost at 1.40 s by the contrast ratio, 5.1 deg; session 10, 2 px segment gate: lost at 0.55 s by the
+    contrast ratio.)"""
     import imageio.v3 as iio
     from scipy.ndimage import gaussian_filter
 
@@ -228,9 +229,9 @@ def test_ekf_acceleration_steps_are_per_batch_not_per_second(monkeypatch):
 
 def test_segments_longer_than_two_map_pixels_are_not_measurements(city, monkeypatch):
     """EKF-SMT: segments longer than max_segment_px (2 map px by default) restart without a measurement, in the
-    bootstrap's selection (gain calibration) and in the EKF's (module doc: their increments are over-predicted, and the segment's
-    length, through its age, turned that into a spurious acceleration that lost held-out bicycle 244 at 2.88 s).
-    Both kernels must get the gate; a gate above the mapper's outlier distance leaves that distance."""
+    bootstrap's selection (gain calibration) and in the EKF's (module doc: their increments are over-predicted, and
+    the segment's length, through its age, turned that into a spurious acceleration that lost held-out bicycle 244
+    at 2.88 s). Both kernels must get the gate; a gate above the mapper's outlier distance leaves that distance."""
     from ti_cmax.pipelines.baselines import smt as smt_module
 
     seen = {"select": [], "track": []}
