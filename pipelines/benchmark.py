@@ -137,6 +137,12 @@ SUITES = {
         SequenceSpec("bicycle244", "DAVIS240C", "bicycle", 3.0, 244),
         SequenceSpec("town245", "DVS128", "town", 2.5, 245),
         SequenceSpec("city246", "DVS128", "city", 2.5, 246),
+        # session 10 (bicycle 244's loss, issue 16), declared on 2026-12-02 09:29 UTC before any method ran on them
+        # and before any run of a fix: DAVIS240C, simulator defaults (random motion up to 5 rad/s), 3 s
+        SequenceSpec("bicycle251", "DAVIS240C", "bicycle", 3.0, 251),
+        SequenceSpec("city252", "DAVIS240C", "city", 3.0, 252),
+        SequenceSpec("street253", "DAVIS240C", "street", 3.0, 253),
+        SequenceSpec("bay254", "DAVIS240C", "bay", 3.0, 254),
     ),
 }
 SUITE = SUITES["paper"]

@@ -126,7 +126,8 @@ def test_textureless_stretch_is_reported_lost(ti_runtime, tmp_path):
     EKF-SMT must end with status "lost" and a lost_at before the far side of the stretch; what it returns
     before is accurate. Declared before the first run. (Session 9, per-batch acceleration steps and crossing noise
     on: the speed runs ~7 % low from 0.75 s; the slow-drift test reports lost at 0.70 s, 0.50 deg up to there; without
-    it lost at 1.40 s by the contrast ratio, 5.1 deg.)"""
+    it lost at 1.40 s by the contrast ratio, 5.1 deg; session 10, 2 px segment gate: lost at 0.55 s by the
+    contrast ratio.)"""
     import imageio.v3 as iio
     from scipy.ndimage import gaussian_filter
 
@@ -211,7 +212,7 @@ def test_ekf_acceleration_steps_are_per_batch_not_per_second(monkeypatch):
     mids = np.concatenate([np.arange(11) * 4e-4, 4e-3 + np.arange(1, 11) * 1e-4])  # 400 us, then 100 us batches
     ctx = SimpleNamespace(mids=mids, mapper=mapper, **{k: None for k in (
         "hist", "hist64", "batch_size", "bearings", "pix", "pol", "refs", "ref_uv", "ref_n", "contrast", "sigma",
-        "min_disp", "max_lat", "ref_src", "max_events", "position_var")})
+        "min_disp", "max_lat", "ref_src", "max_events", "position_var", "max_len")})
     cfg = SmtConfig(acceleration_step_std=10.0)  # the default (module doc)
     assert cfg.motion_model == "constant_acceleration"
     trk = smt_module.EkfTracker(np.eye(3), cfg, None)
@@ -224,6 +225,43 @@ def test_ekf_acceleration_steps_are_per_batch_not_per_second(monkeypatch):
     trk = smt_module.EkfTracker(np.eye(3), SmtConfig(acceleration_step_std=0.0), None)
     trk.run(11, 21, ctx)
     assert seen == [SmtConfig().angular_jerk_std] and trk.jerk_used == []
+
+
+def test_segments_longer_than_two_map_pixels_are_not_measurements(city, monkeypatch):
+    """EKF-SMT: segments longer than max_segment_px (2 map px by default) restart without a measurement, in the
+    bootstrap's selection (gain calibration) and in the EKF's (module doc: their increments are over-predicted, and
+    the segment's length, through its age, turned that into a spurious acceleration that lost held-out bicycle 244
+    at 2.88 s). Both kernels must get the gate; a gate above the mapper's outlier distance leaves that distance."""
+    from ti_cmax.pipelines.baselines import smt as smt_module
+
+    seen = {"select": [], "track": []}
+    select, track = smt_module.ks.select_references, smt_module.ks.ekf_track
+
+    def spy_select(*args, **kwargs):
+        if len(args[0]) > 2:  # not the compile warm-up's 2 poses
+            seen["select"].append(args[11])
+        return select(*args, **kwargs)
+
+    def spy_track(*args, **kwargs):
+        if len(args[0]) > 2:
+            seen["track"].append(args[17])
+        return track(*args, **kwargs)
+
+    monkeypatch.setattr(smt_module.ks, "select_references", spy_select)
+    monkeypatch.setattr(smt_module.ks, "ekf_track", spy_track)
+    short = city.events.slice_time(0.0, 0.6)
+    assert SmtConfig().max_segment_px == 2.0
+    res = _run(city, "ekf", events=short)
+    assert res.report["parameters"]["max_segment_px"] == 2.0
+    assert seen["select"] and seen["track"] and set(seen["select"]) | set(seen["track"]) == {2.0}
+    seen["select"].clear()
+    seen["track"].clear()
+    _run(city, "ekf", SmtConfig(max_segment_px=50.0), events=short)
+    assert set(seen["select"]) | set(seen["track"]) == {SmtConfig().mapping.outlier_distance_px}
+    # PF-SMT keeps the mapper's outlier distance (it has no acceleration state; module doc)
+    seen["select"].clear()
+    _run(city, "pf", events=city.events.slice_time(0.0, 0.52))
+    assert seen["select"] and set(seen["select"]) == {SmtConfig().mapping.outlier_distance_px}
 
 
 # --- the mapping EKF through the SMT path: a ramp edge swept by a panning camera --------------------------------
