@@ -511,14 +511,15 @@ class LoopCloser:
                               global_blurred=g_blurred, global_sums=g_sums, alpha=0.0,
                               alpha_from_density=(rho_g, bcfg.lambda0) if rho_g > 0 else None,
                               batch_size=bcfg.event_batch_size)
-            var0 = problem.cost(so3.exp(phi) @ base)
-            scale = 1.0 / var0 if var0 > 0 else 1.0
+            scale = []  # 1 / the variance at the level's start: BFGS evaluates there first (no evaluation of its own)
 
             def objective(x, problem=problem, scale=scale):
                 self._slice_point()
                 var, grad = problem.cost_and_grad(so3.exp(x) @ base)
+                if not scale:
+                    scale.append(1.0 / var if var > 0 else 1.0)
                 # one common left increment of every control pose moves the whole trajectory by it
-                return var * scale, so3.left_jacobian(x).T @ grad.sum(axis=0) * scale
+                return var * scale[0], so3.left_jacobian(x).T @ grad.sum(axis=0) * scale[0]
 
             # BFGS from the inverse Hessian the last verification ended with at this level (the same normalized
             # cost of one rotation: its first step is already quasi-Newton; 12 evaluations instead of CG's 33)
