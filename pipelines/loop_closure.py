@@ -30,7 +30,9 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of
    the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
    spline, so later windows align to one consistent map (the global map at once: the rebuilt old map plus the
-   recent strides' votes, blurred once; stride by stride only with pixel freezing).
+   recent strides' votes, blurred once; stride by stride only with pixel freezing). The global map is rebuilt when
+   it is next read (``refresh_map``: before the next BA, for the output): while the BA is skipped (real-time level 4)
+   several loops cost one rebuild and the strides settled meanwhile are not voted into the stale map.
 
    The old map and the age map restart from the checkpoint the last rebuild left when the correction left its
    strides' poses unchanged (every later loop closes only the drift since the last one), so a rebuild votes the
