@@ -239,8 +239,8 @@ class SlidingWindowBackend:
         self.width, self.height = config.pano_size
         self.t_start = float(t_start)
         self.r_start = np.eye(3) if r_start is None else np.asarray(r_start, dtype=float)
-        self.map = GlobalMap(self.width, self.height, config.backend_blur_sigma, config.lambda0,
-                             config.max_update_time if config.freeze_pixels else None)
+        self._map = GlobalMap(self.width, self.height, config.backend_blur_sigma, config.lambda0,
+                              config.max_update_time if config.freeze_pixels else None)
         self.spline: SO3Spline | None = None
         self.window_start = self.t_start
         self.events = _Buffer()
@@ -260,6 +260,19 @@ class SlidingWindowBackend:
         self.ba_cap: int | None = None
         self.ba_every = 1  # real-time degradation: the BA runs on 1 of ba_every windows (the others: as ba_cap = 0)
         self.ba_budget: float | None = None  # real-time degradation: a BA starts no iteration after this many seconds
+
+    @property
+    def map(self) -> GlobalMap:
+        """The global map. After a loop correction the loop closer rebuilds it only when it is read (the next BA,
+        the output): while the BA is skipped (the real-time controller's level 4) several loops cost one rebuild,
+        and the strides settled meanwhile are not voted into a map about to be replaced (LoopCloser.map_stale)."""
+        if self.loop is not None and self.loop.map_stale:
+            self.loop.refresh_map()
+        return self._map
+
+    @map.setter
+    def map(self, value: GlobalMap | None) -> None:
+        self._map = value
 
     # ---- input streams -------------------------------------------------------------------------------------------
     def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
@@ -312,6 +325,9 @@ class SlidingWindowBackend:
             if self.ba_cap == 0 or len(self.windows) % max(1, self.ba_every):
                 report.skipped = True
             else:
+                if self.loop is not None and self.loop.map_stale:  # the map the BA reads, after a loop correction
+                    with clock("loop"):
+                        self.loop.refresh_map()
                 ba0 = time.perf_counter()
                 with clock("ba"):
                     self._refine(ev_t, ev_b, t0, report)
@@ -337,6 +353,9 @@ class SlidingWindowBackend:
             self.step()
         if self.window_start <= end:
             self.step(final=True)
+        if self.loop is not None and self.loop.map_stale:  # the output map, rebuilt after the last loops
+            with self.clock("loop"):
+                self.loop.refresh_map()
 
     # ---- results ---------------------------------------------------------------------------------------------------
     def trajectory(self, rate: float) -> Trajectory:
@@ -561,7 +580,8 @@ class SlidingWindowBackend:
         if len(ev_t):
             start, end = self.spline.valid_time_range()
             mids = np.clip(batch_mid_times(ev_t, cfg.event_batch_size), start, end)
-            self.map.add(ev_b, self.spline.evaluate(mids), cfg.event_batch_size, t0, moving=not still)
+            if self.loop is None or not self.loop.map_stale:  # (a stale map is rebuilt from the loop closer's store)
+                self._map.add(ev_b, self.spline.evaluate(mids), cfg.event_batch_size, t0, moving=not still)
             self.events_settled += len(ev_t)
             if self.loop is not None:  # loop closure keeps a subsample of the settled events
                 self.loop.store(ev_t, ev_b, t0, not still)

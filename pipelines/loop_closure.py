@@ -30,7 +30,9 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of
    the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
    spline, so later windows align to one consistent map (the global map at once: the rebuilt old map plus the
-   recent strides' votes, blurred once; stride by stride only with pixel freezing).
+   recent strides' votes, blurred once; stride by stride only with pixel freezing). The global map is rebuilt when
+   it is next read (``refresh_map``: before the next BA, for the output): while the BA is skipped (real-time level 4)
+   several loops cost one rebuild and the strides settled meanwhile are not voted into the stale map.
 
    The old map and the age map restart from the checkpoint the last rebuild left when the correction left its
    strides' poses unchanged (every later loop closes only the drift since the last one), so a rebuild votes the
@@ -213,6 +215,10 @@ class LoopCloser:
         self._pending: dict | None = None  # what its conclusion needs (_conclude_task)
         self._task_spline = None  # a sliced rebuild's corrected copy of the spline (the back-end's gets it at the end)
         self.corrections = 0  # loop corrections applied to the back-end's control poses so far
+        # the global map is rebuilt when next read (backend.map: the next BA, the output), not at each correction
+        self.map_stale = False
+        self._acc = None  # (raw map, n_voted): a sliced rebuild's global map votes so far (_finish_rebuild)
+        self.map_rebuilds = 0  # global maps rebuilt (refresh_map)
         self.seconds = self.cpu_seconds = 0.0
         self.longest_call = (0.0, 0.0)  # (wall, CPU) seconds of the longest hook call (_spent)
         self._drained = False  # a sliced run's stream has ended (drain)
@@ -233,6 +239,7 @@ class LoopCloser:
             self._stored = sum(len(c[0]) for c in self.chunks)
             self._thinned += 1
             self._rot_cache.clear()  # the batches changed: rotations again when voted
+            self._acc = None  # (a sliced rebuild's votes of the strides as they were)
         self._spent(tic, cpu)
         self.profile["store"] += time.perf_counter() - tic
 
@@ -506,14 +513,15 @@ class LoopCloser:
                               global_blurred=g_blurred, global_sums=g_sums, alpha=0.0,
                               alpha_from_density=(rho_g, bcfg.lambda0) if rho_g > 0 else None,
                               batch_size=bcfg.event_batch_size)
-            var0 = problem.cost(so3.exp(phi) @ base)
-            scale = 1.0 / var0 if var0 > 0 else 1.0
+            scale = []  # 1 / the variance at the level's start: BFGS evaluates there first (no evaluation of its own)
 
             def objective(x, problem=problem, scale=scale):
                 self._slice_point()
                 var, grad = problem.cost_and_grad(so3.exp(x) @ base)
+                if not scale:
+                    scale.append(1.0 / var if var > 0 else 1.0)
                 # one common left increment of every control pose moves the whole trajectory by it
-                return var * scale, so3.left_jacobian(x).T @ grad.sum(axis=0) * scale
+                return var * scale[0], so3.left_jacobian(x).T @ grad.sum(axis=0) * scale[0]
 
             # BFGS from the inverse Hessian the last verification ended with at this level (the same normalized
             # cost of one rotation: its first step is already quasi-Newton; 12 evaluations instead of CG's 33)
@@ -737,18 +745,38 @@ class LoopCloser:
         self._rot_cache.clear()
         self._checkpoint = (self._n_old, self.old.raw.copy(), self.age.copy(), self.visit.copy(),
                             backend.spline.control_R.copy(), thinned)
-        backend.map = None  # (offline, already freed by _rebuild)
+        backend.map = None  # (offline, already freed by _rebuild): rebuilt when next read (refresh_map)
+        self.map_stale, self._acc = True, (acc, n_voted) if acc is not None else None
+
+    def refresh_map(self) -> None:
+        """Rebuild the global map after the last correction (the back-end reads ``backend.map`` only through this
+        once it is stale): the old map plus the strides stored since, blurred once (GlobalMap.set_raw); with pixel
+        freezing every stored stride in order. The strides the back-end settled meanwhile went into the store only
+        (a stale map is not voted), so several loops between two reads (BA skipped) cost one rebuild. Read right
+        after the correction (a BA follows it), the same votes in the same order as rebuilding at once."""
+        if not self.map_stale:
+            return
+        tic, cpu = time.perf_counter(), time.process_time()
+        backend, bs = self.backend, self.backend.cfg.event_batch_size
+        acc, n_voted = self._acc if self._acc is not None else (None, 0)
+        self.map_stale, self._acc = False, None
         backend.map = self._new_map()
         if self._freeze:  # first-seen times: every stride in time order, as the back-end settled them
             for t, b, weight, t0, moving in self.chunks:
                 backend.map.add(b, self._rotations(t)[1], bs, t0, moving, weight=weight)
         else:  # the global map is the old map plus the recent strides' votes: one blur at the end (GlobalMap.set_raw)
             if acc is None:
-                acc = self.old.copy()
-                n_voted = self._n_old
-            for t, b, weight, _t0, _moving in self.chunks[n_voted:]:
-                acc.add(b, self._rotations(t)[1], bs, weight=weight)
+                if self._task is None:  # (a sliced verification in flight votes the aged chunks itself)
+                    self._vote_aged(self._n_old)
+                acc, n_voted = self.old.copy(), self._n_voted
+            for i in range(n_voted, len(self.chunks)):  # aged ones not voted yet along their cached rotations
+                t, b, weight, _t0, _moving = self.chunks[i]
+                rot = self._rot_cache.get(i) if i < self._n_old else None
+                acc.add(b, self._rotations(t)[1] if rot is None else rot, bs, weight=weight)
             backend.map.set_raw(acc.raw)
+        self.map_rebuilds += 1
+        self.profile["rebuild"] += time.perf_counter() - tic
+        self._spent(tic, cpu)
 
     def _advance_checkpoint(self) -> None:
         """Before the first stride a later loop may move is aged: the maps now hold the last rebuild's checkpoint
@@ -791,4 +819,5 @@ class LoopCloser:
                 "applied": sum(bool(e.get("applied")) for e in self.loops), "seconds": self.seconds,
                 "cpu_seconds": self.cpu_seconds, "unfinished": int(self._task is not None),
                 "longest_call_seconds": self.longest_call[0], "longest_call_cpu_seconds": self.longest_call[1],
-                "stored_events": int(self._stored), "seconds_by_part": dict(self.profile)}
+                "stored_events": int(self._stored), "map_rebuilds": self.map_rebuilds,
+                "seconds_by_part": dict(self.profile)}

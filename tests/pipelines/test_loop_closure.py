@@ -103,6 +103,13 @@ def _run(t_ev, b_ev, trajectory, loop_cfg=LOOP, duration=DURATION, idle_slices=0
     return be
 
 
+def _drifted_turns(duration=7.5, turns=2.3):
+    """(events, drifted trajectory, duration) of a 2.3-turn pan with the injected drift: several loops to close."""
+    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
+    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
+    return _events(3, duration=duration, turns=turns, rate=60_000), drifted, duration
+
+
 def _error(be, t):
     return np.degrees(so3.geodesic_angle(be.spline.evaluate(t), _pan(t)))
 
@@ -137,10 +144,7 @@ def test_injected_drift_over_a_revisit_is_found_and_removed(ti_runtime):
 def test_every_revisit_is_closed_once(ti_runtime):
     """A 2.3-turn pan whose drift keeps growing: every later revisit closes the drift built up since the last
     loop (against the corrected map), and no correction is applied twice."""
-    duration, turns = 7.5, 2.3
-    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
-    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
-    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    (t_ev, b_ev), drifted, duration = _drifted_turns()
     be = _run(t_ev, b_ev, drifted, duration=duration)
     applied = [e for e in be.loop.loops if e["applied"]]
     assert len(applied) >= 3, be.loop.loops  # the first return and the later checks of the revisits
@@ -151,7 +155,7 @@ def test_every_revisit_is_closed_once(ti_runtime):
     for prev, e in zip(applied, later):
         assert e["correction_deg"] < 2.0 * drift_deg(e["t_ref"] - prev["t_ref"]) + 0.1, (prev, e)
     ts = np.linspace(first["t_ref"], applied[-1]["t_ref"], 30)
-    err = np.degrees(so3.geodesic_angle(be.spline.evaluate(ts), pan(ts)))
+    err = np.degrees(so3.geodesic_angle(be.spline.evaluate(ts), _pan(ts, duration, 2.3)))
     assert err.max() < 0.25 * drift_deg(applied[-1]["t_ref"]), err  # 3.6 deg injected there
 
 
@@ -314,10 +318,7 @@ def test_bench_level_holds_the_realtime_degradation(short_dataset):
 def test_checkpointed_rebuild_equals_the_full_one(ti_runtime):
     """After several applied loops (each later one rebuilt from the last rebuild's checkpoint), the old map, the
     age and visit maps and the global map equal a rebuild of every stored stride from scratch, bit for bit."""
-    duration, turns = 7.5, 2.3
-    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
-    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
-    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    (t_ev, b_ev), drifted, duration = _drifted_turns()
     be = _run(t_ev, b_ev, drifted, duration=duration)
     lc = be.loop
     assert sum(bool(e["applied"]) for e in lc.loops) >= 3, lc.loops
@@ -339,10 +340,7 @@ def test_advanced_checkpoint_gives_the_same_run(ti_runtime, monkeypatch):
     gives the same loops, trajectory and maps, bit for bit, as rebuilding from the last rebuild's checkpoint."""
     from ti_cmax.pipelines.loop_closure import LoopCloser
 
-    duration, turns = 7.5, 2.3
-    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
-    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
-    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    (t_ev, b_ev), drifted, duration = _drifted_turns()
     fast = _run(t_ev, b_ev, drifted, duration=duration)
     assert fast.loop.checkpoints_advanced >= 2 and sum(bool(e["applied"]) for e in fast.loop.loops) >= 3
     monkeypatch.setattr(LoopCloser, "_advance_checkpoint", lambda self: None)
@@ -465,10 +463,7 @@ def test_old_map_votes_wait_for_a_verification(ti_runtime):
 def test_checks_after_a_loop_wait_for_the_drift_to_build_up(ti_runtime):
     """loop_check_drift_px: after an applied loop the next check waits until the drift rate that loop measured
     has moved the map by that many pixels (at most loop_min_age); 0 checks again after loop_recent_time."""
-    duration, turns = 7.5, 2.3
-    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
-    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
-    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    (t_ev, b_ev), drifted, duration = _drifted_turns()
     runs = {px: _run(t_ev, b_ev, drifted, replace(LOOP, loop_check_drift_px=px), duration=duration).loop
             for px in (0.0, 1e4)}
     for px, lc in runs.items():
@@ -478,3 +473,27 @@ def test_checks_after_a_loop_wait_for_the_drift_to_build_up(ti_runtime):
         for i in applied[:-1]:
             assert lc.loops[i + 1]["time"] - lc.loops[i]["time"] == pytest.approx(gap, abs=0.11), lc.loops
     assert len(runs[1e4].loops) < len(runs[0.0].loops)
+
+
+def test_global_map_is_rebuilt_once_when_read(ti_runtime, monkeypatch):
+    """Without BA between them (the real-time controller's level 4) several applied loops cost one global-map
+    rebuild, when the map is read; the strides settled meanwhile go to the store only (no map to vote into), and
+    the map read equals a rebuild of the old map plus every stored stride along the corrected poses, bit for bit.
+    (The verifications evaluate no cost of their own: BFGS's first evaluation gives the scale.)"""
+    from ti_cmax.kernels.pano import PanoIWE
+
+    costs = []
+    monkeypatch.setattr(PanoIWE, "cost", lambda self, control_R: costs.append(1) or 0.0)
+    (t_ev, b_ev), drifted, duration = _drifted_turns()
+    be = _run(t_ev, b_ev, drifted, duration=duration)
+    assert not costs
+    lc = be.loop
+    assert sum(bool(e["applied"]) for e in lc.loops) >= 3, lc.loops
+    assert lc.map_stale and be._map is None and lc.map_rebuilds == 0
+    lazy = be.map.raw.copy()
+    assert lc.map_rebuilds == 1 and not lc.map_stale and be.map is be._map
+    lc._checkpoint = None
+    lc._rebuild()  # every stride from scratch along the corrected spline: stale again
+    assert lc.map_stale
+    np.testing.assert_array_equal(be.map.raw, lazy)
+    assert lc.map_rebuilds == 2
