@@ -264,7 +264,11 @@ class LoopClosureConfig(Params):
     regions last observed long ago; an accepted correction is spread over the trajectory since that visit and
     the global map is rebuilt from stored event subsamples."""
 
-    loop_closure: bool = param(False, "loop closure on revisits (false: the back-end's output is bitwise unchanged)")
+    # on by default (issue 15: on where it never hurts): without a revisit the output is bitwise that of false (no
+    # candidate, or none applied; 4 pans and 2 random sequences measured), on the pans it closed loops it cut the abs
+    # error, and it costs 2-6 % of a run at the defaults (sessions 9-10); false turns it off, bitwise today's back-end
+    loop_closure: bool = param(True, "loop closure on revisits (false: the back-end's output is bitwise that without "
+                                     "the loop closer)")
     loop_min_age: float = param(3.0, "time since a map region was last observed for it to count as old", unit="s",
                                 gt=0)
     loop_recent_time: float = param(1.0, "recent events registered against the old map; at most one check per this",

@@ -12,8 +12,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--spline", choices=("linear", "cubic"), default=None, help="trajectory model")
     parser.add_argument("--loop-closure", action="store_true",
-                        help="close loops on revisits (on by default: the same as --set "
-                             "loop_closure=true; --set loop_closure=false turns it off; report.json lists them)")
+                        help="close loops on revisits (the default; the same as --set loop_closure=true; "
+                             "--set loop_closure=false turns it off; report.json lists the candidates)")
 
 
 def run(args) -> int:
