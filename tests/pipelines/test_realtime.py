@@ -322,3 +322,12 @@ def test_benchmark_rounds_say_where_the_target_held():
                                     "0.30-0.30 s, abs ratio 1.00-1.20")
     vga = text.splitlines()[1]
     assert vga.startswith("vga (parallel): target met in 1 of 1 rounds") and "abs ratio" not in vga
+
+
+def test_benchmark_realtime_rounds_are_checked(tmp_path, capsys):
+    """`ti-cmax benchmark --realtime --rounds 0`: one clear error, nothing written."""
+    from ti_cmax.cli import main
+
+    assert main(["benchmark", "--realtime", "--rounds", "0", "--out", str(tmp_path / "rt")]) == 2
+    assert "--rounds must be at least 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "rt").exists()

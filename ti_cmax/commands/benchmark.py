@@ -37,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--realtime", action="store_true",
                         help="real-time table instead (pipelines/bench_realtime.py): slam --realtime --parallel vs "
                              "offline at 1, 2, 5 (DAVIS240C) and 12 (VGA) M events/s; --sequences picks cases")
+    parser.add_argument("--rounds", type=int, default=1, metavar="N",
+                        help="with --realtime: run the cases N times, case after case, and count per case the rounds "
+                             "meeting the target (this machine's speed drifts: one run decides nothing)")
     add_executor_arguments(parser)
 
 
@@ -60,7 +63,7 @@ def run(args) -> int:
 
         log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
         print(bench_realtime.run(Path(args.out), _split(args.sequences), threads=args.threads,
-                                 overrides=args.overrides, log=log))
+                                 overrides=args.overrides, log=log, rounds=args.rounds))
         return 0
     overrides = {**(B.quick_overrides() if args.quick else {}), **parse_overrides(args.overrides)}
     cfg = load_config(B.BenchmarkConfig, args.config, overrides)
