@@ -274,6 +274,13 @@ class SlidingWindowBackend:
     def map(self, value: GlobalMap | None) -> None:
         self._map = value
 
+    def _refresh_stale_map(self) -> None:
+        """Rebuild the global map now if a loop correction left it stale, timed as the loop closer's work (a read of
+        ``map`` would rebuild it too, untimed)."""
+        if self.loop is not None and self.loop.map_stale:
+            with self.clock("loop"):
+                self.loop.refresh_map()
+
     # ---- input streams -------------------------------------------------------------------------------------------
     def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
         """Append events (time-sorted, already downsampled by backend_event_sample_rate) with their bearings.
@@ -325,9 +332,7 @@ class SlidingWindowBackend:
             if self.ba_cap == 0 or len(self.windows) % max(1, self.ba_every):
                 report.skipped = True
             else:
-                if self.loop is not None and self.loop.map_stale:  # the map the BA reads, after a loop correction
-                    with clock("loop"):
-                        self.loop.refresh_map()
+                self._refresh_stale_map()  # the map the BA reads, after a loop correction
                 ba0 = time.perf_counter()
                 with clock("ba"):
                     self._refine(ev_t, ev_b, t0, report)
@@ -353,9 +358,7 @@ class SlidingWindowBackend:
             self.step()
         if self.window_start <= end:
             self.step(final=True)
-        if self.loop is not None and self.loop.map_stale:  # the output map, rebuilt after the last loops
-            with self.clock("loop"):
-                self.loop.refresh_map()
+        self._refresh_stale_map()  # the output map, rebuilt after the last loops
 
     # ---- results ---------------------------------------------------------------------------------------------------
     def trajectory(self, rate: float) -> Trajectory:
