@@ -19,8 +19,9 @@ g * g (zero padding on the sensor is then exact; the outer taps below 1e-5 of th
     dC/domega = (2/Np) sum_k sum_{n in nbrs(k)} (H_n - mu) dw_kn/dpix . dpix_k/domega,  H = G2 I
 
 (mu = 0 for the mean square). So one evaluation = two Taichi launches around one OpenCV blur:
-  1. events (kernel ``vote``): warp, bilinear vote into I, sum of weights (-> mu); the events are split into P
-             parts (P = thread count), each voting into its own copy of I with plain load/add/store: no float
+  1. events (kernel ``vote``): warp, bilinear vote into I, sum of weights (-> mu). By default the event loops
+             run on the calling thread (``IWEWorkspace`` docstring: why); with ``parts`` = P > 1 the events are
+             split into P parts, each voting into its own copy of I with plain load/add/store: no float
              atomics (compare-and-swap loops on CPU) and a deterministic sum. The projection (u, v), the
              rotated bearing and the Rodrigues coefficients are kept per event for pass 3;
   2. pixels: H = G2 (sum_p I_p), OpenCV's separable filter with zero padding (kernels/blur.py: SIMD; Taichi's
@@ -79,8 +80,8 @@ def measure_id(measure: str) -> int:
 @functools.cache
 def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, serial: bool):
     """Fields and kernels for one float type, sensor size, packet capacity and number of vote parts (compiled
-    once). The images are ndarrays (numpy) so that OpenCV blurs them between the two kernels. ``serial`` (one
-    thread): the event loops run on the calling thread; a parallel loop is handed to Taichi's thread pool even
+    once). The images are ndarrays (numpy) so that OpenCV blurs them between the two kernels. ``serial`` (the
+    default, and any build with one thread): the event loops run on the calling thread; a parallel loop is handed to Taichi's thread pool even
     with one thread, ~30-40 us per loop on these machines (a serial kernel launch costs ~12 us). The same sums in
     the same order (the compiled loop may round them differently: not bitwise the parallel build's)."""
     f = ti.f32 if dtype_name == "f32" else ti.f64
@@ -248,6 +249,15 @@ class IWEWorkspace:
     Usage: ``ws.set_packet(bearings, dts)`` once per packet, then ``ws.evaluate(omega, K)`` per
     optimizer step. A packet larger than the capacity rebuilds the kernels with a doubled capacity
     (a compile, so size the workspace for the largest packet up front).
+
+    Threads: by default (``parts`` None) the event loops run serially on the calling thread, whatever the Taichi
+    thread count. A packet's vote and gather are memory-bound scatters and gathers of ~0.2-3 ms: a second thread
+    saved at most ~10 % of them, while handing a loop to Taichi's thread pool costs 45-100+ us per launch, more when
+    the pool's thread has gone idle between evaluations (the optimiser's Python runs between them). Front-end alone,
+    1 M ev/s DAVIS240C, 2 threads: parallel 0.43-0.49 us per input event, serial 0.32-0.35 (2026-12-02, 16:00 UTC,
+    three interleaved pairs); 31 M ev/s VGA (packets of ~140 000 events): 0.100-0.110 vs 0.104-0.123 wall, 0.14 vs
+    0.11-0.13 CPU us. ``parts`` = P splits the events into P parts voted in parallel (P copies of I; P a multiple
+    of the thread count or below it, ``runtime.check_parts``).
     """
 
     def __init__(self, width: int, height: int, dtype=np.float32, blur_sigma: float = 1.0,
@@ -260,7 +270,7 @@ class IWEWorkspace:
         self.blur_sigma = float(blur_sigma)
         self.truncate = float(truncate)
         self.capacity = 1 << max(10, int(np.ceil(np.log2(max(int(capacity), 1)))))
-        # copies of I voted into without atomics by one parallel part each (default: the Taichi thread count)
+        # copies of I voted into without atomics by one parallel part each (default None: serial, one copy)
         self.parts = int(parts) if parts else None
         self._kernels = None
         self._prm = np.zeros(16)  # evaluate's parameters and results (kernel arguments)
@@ -270,9 +280,9 @@ class IWEWorkspace:
     def _ensure(self):
         if self._kernels is None:
             ensure_init()
-            parts = check_parts(self.parts or max(1, min(8, num_threads())))
+            parts = check_parts(self.parts) if self.parts else 1
             self._kernels = _build(_DTYPES[self.dtype], self.height, self.width, self.capacity, parts,
-                                   num_threads() == 1)
+                                   self.parts is None or num_threads() == 1)
             self._img = np.zeros((parts * self.height, self.width), self.dtype)  # the parts' copies of I
             self._parts = parts
         return self._kernels

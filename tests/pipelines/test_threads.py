@@ -4,6 +4,7 @@ is fixed when Taichi starts."""
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.slow
@@ -43,3 +44,33 @@ def test_a_worker_process_halves_the_default_thread_count(monkeypatch):
     monkeypatch.setenv("TI_CMAX_THREADS", "2")
     runtime.share_cores(2)
     assert runtime.num_threads() == 2
+
+
+_FRONTEND_OMEGA = """
+import sys
+import numpy as np
+from ti_cmax.io import open_dataset
+from ti_cmax.pipelines.frontend import estimate_angular_velocity
+ds = open_dataset(sys.argv[1])
+np.save(sys.argv[2], estimate_angular_velocity(ds.read_events(), ds.camera).omega)
+"""
+
+
+def test_front_end_output_does_not_depend_on_the_thread_count(tmp_path, monkeypatch):
+    """The front-end's event loops run on the calling thread whatever the thread count (kernels/iwe.py
+    IWEWorkspace: a thread-pool hand-off per loop cost more than a second thread saved), so its angular velocity
+    is the same bytes with 1 and 2 threads (with parallel parts the sums were split and rounded differently)."""
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence, write_sequence
+
+    seq = write_sequence(simulate_sequence(SimulatorConfig(scene="city", duration=0.3, seed=4)),
+                         tmp_path / "seq", events_format="h5")
+    omegas = []
+    for threads in ("1", "2"):
+        monkeypatch.setenv("TI_CMAX_THREADS", threads)
+        out = tmp_path / f"omega{threads}.npy"
+        proc = subprocess.run([sys.executable, "-c", _FRONTEND_OMEGA, str(seq), str(out)], capture_output=True,
+                              text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        omegas.append(np.load(out))
+    assert len(omegas[0]) > 10 and np.abs(omegas[0]).max() > 0.1
+    assert omegas[0].tobytes() == omegas[1].tobytes()
