@@ -36,7 +36,7 @@ from ti_cmax.metrics import event_area_percent
 from . import bilinear
 from .bilinear import ADD, bilinear_funcs
 from .blur import TRUNCATE, blur_radius, gaussian_taps, separable_blur
-from .runtime import ensure_init, num_threads, ti
+from .runtime import PART_TASK, check_parts, ensure_init, num_threads, part_slice, ti
 from .spline import spline_funcs
 
 
@@ -277,30 +277,35 @@ def _iwe_kernels(dtype, degree: int):
 
         ``votes`` holds P = rows / bh copies of the buffer: part p votes events [p n/P, (p+1) n/P) into copy p with
         plain load/add/store, then the copies are summed in a fixed order (no float atomics, which were measured
-        2x slower than serial voting here, and bit-reproducible for a given P).
+        2x slower than serial voting here, and bit-reproducible for a given P). Both loops run over P x PART_TASK
+        iterations (kernels/runtime.py: Taichi makes a loop of <= 512 iterations one task, i.e. one thread; over
+        the P parts or the buffer's rows these loops ran on one thread whatever the thread count); the vote's tasks
+        hold whole parts, the rows are spread evenly.
         """
         bh, bw = buf.shape[0], buf.shape[1]
         parts = votes.shape[0] // bh  # votes arrives zeroed (np.zeros: a struct-for clear cost 10 ns per pixel)
         n_ev = uv.shape[0]
-        chunk = (n_ev + parts - 1) // parts
-        for part in range(parts):
-            for e in range(part * chunk, ti.min(n_ev, (part + 1) * chunk)):
+        for it in range(parts * PART_TASK):
+            part, k0, k1 = part_slice(it, n_ev, parts)
+            for e in range(k0, k1):
                 i0, j0, fu, fv = bl.split(uv[e, 0], uv[e, 1])
                 la, lb = bl.wrap_cols(i0 - c0, width)  # buffer columns of map columns i0, i0 + 1 (mod w)
                 bl.scatter(votes, part * bh, bh, j0 - r0, la, lb, 1, 1, fu, fv, ti.cast(1.0, dtype), ADD)
-        for i in range(bh):
-            raw = ti.cast(0.0, ti.f64)
-            area = ti.cast(0.0, ti.f64)
-            for j in range(bw):
-                acc = ti.cast(0.0, dtype)
-                for part in range(parts):
-                    acc += votes[part * bh + i, j]
-                buf[i, j] = acc
-                raw += ti.cast(acc, ti.f64)
-                if lambda0 >= 0:
-                    area += ti.cast(ti.cast(1.0, dtype) - ti.exp(-acc / lambda0), ti.f64)
-            stats[i, 0] = raw
-            stats[i, 1] = area
+        tasks = parts * PART_TASK
+        for it in range(tasks):
+            for i in range(it * bh // tasks, (it + 1) * bh // tasks):
+                raw = ti.cast(0.0, ti.f64)
+                area = ti.cast(0.0, ti.f64)
+                for j in range(bw):
+                    acc = ti.cast(0.0, dtype)
+                    for part in range(parts):
+                        acc += votes[part * bh + i, j]
+                    buf[i, j] = acc
+                    raw += ti.cast(acc, ti.f64)
+                    if lambda0 >= 0:
+                        area += ti.cast(ti.cast(1.0, dtype) - ti.exp(-acc / lambda0), ti.f64)
+                stats[i, 0] = raw
+                stats[i, 1] = area
 
     @ti.kernel
     def k_stats(
@@ -311,32 +316,35 @@ def _iwe_kernels(dtype, degree: int):
         c0: ti.i32,
         comb: ti.types.ndarray(dtype=dtype, ndim=2),
         stats: ti.types.ndarray(dtype=ti.f64, ndim=2),
+        tasks: ti.i32,
     ):
         """Per-row float64 sums of L = B(I_L), L^2 and L G over the window, and comb = L + alpha G there (the
-        gradient's image before its mean is taken out)."""
+        gradient's image before its mean is taken out). The rows are spread evenly over ``tasks`` iterations
+        (threads x PART_TASK: a loop over the few hundred rows would be one task, one thread)."""
         bh, bw = lmap.shape[0], lmap.shape[1]
         gw = gmap.shape[1]
-        for i in range(bh):
-            gi = ti.min(r0 + i, gmap.shape[0] - 1)
-            s1 = ti.cast(0.0, ti.f64)
-            s2 = ti.cast(0.0, ti.f64)
-            s3 = ti.cast(0.0, ti.f64)
-            for j in range(bw):
-                lv = lmap[i, j]
-                val = ti.cast(lv, ti.f64)
-                s1 += val
-                s2 += val * val
-                if alpha != 0:
-                    cj = c0 + j
-                    if cj >= gw:
-                        cj -= gw
-                    g = gmap[gi, cj]
-                    s3 += val * ti.cast(g, ti.f64)
-                    lv += alpha * g
-                comb[i, j] = lv
-            stats[i, 0] = s1
-            stats[i, 1] = s2
-            stats[i, 2] = s3
+        for it in range(tasks):
+            for i in range(it * bh // tasks, (it + 1) * bh // tasks):
+                gi = ti.min(r0 + i, gmap.shape[0] - 1)
+                s1 = ti.cast(0.0, ti.f64)
+                s2 = ti.cast(0.0, ti.f64)
+                s3 = ti.cast(0.0, ti.f64)
+                for j in range(bw):
+                    lv = lmap[i, j]
+                    val = ti.cast(lv, ti.f64)
+                    s1 += val
+                    s2 += val * val
+                    if alpha != 0:
+                        cj = c0 + j
+                        if cj >= gw:
+                            cj -= gw
+                        g = gmap[gi, cj]
+                        s3 += val * ti.cast(g, ti.f64)
+                        lv += alpha * g
+                    comb[i, j] = lv
+                stats[i, 0] = s1
+                stats[i, 1] = s2
+                stats[i, 2] = s3
 
     @ti.kernel
     def k_gradient(
@@ -575,8 +583,9 @@ class PanoIWE:
         if alpha_from_density is not None and self.g_sum > 0 and alpha_from_density[0] > 0:
             self._density_ref = (float(alpha_from_density[0]), float(alpha_from_density[1]))
             self.alpha = 1.0  # placeholder: the first evaluation sets it (the G terms are computed)
-        # copies of the window buffer voted into by one parallel part each (the Taichi thread count, at most 8)
-        self.parts = int(parts) if parts else max(1, min(8, num_threads()))
+        # copies of the window buffer voted into by one parallel part each (the Taichi thread count, at most 8; a
+        # chosen count must give every CPU task whole parts: runtime.check_parts)
+        self.parts = check_parts(int(parts)) if parts else max(1, min(8, num_threads()))
 
     # -- helpers --
     def _window(self):
@@ -632,7 +641,7 @@ class PanoIWE:
             self._density_ref = None
         separable_blur(lmap, self.taps, wrap_cols=bool(wrap), out=lmap)
         comb = np.empty_like(lmap)  # L + alpha G, for the gradient
-        k["stats"](lmap, self.gmap, self.alpha, r0, c0, comb, stats)
+        k["stats"](lmap, self.gmap, self.alpha, r0, c0, comb, stats, self.parts * PART_TASK)
         s_l, s_ll, s_lg = stats.sum(axis=0)
         mu = (s_l + self.alpha * self.g_sum) / self.n_px
         # sum over all px of (L + aG - mu)^2 = sum (aG - mu)^2 + sum_buf (L^2 + 2 L (aG - mu))
