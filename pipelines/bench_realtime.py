@@ -9,8 +9,9 @@ Per case, ``ti-cmax slam`` runs in a child process offline (as fast as it can) a
 (``--realtime``, by default with ``--parallel``: front-end and back-end on the 2 cores), both with the default
 (sensor-derived) settings; both trajectories are scored against ground truth (abs / rel RMSE, aligned at start + 0.1
 s). The table gives the rate, the real-time figures of report.json ("realtime": events used, lag, latency,
-degradation), the realtime / offline error ratio and the 1-minute load average around the run: lags are wall-clock
-figures, so a machine shared with other jobs makes them pessimistic. Targets (issue 14): up to 2 M events/s real time
+degradation), the realtime / offline error ratio, the offline run's front-end / back-end us per input event, the
+1-minute load average around the run and a speed probe taken just before the case (bench_sensors.speed_probe): lags
+are wall-clock figures, so a machine shared with other jobs, or this VM in a slow phase, makes them pessimistic. Targets (issue 14): up to 2 M events/s real time
 (max lag <= 0.5 s, events used 1, errors within 10 % of offline); 5 and 12 M events/s lag <= 1 s by degrading.
 ``--rounds N`` runs the whole suite N times, case after case in each round (so a machine whose speed drifts affects
 every case alike), lists every run and says per case in how many rounds issue 14's target held (this VM's speed
@@ -26,7 +27,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from .bench_sensors import _f
+from .bench_sensors import _f, speed_probe
 
 MODES = ("parallel", "sequential")
 REAL_TIME_RATE = 2.5  # Mev/s: up to this mean rate the target is real time with every event, above it a bounded lag
@@ -43,17 +44,19 @@ def target_met(row: dict) -> bool:
 
 
 def summarize(rows: list[dict]) -> str:
-    """Per case and mode over the rounds: ranges of events used, lag max and abs ratio, and the rounds meeting the
-    target (target_met)."""
+    """Per case and mode over the rounds: ranges of events used, lag max, abs ratio and the speed probe, and the
+    rounds meeting the target (target_met)."""
     lines = []
     for key in dict.fromkeys((r["case"], r["mode"]) for r in rows):
         rs = [r for r in rows if (r["case"], r["mode"]) == key]
         span = lambda vals, d: f"{_f(min(vals), d)}-{_f(max(vals), d)}"  # noqa: E731
         ratios = [r["abs_ratio"] for r in rs if r["abs_ratio"] is not None]
+        probes = [r["probe_ms"] for r in rs if r.get("probe_ms") is not None]
         lines.append(f"{key[0]} ({key[1]}): target met in {sum(map(target_met, rs))} of {len(rs)} rounds; events used "
                      f"{span([r['realtime']['events_used_fraction'] for r in rs], 3)}, lag max "
                      f"{span([r['realtime']['max_lag_s'] for r in rs], 2)} s"
-                     + (f", abs ratio {span(ratios, 2)}" if ratios else ""))
+                     + (f", abs ratio {span(ratios, 2)}" if ratios else "")
+                     + (f", probe {span(probes, 2)} ms" if probes else ""))
     return "\n".join(lines)
 
 
@@ -69,6 +72,7 @@ def evaluate_case(spec, root: Path, modes=("parallel",), threads: int | None = N
 
     seq, info, _ = ensure_sequence(spec, BenchmarkSettings(), root / "sequences")
     gt = read_tum(seq / "groundtruth.txt")
+    probe_ms = speed_probe()  # this machine's speed right before the runs (bench_sensors.speed_probe)
 
     def run(name: str, flags: tuple) -> tuple[dict, object, list]:
         out = root / "runs" / spec.name / (name + tag)
@@ -96,7 +100,7 @@ def evaluate_case(spec, root: Path, modes=("parallel",), threads: int | None = N
             "rel_ratio": _ratio(err.rel_rmse_deg_per_s, off_err.rel_rmse_deg_per_s),
             "offline_process_wall_s": offline["process_wall_seconds"],
             "offline_us_per_event": offline["us_per_event"], "realtime": rt,
-            "load_offline": off_load, "load_realtime": load,
+            "load_offline": off_load, "load_realtime": load, "probe_ms": probe_ms,
         })
     return rows
 
@@ -121,8 +125,9 @@ def _degradation(rt: dict) -> str:
 def format_table(rows: list[dict]) -> str:
     lines = [
         "| case | mode | Mev/s | events used | lag max / mean s | latency mean / max s | abs offline / RT (ratio) "
-        "| rel offline / RT (ratio) | degradation (sensor s per level) | CPU s FE / BE / IO | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| rel offline / RT (ratio) | degradation (sensor s per level) | CPU s FE / BE / IO | offline us/ev FE / BE "
+        "| load | probe ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         rt = r["realtime"]
@@ -134,12 +139,16 @@ def format_table(rows: list[dict]) -> str:
             f"{_f(r['offline_abs_deg'], 3)} / {_f(r['realtime_abs_deg'], 3)} ({_f(r['abs_ratio'])})",
             f"{_f(r['offline_rel_deg_s'], 3)} / {_f(r['realtime_rel_deg_s'], 3)} ({_f(r['rel_ratio'])})",
             _degradation(rt), f"{_f(cpu['frontend'], 1)} / {_f(cpu['backend'], 1)} / {_f(cpu['io'], 1)}",
-            "-".join(_f(v, 1) for v in r["load_realtime"])]) + " |")
+            " / ".join(_f(r["offline_us_per_event"].get(k), 2) for k in ("frontend", "backend")),
+            "-".join(_f(v, 1) for v in r["load_realtime"]), _f(r.get("probe_ms"), 2)]) + " |")
     lines += ["", "Mev/s: mean event rate; events used: report.json realtime.events_used_fraction (1: every event used "
               "as offline); lag: wall time behind sensor time when a window completes; latency: from an event to its "
               "first refined pose; abs deg / rel deg/s against ground truth, ratio = real time / offline; CPU s: "
-              "steady-state CPU of the front-end, back-end (its worker with --parallel) and reading; load: 1-minute "
-              "load average before-after the real-time run. Targets (issue 14): <= 2 Mev/s real time (max lag <= 0.5 "
+              "steady-state CPU of the front-end, back-end (its worker with --parallel) and reading; offline us/ev: "
+              "the offline run's steady-state wall time per input event (issue 14: front-end <= 0.3, back-end <= 0.6 "
+              "linear / 0.8 cubic at 1-2 Mev/s); load: 1-minute load average before-after the real-time run; probe: "
+              "this machine's speed just before the case (bench_sensors.speed_probe: ms per front-end evaluation of a "
+              "fixed 15 000-event packet; every timing scales with it). Targets (issue 14): <= 2 Mev/s real time (max lag <= 0.5 "
               "s, events used 1, errors within 10 % of offline); 5 and 12 Mev/s lag <= 1 s by degrading."]
     return "\n".join(lines)
 

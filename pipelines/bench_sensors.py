@@ -93,6 +93,36 @@ def evaluate_case(case, root: Path, threads: int | None = None, overrides: list[
     }
 
 
+PROBE_EVENTS = 15_000  # about a DAVIS240C front-end packet at 1 M ev/s after thinning
+
+
+def speed_probe(evaluations: int = 40, seed: int = 0) -> float:
+    """This machine's speed right now: median milliseconds of one front-end contrast evaluation (vote, blur, gather;
+    kernels/iwe.py, on the calling thread) of a fixed synthetic packet of PROBE_EVENTS events on a DAVIS240C-sized
+    image. Every timing of these benchmarks scales with it: this VM's speed varied 1.5-2x within an hour (the
+    same front-end run 0.19-0.25 vs 0.31-0.42 us per input event), more than most changes measured, so a table
+    row carries the probe taken just before its runs (about 50 ms, plus the kernels' preparation once)."""
+    import numpy as np
+
+    from ti_cmax.kernels.iwe import IWEWorkspace
+
+    rng = np.random.default_rng(seed)
+    w, h, f = 240, 180, 199.0
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+    xy = rng.uniform([0, 0], [w, h], (PROBE_EVENTS, 2))
+    bearings = np.column_stack([(xy[:, 0] - w / 2) / f, (xy[:, 1] - h / 2) / f, np.ones(PROBE_EVENTS)])
+    ws = IWEWorkspace(w, h, np.float32, capacity=PROBE_EVENTS)
+    ws.set_packet(bearings, rng.uniform(-0.02, 0.02, PROBE_EVENTS))
+    omega = np.array([0.5, 1.0, 0.3])
+    ws.evaluate(omega, K)  # compile or load the kernels, warm the caches
+    times = []
+    for _ in range(evaluations):
+        tic = time.perf_counter()
+        ws.evaluate(omega, K)
+        times.append(time.perf_counter() - tic)
+    return float(np.median(times) * 1e3)
+
+
 def _f(v, digits=2) -> str:
     return "-" if v is None else (f"{v:.{digits}f}" if isinstance(v, float) else str(v))
 

@@ -11,7 +11,8 @@ policy, each estimate at its own timestamps), event area EA% and gradient magnit
 panoramic map (the back-end's I_G for SLAM/refine, else the events rendered with the method's trajectory at
 the same map size), us/event of front-end and back-end in steady state (compile time in its own column), wall
 time, and the process's peak resident memory so far (ru_maxrss). The 1-minute load average is printed with
-every table because timings are only comparable on an idle machine. Paper anchors and our targets follow.
+every table because timings are only comparable on an idle machine, and so is a speed probe taken before and after
+the runs (bench_sensors.speed_probe: ms per front-end evaluation of a fixed packet; this VM's speed drifts). Paper anchors and our targets follow.
 ``--quick`` lowers the map size and CG iteration caps (smoke runs; figures are not comparable).
 """
 from __future__ import annotations
@@ -81,7 +82,10 @@ def bench_sequence(sensor: str, scene: str, duration: float, overrides: dict | N
     from .panorama import render_panorama
     from .slam import refine, run_slam
 
+    from .bench_sensors import speed_probe
+
     load_start = os.getloadavg()
+    probe_start = speed_probe()
     tic = time.perf_counter()
     seq = simulate_sequence(SimulatorConfig(scene=scene, duration=duration, sensor=sensor, seed=seed))
     sim_s = time.perf_counter() - tic
@@ -129,7 +133,7 @@ def bench_sequence(sensor: str, scene: str, duration: float, overrides: dict | N
         "simulate_seconds": sim_s, "gyro_bias_deg_s": np.degrees(seq.gyro_bias).tolist(),
         "map_size": [int(width), int(height)], "overrides": values, "refine_degree": int(refine_degree),
         "loadavg_start": list(load_start), "loadavg_end": list(os.getloadavg()),
-        "peak_rss_mb": peak_rss_mb(), "rows": rows,
+        "probe_ms": [probe_start, speed_probe()], "peak_rss_mb": peak_rss_mb(), "rows": rows,
     }
 
 
@@ -150,7 +154,9 @@ def format_table(result: dict) -> str:
         f"({result['event_rate_mev_s']:.2f} Mev/s), map {w}x{h}, gyro bias ({bias}) deg/s"
         + (" [quick]" if result["quick"] else ""),
         f"load avg (1/5/15 min) start {', '.join(f'{x:.2f}' for x in result['loadavg_start'])}; "
-        f"end {', '.join(f'{x:.2f}' for x in result['loadavg_end'])}; simulate {result['simulate_seconds']:.1f} s",
+        f"end {', '.join(f'{x:.2f}' for x in result['loadavg_end'])}; simulate {result['simulate_seconds']:.1f} s"
+        + ("; speed probe start / end " + " / ".join(f"{x:.2f}" for x in result["probe_ms"]) + " ms"
+           if result.get("probe_ms") else ""),
         "",
         "| method | abs RMSE (deg) | rel RMSE (deg/s) | EA% | GM | map events | FE us/ev | BE us/ev "
         "| compile s | wall s | peak RSS MB |",

@@ -322,6 +322,26 @@ def test_benchmark_rounds_say_where_the_target_held():
                                     "0.30-0.30 s, abs ratio 1.00-1.20")
     vga = text.splitlines()[1]
     assert vga.startswith("vga (parallel): target met in 1 of 1 rounds") and "abs ratio" not in vga
+    assert summarize([{**ok, "probe_ms": 0.8}, {**degraded, "probe_ms": 1.3}]).endswith(", probe 0.80-1.30 ms")
+
+
+def test_speed_probe_times_a_fixed_front_end_evaluation(ti_runtime):
+    """The benchmarks' machine-speed probe: milliseconds per evaluation of one fixed packet, positive and of the
+    order of the front-end's measured cost (0.7-1.4 ms on this 2-core VM), and in the benchmark table."""
+    from ti_cmax.pipelines.bench_realtime import format_table
+    from ti_cmax.pipelines.bench_sensors import speed_probe
+
+    ms = speed_probe(evaluations=5)
+    assert 0.01 < ms < 100
+    rt = {"max_lag_s": 0.2, "mean_lag_s": 0.1, "latency_mean_s": 0.15, "latency_max_s": 0.3,
+          "events_used_fraction": 1.0, "degradation_applied": False, "cpu_seconds": {"frontend": 1.0, "backend": 2.0,
+                                                                                      "io": 0.1}}
+    row = {"case": "2m", "mode": "parallel", "event_rate_mev_s": 2.0, "realtime": rt, "offline_abs_deg": 0.06,
+           "realtime_abs_deg": 0.06, "abs_ratio": 1.0, "offline_rel_deg_s": 0.1, "realtime_rel_deg_s": 0.1,
+           "rel_ratio": 1.0, "offline_us_per_event": {"frontend": 0.21, "backend": 0.43}, "load_realtime": [1.0, 1.2],
+           "probe_ms": ms}
+    last = format_table([row]).splitlines()[2]
+    assert last.endswith(f"| 0.21 / 0.43 | 1.0-1.2 | {ms:.2f} |")
 
 
 def test_benchmark_realtime_rounds_are_checked(tmp_path, capsys):
