@@ -81,9 +81,10 @@ def measure_id(measure: str) -> int:
 def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, serial: bool):
     """Fields and kernels for one float type, sensor size, packet capacity and number of vote parts (compiled
     once). The images are ndarrays (numpy) so that OpenCV blurs them between the two kernels. ``serial`` (the
-    default, and any build with one thread): the event loops run on the calling thread; a parallel loop is handed to Taichi's thread pool even
-    with one thread, ~30-40 us per loop on these machines (a serial kernel launch costs ~12 us). The same sums in
-    the same order (the compiled loop may round them differently: not bitwise the parallel build's)."""
+    default, and any build with one thread): the event loops run on the calling thread; a parallel loop is handed
+    to Taichi's thread pool even with one thread, ~30-40 us per loop on these machines (a serial kernel launch
+    costs ~12 us). The same sums in the same order (the compiled loop may round them differently: not bitwise the
+    parallel build's)."""
     f = ti.f32 if dtype_name == "f32" else ti.f64
     bl = bilinear_funcs(f)
     h, w = height, width

@@ -11,8 +11,9 @@ policy, each estimate at its own timestamps), event area EA% and gradient magnit
 panoramic map (the back-end's I_G for SLAM/refine, else the events rendered with the method's trajectory at
 the same map size), us/event of front-end and back-end in steady state (compile time in its own column), wall
 time, and the process's peak resident memory so far (ru_maxrss). The 1-minute load average is printed with
-every table because timings are only comparable on an idle machine, and so is a speed probe taken before and after
-the runs (bench_sensors.speed_probe: ms per front-end evaluation of a fixed packet; this VM's speed drifts). Paper anchors and our targets follow.
+every table because timings are only comparable on an idle machine, and so is a speed probe taken before and
+after the runs (bench_sensors.speed_probe: ms per front-end evaluation of a fixed packet; this VM's speed
+drifts). Paper anchors and our targets follow.
 ``--quick`` lowers the map size and CG iteration caps (smoke runs; figures are not comparable).
 """
 from __future__ import annotations
