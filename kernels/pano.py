@@ -719,8 +719,8 @@ class PanoIWE:
         _, comb, mu = maps
         comb -= self.dtype.type(mu)
         wmap = separable_blur(comb, self.taps, wrap_cols=bool(wrap), out=comb)  # W = B(L + alpha G - mu)
-        self._k["gradient"](wmap, r0, c0, self._basis, self._uv, self._jac, self.batch_size, self.width, self.su, self.sv,
-                            self._gb)
+        self._k["gradient"](wmap, r0, c0, self._basis, self._uv, self._jac, self.batch_size, self.width, self.su,
+                            self.sv, self._gb)
         gb = self._gb.astype(np.float64)
         for j in range(self.degree + 1):
             grad += np.stack([np.bincount(self.batch_s + j, gb[:, j, d], minlength=len(ctrl)) for d in range(3)], 1)
