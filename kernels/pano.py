@@ -236,9 +236,11 @@ def _proj_all(dtype) -> SimpleNamespace:
 
 
 @functools.cache
-def _iwe_kernels(dtype, degree: int):
+def _iwe_kernels(dtype, degree: int, serial: bool = False):
     """Kernels of one cost/gradient evaluation for one dtype and spline degree (the blurs run in OpenCV between
-    them: kernels/blur.py)."""
+    them: kernels/blur.py). ``serial`` (one thread): every loop runs on the calling thread; a parallel loop
+    costs 65-100 us per launch even with one thread (measured, 2 loops of 100 iterations: 145-217 us against
+    24-33 us serialized), 5 of them per evaluation."""
     spl = spline_funcs(dtype, degree)
     bl = bilinear_funcs(dtype)
     pf = _proj_all(dtype)
@@ -272,6 +274,8 @@ def _iwe_kernels(dtype, degree: int):
         n_ev = bearings.shape[0]
         half = ti.cast(width // 2, dtype)
         fw = ti.cast(width, dtype)
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
         for b in range(batch_s.shape[0]):
             r = spl.pose_jacobians(ctrl, batch_s[b], batch_u[b], jac_out, b)
             e0 = b * batch_size
@@ -323,6 +327,8 @@ def _iwe_kernels(dtype, degree: int):
         parts = votes.shape[0] // bh  # votes arrives zeroed (np.zeros: a struct-for clear cost 10 ns per pixel)
         n_ev = uv.shape[0]
         chunk = (n_ev + parts - 1) // parts
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
         for part in range(parts):
             for e in range(part * chunk, ti.min(n_ev, (part + 1) * chunk)):
                 i0, j0, fu, fv = bl.split(uv[e][0], uv[e][1])
@@ -330,6 +336,8 @@ def _iwe_kernels(dtype, degree: int):
                 bl.scatter(votes, part * bh, bh, j0 - r0, la, lb, 1, 1, fu, fv, ti.cast(1.0, dtype), ADD)
         # per row: the branches outside the pixel loops (inside, with the loop over the parts, they cost ~40
         # instructions per buffer pixel, about as much as the voting per event: ~0.9 buffer pixels per event)
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
         for i in range(bh):
             raw = ti.cast(0.0, ti.f64)
             area = ti.cast(0.0, ti.f64)
@@ -363,6 +371,8 @@ def _iwe_kernels(dtype, degree: int):
         gradient's image before its mean is taken out)."""
         bh, bw = lmap.shape[0], lmap.shape[1]
         gw = gmap.shape[1]
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
         for i in range(bh):
             gi = ti.min(r0 + i, gmap.shape[0] - 1)
             s1 = ti.cast(0.0, ti.f64)
@@ -415,6 +425,8 @@ def _iwe_kernels(dtype, degree: int):
         out[b, k] = J_bk^T g_b."""
         bh = wmap.shape[0]
         n_ev = basis.shape[0]
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
         for b in range(jac.shape[0]):
             g = vec3(0, 0, 0)
             for e in range(b * batch_size, ti.min((b + 1) * batch_size, n_ev)):
@@ -620,7 +632,7 @@ class PanoIWE:
         else:
             self.alpha, self.g_sum, self.g_sq = 0.0, 0.0, 0.0
             self.gmap = np.zeros((1, 1), dtype=self.dtype)
-        self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree)
+        self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree, num_threads() == 1)
         n, order = len(self.bearings), self.degree + 1
         self._jac = np.zeros((nb, order, 3, 3), dtype=self.dtype)
         self._basis = np.zeros((n, 3), dtype=self.dtype)  # (s, c, t) per event: project_basis
