@@ -120,6 +120,11 @@ def bilinear_funcs(dtype) -> SimpleNamespace:
         return i0 >= 0 and i0 < width, i0 + 1 >= 0 and i0 + 1 < width
 
     @ti.func
+    def in_range(j, n):
+        """0 <= j < n (n >= 0) as one unsigned compare (the two signed ones compiled to two branches)."""
+        return ti.cast(j, ti.u32) < ti.cast(n, ti.u32)
+
+    @ti.func
     def corner(row0, nrows, j0, ia, ib, oka, okb, dj: ti.template(), di: ti.template()):
         """(image row, column, kept) of neighbour (j0 + dj, i0 + di); rows kept in [0, nrows), stored at row0 + j."""
         j = j0 + dj
@@ -128,7 +133,7 @@ def bilinear_funcs(dtype) -> SimpleNamespace:
         if ti.static(di == 1):
             col = ib
             ok = okb
-        return row0 + j, col, j >= 0 and j < nrows and ok
+        return row0 + j, col, in_range(j, nrows) and ok
 
     @ti.func
     def scatter(img: ti.template(), row0, nrows, j0, ia, ib, oka, okb, fu, fv, w, op: ti.template()):

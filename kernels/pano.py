@@ -27,6 +27,7 @@ atan2 (<= 2.1e-6 rad error: 0.002 map px at the widest map, 8192 px; about 6x fa
 """
 import functools
 import math
+from types import SimpleNamespace
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
@@ -36,7 +37,7 @@ from ti_cmax.metrics import event_area_percent
 from . import bilinear
 from .bilinear import ADD, bilinear_funcs
 from .blur import TRUNCATE, blur_radius, gaussian_taps, separable_blur
-from .runtime import PART_TASK, check_parts, ensure_init, num_threads, part_slice, ti
+from .runtime import PART_TASK, check_parts, ensure_init, even_slice, num_threads, part_slice, ti
 from .spline import spline_funcs
 
 
@@ -138,9 +139,25 @@ def _ti_dtype(np_dtype):
     return ti.f64 if np.dtype(np_dtype) == np.float64 else ti.f32
 
 
-@functools.cache
 def _proj_funcs(dtype):
+    """(project, project_jacobian) ti.funcs for one float dtype (mapping, trackers); all four: _proj_all."""
+    f = _proj_all(dtype)
+    return f.project, f.project_jacobian
+
+
+@functools.cache
+def _proj_all(dtype) -> SimpleNamespace:
+    """ti.funcs project, project_basis, project_jacobian and cross_gradient for one float dtype."""
     vec3 = ti.types.vector(3, dtype)
+
+    @ti.func
+    def fmin(a, b):
+        """min(a, b) for non-NaN a, b: one minss (ti.min adds NaN handling: a compare, a blend and a branch)."""
+        return ti.select(a < b, a, b)
+
+    @ti.func
+    def fmax(a, b):
+        return ti.select(a > b, a, b)
 
     @ti.func
     def fast_atan2(y, x):
@@ -150,11 +167,12 @@ def _proj_funcs(dtype):
 
         Taichi's ti.atan2 costs ~36 ns per call on this CPU, this ~6 ns: the projection dominates the per-event
         cost. atan(a) on a = min/max in [0, 1] by an odd degree-11 polynomial (least squares on Chebyshev nodes), then
-        octant fixes. The degree-15 one before (3.5e-7 rad) cost 4-8 % more per back-end evaluation.
+        octant fixes. The degree-15 one before (3.5e-7 rad) cost 4-8 % more per back-end evaluation. Min/max by
+        selects (fmin/fmax): ti.min/ti.max compile to NaN-safe sequences with a branch, ~10 more instructions.
         """
         ay = ti.abs(y)
         ax = ti.abs(x)
-        a = ti.min(ax, ay) / ti.max(ti.max(ax, ay), ti.f32(1e-30))
+        a = fmin(ax, ay) / fmax(fmax(ax, ay), ti.f32(1e-30))
         z = a * a
         r = a * (ti.f32(0.99997983) + z * (ti.f32(-0.33265548) + z * (ti.f32(0.19367032) + z * (
             ti.f32(-0.11665112) + z * (ti.f32(0.05282349) + z * ti.f32(-0.0117705))))))
@@ -172,14 +190,34 @@ def _proj_funcs(dtype):
         return res
 
     @ti.func
-    def project(x, width, height, su, sv):
-        """(u, v) of X'; su = w / 2pi and sv = h / pi come in as kernel arguments (exact in f64, unlike a
-        Python float literal, which Taichi rounds to f32 first)."""
+    def project_basis(x, width, height, su, sv):
+        """(u, v) of X' and (s, c, t) = (X, Z, Y) / sqrt(X^2 + Z^2) = (sin lon, cos lon, tan lat), which is all that
+        X' x dC/dX' needs (``cross_gradient``); su = w / 2pi and sv = h / pi come in as kernel arguments (exact in
+        f64, unlike a Python float literal, which Taichi rounds to f32 first)."""
+        rho = ti.sqrt(x[0] * x[0] + x[2] * x[2])
         lon = atan2(x[0], x[2])
-        lat = atan2(x[1], ti.sqrt(x[0] * x[0] + x[2] * x[2]))
+        lat = atan2(x[1], rho)
         pu = ti.cast(0.5, dtype) * ti.cast(width, dtype) + su * lon
         pv = ti.cast(0.5, dtype) * ti.cast(height, dtype) + sv * lat
+        inv_rho = ti.cast(1.0, dtype) / rho
+        return pu, pv, vec3(x[0] * inv_rho, x[2] * inv_rho, x[1] * inv_rho)
+
+    @ti.func
+    def project(x, width, height, su, sv):
+        """(u, v) of X' (``project_basis`` without the basis: the compiler drops its unused arithmetic)."""
+        pu, pv, _ = project_basis(x, width, height, su, sv)
         return pu, pv
+
+    @ti.func
+    def cross_gradient(q, gu, gv, su, sv):
+        """X' x dC/dX' for the map gradient (gu, gv) = (dC/du, dC/dv) at X', from q = (s, c, t) of project_basis.
+
+        With du/dX' = su (Z, 0, -X) / rho^2 and dv/dX' = sv (-X Y, rho^2, -Z Y) / (rho r^2) (``project_jacobian``):
+        X' x du/dX' = su (-s t, 1, -c t) and X' x dv/dX' = sv (-c, 0, s) (r^2 = X^2 + Y^2 + Z^2, rho^2 = X^2 + Z^2):
+        no square root, division or cross product per event."""
+        a = gu * su
+        b = gv * sv
+        return vec3(-(a * q[0] * q[2] + b * q[1]), a, b * q[0] - a * q[1] * q[2])
 
     @ti.func
     def project_jacobian(x, su, sv):
@@ -193,18 +231,26 @@ def _proj_funcs(dtype):
         dv = vec3(-x[0] * x[1] * c, rho2 * c, -x[2] * x[1] * c)
         return du, dv
 
-    return project, project_jacobian
+    return SimpleNamespace(project=project, project_basis=project_basis, project_jacobian=project_jacobian,
+                           cross_gradient=cross_gradient, fmin=fmin, fmax=fmax)
 
 
 @functools.cache
-def _iwe_kernels(dtype, degree: int):
+def _iwe_kernels(dtype, degree: int, serial: bool = False):
     """Kernels of one cost/gradient evaluation for one dtype and spline degree (the blurs run in OpenCV between
-    them: kernels/blur.py)."""
+    them: kernels/blur.py). ``serial`` (one thread): every loop runs on the calling thread; a parallel loop
+    costs 65-100 us per launch even with one thread (measured, 2 loops of 100 iterations: 145-217 us against
+    24-33 us serialized), 5 of them per evaluation. With several threads each loop runs over ``tasks`` = P x
+    PART_TASK iterations (P the vote parts, the thread count) that spread the batches, parts or rows evenly: Taichi
+    makes a loop of N iterations tasks of max(512, N / threads) (kernels/runtime.py), so a loop over the 2 parts,
+    the few hundred buffer rows or fewer than 1024 batches (~100 000 events) ran on one thread (2 threads, 2 M ev/s:
+    local map 0.53 / 0.71 -> 0.41 / 0.53 s, stats 0.15 / 0.21 -> 0.13 / 0.15 s; bitwise the same sums)."""
     spl = spline_funcs(dtype, degree)
     bl = bilinear_funcs(dtype)
-    project, project_jacobian = _proj_funcs(dtype)
+    pf = _proj_all(dtype)
     mat3 = ti.types.matrix(3, 3, dtype)
     vec3 = ti.types.vector(3, dtype)
+    vec2 = ti.types.vector(2, dtype)  # (u, v) per event: a constant stride (an (n, 2) ndarray reloads its shape)
     order = degree + 1
 
     @ti.kernel
@@ -219,11 +265,13 @@ def _iwe_kernels(dtype, degree: int):
         su: dtype,
         sv: dtype,
         jac_out: ti.types.ndarray(dtype=mat3, ndim=2),
-        xw_out: ti.types.ndarray(dtype=vec3, ndim=1),
-        uv_out: ti.types.ndarray(dtype=dtype, ndim=2),
+        basis_out: ti.types.ndarray(dtype=vec3, ndim=1),
+        uv_out: ti.types.ndarray(dtype=vec2, ndim=1),
         bbox: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        tasks: ti.i32,
     ):
-        """Per batch: pose + Jacobians, rotated bearings, (u, v), and the batch's bounding box of touched pixels.
+        """Per batch: pose + Jacobians, (u, v) and (s, c, t) of the rotated bearings (project_basis), and the batch's
+        bounding box of touched pixels.
 
         Columns are tracked relative to the batch's first event, wrapped to (-w/2, w/2], so the box is a cyclic
         interval [bbox0, bbox1) (unwrapped integers, bbox1 - bbox0 <= w); rows [bbox2, bbox3] clamped to the map.
@@ -231,38 +279,41 @@ def _iwe_kernels(dtype, degree: int):
         n_ev = bearings.shape[0]
         half = ti.cast(width // 2, dtype)
         fw = ti.cast(width, dtype)
-        for b in range(batch_s.shape[0]):
-            r = spl.pose_jacobians(ctrl, batch_s[b], batch_u[b], jac_out, b)
-            e0 = b * batch_size
-            pu0, _ = project(r @ bearings[ti.min(e0, n_ev - 1)], width, height, su, sv)
-            ref = ti.floor(pu0)  # columns relative to the batch's first event
-            dmin = ti.cast(0.0, dtype)
-            dmax = ti.cast(0.0, dtype)
-            vmin = ti.cast(height, dtype)
-            vmax = ti.cast(-1.0, dtype)
-            for e in range(e0, ti.min(e0 + batch_size, n_ev)):
-                x = r @ bearings[e]
-                pu, pv = project(x, width, height, su, sv)
-                xw_out[e] = x
-                uv_out[e, 0] = pu
-                uv_out[e, 1] = pv
-                # float min/max and selects (branch-free; the integer form with branches cost more per event)
-                d = pu - ref
-                d = ti.select(d > half, d - fw, d)
-                d = ti.select(d <= -half, d + fw, d)
-                dmin = ti.min(dmin, d)
-                dmax = ti.max(dmax, d)
-                vmin = ti.min(vmin, pv)
-                vmax = ti.max(vmax, pv)
-            iref = ti.cast(ref, ti.i32)
-            bbox[b, 0] = iref + ti.cast(ti.floor(dmin), ti.i32)
-            bbox[b, 1] = iref + ti.cast(ti.floor(dmax), ti.i32) + 2  # the right neighbour column is touched too
-            bbox[b, 2] = ti.max(ti.cast(ti.floor(vmin), ti.i32), 0)
-            bbox[b, 3] = ti.min(ti.cast(ti.floor(vmax), ti.i32) + 1, height - 1)
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
+        nb = batch_s.shape[0]
+        for it in range(tasks):
+            lo, hi = even_slice(it, nb, tasks)
+            for b in range(lo, hi):
+                r = spl.pose_jacobians(ctrl, batch_s[b], batch_u[b], jac_out, b)
+                e0 = b * batch_size
+                pu0, _ = pf.project(r @ bearings[ti.min(e0, n_ev - 1)], width, height, su, sv)
+                ref = ti.floor(pu0)  # columns relative to the batch's first event
+                dmin = ti.cast(0.0, dtype)
+                dmax = ti.cast(0.0, dtype)
+                vmin = ti.cast(height, dtype)
+                vmax = ti.cast(-1.0, dtype)
+                for e in range(e0, ti.min(e0 + batch_size, n_ev)):
+                    pu, pv, q = pf.project_basis(r @ bearings[e], width, height, su, sv)
+                    basis_out[e] = q
+                    uv_out[e] = vec2(pu, pv)
+                    # float min/max and selects (branch-free; the integer form with branches cost more per event)
+                    d = pu - ref
+                    d = ti.select(d > half, d - fw, d)
+                    d = ti.select(d <= -half, d + fw, d)
+                    dmin = pf.fmin(dmin, d)
+                    dmax = pf.fmax(dmax, d)
+                    vmin = pf.fmin(vmin, pv)
+                    vmax = pf.fmax(vmax, pv)
+                iref = ti.cast(ref, ti.i32)
+                bbox[b, 0] = iref + ti.cast(ti.floor(dmin), ti.i32)
+                bbox[b, 1] = iref + ti.cast(ti.floor(dmax), ti.i32) + 2  # the right neighbour column is touched too
+                bbox[b, 2] = ti.max(ti.cast(ti.floor(vmin), ti.i32), 0)
+                bbox[b, 3] = ti.min(ti.cast(ti.floor(vmax), ti.i32) + 1, height - 1)
 
     @ti.kernel
     def k_local_map(
-        uv: ti.types.ndarray(dtype=dtype, ndim=2),
+        uv: ti.types.ndarray(dtype=vec2, ndim=1),
         c0: ti.i32,
         r0: ti.i32,
         width: ti.i32,
@@ -277,33 +328,43 @@ def _iwe_kernels(dtype, degree: int):
 
         ``votes`` holds P = rows / bh copies of the buffer: part p votes events [p n/P, (p+1) n/P) into copy p with
         plain load/add/store, then the copies are summed in a fixed order (no float atomics, which were measured
-        2x slower than serial voting here, and bit-reproducible for a given P). Both loops run over P x PART_TASK
-        iterations (kernels/runtime.py: Taichi makes a loop of <= 512 iterations one task, i.e. one thread; over
-        the P parts or the buffer's rows these loops ran on one thread whatever the thread count); the vote's tasks
-        hold whole parts, the rows are spread evenly.
+        2x slower than serial voting here, and bit-reproducible for a given P; the vote's tasks hold whole parts).
+        With P = 1 the caller passes the same array as ``votes`` and ``buf``: the votes are the buffer.
         """
         bh, bw = buf.shape[0], buf.shape[1]
         parts = votes.shape[0] // bh  # votes arrives zeroed (np.zeros: a struct-for clear cost 10 ns per pixel)
         n_ev = uv.shape[0]
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
         for it in range(parts * PART_TASK):
             part, k0, k1 = part_slice(it, n_ev, parts)
             for e in range(k0, k1):
-                i0, j0, fu, fv = bl.split(uv[e, 0], uv[e, 1])
+                i0, j0, fu, fv = bl.split(uv[e][0], uv[e][1])
                 la, lb = bl.wrap_cols(i0 - c0, width)  # buffer columns of map columns i0, i0 + 1 (mod w)
                 bl.scatter(votes, part * bh, bh, j0 - r0, la, lb, 1, 1, fu, fv, ti.cast(1.0, dtype), ADD)
+        # per row: the branches outside the pixel loops (inside, with the loop over the parts, they cost ~40
+        # instructions per buffer pixel, about as much as the voting per event: ~0.9 buffer pixels per event)
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
         tasks = parts * PART_TASK
         for it in range(tasks):
-            for i in range(it * bh // tasks, (it + 1) * bh // tasks):
+            lo, hi = even_slice(it, bh, tasks)
+            for i in range(lo, hi):
                 raw = ti.cast(0.0, ti.f64)
                 area = ti.cast(0.0, ti.f64)
-                for j in range(bw):
-                    acc = ti.cast(0.0, dtype)
-                    for part in range(parts):
-                        acc += votes[part * bh + i, j]
-                    buf[i, j] = acc
-                    raw += ti.cast(acc, ti.f64)
-                    if lambda0 >= 0:
-                        area += ti.cast(ti.cast(1.0, dtype) - ti.exp(-acc / lambda0), ti.f64)
+                if parts == 1:  # buf IS votes (the caller passes the same array): nothing to copy
+                    for j in range(bw):
+                        raw += ti.cast(votes[i, j], ti.f64)
+                else:
+                    for j in range(bw):
+                        acc = votes[i, j]
+                        for part in range(1, parts):
+                            acc += votes[part * bh + i, j]
+                        buf[i, j] = acc
+                        raw += ti.cast(acc, ti.f64)
+                if lambda0 >= 0:
+                    for j in range(bw):
+                        area += ti.cast(ti.cast(1.0, dtype) - ti.exp(-buf[i, j] / lambda0), ti.f64)
                 stats[i, 0] = raw
                 stats[i, 1] = area
 
@@ -319,29 +380,43 @@ def _iwe_kernels(dtype, degree: int):
         tasks: ti.i32,
     ):
         """Per-row float64 sums of L = B(I_L), L^2 and L G over the window, and comb = L + alpha G there (the
-        gradient's image before its mean is taken out). The rows are spread evenly over ``tasks`` iterations
-        (threads x PART_TASK: a loop over the few hundred rows would be one task, one thread)."""
+        gradient's image before its mean is taken out)."""
         bh, bw = lmap.shape[0], lmap.shape[1]
         gw = gmap.shape[1]
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
         for it in range(tasks):
-            for i in range(it * bh // tasks, (it + 1) * bh // tasks):
+            lo, hi = even_slice(it, bh, tasks)
+            for i in range(lo, hi):
                 gi = ti.min(r0 + i, gmap.shape[0] - 1)
                 s1 = ti.cast(0.0, ti.f64)
                 s2 = ti.cast(0.0, ti.f64)
                 s3 = ti.cast(0.0, ti.f64)
-                for j in range(bw):
-                    lv = lmap[i, j]
-                    val = ti.cast(lv, ti.f64)
-                    s1 += val
-                    s2 += val * val
-                    if alpha != 0:
-                        cj = c0 + j
-                        if cj >= gw:
-                            cj -= gw
-                        g = gmap[gi, cj]
+                if alpha != 0:  # map columns c0 + j, then (past the seam) c0 + j - gw: no branch per pixel
+                    n1 = ti.min(bw, gw - c0)
+                    for j in range(n1):
+                        lv = lmap[i, j]
+                        val = ti.cast(lv, ti.f64)
+                        s1 += val
+                        s2 += val * val
+                        g = gmap[gi, c0 + j]
                         s3 += val * ti.cast(g, ti.f64)
-                        lv += alpha * g
-                    comb[i, j] = lv
+                        comb[i, j] = lv + alpha * g
+                    for j in range(n1, bw):
+                        lv = lmap[i, j]
+                        val = ti.cast(lv, ti.f64)
+                        s1 += val
+                        s2 += val * val
+                        g = gmap[gi, c0 + j - gw]
+                        s3 += val * ti.cast(g, ti.f64)
+                        comb[i, j] = lv + alpha * g
+                else:
+                    for j in range(bw):
+                        lv = lmap[i, j]
+                        val = ti.cast(lv, ti.f64)
+                        s1 += val
+                        s2 += val * val
+                        comb[i, j] = lv
                 stats[i, 0] = s1
                 stats[i, 1] = s2
                 stats[i, 2] = s3
@@ -351,30 +426,34 @@ def _iwe_kernels(dtype, degree: int):
         wmap: ti.types.ndarray(dtype=dtype, ndim=2),
         r0: ti.i32,
         c0: ti.i32,
-        xw: ti.types.ndarray(dtype=vec3, ndim=1),
-        uv: ti.types.ndarray(dtype=dtype, ndim=2),
+        basis: ti.types.ndarray(dtype=vec3, ndim=1),
+        uv: ti.types.ndarray(dtype=vec2, ndim=1),
         jac: ti.types.ndarray(dtype=mat3, ndim=2),
         batch_size: ti.i32,
         width: ti.i32,
         su: dtype,
         sv: dtype,
         out: ti.types.ndarray(dtype=vec3, ndim=2),
+        tasks: ti.i32,
     ):
         """Per batch g_b = sum_e X'_e x dC/dX'_e from W = B(L + alpha G - mu) on the window, and
         out[b, k] = J_bk^T g_b."""
         bh = wmap.shape[0]
-        n_ev = xw.shape[0]
-        for b in range(jac.shape[0]):
-            g = vec3(0, 0, 0)
-            for e in range(b * batch_size, ti.min((b + 1) * batch_size, n_ev)):
-                i0, j0, fu, fv = bl.split(uv[e, 0], uv[e, 1])
-                la, lb = bl.wrap_cols(i0 - c0, width)
-                _, gu, gv = bl.interp(bl.gather(wmap, 0, bh, j0 - r0, la, lb, 1, 1, -1), fu, fv)
-                x = xw[e]
-                du, dv = project_jacobian(x, su, sv)
-                g += x.cross(gu * du + gv * dv)
-            for k in ti.static(range(order)):
-                out[b, k] = jac[b, k].transpose() @ g
+        n_ev = basis.shape[0]
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
+        nb = jac.shape[0]
+        for it in range(tasks):
+            lo, hi = even_slice(it, nb, tasks)
+            for b in range(lo, hi):
+                g = vec3(0, 0, 0)
+                for e in range(b * batch_size, ti.min((b + 1) * batch_size, n_ev)):
+                    i0, j0, fu, fv = bl.split(uv[e][0], uv[e][1])
+                    la, lb = bl.wrap_cols(i0 - c0, width)
+                    _, gu, gv = bl.interp(bl.gather(wmap, 0, bh, j0 - r0, la, lb, 1, 1, -1), fu, fv)
+                    g += pf.cross_gradient(basis[e], gu, gv, su, sv)
+                for k in ti.static(range(order)):
+                    out[b, k] = jac[b, k].transpose() @ g
 
     return dict(project=k_project, local_map=k_local_map, stats=k_stats, gradient=k_gradient)
 
@@ -571,10 +650,10 @@ class PanoIWE:
         else:
             self.alpha, self.g_sum, self.g_sq = 0.0, 0.0, 0.0
             self.gmap = np.zeros((1, 1), dtype=self.dtype)
-        self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree)
+        self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree, num_threads() == 1)
         n, order = len(self.bearings), self.degree + 1
         self._jac = np.zeros((nb, order, 3, 3), dtype=self.dtype)
-        self._xw = np.zeros((n, 3), dtype=self.dtype)
+        self._basis = np.zeros((n, 3), dtype=self.dtype)  # (s, c, t) per event: project_basis
         self._uv = np.zeros((n, 2), dtype=self.dtype)
         self._bbox = np.zeros((nb, 4), dtype=np.int32)
         self._gb = np.zeros((nb, order, 3), dtype=self.dtype)
@@ -623,14 +702,14 @@ class PanoIWE:
             return ctrl, None, None, self._constant_var()
         k = self._k
         k["project"](ctrl, self.batch_s, self.batch_u, self.bearings, self.batch_size, self.width, self.height,
-                     self.su, self.sv, self._jac, self._xw, self._uv, self._bbox)
+                     self.su, self.sv, self._jac, self._basis, self._uv, self._bbox, self.parts * PART_TASK)
         win = self._window()
         self.last_window = win
         if win is None:
             return ctrl, None, None, self._constant_var()
         r0, c0, bh, bw, wrap = win
-        lmap = np.empty((bh, bw), dtype=self.dtype)
         votes = np.zeros((self.parts * bh, bw), dtype=self.dtype)  # calloc: zero pages, no pass over memory
+        lmap = votes if self.parts == 1 else np.empty((bh, bw), dtype=self.dtype)  # one part: voted in place
         stats = np.empty((bh, 3))
         k["local_map"](self._uv, c0, r0, self.width, self._density_ref[1] if self._density_ref is not None else -1.0,
                        votes, lmap, stats)  # the event area only at the first call (alpha from the density)
@@ -671,8 +750,8 @@ class PanoIWE:
         _, comb, mu = maps
         comb -= self.dtype.type(mu)
         wmap = separable_blur(comb, self.taps, wrap_cols=bool(wrap), out=comb)  # W = B(L + alpha G - mu)
-        self._k["gradient"](wmap, r0, c0, self._xw, self._uv, self._jac, self.batch_size, self.width, self.su, self.sv,
-                            self._gb)
+        self._k["gradient"](wmap, r0, c0, self._basis, self._uv, self._jac, self.batch_size, self.width, self.su,
+                            self.sv, self._gb, self.parts * PART_TASK)
         gb = self._gb.astype(np.float64)
         for j in range(self.degree + 1):
             grad += np.stack([np.bincount(self.batch_s + j, gb[:, j, d], minlength=len(ctrl)) for d in range(3)], 1)
