@@ -11,8 +11,8 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    casts those votes);
 2. detection, before every window's BA (at most one verification per ``loop_recent_time``, less often while a
    revisit goes on without a correction to apply: the interval doubles up to ``loop_min_age``, not after a
-   registration that ran off beyond ``loop_max_correction``, stopped at the first iterate there: little overlap at a
-   revisit's start, which grows as it goes on; after an applied
+   registration that ran off beyond ``loop_max_correction``: little overlap at a revisit's start, which grows as it
+   goes on; after an applied
    loop, the next check waits until the drift rate that loop measured has moved the map by
    ``loop_check_drift_px``, within the same bounds): the recent events
    (the last ``loop_recent_time`` seconds of settled events plus the window's, at their initialized poses: the
@@ -112,10 +112,6 @@ def _cyclic_span(used: np.ndarray, margin: int) -> np.ndarray:
     if length + 2 * margin >= w:
         return np.arange(w)
     return (start - margin + np.arange(length + 2 * margin)) % w
-
-
-class _RanOff(Exception):
-    """A registration's iterate beyond loop_max_correction (args: the iterate): the candidate is rejected."""
 
 
 class _RawMap(GlobalMap):
@@ -573,8 +569,6 @@ class LoopCloser:
             scale = []  # 1 / the variance at the level's start: BFGS evaluates there first (no evaluation of its own)
 
             def objective(x, problem=problem, scale=scale):
-                if np.linalg.norm(x) > cfg.loop_max_correction:  # ran off: a false loop, no need to go on
-                    raise _RanOff(x)
                 self._slice_point()
                 var, grad = problem.cost_and_grad(so3.exp(x) @ base)
                 if not scale:
@@ -585,17 +579,12 @@ class LoopCloser:
             # BFGS from the inverse Hessian the last verification ended with at this level (the same normalized
             # cost of one rotation: its first step is already quasi-Newton; 12 evaluations instead of CG's 33)
             px = f * 2 * np.pi / w
-            try:
-                res, hess = bfgs(objective, phi, maximize=True, inv_hessian=self._inv_hessian.get(f),
-                                 init_step=2 * px,
-                                 max_iter=_ITERS, grad_tol=bcfg.backend_cg_grad_tol,
-                                 rel_cost_tol=bcfg.backend_cg_rel_cost_tol, step_tol=_STEP_TOL * px,
-                                 max_step=cfg.loop_max_correction)
-                if hess is not None:
-                    self._inv_hessian[f] = hess
-                phi = res.x
-            except _RanOff as off:
-                phi = off.args[0]
+            res, hess = bfgs(objective, phi, maximize=True, inv_hessian=self._inv_hessian.get(f), init_step=2 * px,
+                             max_iter=_ITERS, grad_tol=bcfg.backend_cg_grad_tol,
+                             rel_cost_tol=bcfg.backend_cg_rel_cost_tol, step_tol=_STEP_TOL * px)
+            if hess is not None:
+                self._inv_hessian[f] = hess
+            phi = res.x
             if np.linalg.norm(phi) > cfg.loop_max_correction:  # a false loop: no need to refine it
                 return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
                         "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
