@@ -10,13 +10,17 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    1 in 4 events) and, once a verification reads it, votes them into an *old map* (a run without a revisit never
    casts those votes);
 2. detection, before every window's BA (at most one verification per ``loop_recent_time``, less often while a
-   revisit goes on without a correction to apply: the interval doubles up to ``loop_min_age``; after an applied
+   revisit goes on without a correction to apply: the interval doubles up to ``loop_min_age``, not after a
+   registration that ran off beyond ``loop_max_correction``: little overlap at a revisit's start, which grows as it
+   goes on; after an applied
    loop, the next check waits until the drift rate that loop measured has moved the map by
    ``loop_check_drift_px``, within the same bounds): the recent events
    (the last ``loop_recent_time`` seconds of settled events plus the window's, at their initialized poses: the
    BA has not pulled them to the old map yet) at their current poses are a revisit candidate when at least
-   ``loop_min_overlap`` of them fall on regions observed, and last observed at least ``loop_min_age`` s ago
-   (regions without texture give no events, so they are never observed);
+   ``loop_min_overlap`` of them fall on *old* regions: observed, and last observed at least ``loop_min_age`` s ago
+   or, at least ``loop_recent_time`` s ago, before the camera turned ``loop_min_travel`` (the rotation travelled
+   along the settled trajectory, summed as it settles: a fast pan comes back to its start sooner than any fixed
+   age; sensor_defaults states the rule) (regions without texture give no events, so they are never observed);
 3. verification: one rotation C (left, world frame) registers the recent events against the old map of those
    regions alone, with the back-end's machinery (``PanoIWE``: Var(B(I_recent) + alpha B(I_old)), BFGS from the
    last verification's inverse Hessian),
@@ -180,7 +184,7 @@ class LoopCloser:
 
     def __init__(self, config: LoopClosureConfig, backend):
         """``config`` must be resolved for the camera (``sensor_defaults.resolve_config``): no derived 0s."""
-        if config.loop_registration_events <= 0:
+        if config.loop_registration_events <= 0 or config.loop_min_travel == 0:
             raise ValueError("the loop closer needs a config resolved for the camera (sensor_defaults.resolve_config)")
         self.cfg, self.backend = config, backend
         freeze = backend.map.max_update_time
@@ -199,7 +203,11 @@ class LoopCloser:
         self._thinned = 0  # times every chunk was thinned by 2 (a checkpoint holds the chunks as they were)
         self._checkpoint = None  # (old map, age, visit) after a rebuild: the next rebuild starts there (_rebuild)
         self.checkpoints_advanced = 0  # checkpoints moved past a loop's recent block (_advance_checkpoint)
-        self._next_check = backend.t_start + config.loop_min_age + config.loop_recent_time
+        # rotation travelled (rad, cumulative) at the ends of the settled strides, recorded as they are stored (fixed
+        # then: a later loop's correction does not change which regions counted as old, so rebuilt maps are the same)
+        self._travel_rec = np.zeros((2, 1024))  # rows: times, travel; the first n_travel columns are used (grown x2)
+        self._travel_rec[0, 0], self._n_travel = backend.t_start, 1
+        self._next_check = backend.t_start + config.loop_min_age + config.loop_recent_time  # (or by travel: _due)
         self._interval = config.loop_recent_time  # time from one verification to the next check
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
         self._ref = -np.inf  # reference time of the last applied loop (its poses got the whole correction)
@@ -229,7 +237,9 @@ class LoopCloser:
         """Keep a subsample of one settled stride (1 of k, weight k)."""
         tic, cpu = time.perf_counter(), time.process_time()
         n = len(ev_t)
-        cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * self.backend.cfg.backend_sliding_window_stride)), 1)
+        stride = self.backend.cfg.backend_sliding_window_stride
+        self._record_travel(float(t0), float(t0) + stride)
+        cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * stride)), 1)
         k = max(int(math.ceil(n / cap)), 1)
         t, b = ev_t[::k].copy(), ev_b[::k].copy()
         self.chunks.append((t, b, n / len(t), float(t0), bool(moving)))
@@ -243,6 +253,44 @@ class LoopCloser:
         self._spent(tic, cpu)
         self.profile["store"] += time.perf_counter() - tic
 
+    def _record_travel(self, t0: float, t1: float) -> None:
+        """Add the rotation travelled over a settled stride [t0, t1] (5 steps of the spline) to the record."""
+        start, end = self.backend.spline.valid_time_range()
+        n, rec = self._n_travel, self._travel_rec
+        t0, t1 = max(t0, rec[0, n - 1], start), min(t1, end)
+        if t1 <= t0:
+            return
+        rot = self.backend.spline.evaluate(np.linspace(t0, t1, 6))
+        if n == rec.shape[1]:
+            self._travel_rec = rec = np.concatenate([rec, np.zeros_like(rec)], axis=1)
+        rec[:, n] = t1, rec[1, n - 1] + float(so3.geodesic_angle(rot[:-1], rot[1:]).sum())
+        self._n_travel = n + 1
+
+    def _due(self, t1: float) -> bool:
+        """A check before the window ending at t1: at the scheduled time, or before the first one (loop_min_age +
+        loop_recent_time after the start) once the camera has turned loop_min_travel since the start (a region
+        may be old by travel already)."""
+        if t1 >= self._next_check:
+            return True
+        rec = self._travel_rec
+        return not self.loops and self.cfg.loop_min_travel > 0 and \
+            rec[1, self._n_travel - 1] >= math.radians(self.cfg.loop_min_travel) and \
+            t1 >= rec[0, 0] + 2 * self.cfg.loop_recent_time
+
+    def old_before(self, t_now: float) -> float:
+        """Map regions last observed before this time are old at t_now: at least ``loop_min_age`` s ago, or at
+        least ``loop_recent_time`` s ago and before the camera turned ``loop_min_travel`` (the last recorded
+        stride end with that much rotation travelled after it; -1: the age alone)."""
+        cfg = self.cfg
+        before = t_now - cfg.loop_min_age
+        if cfg.loop_min_travel > 0:
+            times, travel = self._travel_rec[:, :self._n_travel]
+            now = np.interp(t_now, times, travel)
+            i = int(np.searchsorted(travel, now - math.radians(cfg.loop_min_travel), side="right")) - 1
+            if i >= 0:
+                before = max(before, min(float(times[i]), t_now - cfg.loop_recent_time))
+        return before
+
     def before_window(self, t0: float, t1: float) -> None:
         """Before the BA of window [t0, t1] (its control poses initialized): look for a revisit in the recent
         events plus the window's, and close it. The window's events are still at their initialized poses: the
@@ -255,7 +303,7 @@ class LoopCloser:
                 self._conclude_task()
             self._spent(tic, cpu)
             return
-        if t1 < self._next_check:
+        if not self._due(t1):
             return
         tic, cpu = time.perf_counter(), time.process_time()
         ev_t, ev_b = self.backend.events.range(t0, t1, include_end=True)
@@ -327,7 +375,7 @@ class LoopCloser:
         hit = np.zeros(age.size, bool)
         hit[self._cells(b, rot, _CELL_EVERY)] = True
         cells = np.flatnonzero(hit)  # sorted, without np.unique's sort
-        new_visit = age.flat[cells] < float(t[0]) - self.cfg.loop_min_age  # never observed, or long ago
+        new_visit = age.flat[cells] < self.old_before(float(t[0]))  # never observed, or old
         visit.flat[cells[new_visit]] = float(t[0])
         age.flat[cells] = np.maximum(age.flat[cells], float(t[-1]))
         return rot
@@ -358,7 +406,7 @@ class LoopCloser:
         t, b = self._recent_events(ev_t, ev_b)
         if len(t) < 2 * self.backend.cfg.event_batch_size:
             return
-        old_cells = (self.age > -np.inf) & (self.age < t_now - cfg.loop_min_age)
+        old_cells = (self.age > -np.inf) & (self.age < self.old_before(t_now))
         _, rot = self._rotations(t)
         on_old = old_cells.flat[self._cells(b, rot, _CELL_EVERY)]  # the fraction: 1 in 4 of the events tells it
         overlap = float(np.mean(on_old))
@@ -469,6 +517,11 @@ class LoopCloser:
             drift = cfg.loop_check_drift_px * 2 * np.pi / self.backend.width  # rad
             wait = drift / self._drift_rate if self._drift_rate > 0 else longest
             self._interval = min(max(wait, recent), longest)
+        elif entry["reason"] == "correction above loop_max_correction":
+            # the registration ran off (at the start of a revisit, with little overlap, the contrast rises by
+            # sliding the recent map over more of the old one): it says nothing of the map's consistency, and the
+            # overlap grows as the revisit goes on: again after loop_recent_time
+            self._interval = recent
         else:
             self._interval = min(2 * self._interval, longest)
         self._next_check = t_now + self._interval

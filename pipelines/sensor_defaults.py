@@ -29,6 +29,14 @@ With P the sensor's pixel count, s = P / 43200 (DAVIS240C = 1) and f = (fx + fy)
   pixel on every sensor below the 8192 cap). On a VGA pan (bay, 8 s, 2 turns) the first revisit registered with
   20 000 events correlated 0.046 with the old map (rejected, with a false 0.10 deg correction), with 142 000
   0.561 (accepted, 0.012 deg: no drift to close); its verification then took 16 s instead of 7 (load 6-7).
+- ``loop_min_travel``           = 360 deg - 2 * the horizontal field of view (the angle between the bearings of the
+  left and right image edges on the centre row, distortion included), rounded to 1 deg (DAVIS240C 219, DVS128 239,
+  VGA 216, HD 248 deg): a map region also counts as old for the loop closer (a revisit) once the camera turned
+  that far since it last saw it (``loop_min_age`` alone, 3 s, missed the revisits of a fast pan: 2 turns in 6 s
+  come back to the start 1.7-2.5 s after they left it). On a pan a region seen again has been left behind for a
+  turn less one field of view of rotation; the margin of a second field of view covers the wobble and the
+  region's width, and swings back and forth over a field of view or two never add up to it while the region is
+  out of view.
 - ``realtime_min_window_events`` = 1 * P * window / 0.2 s, rounded to 1000: the floor below which the real-time
   controller (pipelines/realtime.py) never samples a window's BA (a fifth of the cap above; fewer events per
   pixel leave the panoramic IWE too sparse for its variance to mean much).
@@ -37,6 +45,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+
+import numpy as np
 
 from ti_cmax.camera import Camera
 from ti_cmax.config import BackendConfig, FrontendConfig, SlamConfig
@@ -93,7 +103,10 @@ def derived_backend(camera: Camera, config: BackendConfig = BackendConfig()) -> 
 def derived_loop(camera: Camera) -> dict:
     """The loop closer's values for this camera (see the module docstring)."""
     events = REFERENCE_REGISTRATION_EVENTS * max(1.0, _pixel_scale(camera))
-    return {"loop_registration_events": _round_to(events, 1000)}
+    edges = camera.unproject(np.array([-0.5, camera.width - 0.5]), np.full(2, camera.cy))
+    edges /= np.linalg.norm(edges, axis=1, keepdims=True)
+    fov = math.degrees(math.acos(float(np.clip(edges[0] @ edges[1], -1.0, 1.0))))
+    return {"loop_registration_events": _round_to(events, 1000), "loop_min_travel": float(round(360.0 - 2 * fov))}
 
 
 def derived_realtime(camera: Camera, backend: BackendConfig = BackendConfig()) -> dict:

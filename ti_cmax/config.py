@@ -271,6 +271,10 @@ class LoopClosureConfig(Params):
                                      "the loop closer)")
     loop_min_age: float = param(3.0, "time since a map region was last observed for it to count as old", unit="s",
                                 gt=0)
+    loop_min_travel: float = param(0.0, "rotation the camera travelled since a map region was last observed for it "
+                                        "to count as old also before loop_min_age (at least loop_recent_time after); "
+                                        "derived: 360 deg less twice the horizontal field of view", unit="deg", gt=0,
+                                   zero="derived", off=-1)
     loop_recent_time: float = param(1.0, "recent events registered against the old map; at most one check per this",
                                     unit="s", gt=0)
     loop_min_overlap: float = param(0.15, "fraction of the recent events that must fall on old observed regions",

@@ -13,6 +13,7 @@ DURATION, TURNS, RATE = 5.0, 1.3, 120_000  # s, pan turns, events/s
 DRIFT = np.radians(4.0)  # injected drift at the end (grows linearly from 0), about DRIFT_AXIS (world frame)
 DRIFT_AXIS = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
 LOOP = LoopClosureConfig(loop_closure=True, loop_registration_events=20000,  # as resolved for a DAVIS240C
+                         loop_min_travel=240.0,  # as resolved for a 60 deg field of view
                          loop_check_drift_px=0.0)  # a check every loop_recent_time after a loop: more loops
 
 
@@ -363,7 +364,10 @@ def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_r
     from ti_cmax.pipelines import loop_closure
 
     t_ev, b_ev = _events()
-    at_once = _run(t_ev, b_ev, _drifted)
+    # the age rule alone: the first candidate is then the loop to close (with loop_min_travel a check 0.2 s earlier,
+    # at 20 % overlap, runs off and is rejected, and the next one is still in flight when this short run ends)
+    cfg = replace(LOOP, loop_min_travel=-1.0)
+    at_once = _run(t_ev, b_ev, _drifted, cfg)
     calls = []
     original = loop_closure._Slices.resume
 
@@ -381,7 +385,7 @@ def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_r
 
     loop_closure.LoopCloser.__init__ = init
     try:
-        sliced = _run(t_ev, b_ev, _drifted, idle_slices=5)
+        sliced = _run(t_ev, b_ev, _drifted, cfg, idle_slices=5)
     finally:
         loop_closure._Slices.resume, loop_closure.LoopCloser.__init__ = original, old_init
     first, ref = sliced.loop.loops[0], at_once.loop.loops[0]
@@ -498,3 +502,23 @@ def test_global_map_is_rebuilt_once_when_read(ti_runtime, monkeypatch):
     assert lc.map_stale
     np.testing.assert_array_equal(be.map.raw, lazy)
     assert lc.map_rebuilds == 2
+
+
+def test_fast_pan_revisits_count_by_the_rotation_travelled(ti_runtime):
+    """2 turns in 4 s: the camera is back over a region 1.3-1.7 s after it left it, sooner than loop_min_age (3 s).
+    The rotation travelled since (loop_min_travel) makes it a revisit: the drift is closed; by age alone the
+    revisits are missed and the drift stays."""
+    duration, turns = 4.0, 2.0
+    pan = lambda t: _pan(t, duration, turns)  # noqa: E731
+    drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
+    t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
+    be = _run(t_ev, b_ev, drifted, duration=duration)
+    age_only = _run(t_ev, b_ev, drifted, replace(LOOP, loop_min_travel=-1.0), duration=duration)
+    applied = [e for e in be.loop.loops if e["applied"]]
+    assert applied and applied[0]["time"] < 3.0, be.loop.loops
+    assert not any(e["applied"] for e in age_only.loop.loops), age_only.loop.loops
+    # over the span the loops closed (the drift, 1 deg/s, builds up again after the last one)
+    ts = np.linspace(applied[0]["t_ref"], applied[-1]["t_ref"], 10)
+    err = np.degrees(so3.geodesic_angle(be.spline.evaluate(ts), pan(ts)))
+    err_age = np.degrees(so3.geodesic_angle(age_only.spline.evaluate(ts), pan(ts)))
+    assert err.max() < 0.25 * err_age.min(), (err, err_age)

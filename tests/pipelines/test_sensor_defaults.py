@@ -123,3 +123,13 @@ def test_fast_start_is_as_good_as_the_rest(ti_runtime):
     t = err.abs_times
     early, rest = err.abs_errors_deg[t < t[0] + 0.3], err.abs_errors_deg[t >= t[0] + 0.3]
     assert err.abs_rmse_deg < 0.3 and early.max() < max(0.3, 2.0 * rest.max()), (early.max(), rest.max())
+
+
+def test_loop_min_travel_is_a_turn_less_two_fields_of_view():
+    from ti_cmax.config import LoopClosureConfig
+
+    for fov in (50.0, 60.0, 90.0):
+        cam = Camera.ideal(320, 240, fov)
+        assert resolve_config(SlamConfig(), cam).loop.loop_min_travel == 360.0 - 2 * fov
+    user = SlamConfig(loop=LoopClosureConfig(loop_min_travel=-1.0))  # -1: the age rule alone, kept
+    assert resolve_config(user, Camera.ideal(320, 240, 60.0)).loop.loop_min_travel == -1.0
