@@ -36,7 +36,7 @@ With P the sensor's pixel count, s = P / 43200 (DAVIS240C = 1) and f = (fx + fy)
   come back to the start 1.7-2.5 s after they left it). On a pan a region seen again has been left behind for a
   turn less one field of view of rotation; the margin of a second field of view covers the wobble and the
   region's width, and swings back and forth over a field of view or two never add up to it while the region is
-  out of view.
+  out of view. A view of 180 deg or more gives -1 (the age alone).
 - ``realtime_min_window_events`` = 1 * P * window / 0.2 s, rounded to 1000: the floor below which the real-time
   controller (pipelines/realtime.py) never samples a window's BA (a fifth of the cap above; fewer events per
   pixel leave the panoramic IWE too sparse for its variance to mean much).
@@ -106,7 +106,9 @@ def derived_loop(camera: Camera) -> dict:
     edges = camera.unproject(np.array([-0.5, camera.width - 0.5]), np.full(2, camera.cy))
     edges /= np.linalg.norm(edges, axis=1, keepdims=True)
     fov = math.degrees(math.acos(float(np.clip(edges[0] @ edges[1], -1.0, 1.0))))
-    return {"loop_registration_events": _round_to(events, 1000), "loop_min_travel": float(round(360.0 - 2 * fov))}
+    travel = float(round(360.0 - 2 * fov))
+    # a view of 180 deg or more (a fisheye): no turn leaves a region behind for long; the age alone (-1)
+    return {"loop_registration_events": _round_to(events, 1000), "loop_min_travel": travel if travel > 0 else -1.0}
 
 
 def derived_realtime(camera: Camera, backend: BackendConfig = BackendConfig()) -> dict:
