@@ -394,22 +394,15 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
                 s3 = ti.cast(0.0, ti.f64)
                 if alpha != 0:  # map columns c0 + j, then (past the seam) c0 + j - gw: no branch per pixel
                     n1 = ti.min(bw, gw - c0)
-                    for j in range(n1):
-                        lv = lmap[i, j]
-                        val = ti.cast(lv, ti.f64)
-                        s1 += val
-                        s2 += val * val
-                        g = gmap[gi, c0 + j]
-                        s3 += val * ti.cast(g, ti.f64)
-                        comb[i, j] = lv + alpha * g
-                    for j in range(n1, bw):
-                        lv = lmap[i, j]
-                        val = ti.cast(lv, ti.f64)
-                        s1 += val
-                        s2 += val * val
-                        g = gmap[gi, c0 + j - gw]
-                        s3 += val * ti.cast(g, ti.f64)
-                        comb[i, j] = lv + alpha * g
+                    for seam in ti.static(range(2)):  # buffer columns [0, n1), then [n1, bw) shifted by -gw
+                        for j in range(n1 * seam, n1 + (bw - n1) * seam):
+                            lv = lmap[i, j]
+                            val = ti.cast(lv, ti.f64)
+                            s1 += val
+                            s2 += val * val
+                            g = gmap[gi, c0 + j - gw * seam]
+                            s3 += val * ti.cast(g, ti.f64)
+                            comb[i, j] = lv + alpha * g
                 else:
                     for j in range(bw):
                         lv = lmap[i, j]
