@@ -575,9 +575,11 @@ def blur_region(raw: np.ndarray, blurred: np.ndarray, rows: slice, cols: np.ndar
     else:
         in_cols = column_selector((cols[0] - r + np.arange(len(cols) + 2 * r)) % w)
     n_in = w if full_width else len(cols) + 2 * r
-    src = np.zeros((r1 - r0, n_in), np.float64)
+    src = np.zeros((r1 - r0, n_in), blurred.dtype)
     src[lo - r0 : hi - r0] = raw[lo:hi, in_cols]
-    out = separable_blur(src, gaussian_taps(sigma), wrap_cols=full_width)  # float64, = scipy's gaussian_filter1d
+    # in the maps' dtype (float32: OpenCV's SIMD pass 2.5x faster than in float64; = scipy's gaussian_filter1d to
+    # float32 rounding)
+    out = separable_blur(src, gaussian_taps(sigma), wrap_cols=full_width)
     out = out[r : r + (rows.stop - rows.start)]
     if not full_width:
         out = out[:, r : r + len(cols)]
@@ -686,26 +688,46 @@ class PanoIWE:
         r1 = min(int(self._bbox[:, 3].max()) + r, self.height - 1)
         return r0, c0, r1 - r0 + 1, bw, wrap
 
-    def _forward(self, control_R):
+    def _vote(self, control_R, lambda0: float = -1.0):
+        """Project the events at these control poses and vote I_L (unblurred) into the window buffer: (ctrl, window
+        (r0, c0, bh, bw, wrap) or None, buffer (bh, bw), per-row stats (bh, 3): raw sum, event area when lambda0
+        >= 0)."""
         ctrl = np.ascontiguousarray(control_R, dtype=self.dtype).reshape(-1, 3, 3)
         if len(self.batch_s) and self.batch_s.max() + self.degree >= len(ctrl):
             raise ValueError("batch supports reach beyond the control poses passed")
         if len(self.bearings) == 0:
             self.last_window = None
-            return ctrl, None, None, self._constant_var()
+            return ctrl, None, None, None
         k = self._k
         k["project"](ctrl, self.batch_s, self.batch_u, self.bearings, self.batch_size, self.width, self.height,
                      self.su, self.sv, self._jac, self._basis, self._uv, self._bbox, self.parts * PART_TASK)
         win = self._window()
         self.last_window = win
         if win is None:
-            return ctrl, None, None, self._constant_var()
+            return ctrl, None, None, None
         r0, c0, bh, bw, wrap = win
         votes = np.zeros((self.parts * bh, bw), dtype=self.dtype)  # calloc: zero pages, no pass over memory
         lmap = votes if self.parts == 1 else np.empty((bh, bw), dtype=self.dtype)  # one part: voted in place
         stats = np.empty((bh, 3))
-        k["local_map"](self._uv, c0, r0, self.width, self._density_ref[1] if self._density_ref is not None else -1.0,
-                       votes, lmap, stats)  # the event area only at the first call (alpha from the density)
+        k["local_map"](self._uv, c0, r0, self.width, lambda0, votes, lmap, stats)
+        return ctrl, win, lmap, stats
+
+    def votes(self, control_R):
+        """The raw local map I_L (bilinear votes, unblurred) of the events at these control poses on its window:
+        (first row, column indices (modulo the width), votes (bh, bw)), None when no event lands in the map. The
+        back-end settles each stride into the global map with it: the BA's own projection and vote."""
+        _, win, lmap, _ = self._vote(control_R)
+        if win is None:
+            return None
+        r0, c0, _bh, bw, wrap = win
+        return r0, (np.arange(bw) if wrap else (c0 + np.arange(bw)) % self.width), lmap
+
+    def _forward(self, control_R):
+        # the event area only at the first call (alpha from the density)
+        ctrl, win, lmap, stats = self._vote(control_R, self._density_ref[1] if self._density_ref is not None else -1.0)
+        if win is None:
+            return ctrl, None, None, self._constant_var()
+        r0, c0, bh, bw, wrap = win
         if self._density_ref is not None:  # the first evaluation: alpha from the density of this local map
             raw, area = stats[:, :2].sum(axis=0)
             rho_g, _ = self._density_ref
@@ -713,7 +735,7 @@ class PanoIWE:
             self._density_ref = None
         separable_blur(lmap, self.taps, wrap_cols=bool(wrap), out=lmap)
         comb = np.empty_like(lmap)  # L + alpha G, for the gradient
-        k["stats"](lmap, self.gmap, self.alpha, r0, c0, comb, stats, self.parts * PART_TASK)
+        self._k["stats"](lmap, self.gmap, self.alpha, r0, c0, comb, stats, self.parts * PART_TASK)
         s_l, s_ll, s_lg = stats.sum(axis=0)
         mu = (s_l + self.alpha * self.g_sum) / self.n_px
         # sum over all px of (L + aG - mu)^2 = sum (aG - mu)^2 + sum_buf (L^2 + 2 L (aG - mu))

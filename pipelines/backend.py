@@ -128,6 +128,13 @@ class _Buffer:
         return times[i0:i1], self.b[i0:i1]
 
 
+def _sum_and_squares(x: np.ndarray) -> tuple[float, float]:
+    """(sum, sum of squares) of a float32 array, in float64 (einsum: a matrix product would call BLAS, whose
+    threads spin on the other core after each call)."""
+    y = x.astype(np.float64).reshape(-1)
+    return float(y.sum()), float(np.einsum("i,i->", y, y))
+
+
 class GlobalMap:
     """The global panoramic map I_G, its blur B(I_G) and the sums Eq. (16)-(18) need, kept up to date region by
     region: settling a stride of events costs in proportion to the events and the area they touch, never to the
@@ -178,9 +185,17 @@ class GlobalMap:
         """Vote events (per-batch rotations) into I_G and update B(I_G), the sums and the density. ``weight``
         scales the votes (a subsample standing for more events, as when loop closure rebuilds the map)."""
         taken = self._take_votes(bearings, rotations, batch_size, blur_radius(self.sigma), weight)
-        if taken is None:
-            return
-        rows, cols, sel, votes = taken
+        if taken is not None:
+            self._accumulate(*taken, t_now, moving)
+
+    def add_votes(self, r0: int, cols: np.ndarray, votes: np.ndarray, t_now: float, moving: bool = True) -> None:
+        """Add a local map of votes (bh, bw) float32 on rows [r0, r0 + bh) and columns ``cols`` (modulo the width),
+        as ``PanoIWE.votes`` gives it (its window holds every vote plus the blur radius, as B(I_G)'s update needs)."""
+        rows = slice(int(r0), int(r0) + len(votes))
+        self._accumulate(rows, cols, (rows, column_selector(cols)), votes, t_now, moving)
+
+    def _accumulate(self, rows: slice, cols: np.ndarray, sel, votes: np.ndarray, t_now: float, moving: bool) -> None:
+        """I_G += votes on the region (rows, cols) = sel, then B(I_G), the sums and the event area there."""
         contiguous = isinstance(sel[1], slice)
         if self.first_seen is not None:
             seen = self.first_seen[sel]
@@ -188,21 +203,23 @@ class GlobalMap:
                 seen = np.minimum(seen, np.where(votes > 0, np.float32(t_now), np.float32(np.inf)))
                 self.first_seen[sel] = seen
             votes = np.where((t_now - seen) < self.max_update_time, votes, 0).astype(np.float32)
-        old_raw = self.raw[sel].copy() if contiguous else self.raw[sel]
-        new_raw = old_raw + votes
-        self.raw[sel] = new_raw
-        # the votes and the new blur are summed over column-major copies, the old blur over a row-major one: the
-        # summation orders (hence every bit) of the gathered copies this code used before it took views
-        self.n_events += float(np.asfortranarray(votes).sum(dtype=np.float64))
-        # event area: only pixels that received votes change, sum of exp(-old / lambda0) - exp(-new / lambda0)
-        changed = np.flatnonzero(votes)
-        old_v = old_raw.reshape(-1)[changed].astype(np.float64) / -self.lambda0
-        new_v = new_raw.reshape(-1)[changed].astype(np.float64) / -self.lambda0
-        self.area += float(np.sum(np.exp(old_v) - np.exp(new_v)))
-        old_blur = blur_region(self.raw, self.blurred, rows, cols, self.sigma).astype(np.float64)  # a C copy
-        new_blur = self.blurred[sel].astype(np.float64, order="F")
-        self.g_sum += float(new_blur.sum() - old_blur.sum())
-        self.g_sq += float(np.sum(new_blur * new_blur) - np.sum(old_blur * old_blur))
+        old_raw = self.raw[sel].copy() if contiguous else self.raw[sel]  # (a gather is a copy)
+        if contiguous:
+            self.raw[sel] += votes
+            new_raw = self.raw[sel]
+        else:
+            new_raw = old_raw + votes
+            self.raw[sel] = new_raw
+        self.n_events += float(votes.sum(dtype=np.float64))
+        # event area: sum of exp(-old / lambda0) - exp(-new / lambda0) over the region (exactly 0 where no vote
+        # landed), the exponentials in float32 (SIMD: ~7x cheaper than gathering the voted pixels for float64 ones;
+        # the sum in float64)
+        scale = np.float32(-1.0 / self.lambda0)
+        self.area += float(np.sum(np.exp(old_raw * scale) - np.exp(new_raw * scale), dtype=np.float64))
+        old_sums = _sum_and_squares(blur_region(self.raw, self.blurred, rows, cols, self.sigma))
+        new_sums = _sum_and_squares(self.blurred[sel])
+        self.g_sum += new_sums[0] - old_sums[0]
+        self.g_sq += new_sums[1] - old_sums[1]
 
     def set_raw(self, raw: np.ndarray) -> None:
         """Replace I_G by ``raw`` ((h, w) float32, taken over) and recompute B(I_G), its sums, N_e and the event area
@@ -584,7 +601,12 @@ class SlidingWindowBackend:
             start, end = self.spline.valid_time_range()
             mids = np.clip(batch_mid_times(ev_t, cfg.event_batch_size), start, end)
             if self.loop is None or not self.loop.map_stale:  # (a stale map is rebuilt from the loop closer's store)
-                self._map.add(ev_b, self.spline.evaluate(mids), cfg.event_batch_size, t0, moving=not still)
+                # the BA's projection and vote (PanoIWE: the spline evaluated per batch in the kernel)
+                s, u = self.spline.support(mids)
+                local = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, alpha=0.0,
+                                batch_size=cfg.event_batch_size).votes(self.spline.control_R)
+                if local is not None:
+                    self._map.add_votes(*local, t0, moving=not still)
             self.events_settled += len(ev_t)
             if self.loop is not None:  # loop closure keeps a subsample of the settled events
                 self.loop.store(ev_t, ev_b, t0, not still)

@@ -118,6 +118,23 @@ def test_kernel_matches_numpy_twin(ti_runtime, degree, yaw0, yaw_rate, expect):
                                atol=1e-10)
 
 
+@pytest.mark.parametrize("yaw0, yaw_rate", [(0.0, 1.0), (2.9, 1.0), (0.0, 40.0)])  # inside, seam, full width
+def test_raw_votes_match_the_vote_map_twin(ti_runtime, yaw0, yaw_rate):
+    """PanoIWE.votes (how the back-end settles a stride into I_G) gives the unblurred votes of vote_map_numpy on its
+    window, which holds every vote."""
+    from ti_cmax.kernels import pano
+
+    spline, bearings, s, u, _ = window_case(3, yaw0, yaw_rate)
+    twin = pano.vote_map_numpy(bearings, spline.evaluate_at(s, u), W, H, batch_size=100)
+    for dtype, atol in ((np.float64, 1e-10), (np.float32, 2e-3)):
+        r0, cols, votes = pano.PanoIWE(bearings, s, u, 3, W, H, dtype=dtype).votes(spline.control_R)
+        assert votes.dtype == dtype
+        placed = np.zeros((H, W))
+        placed[r0 : r0 + len(votes)][:, cols] = votes
+        np.testing.assert_allclose(placed, twin, atol=atol)
+    assert pano.PanoIWE(bearings[:0], s[:0], u[:0], 3, W, H).votes(spline.control_R) is None
+
+
 @pytest.mark.parametrize("degree", [1, 3])
 def test_gradient_matches_central_differences(ti_runtime, degree):
     from ti_cmax.kernels import pano

@@ -26,6 +26,31 @@ def test_global_map_incremental_updates_match_full_recompute(ti_runtime):
     assert gm._scratch.max() == 0  # the scratch map is left clean
 
 
+def test_global_map_takes_a_local_map_of_votes(ti_runtime):
+    """GlobalMap.add_votes (the settle path: PanoIWE.votes's window) keeps I_G, B(I_G), the sums and the event area
+    as GlobalMap.add does with the same events, across the longitude seam."""
+    from ti_cmax import so3
+    from ti_cmax.kernels.pano import PanoIWE, batch_mid_times
+    from ti_cmax.pipelines.backend import GlobalMap
+    from ti_cmax.spline import SO3Spline
+
+    rng = np.random.default_rng(5)
+    w, h, n = 256, 128, 4000
+    b = np.column_stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.3, 0.3, n), np.ones(n)]).astype(np.float32)
+    ref, local = GlobalMap(w, h, 1.0, 1.0), GlobalMap(w, h, 1.0, 1.0)
+    for yaw in (0.3, np.pi - 0.05):  # the second stride straddles u = 0 / w
+        spline = SO3Spline(3, 0.0, 0.05, so3.exp(np.outer(yaw + 0.5 * np.arange(6) * 0.05, [0.1, 1.0, 0.0])))
+        start, end = spline.valid_time_range()
+        mids = batch_mid_times(np.linspace(start, end, n), 100)
+        ref.add(b, spline.evaluate(mids), 100, t_now=0.0)
+        r0, cols, votes = PanoIWE(b, *spline.support(mids), 3, w, h).votes(spline.control_R)
+        local.add_votes(r0, cols, votes, t_now=0.0)
+    np.testing.assert_allclose(local.raw, ref.raw, atol=2e-3)
+    np.testing.assert_allclose(local.blurred, ref.blurred, atol=2e-3)
+    for name in ("g_sum", "g_sq", "n_events", "area"):
+        assert getattr(local, name) == pytest.approx(getattr(ref, name), rel=1e-4), name
+
+
 def test_window_initialization_reaches_beyond_the_window_end():
     """Source samples that coincide with the window end up to rounding (100 Hz poses, 0.1 s windows, a start
     time like 0.066265000000000004) must not count as the sample beyond it: the window's last control poses
