@@ -603,8 +603,9 @@ class SlidingWindowBackend:
             if self.loop is None or not self.loop.map_stale:  # (a stale map is rebuilt from the loop closer's store)
                 # the BA's projection and vote (PanoIWE: the spline evaluated per batch in the kernel)
                 s, u = self.spline.support(mids)
-                local = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, alpha=0.0,
-                                batch_size=cfg.event_batch_size).votes(self.spline.control_R)
+                # (its window holds the votes plus the blur radius of I_G's blur: the region B(I_G) changes on)
+                local = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=self._map.sigma,
+                                alpha=0.0, batch_size=cfg.event_batch_size).votes(self.spline.control_R)
                 if local is not None:
                     self._map.add_votes(*local, t0, moving=not still)
             self.events_settled += len(ev_t)

@@ -37,13 +37,14 @@ def test_global_map_takes_a_local_map_of_votes(ti_runtime):
     rng = np.random.default_rng(5)
     w, h, n = 256, 128, 4000
     b = np.column_stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.3, 0.3, n), np.ones(n)]).astype(np.float32)
-    ref, local = GlobalMap(w, h, 1.0, 1.0), GlobalMap(w, h, 1.0, 1.0)
+    sigma = 2.0  # the window's margin must be this blur's radius (8 px), not the default sigma's
+    ref, local = GlobalMap(w, h, sigma, 1.0), GlobalMap(w, h, sigma, 1.0)
     for yaw in (0.3, np.pi - 0.05):  # the second stride straddles u = 0 / w
         spline = SO3Spline(3, 0.0, 0.05, so3.exp(np.outer(yaw + 0.5 * np.arange(6) * 0.05, [0.1, 1.0, 0.0])))
         start, end = spline.valid_time_range()
         mids = batch_mid_times(np.linspace(start, end, n), 100)
         ref.add(b, spline.evaluate(mids), 100, t_now=0.0)
-        r0, cols, votes = PanoIWE(b, *spline.support(mids), 3, w, h).votes(spline.control_R)
+        r0, cols, votes = PanoIWE(b, *spline.support(mids), 3, w, h, sigma=sigma).votes(spline.control_R)
         local.add_votes(r0, cols, votes, t_now=0.0)
     np.testing.assert_allclose(local.raw, ref.raw, atol=2e-3)
     np.testing.assert_allclose(local.blurred, ref.blurred, atol=2e-3)
