@@ -143,6 +143,22 @@ def ensure_init() -> None:
     from .blur import set_blur_threads
 
     set_blur_threads(threads)
+    limit_blas_threads()
+
+
+def limit_blas_threads() -> None:
+    """numpy's and scipy's BLAS (OpenBLAS) to one thread in a process that runs the kernels, unless the user set
+    OPENBLAS_NUM_THREADS: the math runs in Taichi and OpenCV, BLAS only sees small products (spline fits, BFGS, a
+    few sums), and after each call its idle threads spin on the other core beside the kernels (a real-time
+    `slam --parallel` at 2 M ev/s: ~0.35 CPU s per 6 s in each process; offline --parallel, three interleaved
+    pairs: process CPU 12.0-14.2 -> 11.3-12.1 s, system time 0.75-0.94 -> 0.54-0.63 s). The variable also reaches
+    BLAS libraries loaded later and the back-end worker process."""
+    if "OPENBLAS_NUM_THREADS" in os.environ:
+        return
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1, user_api="blas")  # the BLAS libraries already loaded (numpy's)
 
 
 # Taichi 1.7.4 runs a CPU range-for of N iterations as tasks of max(512, ceil(N / threads)) consecutive

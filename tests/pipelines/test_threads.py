@@ -1,6 +1,8 @@
 """Reproducibility (issue 18, point 9): float atomics make results depend on the thread count, but one thread
 (--threads 1, or --set num_threads=1) gives the same bytes run after run. Runs in subprocesses: the thread count
 is fixed when Taichi starts."""
+import ast
+import os
 import subprocess
 import sys
 
@@ -74,3 +76,22 @@ def test_front_end_output_does_not_depend_on_the_thread_count(tmp_path, monkeypa
         omegas.append(np.load(out))
     assert len(omegas[0]) > 10 and np.abs(omegas[0]).max() > 0.1
     assert omegas[0].tobytes() == omegas[1].tobytes()
+
+
+def test_a_kernel_process_runs_blas_on_one_thread():
+    """A process running the kernels keeps numpy's BLAS to one thread (its idle threads spin beside the kernels
+    after each small product), unless OPENBLAS_NUM_THREADS was set; the variable reaches later processes."""
+    code = ("import os, numpy, threadpoolctl\n"
+            "from ti_cmax.kernels import runtime\n"
+            "runtime.ensure_init()\n"
+            "blas = [i['num_threads'] for i in threadpoolctl.threadpool_info() if i['user_api'] == 'blas']\n"
+            "print(os.environ.get('OPENBLAS_NUM_THREADS'), blas)\n")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    env["TI_CMAX_THREADS"] = "2"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0, out.stderr
+    value, blas = out.stdout.strip().splitlines()[-1].split(" ", 1)
+    assert value == "1" and ast.literal_eval(blas) and set(ast.literal_eval(blas)) == {1}
+    env["OPENBLAS_NUM_THREADS"] = "2"  # the user's choice is kept
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert out.stdout.strip().splitlines()[-1].startswith("2 [2")
