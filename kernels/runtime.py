@@ -153,7 +153,7 @@ def limit_blas_threads() -> None:
     `slam --parallel` at 2 M ev/s: ~0.35 CPU s per 6 s in each process; offline --parallel, three interleaved
     pairs: process CPU 12.0-14.2 -> 11.3-12.1 s, system time 0.75-0.94 -> 0.54-0.63 s). The variable also reaches
     BLAS libraries loaded later and the back-end worker process."""
-    if "OPENBLAS_NUM_THREADS" in os.environ:
+    if os.environ.get("OPENBLAS_NUM_THREADS", "1") != "1":  # (importing ti_cmax set it to 1 unless the user chose)
         return
     os.environ["OPENBLAS_NUM_THREADS"] = "1"
     from threadpoolctl import threadpool_limits

@@ -7,6 +7,13 @@ loads Taichi), so ``import ti_cmax`` stays light:
     ds = ti_cmax.open_dataset("seq")
     result = ti_cmax.run_slam(ds.iter_events(), ds.camera, ti_cmax.SlamConfig())
 """
+import os as _os
+
+# numpy's BLAS (OpenBLAS) on one thread unless the user chose a count: set before numpy loads it, so its pool is
+# never started (kernels/runtime.limit_blas_threads: its idle threads spin beside the kernels; a 0.3 s `slam` spent
+# 0.4-1.2 CPU s more with them)
+_os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 from . import so3
 from .camera import Camera
 from .config import BackendConfig, DatasetConfig, FrontendConfig, OutputConfig, SlamConfig, load_config
