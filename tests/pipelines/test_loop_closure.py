@@ -546,3 +546,21 @@ def test_the_last_window_closes_the_drift_since_the_last_check(ti_runtime):
     ts = np.linspace(last["t_ref"] - 0.2, last["t_ref"], 3)  # (before them the spread correction tapers)
     err_plain = np.degrees(so3.geodesic_angle(plain.backend.spline.evaluate(ts), _pan(ts, duration, 2.3)))
     assert _error_at(be, ts, duration).max() < 0.5 * err_plain.min(), (_error_at(be, ts, duration), err_plain)
+
+
+def test_error_trace_gives_the_first_turns_part_of_the_abs_error():
+    """bench_loops.error_trace: the part of the abs RMSE from the poses before the first full turn (what a loop
+    closer anchored to the first turn's map cannot remove): all of it when only the first turn errs, none when
+    only the second does."""
+    import re
+
+    from ti_cmax.pipelines.bench_loops import error_trace
+    from ti_cmax.trajectory import Trajectory
+
+    t = np.arange(0, 4.0, 0.01)
+    gt = Trajectory(t, _pan(t, 4.0, 2.0))  # 2 turns in 4 s: the first ends at 2 s
+    for erring, share in (((t > 0.3) & (t < 1.8), 1.0), (t > 2.2, 0.0)):  # (none at the alignment time, 0.1 s)
+        tilt = so3.exp(np.outer(np.where(erring, np.radians(0.5) * np.sin(3 * t), 0.0), [1.0, 0.0, 0.0]))
+        head = error_trace(gt, Trajectory(t, tilt @ gt.R), 0.5).splitlines()[0]
+        total, part = (float(x) for x in re.findall(r"abs RMSE ([\d.]+) deg.*first turn's part ([\d.]+) deg", head)[0])
+        assert total > 0.1 and part == pytest.approx(share * total, abs=0.002), head
