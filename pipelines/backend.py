@@ -340,7 +340,7 @@ class SlidingWindowBackend:
             self._initialize_until(t1)
         if self.loop is not None:  # loop closure: a revisit is closed before this window's BA
             with clock("loop"):
-                self.loop.before_window(t0, t1)
+                self.loop.before_window(t0, t1, final)
         ev_t, ev_b = self.events.range(t0, t1, include_end=True)
         n = len(ev_t)
         rate = n / max(t1 - t0, 1e-9)

@@ -14,7 +14,9 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    registration that ran off beyond ``loop_max_correction``: little overlap at a revisit's start, which grows as it
    goes on; after an applied
    loop, the next check waits until the drift rate that loop measured has moved the map by
-   ``loop_check_drift_px``, within the same bounds): the recent events
+   ``loop_check_drift_px``, within the same bounds; at the stream's last window a check not due yet runs when
+   the last verification was ``loop_recent_time`` or more before it: no later check could close the drift built
+   up since): the recent events
    (the last ``loop_recent_time`` seconds of settled events plus the window's, at their initialized poses: the
    BA has not pulled them to the old map yet) at their current poses are a revisit candidate when at least
    ``loop_min_overlap`` of them fall on *old* regions: observed, and last observed at least ``loop_min_age`` s ago
@@ -277,6 +279,12 @@ class LoopCloser:
             rec[1, self._n_travel - 1] >= math.radians(self.cfg.loop_min_travel) and \
             t1 >= rec[0, 0] + 2 * self.cfg.loop_recent_time
 
+    def _last_chance(self, t1: float) -> bool:
+        """At the last window a check not due yet runs when the last verification was at least loop_recent_time
+        before it: no later check could close the drift built up since (a revisit still going on at the end of
+        the stream is closed there, offline and in real time: drain() verifies at once)."""
+        return bool(self.loops) and t1 >= self.loops[-1]["time"] + self.cfg.loop_recent_time
+
     def old_before(self, t_now: float) -> float:
         """Map regions last observed before this time are old at t_now: at least ``loop_min_age`` s ago, or at
         least ``loop_recent_time`` s ago and before the camera turned ``loop_min_travel`` (the last recorded
@@ -291,11 +299,12 @@ class LoopCloser:
                 before = max(before, min(float(times[i]), t_now - cfg.loop_recent_time))
         return before
 
-    def before_window(self, t0: float, t1: float) -> None:
+    def before_window(self, t0: float, t1: float, final: bool = False) -> None:
         """Before the BA of window [t0, t1] (its control poses initialized): look for a revisit in the recent
         events plus the window's, and close it. The window's events are still at their initialized poses: the
         BA has not pulled them to the old map yet (that pull, spread over the windows that enter the old
-        regions, is the jump at a loop, and it hides the loop's error from a later check)."""
+        regions, is the jump at a loop, and it hides the loop's error from a later check). ``final``: the last
+        window of the stream (``_last_chance``)."""
         if self._task is not None:  # a sliced verification or rebuild in flight: its slices, no new check meanwhile
             tic, cpu = time.perf_counter(), time.process_time()
             self._advance(self.slice_seconds)
@@ -303,7 +312,7 @@ class LoopCloser:
                 self._conclude_task()
             self._spent(tic, cpu)
             return
-        if not self._due(t1):
+        if not (self._due(t1) or final and self._last_chance(t1)):
             return
         tic, cpu = time.perf_counter(), time.process_time()
         ev_t, ev_b = self.backend.events.range(t0, t1, include_end=True)

@@ -79,10 +79,11 @@ def _spline(trajectory, dt=0.05, duration=DURATION):
     return spline
 
 
-def _run(t_ev, b_ev, trajectory, loop_cfg=LOOP, duration=DURATION, idle_slices=0):
+def _run(t_ev, b_ev, trajectory, loop_cfg=LOOP, duration=DURATION, idle_slices=0, final=False):
     """Settle every stride of the events along the given trajectory (a spline fitted to it, no BA) with a loop
     closer attached, as the back-end does after each window (``idle_slices``: then that many slices of a sliced
-    verification in flight, as the worker runs while idle)."""
+    verification in flight, as the worker runs while idle; ``final``: the last window is the stream's last, as in
+    SlidingWindowBackend.finish)."""
     from ti_cmax.pipelines.backend import SlidingWindowBackend
     from ti_cmax.pipelines.loop_closure import LoopCloser
 
@@ -95,8 +96,9 @@ def _run(t_ev, b_ev, trajectory, loop_cfg=LOOP, duration=DURATION, idle_slices=0
     be.loop = LoopCloser(loop_cfg, be)
     be.push_events(t_ev, b_ev)
     stride = cfg.backend_sliding_window_stride
-    for k in range(int(round((duration - 0.2) / stride))):
-        be.loop.before_window(k * stride, k * stride + cfg.backend_time_window_size)
+    n = int(round((duration - 0.2) / stride))
+    for k in range(n):
+        be.loop.before_window(k * stride, k * stride + cfg.backend_time_window_size, final and k == n - 1)
         be._settle(k * stride, (k + 1) * stride, still=False)
         be.loop.after_window((k + 1) * stride)
         for _ in range(idle_slices):
@@ -109,6 +111,10 @@ def _drifted_turns(duration=7.5, turns=2.3):
     pan = lambda t: _pan(t, duration, turns)  # noqa: E731
     drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
     return _events(3, duration=duration, turns=turns, rate=60_000), drifted, duration
+
+
+def _error_at(be, t, duration, turns=2.3):
+    return np.degrees(so3.geodesic_angle(be.spline.evaluate(t), _pan(t, duration, turns)))
 
 
 def _error(be, t):
@@ -522,3 +528,39 @@ def test_fast_pan_revisits_count_by_the_rotation_travelled(ti_runtime):
     err = np.degrees(so3.geodesic_angle(be.spline.evaluate(ts), pan(ts)))
     err_age = np.degrees(so3.geodesic_angle(age_only.spline.evaluate(ts), pan(ts)))
     assert err.max() < 0.25 * err_age.min(), (err, err_age)
+
+
+def test_the_last_window_closes_the_drift_since_the_last_check(ti_runtime):
+    """At the end of the stream (the back-end's last window) a check runs when the last verification was at least
+    loop_recent_time before: the drift built up since the last applied loop is closed there, not left to a check
+    scheduled after the end. Before the last window the same run."""
+    (t_ev, b_ev), drifted, duration = _drifted_turns()
+    cfg = replace(LOOP, loop_check_drift_px=1e4)  # after a loop the next check waits loop_min_age
+    plain = _run(t_ev, b_ev, drifted, cfg, duration=duration).loop
+    be = _run(t_ev, b_ev, drifted, cfg, duration=duration, final=True)
+    lc = be.loop
+    assert [e["time"] for e in lc.loops[:-1]] == [e["time"] for e in plain.loops], (lc.loops, plain.loops)
+    last = lc.loops[-1]
+    assert last["applied"] and last["time"] > plain.loops[-1]["time"] + cfg.loop_recent_time, lc.loops
+    assert last["time"] > duration - 0.2 - 2 * BackendConfig().backend_time_window_size
+    ts = np.linspace(last["t_ref"] - 0.2, last["t_ref"], 3)  # (before them the spread correction tapers)
+    err_plain = np.degrees(so3.geodesic_angle(plain.backend.spline.evaluate(ts), _pan(ts, duration, 2.3)))
+    assert _error_at(be, ts, duration).max() < 0.5 * err_plain.min(), (_error_at(be, ts, duration), err_plain)
+
+
+def test_error_trace_gives_the_first_turns_part_of_the_abs_error():
+    """bench_loops.error_trace: the part of the abs RMSE from the poses before the first full turn (what a loop
+    closer anchored to the first turn's map cannot remove): all of it when only the first turn errs, none when
+    only the second does."""
+    import re
+
+    from ti_cmax.pipelines.bench_loops import error_trace
+    from ti_cmax.trajectory import Trajectory
+
+    t = np.arange(0, 4.0, 0.01)
+    gt = Trajectory(t, _pan(t, 4.0, 2.0))  # 2 turns in 4 s: the first ends at 2 s
+    for erring, share in (((t > 0.3) & (t < 1.8), 1.0), (t > 2.2, 0.0)):  # (none at the alignment time, 0.1 s)
+        tilt = so3.exp(np.outer(np.where(erring, np.radians(0.5) * np.sin(3 * t), 0.0), [1.0, 0.0, 0.0]))
+        head = error_trace(gt, Trajectory(t, tilt @ gt.R), 0.5).splitlines()[0]
+        total, part = (float(x) for x in re.findall(r"abs RMSE ([\d.]+) deg.*first turn's part ([\d.]+) deg", head)[0])
+        assert total > 0.1 and part == pytest.approx(share * total, abs=0.002), head
