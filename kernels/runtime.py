@@ -149,10 +149,11 @@ def ensure_init() -> None:
 def limit_blas_threads() -> None:
     """numpy's and scipy's BLAS (OpenBLAS) to one thread in a process that runs the kernels, unless the user set
     OPENBLAS_NUM_THREADS: the math runs in Taichi and OpenCV, BLAS only sees small products (spline fits, BFGS, a
-    few sums), and after each call its idle threads spin on the other core beside the kernels (a real-time
-    `slam --parallel` at 2 M ev/s: ~0.35 CPU s per 6 s in each process; offline --parallel, three interleaved
-    pairs: process CPU 12.0-14.2 -> 11.3-12.1 s, system time 0.75-0.94 -> 0.54-0.63 s). The variable also reaches
-    BLAS libraries loaded later and the back-end worker process."""
+    few sums), and after a call its idle threads spin on the other core beside the kernels (~0.1 CPU s per thread
+    during start-up; 3.4 CPU s per 4 s run when the settle step once summed squares with a BLAS dot; offline
+    `slam --parallel` at 2 M ev/s with the variable set, three interleaved pairs: process CPU 12.0-14.2 -> 11.3-12.1
+    s, system time 0.75-0.94 -> 0.54-0.63 s). The variable also reaches BLAS libraries loaded later and the back-end
+    worker process."""
     if os.environ.get("OPENBLAS_NUM_THREADS", "1") != "1":  # (importing ti_cmax set it to 1 unless the user chose)
         return
     os.environ["OPENBLAS_NUM_THREADS"] = "1"
