@@ -34,8 +34,10 @@ ev/s, and the window-to-window jitter then escalated to level 2-3 for 1-3 s (six
 used 0.34-1.00 without, 0.85-1.00 with the budget; lag max 0.32-0.55 -> 0.20-0.33 s). A large target (e.g. 1000 s)
 leaves level 0 the offline computation.
 
-The levels cut the cheapest computation first: the budget touches only slow windows; halving the BA events saves
-~15 % of its cost (per-evaluation work dominates, below); skipping every other BA window 50 %. (Until 2026-12-02
+The levels cut the cheapest computation first: the budget touches only slow windows; halving the BA events saved
+~15 % of its cost with the kernels of 2026-12-01 (per-evaluation work dominated, below), and since session 11's cheaper
+per-event kernels 34-41 % at 2 M ev/s (offline, one thread, cap 216k -> 108k: BA CPU 3.64-4.35 -> 2.41-2.57 s per 4 s
+of data, abs 0.0643 -> 0.0644 deg, rel 0.103 -> 0.107 deg/s; 2026-12-02 21:36 UTC); skipping every other BA window 50 %. (Until 2026-12-02
 level 1 halved the events and level 3 kept c / 4 on 1 of 2 windows with 1 of 4 packets: a step that saved little.)
 
 A window without its BA (level 3: every other one) settles its stride with the poses the previous window
@@ -267,8 +269,9 @@ class RealtimeController:
         full = self.cap if self.cap > 0 else (self._window_events or self.floor)
         cap_now = full if cap_now is None else cap_now
         cap_lower = full if cap_lower is None else cap_lower
-        # BA cost per window ~ sqrt(events): measured sub-linear (per-evaluation work over the map region dominates;
-        # 1 M ev/s, one thread: 216k / 108k / 54k events 0.77 / 0.66 / 0.50 CPU s per s), so still an overestimate
+        # BA cost per window ~ sqrt(events): measured sub-linear (per-evaluation work over the map region dominated;
+        # 1 M ev/s, one thread: 216k / 108k / 54k events 0.77 / 0.66 / 0.50 CPU s per s), an overestimate then; with
+        # the kernels since session 11, at 2 M ev/s 108k -> 216k costs 1.5-1.7x (module docstring), more than sqrt 2
         every_now, every_lower = LEVELS[self.level][2], LEVELS[lower][2]
         if cap_now > 0:
             ba_lower = mean["ba"] * math.sqrt(cap_lower / cap_now) * every_now / every_lower
