@@ -152,11 +152,10 @@ def limit_blas_threads() -> None:
     few sums), and after a call its idle threads spin on the other core beside the kernels (~0.1 CPU s per thread
     during start-up; 3.4 CPU s per 4 s run when the settle step once summed squares with a BLAS dot; offline
     `slam --parallel` at 2 M ev/s with the variable set, three interleaved pairs: process CPU 12.0-14.2 -> 11.3-12.1
-    s, system time 0.75-0.94 -> 0.54-0.63 s). The variable also reaches BLAS libraries loaded later and the back-end
-    worker process."""
-    if os.environ.get("OPENBLAS_NUM_THREADS", "1") != "1":  # (importing ti_cmax set it to 1 unless the user chose)
+    s, system time 0.75-0.94 -> 0.54-0.63 s). The variable (set when ti_cmax is imported) also reaches BLAS
+    libraries loaded later and the back-end worker process."""
+    if os.environ.get("OPENBLAS_NUM_THREADS") != "1":  # importing ti_cmax set it to 1 unless the user chose
         return
-    os.environ["OPENBLAS_NUM_THREADS"] = "1"
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1, user_api="blas")  # the BLAS libraries already loaded (numpy's)

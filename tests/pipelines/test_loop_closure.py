@@ -113,12 +113,8 @@ def _drifted_turns(duration=7.5, turns=2.3):
     return _events(3, duration=duration, turns=turns, rate=60_000), drifted, duration
 
 
-def _error_at(be, t, duration, turns=2.3):
+def _error(be, t, duration=DURATION, turns=TURNS):
     return np.degrees(so3.geodesic_angle(be.spline.evaluate(t), _pan(t, duration, turns)))
-
-
-def _error(be, t):
-    return np.degrees(so3.geodesic_angle(be.spline.evaluate(t), _pan(t)))
 
 
 def test_injected_drift_over_a_revisit_is_found_and_removed(ti_runtime):
@@ -544,8 +540,8 @@ def test_the_last_window_closes_the_drift_since_the_last_check(ti_runtime):
     assert last["applied"] and last["time"] > plain.loops[-1]["time"] + cfg.loop_recent_time, lc.loops
     assert last["time"] > duration - 0.2 - 2 * BackendConfig().backend_time_window_size
     ts = np.linspace(last["t_ref"] - 0.2, last["t_ref"], 3)  # (before them the spread correction tapers)
-    err_plain = np.degrees(so3.geodesic_angle(plain.backend.spline.evaluate(ts), _pan(ts, duration, 2.3)))
-    assert _error_at(be, ts, duration).max() < 0.5 * err_plain.min(), (_error_at(be, ts, duration), err_plain)
+    err, err_plain = _error(be, ts, duration, 2.3), _error(plain.backend, ts, duration, 2.3)
+    assert err.max() < 0.5 * err_plain.min(), (err, err_plain)
 
 
 def test_error_trace_gives_the_first_turns_part_of_the_abs_error():
