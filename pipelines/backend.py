@@ -529,7 +529,8 @@ class SlidingWindowBackend:
                 objective, np.zeros(3 * n_free), maximize=True, inv_hessian=warm,
                 init_step=self._init_step(), max_iter=cfg.backend_cg_max_iters, grad_tol=cfg.backend_cg_grad_tol,
                 rel_cost_tol=cfg.backend_cg_rel_cost_tol, max_step=cfg.backend_bfgs_max_step,
-                max_line_evals=cfg.backend_cg_max_line_evals, deadline=deadline)
+                max_line_evals=cfg.backend_cg_max_line_evals, deadline=deadline,
+                last_step_unevaluated=cfg.backend_bfgs_last_step_unevaluated)
             self._inv_hessian = None if h is None else (first_free, h)
         else:
             result = fletcher_reeves(

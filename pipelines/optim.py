@@ -219,6 +219,7 @@ def bfgs(
     c2: float = 0.9,
     step_tol: float = 0.0,
     deadline: float | None = None,
+    last_step_unevaluated: bool = False,
 ) -> tuple[CGResult, np.ndarray | None]:
     """Minimise (or maximise) fun by BFGS from a given inverse Hessian; returns (result, inverse Hessian).
 
@@ -237,6 +238,12 @@ def bfgs(
     (x units): the evaluation that step would cost cannot move the solution by more than that.
     ``deadline`` (a ``time.monotonic()`` value): no new iteration starts after it (a real-time budget); the best
     point so far is returned, message "time budget reached".
+    ``last_step_unevaluated``: once H is learnt, a full quasi-Newton step whose predicted cost change (the quadratic
+    model's, g.H.g / 2) is below half ``rel_cost_tol`` is taken without evaluating it, and BFGS stops there (message
+    "predicted cost change below tolerance"; ``fun`` and ``grad`` are then the last evaluated ones, and H lacks that
+    step's update). Otherwise the same step would be evaluated and, its measured change being under the tolerance
+    unless the model is off by over 2x, stop there: the same point for one evaluation less. (At the full tolerance
+    the back-end saved 25 % of its evaluations but lost 4 % abs accuracy: the model underestimated often enough.)
     """
     sign = -1.0 if maximize else 1.0
     fc = _Counted(fun, sign)
@@ -247,6 +254,7 @@ def bfgs(
     f, g = fc(x)
     it = 0
     converged, message = False, "maximum number of iterations reached"
+    unevaluated = False  # x is a last step taken without evaluating it (last_step_unevaluated)
     if not np.isfinite(f):
         return CGResult(x, sign * f, sign * g, 0, fc.count, False, "non-finite cost at the starting point"), None
     while it < max_iter:
@@ -268,6 +276,11 @@ def bfgs(
             p *= max_step / norm
             d *= max_step / norm
             norm = max_step
+        elif (last_step_unevaluated and not steepest and updates >= n
+              and -0.5 * d <= 0.5 * rel_cost_tol * max(abs(f), 1e-300)):
+            x = x + p
+            converged, message, unevaluated = True, "predicted cost change below tolerance", True
+            break
         a, accepted, evals = 1.0, False, 0
         while evals < max_line_evals:  # backtrack until the Armijo condition holds
             f_new, g_new = fc(x + a * p)
@@ -313,7 +326,7 @@ def bfgs(
             converged, message = True, "step tolerance reached"
             break
     best_x, best_f, best_g = fc.best
-    if best_f < f:
+    if best_f < f and not unevaluated:
         x, f, g = best_x, best_f, best_g
     return CGResult(x, sign * f, sign * g, it, fc.count, converged, message), H
 

@@ -124,6 +124,33 @@ def test_bfgs_step_tolerance_saves_the_confirming_evaluation():
     np.testing.assert_allclose(tight.x, c, atol=1e-8)
 
 
+def test_bfgs_takes_a_last_step_predicted_below_the_cost_tolerance_without_evaluating_it():
+    """last_step_unevaluated: the step that would only confirm convergence (its predicted cost change, from the
+    learnt curvature, below rel_cost_tol) is taken blind: the same point as evaluating it, one evaluation less."""
+    c = np.array([0.3, -0.2, 0.1])
+
+    def f(x):  # smooth, not quadratic
+        d = x - c
+        return float(np.sum(np.cosh(d))), np.sinh(d)
+
+    for tol in (1e-4, 1e-6):
+        for h in (np.eye(3), None):  # a carried inverse Hessian, and a cold start (learns it first)
+            seen, blind_seen = [], []
+            checked, _ = bfgs(lambda x: (seen.append(x.copy()), f(x))[1], np.zeros(3), inv_hessian=h, grad_tol=0.0,
+                              rel_cost_tol=tol)
+            blind, _ = bfgs(lambda x: (blind_seen.append(x.copy()), f(x))[1], np.zeros(3), inv_hessian=h,
+                            grad_tol=0.0, rel_cost_tol=tol, last_step_unevaluated=True)
+            if blind.message != "predicted cost change below tolerance":
+                assert h is None and tol == 1e-4  # a cold start stopped by the measured change before H was learnt
+                np.testing.assert_array_equal(blind.x, checked.x)
+                continue
+            assert blind.converged and checked.message == "relative cost tolerance reached"
+            assert blind.evaluations == checked.evaluations - 1
+            np.testing.assert_array_equal(blind.x, checked.x)  # the point the checked run evaluated last
+            np.testing.assert_array_equal(np.array(blind_seen), np.array(seen[:-1]))
+            assert blind.fun == f(blind_seen[-1])[0]  # the cost reported is the last one evaluated
+
+
 def test_bfgs_deadline_returns_the_best_point_so_far():
     """A real-time budget: past the deadline no new iteration starts; the result is the best point evaluated."""
     import time

@@ -216,3 +216,25 @@ def test_backend_bfgs_carries_the_curvature_and_beats_cg(short_sequence):
     before = evaluate_rotations(seq.groundtruth, imu).abs_rmse_deg
     assert err_b.abs_rmse_deg < 0.3 * before and err_c.abs_rmse_deg < 0.3 * before
     assert err_b.abs_rmse_deg < 1.3 * err_c.abs_rmse_deg and err_b.rel_rmse_deg_per_s < 1.3 * err_c.rel_rmse_deg_per_s
+
+
+def test_backend_takes_its_last_bfgs_step_without_evaluating_it(short_sequence):
+    """backend_bfgs_last_step_unevaluated (default): the step that would only confirm a window's convergence is
+    taken without its evaluation: fewer evaluations per window for the same accuracy (the paper suite: abs / rel
+    geometric-mean ratio 0.996 / 1.003, 12-15 % fewer evaluations at 1-2 M ev/s)."""
+    from dataclasses import replace
+
+    seq = short_sequence
+    imu = dead_reckoning(seq.imu.t, seq.imu.gyro, r0=seq.groundtruth.at(seq.imu.t[0])[0])
+    runs = {}
+    for unevaluated in (True, False):
+        cfg = SlamConfig()
+        cfg = replace(cfg, backend=replace(cfg.backend, backend_bfgs_last_step_unevaluated=unevaluated))
+        result = refine(seq.events, seq.camera, imu, cfg)
+        runs[unevaluated] = (evaluate_rotations(seq.groundtruth, result.trajectory), result.report["backend"])
+    (err_on, rep_on), (err_off, rep_off) = runs[True], runs[False]
+    assert rep_on["windows_optimized"] == rep_off["windows_optimized"] > 0
+    assert rep_on["mean_evaluations"] < rep_off["mean_evaluations"] - 0.2, (rep_on["mean_evaluations"],
+                                                                          rep_off["mean_evaluations"])
+    assert abs(err_on.abs_rmse_deg / err_off.abs_rmse_deg - 1.0) < 0.1
+    assert abs(err_on.rel_rmse_deg_per_s / err_off.rel_rmse_deg_per_s - 1.0) < 0.1
