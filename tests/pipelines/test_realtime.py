@@ -165,10 +165,11 @@ def test_one_thread_bitwise_offline_and_parallel_undegraded_realtime(tmp_path):
 def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path):
     out = tmp_path / "interrupted"
     env = {**os.environ, "TI_CMAX_NO_PROGRESS": "1"}
-    # replayed at a quarter of the sensor's speed (4.8 s for the 1.2 s sequence): the interrupt 0.3 s after the
-    # replay's start lands mid-run even when a loaded machine delays this process (it once ended first: exit 0)
+    # replayed at a twentieth of the sensor's speed (24 s for the 1.2 s sequence; the interrupt ends it): the
+    # interrupt 0.3 s after the replay's start lands mid-run even when a loaded machine stalls this process for
+    # seconds (at a quarter of the speed, 4.8 s, the run twice ended first under load: exit 0, nothing on stderr)
     cmd = [sys.executable, "-m", "ti_cmax.cli", "slam", str(short_dataset), "--out", str(out), "--realtime",
-           "--parallel", "--threads", "1", *SMALL, "--set", "realtime_speed=0.25"]
+           "--parallel", "--threads", "1", *SMALL, "--set", "realtime_speed=0.05"]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
                             start_new_session=True)
     try:
@@ -177,6 +178,7 @@ def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path):
             lines.append(proc.stderr.readline())  # until the replay has started (both processes are working)
         assert "replaying" in lines[-1], lines
         time.sleep(0.3)
+        assert proc.poll() is None, "the replay ended before the interrupt"
         os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
         stdout, stderr = proc.communicate(timeout=60)
     finally:
