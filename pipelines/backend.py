@@ -51,6 +51,8 @@ class WindowReport:
     iterations: int = 0
     evaluations: int = 0
     variance_before: float = 0.0
+    # the last evaluated one: a last BFGS step taken unevaluated was predicted to change it by under half
+    # backend_cg_rel_cost_tol (relative)
     variance_after: float = 0.0
     max_correction: float = 0.0  # largest change of the trajectory at the window's events (rad)
     rejected: bool = False  # the correction exceeded backend_max_correction and was not applied
