@@ -236,7 +236,7 @@ class BackendConfig(Params):
     backend_bfgs_max_step: float = param(0.05, "BFGS steps (norm over the free control poses) are capped at this",
                                          unit="rad", gt=0)
     # the step that would only confirm convergence (predicted cost change under half backend_cg_rel_cost_tol) is
-    # taken without its evaluation (pipelines/optim.bfgs): 12-15 % fewer BA evaluations at 1-2 M ev/s, accuracy
+    # taken without its evaluation (pipelines/optim.bfgs): 11-15 % fewer BA evaluations at 1-2 M ev/s, accuracy
     # unchanged on the paper suite (2026-12-03: abs / rel geometric-mean ratio 0.996 / 1.003 over 12 runs)
     backend_bfgs_last_step_unevaluated: bool = param(True, "BFGS takes a last step predicted to change the cost by "
                                                      "under half backend_cg_rel_cost_tol without evaluating it")

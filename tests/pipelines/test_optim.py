@@ -126,7 +126,7 @@ def test_bfgs_step_tolerance_saves_the_confirming_evaluation():
 
 def test_bfgs_takes_a_last_step_predicted_below_the_cost_tolerance_without_evaluating_it():
     """last_step_unevaluated: the step that would only confirm convergence (its predicted cost change, from the
-    learnt curvature, below rel_cost_tol) is taken blind: the same point as evaluating it, one evaluation less."""
+    learnt curvature, below half rel_cost_tol) is taken blind: the same point as evaluating it, one evaluation less."""
     c = np.array([0.3, -0.2, 0.1])
 
     def f(x):  # smooth, not quadratic

@@ -221,7 +221,7 @@ def test_backend_bfgs_carries_the_curvature_and_beats_cg(short_sequence):
 def test_backend_takes_its_last_bfgs_step_without_evaluating_it(short_sequence):
     """backend_bfgs_last_step_unevaluated (default): the step that would only confirm a window's convergence is
     taken without its evaluation: fewer evaluations per window for the same accuracy (the paper suite: abs / rel
-    geometric-mean ratio 0.996 / 1.003, 12-15 % fewer evaluations at 1-2 M ev/s)."""
+    geometric-mean ratio 0.996 / 1.003, 11-15 % fewer evaluations at 1-2 M ev/s)."""
     from dataclasses import replace
 
     seq = short_sequence
