@@ -22,6 +22,7 @@ from ti_cmax.camera import Camera
 from ti_cmax.config import SlamConfig, config_to_dict
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
+from ti_cmax.outputs import peak_rss_mb
 from ti_cmax.progress import progress
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
@@ -414,7 +415,8 @@ class OnlineSlam:
         if worker is not None:
             report["backend_process"] = {"compile_seconds": worker["compile_seconds"],
                                          "cpu_seconds": worker["cpu_seconds"],
-                                         "push_blocked_seconds": self._worker.blocked_seconds}
+                                         "push_blocked_seconds": self._worker.blocked_seconds,
+                                         "peak_rss_mb": worker["peak_rss_mb"]}
         trajectory = worker["trajectory"] if worker is not None else \
             self._feed.backend.trajectory(config.output.trajectory_rate)
         return SlamResult(spline, trajectory, global_map, report, frontend, windows)
@@ -562,7 +564,7 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
                     "report": worker_report, "spline": spline, "map": backend.map.raw,
                     "windows": backend.windows, "trajectory": backend.trajectory(config.output.trajectory_rate),
                     "seconds": seconds, "step_cpu_seconds": step_cpu, "compile_seconds": compile_s,
-                    "cpu_seconds": time.process_time() - cpu0,
+                    "cpu_seconds": time.process_time() - cpu0, "peak_rss_mb": peak_rss_mb(),
                     "loops": backend.loop.loops if backend.loop is not None else None}))
                 return
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it

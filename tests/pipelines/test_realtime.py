@@ -160,6 +160,10 @@ def test_one_thread_bitwise_offline_and_parallel_undegraded_realtime(tmp_path):
     assert files["realtime"] == files["offline"]
     assert "realtime" not in json.loads((tmp_path / "offline" / "report.json").read_text())
     assert not _realtime(tmp_path / "realtime")["degradation_applied"]
+    # the peak memory counts the back-end worker too (it holds the map and the window's events)
+    report = json.loads((tmp_path / "realtime" / "report.json").read_text())
+    worker_peak = report["backend_process"]["peak_rss_mb"]
+    assert worker_peak > 50 and report["peak_rss_mb"] > worker_peak + 50
 
 
 def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path):

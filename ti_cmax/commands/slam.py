@@ -47,7 +47,9 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
     report["map"] = PanoramaResult(result.map, int(round(float(result.map.sum())))).figures(cfg.backend.lambda0)
     if camera is not None:
         report["camera"] = camera.to_dict()
-    report["peak_rss_mb"] = peak_rss_mb()  # of the whole process so far
+    # of the whole process so far; with a back-end worker (--parallel) plus the worker's own peak: the sum of the two
+    # peaks, an upper bound of their total at any moment (the main process alone was half of it on a VGA run)
+    report["peak_rss_mb"] = peak_rss_mb() + report.get("backend_process", {}).get("peak_rss_mb", 0.0)
     (out / "report.json").write_text(json.dumps(report, indent=2, default=float))
     if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
         write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
