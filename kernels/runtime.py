@@ -115,6 +115,14 @@ def threads_chosen() -> bool:
     return bool(_state["chosen"] or os.environ.get("TI_CMAX_THREADS"))
 
 
+def available_cores() -> int:
+    """Cores this process may run on: its CPU affinity (a container's or taskset's cpuset), else os.cpu_count()."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        return os.cpu_count() or 1
+
+
 def num_threads() -> int:
     if _state["threads"]:
         return int(_state["threads"])

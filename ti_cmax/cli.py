@@ -72,7 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--config", metavar="FILE.yaml", help="YAML file of parameters")
         p.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
                        help="override one parameter (repeatable), e.g. --set num_events_per_packet=20000")
-        p.add_argument("--threads", type=int, default=None, help="CPU threads for the kernels (default: all; with --parallel, half per process)")
+        p.add_argument("--threads", type=int, default=None,
+                       help="CPU threads for the kernels (default: all cores; slam with a back-end worker: half "
+                            "per process)")
         p.add_argument("--quiet", action="store_true", help="no progress bars")
         p.set_defaults(_run=module.run)
     return parser

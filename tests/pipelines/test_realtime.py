@@ -140,15 +140,15 @@ def _cli(args, **kw):
 
 @pytest.mark.slow
 def test_one_thread_bitwise_offline_and_parallel_undegraded_realtime(tmp_path):
-    """With one thread: `slam` and `slam --parallel --realtime` with degradation off (replayed 4x fast) write the
-    same trajectory, angular velocity and map, byte for byte (the CLI's --parallel path and the replay's chunking
-    change nothing; without --realtime the report has no "realtime" block)."""
+    """With one thread: `slam --sequential` and `slam --parallel --realtime` with degradation off (replayed 4x fast)
+    write the same trajectory, angular velocity and map, byte for byte (the CLI's --parallel path and the replay's
+    chunking change nothing; without --realtime the report has no "realtime" block)."""
     from ti_cmax.simulate import SimulatorConfig, simulate_sequence, write_sequence
 
     seq = write_sequence(simulate_sequence(SimulatorConfig(scene="town", sensor="DVS128", duration=0.4, seed=2)),
                          tmp_path / "seq", events_format="h5")
     common = ["--quiet", "--threads", "1", "--set", "pano_height=128"]
-    runs = {"offline": [],
+    runs = {"offline": ["--sequential"],
             "realtime": ["--parallel", "--realtime", "--set", "realtime_target_lag=1000", "--set",
                          "realtime_max_lag=1000", "--set", "realtime_speed=4"]}
     files = {}

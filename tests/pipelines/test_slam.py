@@ -112,13 +112,29 @@ def test_linear_spline_slam_runs(short_sequence):
     assert res.report["backend"]["spline_degree"] == 1 and err.abs_rmse_deg < 1.0
 
 
-def test_cli_slam_refine_imu_map_evaluate(short_dataset, tmp_path, capsys):
+def test_a_backend_worker_by_default_on_two_cores_or_more_up_to_vga(monkeypatch):
+    from ti_cmax.camera import Camera
+    from ti_cmax.kernels import runtime
+    from ti_cmax.pipelines.slam import default_backend_process
+
+    assert runtime.available_cores() >= 1
+    davis, vga, hd = (Camera.ideal(w, h) for w, h in ((240, 180), (640, 480), (1280, 720)))
+    for cores, camera, worker in ((1, davis, False), (2, davis, True), (16, vga, True), (2, hd, False)):
+        monkeypatch.setattr(runtime, "available_cores", lambda: cores)
+        assert default_backend_process(camera) is worker
+
+
+def test_cli_slam_refine_imu_map_evaluate(short_dataset, tmp_path, capsys, monkeypatch):
+    from ti_cmax.kernels import runtime
+
+    monkeypatch.setattr(runtime, "available_cores", lambda: 2)  # `slam` then runs its back-end in a worker
     out = tmp_path / "slam"
     assert main(["slam", str(short_dataset), "--out", str(out), "--quiet", "--set", "pano_height=256"]) == 0
     for name in ("trajectory.txt", "angular_velocity.txt", "map.png", "map.npy", "report.json", "config.yaml"):
         assert (out / name).is_file(), name
     report = json.loads((out / "report.json").read_text())
     assert report["status"] == "ok" and report["parameters"]["backend"]["pano_height"] == 256
+    assert report["backend_process"]["peak_rss_mb"] > 0  # the default on 2 cores: the worker did the back-end
     assert np.load(out / "map.npy").shape == (256, 512)
 
     imu_out = tmp_path / "imu"

@@ -25,7 +25,7 @@ def run(args) -> int:
     from ..outputs import OutputDir
     from ..pipelines.panorama import render_panorama
     from ..pipelines.sensor_defaults import pano_size
-    from ..pipelines.slam import run_slam
+    from ..pipelines.slam import default_backend_process, run_slam
     from ..plots import plot_error_distributions, plot_maps, plot_trajectories
     from ..simulate import SimulatorConfig, simulate_to_folder
     from .slam import spline_override, write_result
@@ -43,7 +43,8 @@ def run(args) -> int:
         t0, t1 = dataset.time_range()
         print(f"      {info.get('num_events', dataset.num_events())} events in {t1 - t0:.2f} s")
         print("[2/3] running CMax-SLAM")
-        result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), dataset.camera, cfg, progress_total=t1 - t0)
+        result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), dataset.camera, cfg, progress_total=t1 - t0,
+                          backend_process=default_backend_process(dataset.camera))  # as `ti-cmax slam` runs by default
         slam_dir = out / "slam"
         slam_dir.mkdir(exist_ok=True)
         write_result(slam_dir, result, cfg, dataset.camera)

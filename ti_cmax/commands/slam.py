@@ -13,8 +13,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--spline", choices=("linear", "cubic"), default=None,
                         help="trajectory model (default: spline_degree of the config, cubic)")
-    parser.add_argument("--parallel", action="store_true",
-                        help="run the back-end in a worker process at the same time as the front-end")
+    workers = parser.add_mutually_exclusive_group()
+    workers.add_argument("--parallel", dest="parallel", action="store_true", default=None,
+                         help="run the back-end in a worker process at the same time as the front-end (the default "
+                              "on 2 or more cores with a sensor of at most 0.5 M pixels)")
+    workers.add_argument("--sequential", dest="parallel", action="store_false", default=None,
+                         help="run the front-end and the back-end one after the other in this process (the default "
+                              "on one core or a larger sensor)")
     parser.add_argument("--realtime", action="store_true",
                         help="replay the file in sensor time, degrading on purpose to bound the lag (report.json "
                              "\"realtime\"; --set realtime_target_lag=0.3, realtime_speed=1, ...)")
@@ -81,11 +86,12 @@ def run(args) -> int:
     from ..config import SlamConfig, load_config
     from ..io import open_dataset_from_config
     from ..outputs import OutputDir
-    from ..pipelines.slam import run_slam
+    from ..pipelines.slam import default_backend_process, run_slam
 
     cfg = load_config(SlamConfig, args.config, list(args.overrides) + spline_override(args))
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     camera = dataset.camera
+    parallel = default_backend_process(camera) if args.parallel is None else args.parallel
     t0, t1 = dataset.time_range()
     if args.realtime:
         import sys
@@ -94,17 +100,18 @@ def run(args) -> int:
 
         log = None if args.quiet else (lambda msg: print(f"ti-cmax slam: {msg}", file=sys.stderr, flush=True))
         result = run_realtime(dataset.iter_events(min(cfg.dataset.chunk_size, READ_EVENTS)), camera, cfg,
-                              backend_process=args.parallel, progress_total=t1 - t0, log=log)
+                              backend_process=parallel, progress_total=t1 - t0, log=log)
     else:
         result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
-                          backend_process=args.parallel)
+                          backend_process=parallel)
     with OutputDir(args.out) as out:
         write_result(out, result, cfg, camera)
     us = result.report["us_per_event"]
     print_derived(result.report)
     print(f"CMax-SLAM: {result.report['events_processed']} events, {len(result.trajectory)} poses, "
           f"front-end {us['frontend']:.3f} us/event, back-end {us['backend']:.3f} us/event "
-          f"(compile {result.report['compile_seconds']:.1f} s apart) -> {out}")
+          f"(compile {result.report['compile_seconds']:.1f} s apart"
+          f"{'; back-end in a worker process' if parallel else ''}) -> {out}")
     if "realtime" in result.report:
         from ..pipelines.realtime import describe
 
