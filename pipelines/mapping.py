@@ -26,7 +26,7 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 
 from ti_cmax.camera import Camera
-from ti_cmax.config import Params, param
+from ti_cmax.config import GrayscaleConfig
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
 from ti_cmax.kernels import mapping as km
@@ -37,39 +37,6 @@ from .poisson import integrate_box
 
 C_SYNTHETIC = 0.2  # contrast threshold used by the paper for synthetic data
 C_REAL = 0.22  # ... and for real data (its true value is unknown there)
-
-
-@dataclass(frozen=True)
-class GrayscaleConfig(Params):
-    """Mapping module of SMT (App. B). Load with ``load_config(GrayscaleConfig, ...)`` or nest it in a config."""
-
-    contrast_threshold: float = param(0.0, "contrast threshold C", ge=0,
-                                      zero="the simulator's value if known, else 0.22 (real data, App. B)")
-    measurement_noise: float = param(0.05, "sigma_z of z = p C (log-intensity units)", gt=0)
-    initial_gradient_variance: float = param(1.0, "prior covariance of g: this x I (log intensity per map pixel)",
-                                             gt=0)
-    outlier_distance_px: float = param(10.0, "consecutive events of a sensor pixel farther apart in the map: outlier",
-                                       unit="map px", gt=0)
-    max_updates_per_pixel: int = param(5, "visits after which a map pixel stops updating", ge=1, zero="no cap")
-    visit_gap: float = param(0.1, "time without update that ends a visit of a map pixel (0: every update)", unit="s",
-                             ge=0)
-    event_batch_size: int = param(100, "events sharing one pose (at the batch's mid-time)", unit="events", ge=1)
-    pano_height: int = param(512, "map height", unit="px", ge=2)
-    pano_width: int = param(0, "map width", unit="px", ge=2, zero="2 x pano_height")
-    mapping_precision: str = param("f32", "float precision of the EKFs: f32 (production) or f64", choices=("f32", "f64"))
-    coverage_interval: float = param(0.01, "time between poses marked in the observed-area mask", unit="s", gt=0)
-    display_percentile_low: float = param(1.0, "robust 8-bit normalization of M over the observed pixels: low",
-                                          unit="%", ge=0, le=100)
-    display_percentile_high: float = param(99.0, "same, high percentile (> low)", unit="%", ge=0, le=100)
-
-    def _relations(self) -> None:
-        if not self.display_percentile_low < self.display_percentile_high:
-            raise InputError(f"display_percentile_low must be < display_percentile_high "
-                             f"({self.display_percentile_high:g}), got {self.display_percentile_low:g}")
-
-    @property
-    def pano_size(self) -> tuple[int, int]:
-        return (self.pano_width or 2 * self.pano_height, self.pano_height)
 
 
 @dataclass

@@ -13,8 +13,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..config import DatasetConfig
-from ..pipelines.mapping import GrayscaleConfig
+from ..config import DatasetConfig, GrayscaleConfig
 
 HELP = "reconstruct a grayscale panorama from events and a trajectory (EKF gradient map + Poisson)"
 
