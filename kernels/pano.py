@@ -30,7 +30,6 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
 
 from ti_cmax.metrics import event_area_percent
 
@@ -47,6 +46,8 @@ from .spline import spline_funcs
 # ----------------------------------------------------------------------------------------------------------------
 def blur_map(img: np.ndarray, sigma: float) -> np.ndarray:
     """Panoramic Gaussian blur (wrap along u = columns, zeros beyond the top and bottom rows), float64."""
+    from scipy.ndimage import gaussian_filter1d  # here: importing scipy.ndimage costs ~0.15 s of every start-up
+
     img = np.asarray(img, dtype=np.float64)
     if sigma <= 0:
         return img.copy()

@@ -117,7 +117,7 @@ def _compile_backend(config: SlamConfig) -> float:
     ctrl = np.stack([np.eye(3)] * (config.backend.spline_degree + 1))
     problem = PanoIWE(b, np.zeros(1, np.int32), np.zeros(1), config.backend.spline_degree, w, h,
                       sigma=config.backend.backend_blur_sigma, batch_size=4,
-                      global_map=np.ones((h, w), np.float32), alpha=1.0)
+                      global_blurred=np.ones((h, w), np.float32), global_sums=(float(w * h), float(w * h)), alpha=1.0)
     problem.cost_and_grad(ctrl)
     vote_map(b, np.eye(3)[None], w, h, batch_size=4, occupancy=(np.zeros(w, np.int32), np.zeros(h, np.int32)))
     return time.perf_counter() - tic

@@ -1,5 +1,7 @@
 """CMax-SLAM and offline BA on a short simulated sequence; back-end initialization; CLI commands."""
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -254,3 +256,25 @@ def test_backend_takes_its_last_bfgs_step_without_evaluating_it(short_sequence):
                                                                           rep_off["mean_evaluations"])
     assert abs(err_on.abs_rmse_deg / err_off.abs_rmse_deg - 1.0) < 0.1
     assert abs(err_on.rel_rmse_deg_per_s / err_off.rel_rmse_deg_per_s - 1.0) < 0.1
+
+
+def test_start_up_and_map_figures_do_not_import_scipy_ndimage():
+    """scipy.ndimage costs ~0.2 s to import, in each process of every `slam`: the back-end's kernel preparation
+    and the map's figures (Sobel gradient magnitude) do without it (OpenCV gives the same to rounding)."""
+    code = ("import sys, numpy as np; from ti_cmax.config import SlamConfig; "
+            "from ti_cmax.pipelines.slam import _compile_backend; from ti_cmax.metrics import gradient_magnitude; "
+            "_compile_backend(SlamConfig()); gradient_magnitude(np.random.rand(32, 64)); "
+            "print('scipy.ndimage' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip().splitlines()[-1] == "False", out.stdout + out.stderr
+
+
+def test_image_gradient_is_scipys_sobel():
+    from scipy import ndimage
+
+    from ti_cmax.metrics import image_gradient
+
+    img = np.random.default_rng(0).random((40, 70))
+    gx, gy = image_gradient(img)
+    np.testing.assert_allclose(gx, ndimage.sobel(img, axis=1) / 8.0, atol=1e-14)
+    np.testing.assert_allclose(gy, ndimage.sobel(img, axis=0) / 8.0, atol=1e-14)
