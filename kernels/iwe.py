@@ -292,7 +292,7 @@ class IWEWorkspace:
 
     def _bind(self) -> None:
         """Bind vote and gather to the packet and the buffers (runtime.BoundLaunch: ~2 us per launch instead of
-        Taichi's ~60 us of Python; two launches per evaluation), again at every new packet."""
+        Taichi's ~60 us of Python; two launches per evaluation); a new packet rebinds the packet only."""
         vote, gather, _ = self._kernels
         self._vote = BoundLaunch(vote, self._packed, self._img, self._prm)
         self._gather = BoundLaunch(gather, self._packed, self._himg, self._prm)
@@ -328,7 +328,8 @@ class IWEWorkspace:
         if self._kernels is None:
             self._ensure()  # built (or rebuilt for the capacity) at the upload, as before the first evaluation
         else:
-            self._bind()
+            self._vote.set_array(0, self._packed)
+            self._gather.set_array(0, self._packed)
 
     def evaluate(self, omega, K, measure: str = "variance", with_grad: bool = True):
         """(contrast, gradient (3,), number of events landing in the image) at omega; raw contrast as in

@@ -188,6 +188,12 @@ def test_bound_launch_equals_the_kernel_call(ti_runtime):
     launch.bind(x, other, 2.0, 10)
     launch()
     assert np.array_equal(other, 2.0 * x) and np.array_equal(y_call, y_bound)
+    third = np.zeros(10)
+    launch.set_array(1, third)  # one array only, the rest stays bound
+    launch()
+    assert np.array_equal(third, 2.0 * x) and np.array_equal(other, 2.0 * x)
+    with pytest.raises(TypeError):
+        launch.set_array(1, np.zeros(10, np.float32))  # another dtype: another compiled kernel
     with pytest.raises(TypeError):
         runtime.BoundLaunch(axpy, x, y_bound, 0.5)
     with pytest.raises(TypeError):
