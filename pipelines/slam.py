@@ -497,8 +497,10 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
     (-1: None; set by OnlineSlam.degrade), read before each step. With ``loop_slice_seconds`` a loop verification
     runs in slices (LoopCloser.slice_seconds): also one slice at a time while no message waits (idle time)."""
     try:
+        from ti_cmax import progress
         from ti_cmax.kernels import runtime
 
+        progress.set_quiet(True)  # no bars here, nor Taichi's start-up line (the main process shows its own)
         runtime.set_num_threads(threads)
         cpu0 = time.process_time()
         compile_s = _compile_backend(config)
