@@ -179,7 +179,7 @@ class BoundLaunch:
     type checks, pointer and shape extraction; then the compiled kernel's lookup by argument features and a new
     launch context), a bound launch ~2 us (measured on these machines). The front-end launches two kernels per
     evaluation, ~1 ms each on a DAVIS240C packet. The arrays are read and written in place, so the caller keeps
-    them alive and unreallocated while bound and calls ``bind`` again to change one (a new packet). Binding
+    them alive and unreallocated while bound, and rebinds to change one (``set_array``: a new packet). Binding
     compiles the kernel when a call would (same compiled kernel, offline cache). Uses Taichi internals
     (``Kernel.ensure_compiled``, ``make_launch_context``, ``Program.launch_kernel``): hence the exact Taichi
     version pinned above."""
@@ -267,5 +267,5 @@ def even_slice(it, n, tasks):
     return lo, hi
 
 
-__all__ = ["ti", "BoundLaunch", "ensure_init", "set_num_threads", "num_threads", "threads_chosen", "share_cores", "PART_TASK",
-           "check_parts", "part_slice", "even_slice"]
+__all__ = ["ti", "BoundLaunch", "ensure_init", "set_num_threads", "num_threads", "threads_chosen", "share_cores",
+           "available_cores", "PART_TASK", "check_parts", "part_slice", "even_slice"]

@@ -5,10 +5,10 @@
 The cases are ``pipelines.benchmark.SUITES["sensors"]`` (``ti-cmax benchmark --suite sensors`` runs the same
 sequences through the task model; this script adds per-case peak memory, the derived parameters and the cost per
 second of data). Each case is a simulated sequence (streamed to DIR/sequences/NAME, reused when its simulation.json matches) run
-by ``ti-cmax slam`` in a child process (so each case's peak memory is its own; with the command's default process
-layout: a back-end worker up to 0.5 M pixels on 2+ cores, pipelines/slam.default_backend_process), then evaluated against ground
-truth: the front-end alone (integrated omega) and CMax-SLAM, abs / rel RMSE, the parameters the sensor rules
-derived, us per input event, wall time per second of data and peak RSS. Prints a markdown table (and writes
+by ``ti-cmax slam`` in a child process (so each case's peak memory is its own; in the command's default process
+layout: a back-end worker up to 0.5 M pixels on 2+ cores, pipelines/slam.default_backend_process), then evaluated
+against ground truth: the front-end alone (integrated omega) and CMax-SLAM, abs / rel RMSE, the parameters the
+sensor rules derived, us per input event, wall time per second of data and peak RSS. Prints a markdown table (and writes
 DIR/sensors.md, DIR/sensors.json). This is a benchmark, not a test: it takes minutes (HD: 30 M events/s).
 """
 from __future__ import annotations

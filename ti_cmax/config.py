@@ -350,7 +350,8 @@ class OutputConfig(Params):
 
 @dataclass(frozen=True)
 class GrayscaleConfig(Params):
-    """Mapping module of SMT (App. B; pipelines/mapping.py). Load with ``load_config(GrayscaleConfig, ...)`` or nest it in a config."""
+    """Mapping module of SMT (App. B; pipelines/mapping.py). Load with ``load_config(GrayscaleConfig, ...)`` or nest
+    it in a config."""
 
     contrast_threshold: float = param(0.0, "contrast threshold C", ge=0,
                                       zero="the simulator's value if known, else 0.22 (real data, App. B)")
