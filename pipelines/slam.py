@@ -586,11 +586,18 @@ def default_backend_process(camera: Camera) -> bool:
     process (4 interleaved pairs), DVXplorer 640x480 1.5 s -20 %. On an HD sensor (1280x720) the back-end's kernels
     use both cores well (0.45 -> 0.28 us per event from 1 to 2 threads), so the split gained nothing (32.7 s against
     31.7 s, 51 M events) and held ~240 MB more (two processes: 1.47 GB against 1.23 GB). On one core a worker would
-    only add its start-up. The Python API (``run_slam``, ``OnlineSlam``) stays in one process unless asked: a
-    worker process needs the caller's main module to be importable (multiprocessing's spawn)."""
+    only add its start-up; where the platform has no working semaphores (multiprocessing's queues need them, e.g.
+    some sandboxes) it stays in one process too. The Python API (``run_slam``, ``OnlineSlam``) stays in one process
+    unless asked: a worker process needs the caller's main module to be importable (multiprocessing's spawn)."""
     from ti_cmax.kernels import runtime
 
-    return runtime.available_cores() >= 2 and camera.width * camera.height <= WORKER_MAX_SENSOR_PIXELS
+    if runtime.available_cores() < 2 or camera.width * camera.height > WORKER_MAX_SENSOR_PIXELS:
+        return False
+    try:
+        import multiprocessing.synchronize  # noqa: F401 - raises ImportError without a working sem_open
+    except ImportError:
+        return False
+    return True
 
 
 def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig(), *,

@@ -124,6 +124,8 @@ def test_a_backend_worker_by_default_on_two_cores_or_more_up_to_vga(monkeypatch)
     for cores, camera, worker in ((1, davis, False), (2, davis, True), (16, vga, True), (2, hd, False)):
         monkeypatch.setattr(runtime, "available_cores", lambda: cores)
         assert default_backend_process(camera) is worker
+    monkeypatch.setitem(sys.modules, "multiprocessing.synchronize", None)  # as where sem_open does not work
+    assert default_backend_process(davis) is False
 
 
 def test_cli_slam_refine_imu_map_evaluate(short_dataset, tmp_path, capsys, monkeypatch):
