@@ -59,6 +59,18 @@ def version_text() -> str:
     return f"ti-cmax {__version__} (taichi {taichi})"
 
 
+class _VersionAction(argparse.Action):
+    """``--version``, its text read only when asked (importlib.metadata costs ~30 ms of every command's start-up)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0,
+                         help=help or "show the program's version number and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(version_text())  # on stdout, as argparse's own version action
+        parser.exit()
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The command line. With ``command`` (the one being run) only that subcommand's arguments are built: some
     import what their choices come from (``benchmark``: the suites and baselines, ``simulate``: scipy), ~0.5 s of
@@ -66,7 +78,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ti-cmax", description="CMax-SLAM: rotational motion estimation for event cameras (Taichi CPU)."
     )
-    parser.add_argument("--version", action="version", version=version_text())
+    parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, module in _available_commands():
