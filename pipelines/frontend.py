@@ -30,9 +30,8 @@ packet instead of 13-16 with the reference's strict line search, for the same ac
 (pipelines/bench_frontend.py).
 
 Suspect packets: after the optimisation of 1 of ``frontend_gain_check_every`` (10) moving packets the contrast at
-omega = 0 is evaluated once more (cost only: vote and blur, ~0.6 of an evaluation; 1 of 4 packets cost ~6 % of the
-front-end); a
-solution that moves the packet's farthest event by >= 1 px but raises the contrast by less than
+omega = 0 is evaluated once more (cost only: vote and blur, ~0.6 of an evaluation; on 1 of 4 packets it cost ~6 % of
+the front-end); a solution that moves the packet's farthest event by >= 1 px but raises the contrast by less than
 ``frontend_min_contrast_gain`` is flagged (the events do not constrain omega: e.g. packets far too small for the
 sensor). Most checked packets suspect: the run's status is "suspect" instead of "ok". Unchecked packets have gain
 nan and are never suspect.

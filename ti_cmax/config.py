@@ -167,8 +167,8 @@ class FrontendConfig(Params):
     frontend_min_contrast_gain: float = param(0.02, "packets gaining less contrast over omega = 0 are suspect",
                                               ge=0)
     # the check costs a cost-only evaluation (vote and blur: ~0.6 of a full one, ~6 % of the front-end at 1 of 4);
-    # the status is a majority over the checked packets, so 1 of 10 (10 per second of data at 100 Hz) decides it
-    # as well as every packet (session 14: 1 of 4 before)
+    # it only feeds the status, a majority over the checked packets: 10 checks per second of data (100 Hz packets)
+    # are plenty for that (1 of 4 until session 14)
     frontend_gain_check_every: int = param(10, "the contrast at omega = 0 (suspect check) is evaluated on 1 of this "
                                               "many moving packets", ge=1)
     # warm start of packet j: "previous" (omega_{j-1}) or "linear" (2 omega_{j-1} - omega_{j-2}, when both exist)
