@@ -109,7 +109,7 @@ def share_cores(processes: int) -> None:
     cores took 8.0-12.5 s with 2 threads per process, 7.4-7.8 s with 1 (3 M events, load 5)."""
     if _state["initialized"] or _state["threads"] or os.environ.get("TI_CMAX_THREADS"):
         return
-    _state["threads"] = max(1, (os.cpu_count() or 1) // max(1, int(processes)))
+    _state["threads"] = max(1, available_cores() // max(1, int(processes)))
 
 
 def threads_chosen() -> bool:
@@ -129,7 +129,7 @@ def num_threads() -> int:
     if _state["threads"]:
         return int(_state["threads"])
     env = os.environ.get("TI_CMAX_THREADS")
-    return int(env) if env else (os.cpu_count() or 1)
+    return int(env) if env else available_cores()
 
 
 def ensure_init() -> None:

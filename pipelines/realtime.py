@@ -86,7 +86,6 @@ interleaved runs each, events used 0.24-0.32 vs 0.25-0.30 before, rel error rati
 from __future__ import annotations
 
 import math
-import os
 import time
 from typing import Iterable
 
@@ -373,7 +372,7 @@ def _worker_threads() -> int | None:
     cost, can use the other core too (2 M ev/s, four interleaved pairs: events used 0.35 / 0.41 / 0.41 / 0.39 with one
     worker thread, 0.88 / 0.85 / 0.55 / 0.46 with two, lag max 0.35-0.45 vs 0.33-0.37 s). Offline --parallel keeps
     half the cores each: there both processes are busy, and oversubscribed Taichi pools wait."""
-    return None if runtime.threads_chosen() else max(1, os.cpu_count() or 1)
+    return None if runtime.threads_chosen() else runtime.available_cores()
 
 
 def _wake_time(first_pending: float, s_now: float, handed_until: float, slice_s: float, t0: float) -> float | None:

@@ -251,7 +251,11 @@ class LocalExecutor:
 
     def __init__(self, jobs: int = 1, threads: int | None = None):
         self.jobs = max(1, int(jobs))
-        self.threads = threads or (None if self.jobs == 1 else max(1, (os.cpu_count() or 1) // self.jobs))
+        self.threads = threads
+        if not threads and self.jobs > 1:
+            from ti_cmax.kernels import runtime
+
+            self.threads = max(1, runtime.available_cores() // self.jobs)
         self.running = 0
         self.on_interrupt = None  # called after the workers are stopped on Ctrl-C
 

@@ -293,7 +293,7 @@ def test_the_real_time_worker_takes_every_core_unless_threads_were_chosen(monkey
 
     monkeypatch.delenv("TI_CMAX_THREADS", raising=False)
     monkeypatch.setitem(runtime._state, "chosen", False)
-    assert R._worker_threads() == max(1, os.cpu_count() or 1)
+    assert R._worker_threads() == R.runtime.available_cores()
     monkeypatch.setenv("TI_CMAX_THREADS", "1")
     assert R._worker_threads() is None  # the chosen count, as for the main process
 

@@ -36,7 +36,7 @@ def test_a_worker_process_halves_the_default_thread_count(monkeypatch):
 
     monkeypatch.delenv("TI_CMAX_THREADS", raising=False)
     monkeypatch.setattr(runtime, "_state", {"initialized": False, "threads": None})
-    monkeypatch.setattr(runtime.os, "cpu_count", lambda: 8)
+    monkeypatch.setattr(runtime, "available_cores", lambda: 8)
     runtime.share_cores(2)
     assert runtime.num_threads() == 4
     monkeypatch.setattr(runtime, "_state", {"initialized": False, "threads": 3})
