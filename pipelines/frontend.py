@@ -76,6 +76,7 @@ class FrontendResult:
     cost: np.ndarray  # (M,) normalised contrast at the solution (nan when still)
     gain: np.ndarray  # (M,) contrast at the solution over the contrast at omega = 0 (nan when still or unchecked)
     suspect: np.ndarray  # (M,) bool: the solution moves events by >= 1 px but barely sharpens the IWE
+    flat: np.ndarray = None  # (M,) bool: omega set to 0 because the optimum barely beat omega = 0 (estimate())
     timing: dict = field(default_factory=dict)  # compile_seconds, wall_seconds, us_per_event, ...
     config: FrontendConfig = field(default_factory=FrontendConfig)
 
@@ -106,6 +107,7 @@ class FrontendResult:
             "packets": int(len(self.t)),
             "still_packets": int(np.count_nonzero(self.still)),
             "suspect_packets": int(np.count_nonzero(self.suspect)),
+            "flat_packets": int(np.count_nonzero(self.flat)) if self.flat is not None else 0,
             "checked_packets": int(np.count_nonzero(self.checked)),
             "median_contrast_gain": float(np.nanmedian(self.gain)) if np.any(~self.still) else 0.0,
             "mean_iterations": float(np.mean(self.iterations)) if len(self.t) else 0.0,
@@ -307,6 +309,42 @@ class PacketSlicer:
         return Packet(t_ref, Events.empty() if still else packet, span, still)
 
 
+DITHER_PERIOD = 1 << 16  # distinct offsets of the dither table (a packet's start in it: a hash of its time)
+
+
+class PixelDither:
+    """Sub-pixel dither of a packet's integer event pixels, as offsets of its bearings (x / fx, y / fy on the unit
+    depth plane): up to ``amplitude`` px, uniform, independent per event (a fixed table of uniform draws, read from an
+    offset that a packet's time picks: no per-event hashing, one add per coordinate; deterministic for a packet
+    sequence, whatever the chunking).
+
+    Why: event coordinates are integers, so at omega = 0 every event sits on a pixel centre and its bilinear vote is
+    one pixel, while any motion spreads the votes over four: the contrast favours omega = 0 by a margin that does not
+    depend on the motion (a pixel-grid bias of CMax). When a packet's motion is below ~1 px (a camera starting or
+    slowing down, slow star-tracker pans) the bias wins and omega is pulled to 0 (measured on a VGA pan starting from
+    rest with 1 Hz/px noise: omega exactly 0 for the first 0.24 s, then lagging by 0.02 rad/s; on a synthetic 1 px
+    motion the error is 0.05-0.11 rad/s on integer pixels, 0.005-0.008 dithered). Dithering each event by up to half
+    a pixel (uniform over the pixel) takes the grid out of the IWE."""
+
+    def __init__(self, camera: Camera, amplitude: float, dtype, size: int = 0):
+        self.amplitude, self.dtype = float(amplitude), np.dtype(dtype)
+        self.fx, self.fy = camera.fx, camera.fy
+        self._table = np.zeros((0, 2), self.dtype)
+        self._grow(max(int(size), 1))
+
+    def _grow(self, size: int) -> None:
+        rng = np.random.default_rng(20261203)
+        u = rng.uniform(-self.amplitude, self.amplitude, (DITHER_PERIOD + size, 2))
+        self._table = np.ascontiguousarray(u / [self.fx, self.fy], dtype=self.dtype)
+
+    def apply(self, packed: np.ndarray, n: int, t_ref: float) -> None:
+        """Add the dither to the bearings' x, y (columns 0, 1) of the first n rows of ``packed``, in place."""
+        if n > len(self._table) - DITHER_PERIOD:
+            self._grow(n)
+        offset = (int(round(t_ref * 1e5)) * 40503) % DITHER_PERIOD
+        packed[:n, :2] += self._table[offset:offset + n]
+
+
 # ------------------------------------------------------------------------------------------------
 # per-packet estimation
 # ------------------------------------------------------------------------------------------------
@@ -324,15 +362,21 @@ class AngularVelocityEstimator:
             cap = max(cap, config.frontend_max_packet_events)
         self.ws = IWEWorkspace(camera.width, camera.height, dtype, config.frontend_blur_sigma,
                                capacity=cap)
+        # integer pixels are dithered (PixelDither: the pixel grid's bias towards omega = 0); float ones are not
+        self.dither = PixelDither(camera, config.frontend_pixel_dither, dtype, cap) \
+            if config.frontend_pixel_dither > 0 else None
         self.omega = np.zeros(3)
         self.omega_prev = None  # omega of the packet before the last one (linear warm start)
         self.inv_hessian = None  # BFGS: carried from packet to packet (x = pixels of motion, cost normalised)
         self.events_evaluated = 0  # events actually used in the optimisation (after thinning)
         self.event_evaluations = 0  # sum over packets of events used x evaluations (for the cost per event-evaluation)
         self.packets_estimated = 0  # moving packets so far (the suspect check runs on 1 of frontend_gain_check_every)
+        self.flat_packets = 0  # packets whose omega was set to 0 by the flat rule (estimate())
+        self.checks = 0  # cost-only evaluations at omega = 0
+        self.last_gain, self.last_suspect, self.last_flat = np.nan, False, False
 
     def reset(self) -> None:
-        """Forget the warm start (after a still packet)."""
+        """Forget the warm start (after a still or flat packet)."""
         self.omega = np.zeros(3)
         self.omega_prev = None
 
@@ -363,6 +407,8 @@ class AngularVelocityEstimator:
         events = self.thin(events)
         self.events_evaluated += len(events)
         packed = self.camera.bearings(events.x, events.y, dtype=self.ws.dtype, columns=4)
+        if self.dither is not None and len(events) and np.issubdtype(events.x.dtype, np.integer):
+            self.dither.apply(packed, len(events), t_ref)
         dts = packed[:, 3]
         np.subtract(events.t, t_ref, out=dts, casting="unsafe")
         self.ws.set_packed(packed)
@@ -397,23 +443,40 @@ class AngularVelocityEstimator:
         )
 
     def estimate(self, events: Events, t_ref: float, omega0=None):
-        """Maximise the normalised contrast for one packet; returns (omega, CGResult, normalised cost)."""
+        """Maximise the normalised contrast for one packet; returns (omega, CGResult, normalised cost).
+
+        The contrast at omega = 0 is evaluated (cost only) on 1 of ``frontend_gain_check_every`` packets (the
+        suspect check) and on every packet whose optimum lies 1 px or more (in x, the farthest event's displacement)
+        from the warm start, which a smooth motion seldom does while an optimiser wandering on a flat cost does at
+        every packet. A checked packet whose optimum gains less than ``frontend_min_contrast_gain`` over omega = 0 is
+        flat (``frontend_flat_is_still``): its events do not measure its motion (under a pixel over the packet, or a
+        noise-only IWE), so omega = 0 and the warm start is reset."""
+        cfg = self.config
         fun, s, n = self._objective(events, t_ref)
         w0 = self.warm_start() if omega0 is None else np.asarray(omega0, float)
         res = self._maximize(fun, w0 * s)
         self.omega_prev, self.omega = self.omega, res.x / s
-        checked = self.packets_estimated % int(self.config.frontend_gain_check_every) == 0
+        scheduled = self.packets_estimated % int(cfg.frontend_gain_check_every) == 0
+        surprise = cfg.frontend_flat_is_still and float(np.linalg.norm(res.x - w0 * s)) >= 1.0
+        checked = scheduled or surprise
         self.packets_estimated += 1
-        self.last_gain, self.last_suspect = np.nan, False
+        self.last_gain, self.last_suspect, self.last_flat = np.nan, False, False
         if checked:
             # how much the solution sharpens the IWE compared with no motion (one cost-only evaluation)
-            c_zero = self.ws.evaluate(np.zeros(3), self.K, self.config.contrast_measure, with_grad=False)[0]
+            c_zero = self.ws.evaluate(np.zeros(3), self.K, cfg.contrast_measure, with_grad=False)[0]
             c_zero *= self._scale
-            self.last_gain = float(res.fun / c_zero) if c_zero > 0 else np.inf
-            # x is the displacement in pixels of the packet's farthest-in-time event: a motion of >= 1 px that gains
-            # less than frontend_min_contrast_gain is not seen in the events (noise-dominated IWE, false optimum)
-            self.last_suspect = bool(np.linalg.norm(res.x) >= 1.0
-                                     and self.last_gain < 1.0 + self.config.frontend_min_contrast_gain)
+            gain = float(res.fun / c_zero) if c_zero > 0 else np.inf
+            flat = gain < 1.0 + cfg.frontend_min_contrast_gain
+            if scheduled:  # the run's status counts the scheduled checks only (an even sample of the packets)
+                self.last_gain = gain
+                # x is the displacement in pixels of the packet's farthest-in-time event: a motion of >= 1 px that
+                # gains less than frontend_min_contrast_gain is not seen in the events (noise-dominated IWE)
+                self.last_suspect = bool(np.linalg.norm(res.x) >= 1.0 and flat)
+            if cfg.frontend_flat_is_still and flat:
+                self.last_flat = True
+                self.flat_packets += 1
+                self.reset()
+        self.checks += int(checked)
         self.event_evaluations += n * (res.evaluations + int(checked))
         return self.omega.copy(), res, res.fun
 
@@ -471,19 +534,20 @@ class FrontendRunner:
         cpu_tic = time.process_time()
         if packet.still:
             self.estimator.reset()
-            self.rows.append((packet.t_ref, 0.0, 0.0, 0.0, 0, packet.span, 0, 0, True, np.nan, np.nan, False))
+            self.rows.append((packet.t_ref, 0.0, 0.0, 0.0, 0, packet.span, 0, 0, True, np.nan, np.nan, False, False))
             omega = np.zeros(3)
         else:
             omega, res, cost = self.estimator.estimate(packet.events, packet.t_ref)
             self.events_processed += len(packet.events)
             self.rows.append((packet.t_ref, *omega, len(packet.events), packet.span, res.iterations,
-                              res.evaluations, False, cost, self.estimator.last_gain, self.estimator.last_suspect))
+                              res.evaluations, False, cost, self.estimator.last_gain, self.estimator.last_suspect,
+                              self.estimator.last_flat))
         self.seconds += time.perf_counter() - tic
         self.cpu_seconds += time.process_time() - cpu_tic
         return omega
 
     def result(self) -> FrontendResult:
-        arr = list(zip(*self.rows)) if self.rows else [()] * 12
+        arr = list(zip(*self.rows)) if self.rows else [()] * 13
         evals = np.asarray(arr[7], dtype=int)
         processed = self.events_processed
         inputs = self.input_events or self.events_read
@@ -501,6 +565,7 @@ class FrontendRunner:
             "us_per_packet_event": self.seconds * 1e6 / processed if processed else 0.0,
             "events_evaluated": int(self.estimator.events_evaluated),
             "evaluations": int(evals.sum()),
+            "zero_checks": int(self.estimator.checks),  # cost-only evaluations at omega = 0 (~0.6 of one each)
             "us_per_event_per_evaluation": self.seconds * 1e6 / evaluated if evaluated else 0.0,
         }
         return FrontendResult(
@@ -514,6 +579,7 @@ class FrontendRunner:
             cost=np.asarray(arr[9], float),
             gain=np.asarray(arr[10], float),
             suspect=np.asarray(arr[11], bool),
+            flat=np.asarray(arr[12], bool),
             timing=timing,
             config=self.config,
         )

@@ -162,10 +162,18 @@ class FrontendConfig(Params):
     # optimisation: the span (motion) is kept, the cost per packet is bounded at high event rates
     frontend_max_packet_events: int = param(0, "packets with more events are thinned 1 of k; derived: 20000 x max(1, "
                                                "pixels / 43200)", unit="events", ge=2, zero="derived", off=-1)
+    # each event's pixel is dithered by up to this many pixels (a hash of the event: deterministic) before warping,
+    # so that omega = 0 is not favoured by the pixel grid (pipelines/frontend.pixel_dither); 0: integer pixels
+    frontend_pixel_dither: float = param(0.5, "sub-pixel dither of event coordinates against the pixel-grid bias",
+                                         unit="px", ge=0)
     # a packet whose solution moves its events by >= 1 px but raises the contrast by less than this fraction over
     # omega = 0 is "suspect" (report.json counts them; most packets suspect: status "suspect")
     frontend_min_contrast_gain: float = param(0.02, "packets gaining less contrast over omega = 0 are suspect",
                                               ge=0)
+    # a checked packet gaining less than frontend_min_contrast_gain is flat: its events do not measure the motion
+    # (under ~1 px over the packet, or noise), so omega = 0 there; packets whose optimum is 1 px or more from the warm
+    # start are checked too (pipelines/frontend.AngularVelocityEstimator.estimate)
+    frontend_flat_is_still: bool = param(True, "a checked packet whose optimum barely beats omega = 0 takes omega = 0")
     # the check costs a cost-only evaluation (vote and blur: ~0.6 of a full one, ~6 % of the front-end at 1 of 4);
     # it only feeds the status, a majority over the checked packets: 10 checks per second of data (100 Hz packets)
     # are plenty for that (1 of 4 until session 14)

@@ -292,3 +292,69 @@ def test_slicer_packets_do_not_depend_on_chunk_size_and_join_lazily(min_span, mo
     small = packets([ev[a:b] for a, b in zip(edges, list(edges[1:]) + [n])])
     assert small == whole and len(whole) >= 15
     assert len(joins) <= len(whole) + 2 < len(edges) / 2
+
+
+def _integer_pixels_with_noise(omega, seed, n=20000, noise=10000):
+    """A 0.1 s packet of scene edges (``_synthetic_events``) as a sensor gives them, integer pixels, plus uniform
+    noise events."""
+    ev = _synthetic_events(omega, 0.0, 0.1, n, seed=seed)
+    rng = np.random.default_rng(seed)
+    t = np.concatenate([ev.t, rng.uniform(0, 0.1, noise)])
+    order = np.argsort(t, kind="stable")
+    x = np.concatenate([np.round(ev.x), rng.integers(0, CAM.width, noise)])[order].astype(np.uint16)
+    y = np.concatenate([np.round(ev.y), rng.integers(0, CAM.height, noise)])[order].astype(np.uint16)
+    return Events(t[order], x, y, np.ones(len(t)))
+
+
+def test_pixel_dither_removes_the_grid_bias_of_slow_motion(ti_runtime):
+    """A motion of about 1 px over the packet: on integer pixels omega = 0 wins the contrast (every event on a
+    pixel centre votes one pixel) and the estimate is pulled to 0; dithered, omega is recovered."""
+    omega = np.array([0.05, -0.1, 0.02])  # 0.11 rad/s: ~1.1 px at the packet's ends (f = 200 px, +-50 ms)
+    events = _integer_pixels_with_noise(omega, seed=1)
+    errors = {}
+    for dither in (0.0, 0.5):
+        est = AngularVelocityEstimator(CAM, FrontendConfig(frontend_pixel_dither=dither))
+        w, _, _ = est.estimate(events, 0.05)
+        errors[dither] = np.linalg.norm(w - omega)
+    assert errors[0.5] < 0.015 and errors[0.0] > 0.05, errors
+
+
+def test_pixel_dither_is_uniform_over_the_pixel_and_deterministic(ti_runtime):
+    from ti_cmax.pipelines.frontend import PixelDither
+
+    dither = PixelDither(CAM, 0.5, np.float32, size=1000)
+    n = 50000  # beyond the table's size: it grows
+    a, b, c = (np.zeros((n, 4), np.float32) for _ in range(3))
+    dither.apply(a, n, 0.125)
+    dither.apply(b, n, 0.125)
+    dither.apply(c, n, 0.135)
+    assert np.array_equal(a, b) and not np.array_equal(a[:, :2], c[:, :2]) and not a[:, 2:].any()
+    for d in (a[:, 0] * CAM.fx, a[:, 1] * CAM.fy):  # pixels: uniform over [-0.5, 0.5], the grid leaves no trace
+        assert d.min() >= -0.5 and d.max() <= 0.5 and abs(d.mean()) < 0.01 and abs(d.std() - 0.5 / np.sqrt(3)) < 0.01
+        assert np.histogram(d, bins=10, range=(-0.5, 0.5))[0].min() > 0.09 * n
+    assert abs(np.corrcoef(a[:, 0], a[:, 1])[0, 1]) < 0.02
+    # float pixel coordinates (already off the grid: simulators, undistorted or filtered streams) are not dithered
+    events = _synthetic_events(np.array([1.0, -0.5, 0.3]), 0.0, 0.01, 5000, seed=6)
+    runs = [AngularVelocityEstimator(CAM, FrontendConfig(frontend_pixel_dither=d)).estimate(events, 0.005)[0]
+            for d in (0.0, 0.5)]
+    assert np.array_equal(*runs)
+
+
+def test_flat_packets_take_omega_zero_and_moving_ones_do_not(ti_runtime):
+    """A moving packet (scheduled check) keeps its omega. Then the camera stops: the still packet's optimum lies far
+    from the warm start, so it is checked although not scheduled, barely beats omega = 0 and takes omega = 0 (the
+    warm start resets); without the rule the optimiser's point is kept (a motion the still camera does not have:
+    on a flat cost, where the optimiser stops is noise)."""
+    omega = np.array([1.0, -1.5, 0.6])
+    moving, still = (_integer_pixels_with_noise(w, seed=s) for w, s in ((omega, 3), (np.zeros(3), 5)))
+    for rule in (True, False):
+        est = AngularVelocityEstimator(CAM, FrontendConfig(frontend_flat_is_still=rule))
+        w, _, _ = est.estimate(moving, 0.05)
+        assert not est.last_flat and est.last_gain > 1.5 and np.linalg.norm(w - omega) < 0.03 * np.linalg.norm(omega)
+        w, _, _ = est.estimate(still, 0.05)
+        assert np.isnan(est.last_gain)  # not a scheduled check (1 of frontend_gain_check_every)
+        if rule:
+            assert est.last_flat and np.all(w == 0) and np.all(est.warm_start() == 0)
+            assert est.flat_packets == 1 and est.checks == 2
+        else:
+            assert not est.last_flat and np.all(w != 0) and est.checks == 1  # the optimiser's point, kept
