@@ -29,12 +29,17 @@ quasi-Newton one; it stops once its next step would move the farthest event by l
 packet instead of 13-16 with the reference's strict line search, for the same accuracy
 (pipelines/bench_frontend.py).
 
-Suspect packets: after the optimisation of 1 of ``frontend_gain_check_every`` (10) moving packets the contrast at
-omega = 0 is evaluated once more (cost only: vote and blur, ~0.6 of an evaluation; on 1 of 4 packets it cost ~6 % of
-the front-end); a solution that moves the packet's farthest event by >= 1 px but raises the contrast by less than
-``frontend_min_contrast_gain`` is flagged (the events do not constrain omega: e.g. packets far too small for the
-sensor). Most checked packets suspect: the run's status is "suspect" instead of "ok". Unchecked packets have gain
-nan and are never suspect.
+Pixel grid (``frontend_pixel_dither``): integer event pixels are dithered by up to half a pixel (``PixelDither``), or
+the contrast favours omega = 0 whenever a packet's motion is below about a pixel (starts, slow phases).
+
+Suspect and flat packets: after the optimisation of 1 of ``frontend_gain_check_every`` (10) moving packets the
+contrast at omega = 0 is evaluated once more (cost only: vote and blur, ~0.6 of an evaluation; on 1 of 4 packets it
+cost ~6 % of the front-end); a solution that moves the packet's farthest event by >= 1 px but raises the contrast by
+less than ``frontend_min_contrast_gain`` is flagged (the events do not constrain omega: e.g. packets far too small
+for the sensor). Most checked packets suspect: the run's status is "suspect" instead of "ok". Unchecked packets have
+gain nan and are never suspect. A packet whose optimum lies >= 1 px from its warm start is checked as well, and a
+checked packet under that gain is flat (``frontend_flat_is_still``): omega = 0, since without the grid's pull an
+optimiser on a flat cost stops anywhere (``AngularVelocityEstimator.estimate``).
 
 Scaling (so that the reference's tolerances mean the same across packet sizes and resolutions): the
 optimiser sees x = omega * s with s = f * max_k |dt_k| (f: mean focal length), i.e. x is roughly the

@@ -168,8 +168,8 @@ class FrontendConfig(Params):
                                          unit="px", ge=0)
     # a packet whose solution moves its events by >= 1 px but raises the contrast by less than this fraction over
     # omega = 0 is "suspect" (report.json counts them; most packets suspect: status "suspect")
-    frontend_min_contrast_gain: float = param(0.02, "packets gaining less contrast over omega = 0 are suspect",
-                                              ge=0)
+    frontend_min_contrast_gain: float = param(0.02, "checked packets gaining less contrast over omega = 0 are flat "
+                                                    "(omega = 0) and, moving >= 1 px, suspect", ge=0)
     # a checked packet gaining less than frontend_min_contrast_gain is flat: its events do not measure the motion
     # (under ~1 px over the packet, or noise), so omega = 0 there; packets whose optimum is 1 px or more from the warm
     # start are checked too (pipelines/frontend.AngularVelocityEstimator.estimate)
