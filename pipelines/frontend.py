@@ -334,20 +334,23 @@ class PixelDither:
     def __init__(self, camera: Camera, amplitude: float, dtype, size: int = 0):
         self.amplitude, self.dtype = float(amplitude), np.dtype(dtype)
         self.fx, self.fy = camera.fx, camera.fy
-        self._table = np.zeros((0, 2), self.dtype)
         self._grow(max(int(size), 1))
 
     def _grow(self, size: int) -> None:
         rng = np.random.default_rng(20261203)
-        u = rng.uniform(-self.amplitude, self.amplitude, (DITHER_PERIOD + size, 2))
-        self._table = np.ascontiguousarray(u / [self.fx, self.fy], dtype=self.dtype)
+        u = rng.uniform(-self.amplitude, self.amplitude, (DITHER_PERIOD + size, 2)).T
+        # one table per column: adding a contiguous column is ~10x faster than adding an (n, 2) block to the
+        # strided view of the packet's first two columns (0.4 ms per 20 000 events, numpy's inner loop of 2)
+        self._x = (u[0] / self.fx).astype(self.dtype)
+        self._y = (u[1] / self.fy).astype(self.dtype)
 
     def apply(self, packed: np.ndarray, n: int, t_ref: float) -> None:
         """Add the dither to the bearings' x, y (columns 0, 1) of the first n rows of ``packed``, in place."""
-        if n > len(self._table) - DITHER_PERIOD:
+        if n > len(self._x) - DITHER_PERIOD:
             self._grow(n)
         offset = (int(round(t_ref * 1e5)) * 40503) % DITHER_PERIOD
-        packed[:n, :2] += self._table[offset:offset + n]
+        packed[:n, 0] += self._x[offset:offset + n]
+        packed[:n, 1] += self._y[offset:offset + n]
 
 
 # ------------------------------------------------------------------------------------------------
