@@ -654,6 +654,7 @@ class PanoIWE:
         self._bbox = np.zeros((nb, 4), dtype=np.int32)
         self._gb = np.zeros((nb, order, 3), dtype=self.dtype)
         self.last_window = None  # (r0, c0, bh, bw, wrap) of the last evaluation, for inspection
+        self._grad_bins = None  # (number of control poses, bincount index of each gradient term)
         self._density_ref = None  # (rho_g, lambda0) until alpha is set by the first evaluation
         if alpha_from_density is not None and self.g_sum > 0 and alpha_from_density[0] > 0:
             self._density_ref = (float(alpha_from_density[0]), float(alpha_from_density[1]))
@@ -671,9 +672,9 @@ class PanoIWE:
         a = self._bbox[:, 0].astype(np.int64)
         length = np.minimum(self._bbox[:, 1] - a, w)
         start = a % w
-        diff = np.zeros(2 * w + 1, dtype=np.int64)
-        np.add.at(diff, start, 1)
-        np.add.at(diff, start + length, -1)
+        # coverage of each column by the boxes: +1 at each start, -1 past each end, summed (bincount: np.add.at
+        # cost 0.3 ms per evaluation for 2000 boxes)
+        diff = np.bincount(start, minlength=2 * w + 1) - np.bincount(start + length, minlength=2 * w + 1)
         cover = np.cumsum(diff[:-1])
         occupied = (cover[:w] + cover[w:]) > 0
         cols = np.flatnonzero(occupied)
@@ -768,9 +769,13 @@ class PanoIWE:
         wmap = separable_blur(comb, self.taps, wrap_cols=bool(wrap), out=comb)  # W = B(L + alpha G - mu)
         self._k["gradient"](wmap, r0, c0, self._basis, self._uv, self._jac, self.batch_size, self.width, self.su,
                             self.sv, self._gb, self.parts * PART_TASK)
-        gb = self._gb.astype(np.float64)
-        for j in range(self.degree + 1):
-            grad += np.stack([np.bincount(self.batch_s + j, gb[:, j, d], minlength=len(ctrl)) for d in range(3)], 1)
+        # out[b, k] adds to control pose batch_s[b] + k: one bincount over (pose, axis) bins
+        order = self.degree + 1
+        if self._grad_bins is None or self._grad_bins[0] != len(ctrl):
+            bins = ((self.batch_s[:, None, None] + np.arange(order)[None, :, None]) * 3 + np.arange(3)).reshape(-1)
+            self._grad_bins = (len(ctrl), bins)
+        flat = np.bincount(self._grad_bins[1], self._gb.reshape(-1).astype(np.float64), minlength=3 * len(ctrl))
+        grad += flat.reshape(-1, 3)
         grad *= 2.0 / self.n_px
         return var, grad
 
