@@ -162,8 +162,8 @@ class FrontendConfig(Params):
     # optimisation: the span (motion) is kept, the cost per packet is bounded at high event rates
     frontend_max_packet_events: int = param(0, "packets with more events are thinned 1 of k; derived: 20000 x max(1, "
                                                "pixels / 43200)", unit="events", ge=2, zero="derived", off=-1)
-    # each event's pixel is dithered by up to this many pixels (a hash of the event: deterministic) before warping,
-    # so that omega = 0 is not favoured by the pixel grid (pipelines/frontend.pixel_dither); 0: integer pixels
+    # each integer event pixel is dithered by up to this many pixels (uniform, from a fixed table: deterministic)
+    # before warping, so that omega = 0 is not favoured by the pixel grid (pipelines/frontend.PixelDither); 0: none
     frontend_pixel_dither: float = param(0.5, "sub-pixel dither of event coordinates against the pixel-grid bias",
                                          unit="px", ge=0)
     # a packet whose solution moves its events by >= 1 px but raises the contrast by less than this fraction over
@@ -175,8 +175,8 @@ class FrontendConfig(Params):
     # start are checked too (pipelines/frontend.AngularVelocityEstimator.estimate)
     frontend_flat_is_still: bool = param(True, "a checked packet whose optimum barely beats omega = 0 takes omega = 0")
     # the check costs a cost-only evaluation (vote and blur: ~0.6 of a full one, ~6 % of the front-end at 1 of 4);
-    # it only feeds the status, a majority over the checked packets: 10 checks per second of data (100 Hz packets)
-    # are plenty for that (1 of 4 until session 14)
+    # these scheduled checks feed the status, a majority over them: 10 per second of data (100 Hz packets) are plenty
+    # for that (1 of 4 until session 14); the flat rule adds checks where an optimum jumps from its warm start
     frontend_gain_check_every: int = param(10, "the contrast at omega = 0 (suspect check) is evaluated on 1 of this "
                                               "many moving packets", ge=1)
     # warm start of packet j: "previous" (omega_{j-1}) or "linear" (2 omega_{j-1} - omega_{j-2}, when both exist)
