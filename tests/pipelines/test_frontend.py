@@ -161,7 +161,7 @@ def test_streaming_chunks_downsampling_and_trajectory(ti_runtime):
     assert tm["us_per_packet_event"] == pytest.approx(tm["wall_seconds"] * 1e6 / tm["packet_events"])
 
 
-def test_cli_writes_outputs(tmp_path, ti_runtime):
+def test_cli_writes_outputs(tmp_path, ti_runtime, capsys):
     from ti_cmax.cli import main
 
     omega = np.array([0.5, 0.0, -1.0])
@@ -181,6 +181,9 @@ def test_cli_writes_outputs(tmp_path, ti_runtime):
     assert report["status"] == "ok" and report["events_processed"] == len(ev)
     assert report["us_per_event"]["frontend"] == pytest.approx(report["frontend_wall_seconds"] * 1e6 / len(ev))
     assert report["parameters"]["num_events_per_packet"] == 5000
+    summary = report["summary"]  # the flat rule's count and checks (zero_checks: the cost-only evaluations at 0)
+    assert summary["flat_packets"] == 0 and summary["zero_checks"] >= 1
+    assert "3 angular velocities (0 still, 0 flat)" in capsys.readouterr().out
     assert main(["frontend", str(data), "--out", str(tmp_path / "bad"), "--quiet",
                  "--set", "frontend_slicing=nope"]) == 2
     assert not (tmp_path / "bad").exists()
