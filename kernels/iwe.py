@@ -167,7 +167,8 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
     def gather(ev: ti.types.ndarray(dtype=f, ndim=2), himg: ti.types.ndarray(dtype=f, ndim=2),
                prm: ti.types.ndarray(dtype=ti.f64, ndim=1)):
         """Pass 3: cost and gradient from H = G2 I at each event's four neighbours, _GROUP events per iteration;
-        prm[10:16] = sum of weights, cost term, gradient (3), events landing (a kernel's vector return costs ~70 us
+        prm[10:16] = sum of weights, cost term, gradient (3), events landing, prm[16:22] the sums of the products of
+        the groups' gradient partials (xx, xy, xz, yy, yz, zz) (a kernel's vector return costs ~70 us
         of Python per launch)."""
         n = ti.cast(prm[0], ti.i32)
         wx, wy, wz = ti.cast(prm[1], f), ti.cast(prm[2], f), ti.cast(prm[3], f)
@@ -214,12 +215,18 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
                         acc[1] += gk[1]
                         acc[2] += gk[2]
             gsum[grp] = acc
-        # f64 sums of the group partials, in order
+        # f64 sums of the group partials, in order, and of the products of their gradient parts (the gradient's
+        # noise: IWEWorkspace.gradient_covariance)
         ti.loop_config(serialize=True)
         for _ in range(1):
             acc3 = ti.Vector([0.0, 0.0, 0.0, 0.0], ti.f64)
+            sq = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], ti.f64)
             for grp in range(ngroups):
-                acc3 += ti.cast(gsum[grp], ti.f64)
+                p = ti.cast(gsum[grp], ti.f64)
+                acc3 += p
+                sq += ti.Vector([p[0] * p[0], p[0] * p[1], p[0] * p[2], p[1] * p[1], p[1] * p[2], p[2] * p[2]])
+            for q in ti.static(range(6)):
+                prm[16 + q] = sq[q]
             out[2] = acc3[0]
             out[3] = acc3[1]
             out[4] = acc3[2]
@@ -274,7 +281,7 @@ class IWEWorkspace:
         # copies of I voted into without atomics by one parallel part each (default None: serial, one copy)
         self.parts = int(parts) if parts else None
         self._kernels = None
-        self._prm = np.zeros(16)  # evaluate's parameters and results (kernel arguments)
+        self._prm = np.zeros(22)  # evaluate's parameters and results (kernel arguments)
         self.n = 0
         self._packed = np.zeros((1, 4), self.dtype)  # the current packet (read by the kernels in place)
 
@@ -357,6 +364,21 @@ class IWEWorkspace:
         cost = o[1] / npix
         return cost, (2.0 / npix) * o[2:5], int(o[5])
 
+    def gradient_covariance(self) -> np.ndarray:
+        """Noise covariance (3, 3) of the last evaluation's gradient, raw like ``evaluate``'s, from its per-event
+        terms (kernel ``gather``'s partial sums per group of _GROUP events, their sums of products in prm[16:22]):
+        the number of groups times the groups' covariance, the groups taken as independent draws. At omega = 0 the
+        gradient is sum_k dt_k v_k with v_k a function of the event positions alone, so when the events' times do
+        not depend on their positions (the events measure no motion) the groups are independent given the positions
+        and the estimate is unbiased. Only after an evaluation with the gradient; nan with fewer than 16 groups."""
+        groups = (self.n + _GROUP - 1) // _GROUP
+        if groups < 16:
+            return np.full((3, 3), np.nan)
+        xx, xy, xz, yy, yz, zz = self._prm[16:22]
+        total = self._prm[12:15]
+        scatter = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]) - np.outer(total, total) / groups
+        return scatter * (groups / (groups - 1.0)) * (2.0 / (self.width * self.height)) ** 2
+
     def iwe(self, omega, K, blurred: bool = True) -> np.ndarray:
         """Image of warped events of the current packet at omega, (height, width) float64;
         blurred with G (zero padding) unless ``blurred`` is False."""
@@ -425,8 +447,9 @@ def vote_numpy(bearings, dts, omega, K, width, height) -> np.ndarray:
     return bilinear.vote_numpy(np.zeros((height, width)), u[valid], v[valid])
 
 
-def contrast_numpy(bearings, dts, omega, K, width, height, measure="variance", blur_sigma=1.0, truncate=4.0):
-    """Float64 twin of the kernel: (contrast, gradient (3,))."""
+def contrast_numpy(bearings, dts, omega, K, width, height, measure="variance", blur_sigma=1.0, truncate=4.0,
+                   per_event: bool = False):
+    """Float64 twin of the kernel: (contrast, gradient (3,)), or with ``per_event`` the gradient's terms (N, 3)."""
     mid = measure_id(measure)
     xr, phi, bb, c = warp_numpy(bearings, dts, omega)
     dts = np.asarray(dts, float).reshape(-1)
@@ -444,10 +467,17 @@ def contrast_numpy(bearings, dts, omega, K, width, height, measure="variance", b
     pc = np.cross(phi, cc)
     gk = dts[:, None] * (cc - bb[:, None] * pc + c[:, None] * np.cross(phi, pc))
     gk[~valid] = 0.0
-    return cost, 2.0 / npix * gk.sum(axis=0)
+    terms = 2.0 / npix * gk
+    return cost, (terms if per_event else terms.sum(axis=0))
+
+
+def gradient_covariance_numpy(terms) -> np.ndarray:
+    """Twin of ``IWEWorkspace.gradient_covariance`` from the gradient's per-event terms (N, 3)."""
+    groups = np.add.reduceat(np.asarray(terms, float), np.arange(0, len(terms), _GROUP))
+    return np.cov(groups.T) * len(groups) if len(groups) >= 16 else np.full((3, 3), np.nan)
 
 
 __all__ = [
     "MEASURES", "IWEWorkspace", "gaussian_taps", "gram_taps", "measure_id", "contrast_and_gradient",
-    "warp_numpy", "vote_numpy", "contrast_numpy",
+    "warp_numpy", "vote_numpy", "contrast_numpy", "gradient_covariance_numpy",
 ]

@@ -37,9 +37,10 @@ contrast at omega = 0 is evaluated once more (cost only: vote and blur, ~0.6 of 
 cost ~6 % of the front-end); a solution that moves the packet's farthest event by >= 1 px but raises the contrast by
 less than ``frontend_min_contrast_gain`` is flagged (the events do not constrain omega: e.g. packets far too small
 for the sensor). Most checked packets suspect: the run's status is "suspect" instead of "ok". Unchecked packets have
-gain nan and are never suspect. A packet whose optimum lies >= 1 px from its warm start is checked as well, and a
-checked packet under that gain is flat (``frontend_flat_is_still``): omega = 0, since without the grid's pull an
-optimiser on a flat cost stops anywhere (``AngularVelocityEstimator.estimate``).
+gain nan and are never suspect. Without the grid's pull an optimiser on a flat cost stops anywhere, so
+(``frontend_flat_is_still``) a slow packet (optimum under 1 px), a packet whose optimum lies >= 1 px from its warm
+start, or a suspect one is flat unless its events measure a motion: the score test of omega = 0
+(``AngularVelocityEstimator.motion_score``, ``frontend_min_motion_score``); a flat packet takes omega = 0.
 
 Scaling (so that the reference's tolerances mean the same across packet sizes and resolutions): the
 optimiser sees x = omega * s with s = f * max_k |dt_k| (f: mean focal length), i.e. x is roughly the
@@ -357,6 +358,13 @@ class PixelDither:
 # per-packet estimation
 # ------------------------------------------------------------------------------------------------
 
+# the score test (AngularVelocityEstimator.motion_score) runs where a packet's optimum moves its farthest event by
+# under this many pixels (besides jumps from the warm start and suspects): the flat packets found on simulated pans
+# moved 0.1-0.9 px but for jumps; 2 px found the same flats (bay 14 s, city 1 M ev/s) with 1.7-1.8x the evaluations at
+# omega = 0 (measured with an earlier noise estimate: 8 sub-packets)
+SLOW_PX = 1.0
+
+
 class AngularVelocityEstimator:
     """Estimates omega for one packet at a time (keeps the compiled workspace and the warm start)."""
 
@@ -380,7 +388,8 @@ class AngularVelocityEstimator:
         self.event_evaluations = 0  # sum over packets of events used x evaluations (for the cost per event-evaluation)
         self.packets_estimated = 0  # moving packets so far (the suspect check runs on 1 of frontend_gain_check_every)
         self.flat_packets = 0  # packets whose omega was set to 0 by the flat rule (estimate())
-        self.checks = 0  # cost-only evaluations at omega = 0
+        self.checks = 0  # evaluations at omega = 0 (cost only unless score-tested)
+        self.score_tests = 0  # packets score-tested (motion_score)
         self.last_gain, self.last_suspect, self.last_flat = np.nan, False, False
 
     def reset(self) -> None:
@@ -454,39 +463,65 @@ class AngularVelocityEstimator:
         """Maximise the normalised contrast for one packet; returns (omega, CGResult, normalised cost).
 
         The contrast at omega = 0 is evaluated (cost only) on 1 of ``frontend_gain_check_every`` packets (the
-        suspect check) and on every packet whose optimum lies 1 px or more (in x, the farthest event's displacement)
-        from the warm start, which a smooth motion seldom does while an optimiser wandering on a flat cost does at
-        every packet. A checked packet whose optimum gains less than ``frontend_min_contrast_gain`` over omega = 0 is
-        flat (``frontend_flat_is_still``): its events do not measure its motion (under a pixel over the packet, or a
-        noise-only IWE), so omega = 0 and the warm start is reset."""
+        suspect check: gain of the optimum over omega = 0, for the run's status). With ``frontend_flat_is_still``,
+        a packet whose optimum moves its farthest event by under SLOW_PX, or lies 1 px or more from the warm start
+        (which a smooth motion seldom does while an optimiser wandering on a flat cost does at every packet), or a
+        suspect one, is score-tested (:meth:`motion_score`): under ``frontend_min_motion_score`` its events do not
+        measure any motion (under a pixel over the packet against the noise, or a noise-only IWE) and its optimum
+        is noise, so it is flat: omega = 0 and the warm start is reset."""
         cfg = self.config
         fun, s, n = self._objective(events, t_ref)
         w0 = self.warm_start() if omega0 is None else np.asarray(omega0, float)
         res = self._maximize(fun, w0 * s)
         self.omega_prev, self.omega = self.omega, res.x / s
         scheduled = self.packets_estimated % int(cfg.frontend_gain_check_every) == 0
-        surprise = cfg.frontend_flat_is_still and float(np.linalg.norm(res.x - w0 * s)) >= 1.0
-        checked = scheduled or surprise
+        # x is the displacement in pixels of the packet's farthest-in-time event
+        moved = float(np.linalg.norm(res.x))
+        tested = cfg.frontend_flat_is_still and (moved < SLOW_PX or float(np.linalg.norm(res.x - w0 * s)) >= 1.0)
         self.packets_estimated += 1
         self.last_gain, self.last_suspect, self.last_flat = np.nan, False, False
-        if checked:
-            # how much the solution sharpens the IWE compared with no motion (one cost-only evaluation)
-            c_zero = self.ws.evaluate(np.zeros(3), self.K, cfg.contrast_measure, with_grad=False)[0]
+        extra = 0  # evaluations (in packets' worth of events) beyond the optimiser's
+        g_zero = None
+        if scheduled or tested:
+            # how much the solution sharpens the IWE compared with no motion (with the gradient: the score test's)
+            c_zero, g_zero, _ = self.ws.evaluate(np.zeros(3), self.K, cfg.contrast_measure, with_grad=tested)
+            self.checks += 1
+            extra += 1
             c_zero *= self._scale
             gain = float(res.fun / c_zero) if c_zero > 0 else np.inf
-            flat = gain < 1.0 + cfg.frontend_min_contrast_gain
             if scheduled:  # the run's status counts the scheduled checks only (an even sample of the packets)
                 self.last_gain = gain
-                # x is the displacement in pixels of the packet's farthest-in-time event: a motion of >= 1 px that
-                # gains less than frontend_min_contrast_gain is not seen in the events (noise-dominated IWE)
-                self.last_suspect = bool(np.linalg.norm(res.x) >= 1.0 and flat)
-            if cfg.frontend_flat_is_still and flat:
+                # a motion of >= 1 px that gains less than frontend_min_contrast_gain is not seen in the events
+                self.last_suspect = bool(moved >= 1.0 and gain < 1.0 + cfg.frontend_min_contrast_gain)
+                if self.last_suspect and cfg.frontend_flat_is_still and not tested:
+                    tested = True
+                    g_zero = self.ws.evaluate(np.zeros(3), self.K, cfg.contrast_measure)[1]
+                    extra += 1
+        if tested:
+            self.score_tests += 1
+            if self.motion_score(g_zero) < cfg.frontend_min_motion_score:
                 self.last_flat = True
                 self.flat_packets += 1
                 self.reset()
-        self.checks += int(checked)
-        self.event_evaluations += n * (res.evaluations + int(checked))
+        self.event_evaluations += n * (res.evaluations + extra)
         return self.omega.copy(), res, res.fun
+
+    def motion_score(self, g_zero) -> float:
+        """Score statistic of omega = 0 for the loaded packet: g0^T S^-1 g0, with g0 its contrast gradient at
+        omega = 0 (the workspace's last evaluation) and S the noise covariance of g0 estimated from the spread of
+        its per-event terms (``IWEWorkspace.gradient_covariance``). Where the events measure no motion it is about
+        chi-square with 3 degrees of freedom (synthetic 0.1 s packets, 6 seeds each: still scene with 10 000 noise
+        events mean 4.5, 20 000 scene events 1.1, noise alone 2.9; at the true omega of half- and third-pixel
+        motions 1.9-3.1), so ``frontend_min_motion_score`` = 16.3 lets 0.1 % of motionless packets through; half a
+        pixel of motion scores 170-210 with 5 000 scene events among 10 000 noise events, 12-36 with 2 000."""
+        g = np.asarray(g_zero, float)
+        cov = self.ws.gradient_covariance()
+        if not np.all(np.isfinite(cov)):
+            return np.inf  # too few events to tell: keep the optimum, as without the test
+        try:
+            return float(g @ np.linalg.solve(cov, g))
+        except np.linalg.LinAlgError:  # no spread at all (no event in the image at omega = 0): nothing measured
+            return 0.0 if not np.any(g) else np.inf
 
     def contrast_ratio(self, events: Events, t_ref: float, omega) -> tuple[float, np.ndarray]:
         """How well ``omega`` (another method's angular velocity) explains one packet: its contrast over the best
@@ -573,7 +608,8 @@ class FrontendRunner:
             "us_per_packet_event": self.seconds * 1e6 / processed if processed else 0.0,
             "events_evaluated": int(self.estimator.events_evaluated),
             "evaluations": int(evals.sum()),
-            "zero_checks": int(self.estimator.checks),  # cost-only evaluations at omega = 0 (~0.6 of one each)
+            "zero_checks": int(self.estimator.checks),  # evaluations at omega = 0 (cost only: ~0.6 of one each)
+            "score_tests": int(self.estimator.score_tests),  # packets score-tested (motion_score)
             "us_per_event_per_evaluation": self.seconds * 1e6 / evaluated if evaluated else 0.0,
         }
         return FrontendResult(

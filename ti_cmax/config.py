@@ -168,15 +168,17 @@ class FrontendConfig(Params):
                                          unit="px", ge=0)
     # a packet whose solution moves its events by >= 1 px but raises the contrast by less than this fraction over
     # omega = 0 is "suspect" (report.json counts them; most packets suspect: status "suspect")
-    frontend_min_contrast_gain: float = param(0.02, "checked packets gaining less contrast over omega = 0 are flat "
-                                                    "(omega = 0) and, moving >= 1 px, suspect", ge=0)
-    # a checked packet gaining less than frontend_min_contrast_gain is flat: its events do not measure the motion
-    # (under ~1 px over the packet, or noise), so omega = 0 there; packets whose optimum is 1 px or more from the warm
-    # start are checked too (pipelines/frontend.AngularVelocityEstimator.estimate)
-    frontend_flat_is_still: bool = param(True, "a checked packet whose optimum barely beats omega = 0 takes omega = 0")
-    # the check costs a cost-only evaluation (vote and blur: ~0.6 of a full one, ~6 % of the front-end at 1 of 4);
-    # these scheduled checks feed the status, a majority over them: 10 per second of data (100 Hz packets) are plenty
-    # for that (1 of 4 until session 14); the flat rule adds checks where an optimum jumps from its warm start
+    frontend_min_contrast_gain: float = param(0.02, "checked packets moving >= 1 px but gaining less contrast over "
+                                                    "omega = 0 are suspect", ge=0)
+    # a packet whose optimum moves its farthest event by under 1 px (or 1 px or more away from its warm start) is
+    # tested for whether its events measure any motion at all: the score test of omega = 0 (the gradient at omega = 0
+    # against the spread of its per-event terms, chi-square with 3 degrees of freedom); under this score the
+    # packet is flat: omega = 0, since its optimum is noise (pipelines/frontend.AngularVelocityEstimator.estimate)
+    frontend_flat_is_still: bool = param(True, "a packet whose motion is not significant (score test) takes omega = 0")
+    frontend_min_motion_score: float = param(16.3, "score of omega = 0 a slow packet needs to keep its motion "
+                                                   "(chi-square 3 dof; 16.3: 0.1 % false motion)", ge=0)
+    # the scheduled checks (a cost-only evaluation: vote and blur, ~0.6 of a full one) feed the status, a majority
+    # over them: 10 per second of data (100 Hz packets) are plenty for that (1 of 4 until session 14)
     frontend_gain_check_every: int = param(10, "the contrast at omega = 0 (suspect check) is evaluated on 1 of this "
                                               "many moving packets", ge=1)
     # warm start of packet j: "previous" (omega_{j-1}) or "linear" (2 omega_{j-1} - omega_{j-2}, when both exist)

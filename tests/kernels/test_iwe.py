@@ -198,3 +198,23 @@ def test_bound_launch_equals_the_kernel_call(ti_runtime):
         runtime.BoundLaunch(axpy, x, y_bound, 0.5)
     with pytest.raises(TypeError):
         runtime.BoundLaunch(axpy, x, np.ones(20)[::2], 0.5, 7)  # not contiguous
+
+
+@pytest.mark.parametrize("dtype, rtol", [(np.float64, 1e-9), (np.float32, 1e-3)])
+def test_gradient_covariance_matches_numpy_twin(ti_runtime, dtype, rtol):
+    """The gradient's noise covariance from its per-event terms (gather's partial sums per group of 8 events): the
+    twin computes the same from the numpy per-event terms, which sum to the gradient."""
+    b, dts = _packet(n=3001, seed=7)
+    ws = iwe.IWEWorkspace(CAM.width, CAM.height, dtype, capacity=len(dts))
+    ws.set_packet(b, dts)
+    for om in OMEGAS[:2]:
+        _, g, _ = ws.evaluate(om, CAM.K)
+        _, terms = iwe.contrast_numpy(b, dts, om, CAM.K, CAM.width, CAM.height, per_event=True)
+        np.testing.assert_allclose(terms.sum(axis=0), iwe.contrast_numpy(b, dts, om, CAM.K, CAM.width, CAM.height)[1])
+        ref = iwe.gradient_covariance_numpy(terms)
+        cov = ws.gradient_covariance()
+        assert np.all(np.linalg.eigvalsh(ref) > 0)
+        np.testing.assert_allclose(cov, ref, rtol=rtol, atol=rtol * np.abs(ref).max())
+    ws.set_packet(b[:120], dts[:120])  # 15 groups of 8 events: too few for an estimate
+    ws.evaluate(OMEGAS[1], CAM.K)
+    assert np.all(np.isnan(ws.gradient_covariance()))

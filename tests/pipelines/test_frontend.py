@@ -298,9 +298,9 @@ def test_slicer_packets_do_not_depend_on_chunk_size_and_join_lazily(min_span, mo
 
 
 def _integer_pixels_with_noise(omega, seed, n=20000, noise=10000):
-    """A 0.1 s packet of scene edges (``_synthetic_events``) as a sensor gives them, integer pixels, plus uniform
-    noise events."""
-    ev = _synthetic_events(omega, 0.0, 0.1, n, seed=seed)
+    """A 0.1 s packet of n scene edge events (``_synthetic_events``) as a sensor gives them, integer pixels, plus
+    uniform noise events."""
+    ev = _synthetic_events(omega, 0.0, 0.1, n, seed=seed) if n else Events(*np.zeros((4, 0)))
     rng = np.random.default_rng(seed)
     t = np.concatenate([ev.t, rng.uniform(0, 0.1, noise)])
     order = np.argsort(t, kind="stable")
@@ -345,7 +345,7 @@ def test_pixel_dither_is_uniform_over_the_pixel_and_deterministic(ti_runtime):
 
 def test_flat_packets_take_omega_zero_and_moving_ones_do_not(ti_runtime):
     """A moving packet (scheduled check) keeps its omega. Then the camera stops: the still packet's optimum lies far
-    from the warm start, so it is checked although not scheduled, barely beats omega = 0 and takes omega = 0 (the
+    from the warm start, so it is score-tested although not scheduled, measures no motion and takes omega = 0 (the
     warm start resets); without the rule the optimiser's point is kept (a motion the still camera does not have:
     on a flat cost, where the optimiser stops is noise)."""
     omega = np.array([1.0, -1.5, 0.6])
@@ -361,3 +361,24 @@ def test_flat_packets_take_omega_zero_and_moving_ones_do_not(ti_runtime):
             assert est.flat_packets == 1 and est.checks == 2
         else:
             assert not est.last_flat and np.all(w != 0) and est.checks == 1  # the optimiser's point, kept
+
+
+def test_the_score_test_keeps_a_measured_slow_motion_and_zeroes_noise(ti_runtime):
+    """A motion of half a pixel over the packet, 5 000 scene events among 10 000 noise events: the optimum gains
+    under 2 % of contrast over omega = 0 (the gain cannot tell it from noise) but scores in the hundreds and is
+    kept. Noise alone, whose optimum lands pixels away gaining up to 7 %, scores like chi-square with 3 degrees of
+    freedom: flat, omega = 0. (The same scene still peaks sharply at omega = 0 whatever the test says.)"""
+    slow = np.array([0.03, -0.04, 0.01])  # 0.05 rad/s: 0.5 px at the packet's ends (f = 200 px, +-50 ms)
+    threshold = FrontendConfig().frontend_min_motion_score
+    for seed in range(3):
+        est = AngularVelocityEstimator(CAM, FrontendConfig())
+        w, res, _ = est.estimate(_integer_pixels_with_noise(slow, seed, n=5000), 0.05)
+        c0, g0, _ = est.ws.evaluate(np.zeros(3), est.K)
+        assert res.fun / (c0 * est._scale) < 1.02  # the gain rule would have called it flat
+        assert est.score_tests == 1 and not est.last_flat and np.linalg.norm(w - slow) < 0.015
+        assert est.motion_score(g0) > 5 * threshold
+        w, _, _ = est.estimate(_integer_pixels_with_noise(np.zeros(3), seed), 0.05)
+        assert est.score_tests == 2 and np.linalg.norm(w) < 0.005
+        w, res, _ = est.estimate(_integer_pixels_with_noise(np.zeros(3), seed, n=0), 0.05)
+        assert np.linalg.norm(res.x) > 1.0  # the optimiser's point: pixels of motion that noise does not have
+        assert est.score_tests == 3 and est.last_flat and np.all(w == 0) and np.all(est.warm_start() == 0)
