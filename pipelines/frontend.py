@@ -363,6 +363,10 @@ class PixelDither:
 # moved 0.1-0.9 px but for jumps; 2 px found the same flats (bay 14 s, city 1 M ev/s) with 1.7-1.8x the evaluations at
 # omega = 0 (measured with an earlier noise estimate: 8 sub-packets)
 SLOW_PX = 1.0
+# the carried BFGS inverse Hessian is dropped above this condition number (optim.bfgs max_condition): measured on
+# six sequences at 1 and 1 of 4 packets, at most 290 (99 % under 145); a collapsed one read 2e4-4e4 and held the
+# front-end 0.1 rad/s off a rotation for a second (a 14 s pan at real-time level 4: abs 4.9 deg instead of ~0.5)
+BFGS_MAX_CONDITION = 1e3
 
 
 class AngularVelocityEstimator:
@@ -450,7 +454,8 @@ class AngularVelocityEstimator:
                 fun, x0, maximize=True, inv_hessian=self.inv_hessian, init_step=cfg.frontend_cg_init_step,
                 max_iter=cfg.frontend_cg_max_iters, grad_tol=cfg.frontend_cg_grad_tol,
                 rel_cost_tol=cfg.frontend_cg_rel_cost_tol, max_step=cfg.frontend_bfgs_max_step,
-                max_line_evals=cfg.frontend_cg_max_line_evals, step_tol=cfg.frontend_bfgs_step_tol)
+                max_line_evals=cfg.frontend_cg_max_line_evals, step_tol=cfg.frontend_bfgs_step_tol,
+                max_condition=BFGS_MAX_CONDITION)
             return res
         return fletcher_reeves(
             fun, x0, maximize=True, init_step=cfg.frontend_cg_init_step,

@@ -220,6 +220,7 @@ def bfgs(
     step_tol: float = 0.0,
     deadline: float | None = None,
     last_step_unevaluated: bool = False,
+    max_condition: float = 0.0,
 ) -> tuple[CGResult, np.ndarray | None]:
     """Minimise (or maximise) fun by BFGS from a given inverse Hessian; returns (result, inverse Hessian).
 
@@ -238,6 +239,10 @@ def bfgs(
     (x units): the evaluation that step would cost cannot move the solution by more than that.
     ``deadline`` (a ``time.monotonic()`` value): no new iteration starts after it (a real-time budget); the best
     point so far is returned, message "time budget reached".
+    ``max_condition`` > 0: a carried ``inv_hessian`` whose condition number exceeds it is dropped (a cold start).
+    BFGS only corrects H along the steps it takes, so a direction whose inverse curvature collapsed (one update
+    across a noisy, non-quadratic cost) gets steps too short to ever be corrected, and the step tolerance then
+    stops far from the optimum along it, packet after packet.
     ``last_step_unevaluated``: once H is learnt, a full quasi-Newton step whose predicted cost change (the quadratic
     model's, g.H.g / 2) is below half ``rel_cost_tol`` is taken without evaluating it, and BFGS stops there (message
     "predicted cost change below tolerance"; ``fun`` and ``grad`` are then the last evaluated ones, and H lacks that
@@ -250,6 +255,10 @@ def bfgs(
     x = np.array(x0, dtype=float)
     n = x.size
     H = None if inv_hessian is None else np.array(inv_hessian, dtype=float)
+    if H is not None and max_condition > 0:
+        ev = np.linalg.eigvalsh(H)
+        if not ev[0] * max_condition >= ev[-1]:  # also drops an H with a non-positive eigenvalue
+            H = None
     updates = 0 if H is None else n  # BFGS updates behind H (a carried H counts as learnt)
     f, g = fc(x)
     it = 0

@@ -162,3 +162,22 @@ def test_bfgs_deadline_returns_the_best_point_so_far():
     assert full.converged and cut.message == "time budget reached" and not cut.converged
     assert cut.iterations == 1 and cut.evaluations < full.evaluations
     assert cut.fun < f(np.zeros(3))[0]  # one step was taken and kept
+
+
+def test_bfgs_drops_a_carried_inverse_hessian_whose_curvature_collapsed():
+    """A carried H with one collapsed direction (inverse curvature 1e-4 where the cost's is 1): every step along it
+    is too short to teach H otherwise, and the step tolerance stops far from the optimum; with max_condition the
+    degenerate H is dropped (a cold start) and the optimum is reached. A well-conditioned carried H is kept."""
+    target = np.array([1.0, -0.5, 0.3])
+
+    def fun(x):
+        d = x - target
+        return float(d @ d), 2.0 * d
+
+    collapsed = np.diag([1e-4, 0.5, 0.5])
+    stuck, _ = bfgs(fun, np.zeros(3), inv_hessian=collapsed, step_tol=0.05)
+    assert abs(stuck.x[0] - target[0]) > 0.9  # held near its start along the collapsed direction
+    res, _ = bfgs(fun, np.zeros(3), inv_hessian=collapsed, step_tol=0.05, max_condition=1e3)
+    np.testing.assert_allclose(res.x, target, atol=0.05)
+    warm, _ = bfgs(fun, np.zeros(3), inv_hessian=np.eye(3) * 0.5, step_tol=0.05, max_condition=1e3)
+    assert warm.evaluations <= 2 and np.allclose(warm.x, target)  # the exact Newton step: H kept
