@@ -501,6 +501,7 @@ class AngularVelocityEstimator:
                 if self.last_suspect and cfg.frontend_flat_is_still and not tested:
                     tested = True
                     g_zero = self.ws.evaluate(np.zeros(3), self.K, cfg.contrast_measure)[1]
+                    self.checks += 1
                     extra += 1
         if tested:
             self.score_tests += 1
@@ -518,7 +519,7 @@ class AngularVelocityEstimator:
         chi-square with 3 degrees of freedom (synthetic 0.1 s packets, 6 seeds each: still scene with 10 000 noise
         events mean 4.5, 20 000 scene events 1.1, noise alone 2.9; at the true omega of half- and third-pixel
         motions 1.9-3.1), so ``frontend_min_motion_score`` = 16.3 lets 0.1 % of motionless packets through; half a
-        pixel of motion scores 170-210 with 5 000 scene events among 10 000 noise events, 12-36 with 2 000."""
+        pixel of motion scores 170-210 with 5 000 scene events among 10 000 noise events, 11-36 with 2 000."""
         g = np.asarray(g_zero, float)
         cov = self.ws.gradient_covariance()
         if not np.all(np.isfinite(cov)):

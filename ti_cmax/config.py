@@ -175,7 +175,7 @@ class FrontendConfig(Params):
     # against the spread of its per-event terms, chi-square with 3 degrees of freedom); under this score the
     # packet is flat: omega = 0, since its optimum is noise (pipelines/frontend.AngularVelocityEstimator.estimate)
     frontend_flat_is_still: bool = param(True, "a packet whose motion is not significant (score test) takes omega = 0")
-    frontend_min_motion_score: float = param(16.3, "score of omega = 0 a slow packet needs to keep its motion "
+    frontend_min_motion_score: float = param(16.3, "score of omega = 0 a tested packet needs to keep its motion "
                                                    "(chi-square 3 dof; 16.3: 0.1 % false motion)", ge=0)
     # the scheduled checks (a cost-only evaluation: vote and blur, ~0.6 of a full one) feed the status, a majority
     # over them: 10 per second of data (100 Hz packets) are plenty for that (1 of 4 until session 14)
