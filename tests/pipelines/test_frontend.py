@@ -382,3 +382,16 @@ def test_the_score_test_keeps_a_measured_slow_motion_and_zeroes_noise(ti_runtime
         w, res, _ = est.estimate(_integer_pixels_with_noise(np.zeros(3), seed, n=0), 0.05)
         assert np.linalg.norm(res.x) > 1.0  # the optimiser's point: pixels of motion that noise does not have
         assert est.score_tests == 3 and est.last_flat and np.all(w == 0) and np.all(est.warm_start() == 0)
+
+
+def test_a_collapsed_carried_curvature_does_not_hold_the_estimate(ti_runtime):
+    """BFGS corrects its carried inverse Hessian only along the steps it takes: with one direction collapsed (a
+    noisy packet's update) every later step along it is ~1e-4 px and the step tolerance stops there, the warm start's
+    error kept. Such an H (condition number above frontend.BFGS_MAX_CONDITION) is dropped: a cold start."""
+    omega = np.array([1.0, -1.5, 0.6])
+    events = _synthetic_events(omega, 0.0, 0.02, 10000, seed=4)
+    est = AngularVelocityEstimator(CAM, FrontendConfig())
+    est.omega = omega + np.array([0.3, 0.0, 0.0])  # the warm start, 0.3 rad/s off about x (~3 px at +-10 ms)
+    est.inv_hessian = np.diag([1e-4, 1.0, 1.0])
+    w, _, _ = est.estimate(events, 0.01)
+    assert np.linalg.norm(w - omega) < 0.03 * np.linalg.norm(omega)
