@@ -200,12 +200,13 @@ def test_bound_launch_equals_the_kernel_call(ti_runtime):
         runtime.BoundLaunch(axpy, x, np.ones(20)[::2], 0.5, 7)  # not contiguous
 
 
+@pytest.mark.parametrize("parts", [None, 2])
 @pytest.mark.parametrize("dtype, rtol", [(np.float64, 1e-9), (np.float32, 1e-3)])
-def test_gradient_covariance_matches_numpy_twin(ti_runtime, dtype, rtol):
+def test_gradient_covariance_matches_numpy_twin(ti_runtime, dtype, rtol, parts):
     """The gradient's noise covariance from its per-event terms (gather's partial sums per group of 8 events): the
-    twin computes the same from the numpy per-event terms, which sum to the gradient."""
+    twin computes the same from the numpy per-event terms, which sum to the gradient; also with parallel vote parts."""
     b, dts = _packet(n=3001, seed=7)
-    ws = iwe.IWEWorkspace(CAM.width, CAM.height, dtype, capacity=len(dts))
+    ws = iwe.IWEWorkspace(CAM.width, CAM.height, dtype, capacity=len(dts), parts=parts)
     ws.set_packet(b, dts)
     for om in OMEGAS[:2]:
         _, g, _ = ws.evaluate(om, CAM.K)
