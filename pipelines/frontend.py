@@ -82,7 +82,7 @@ class FrontendResult:
     cost: np.ndarray  # (M,) normalised contrast at the solution (nan when still)
     gain: np.ndarray  # (M,) contrast at the solution over the contrast at omega = 0 (nan when still or unchecked)
     suspect: np.ndarray  # (M,) bool: the solution moves events by >= 1 px but barely sharpens the IWE
-    flat: np.ndarray = None  # (M,) bool: omega set to 0 because the optimum barely beat omega = 0 (estimate())
+    flat: np.ndarray = None  # (M,) bool: omega set to 0, the motion not significant (score test, estimate())
     timing: dict = field(default_factory=dict)  # compile_seconds, wall_seconds, us_per_event, ...
     config: FrontendConfig = field(default_factory=FrontendConfig)
 
@@ -614,7 +614,7 @@ class FrontendRunner:
             "us_per_packet_event": self.seconds * 1e6 / processed if processed else 0.0,
             "events_evaluated": int(self.estimator.events_evaluated),
             "evaluations": int(evals.sum()),
-            "zero_checks": int(self.estimator.checks),  # evaluations at omega = 0 (cost only: ~0.6 of one each)
+            "zero_checks": int(self.estimator.checks),  # evaluations at omega = 0 (with the gradient when tested)
             "score_tests": int(self.estimator.score_tests),  # packets score-tested (motion_score)
             "us_per_event_per_evaluation": self.seconds * 1e6 / evaluated if evaluated else 0.0,
         }
