@@ -42,6 +42,11 @@ gain nan and are never suspect. Without the grid's pull an optimiser on a flat c
 start, or a suspect one is flat unless its events measure a motion: the score test of omega = 0
 (``AngularVelocityEstimator.motion_score``, ``frontend_min_motion_score``); a flat packet takes omega = 0.
 
+Lookbacks (``frontend_flat_lookback``, ``FrontendRunner._past_motion``): a flat packet's recent past (the last 4x,
+16x, ... its span) is score-tested too, so a motion too slow for one packet still counts as one for the back-end
+(which refines only windows that moved: ``backend_skip_still_windows``), and a packet that measures a motion right
+after a flat one keeps it only if its lookback measures it too (a noise packet passing the test by chance).
+
 Scaling (so that the reference's tolerances mean the same across packet sizes and resolutions): the
 optimiser sees x = omega * s with s = f * max_k |dt_k| (f: mean focal length), i.e. x is roughly the
 displacement in pixels of the packet's farthest-in-time event, and the cost C / mu0^2 with
@@ -83,6 +88,8 @@ class FrontendResult:
     gain: np.ndarray  # (M,) contrast at the solution over the contrast at omega = 0 (nan when still or unchecked)
     suspect: np.ndarray  # (M,) bool: the solution moves events by >= 1 px but barely sharpens the IWE
     flat: np.ndarray = None  # (M,) bool: omega set to 0, the motion not significant (score test, estimate())
+    # (M,) span (s) of the lookback that measured a motion around a flat packet (FrontendRunner; 0: none)
+    lookback: np.ndarray = None
     timing: dict = field(default_factory=dict)  # compile_seconds, wall_seconds, us_per_event, ...
     config: FrontendConfig = field(default_factory=FrontendConfig)
 
@@ -114,6 +121,7 @@ class FrontendResult:
             "still_packets": int(np.count_nonzero(self.still)),
             "suspect_packets": int(np.count_nonzero(self.suspect)),
             "flat_packets": int(np.count_nonzero(self.flat)) if self.flat is not None else 0,
+            "lookback_packets": int(np.count_nonzero(self.lookback)) if self.lookback is not None else 0,
             "checked_packets": int(np.count_nonzero(self.checked)),
             "median_contrast_gain": float(np.nanmedian(self.gain)) if np.any(~self.still) else 0.0,
             "mean_iterations": float(np.mean(self.iterations)) if len(self.t) else 0.0,
@@ -354,6 +362,41 @@ class PixelDither:
         packed[:n, 1] += self._y[offset:offset + n]
 
 
+class Lookback:
+    """The recent events of the stream, for testing a flat packet's past for motion over a longer span
+    (``FrontendRunner``).
+
+    Holds the events of the last ``span`` seconds; each packet's new events are thinned to at most ``density``
+    events per second (1 of k, even in the event index), so memory stays at most span x density events whatever
+    the event rate. A lookback of that span is thinned again to the packet cap by the estimator."""
+
+    def __init__(self, span: float, density: float):
+        self.span, self.density = float(span), float(density)
+        self._parts: list[Events] = []
+        self._t_end = -np.inf
+
+    def add(self, events: Events) -> None:
+        """Append the events of a packet that are later than those held (packets overlap)."""
+        new = events[int(events.index_at(self._t_end, side="right")):] if np.isfinite(self._t_end) else events
+        if len(new) == 0:
+            return
+        start = self._t_end if np.isfinite(self._t_end) else float(new.t[0])
+        k = int(np.ceil(len(new) / max(self.density * max(float(new.t[-1]) - start, 1e-6), 1.0)))
+        self._t_end = float(new.t[-1])
+        self._parts.append(new[(k // 2)::k] if k > 1 else new)
+        while len(self._parts) > 1 and self._parts[0].t[-1] < self._t_end - self.span:
+            self._parts.pop(0)
+
+    def recent(self, length: float) -> Events:
+        """The held events of the last ``length`` seconds (up to the last one added)."""
+        if not self._parts:
+            return Events.empty()
+        held = Events.concatenate(self._parts) if len(self._parts) > 1 else self._parts[0]
+        held = held[int(held.index_at(self._t_end - self.span)):]  # (joined, the parts no longer drop the oldest)
+        self._parts = [held]
+        return held[int(held.index_at(self._t_end - length)):]
+
+
 # ------------------------------------------------------------------------------------------------
 # per-packet estimation
 # ------------------------------------------------------------------------------------------------
@@ -367,6 +410,10 @@ SLOW_PX = 1.0
 # six sequences at 1 and 1 of 4 packets, at most 290 (99 % under 145); a collapsed one read 2e4-4e4 and held the
 # front-end 0.1 rad/s off a rotation for a second (a 14 s pan at real-time level 4: abs 4.9 deg instead of ~0.5)
 BFGS_MAX_CONDITION = 1e3
+# lookbacks (frontend_flat_lookback) span 4x, 16x, ... the packet's span; in a run of flat packets one packet of
+# LOOKBACK_EVERY looks back (lookbacks of >= 0.16 s change little over 4 packets, 40 ms), the others take its answer
+LOOKBACK_FACTOR = 4.0
+LOOKBACK_EVERY = 4
 
 
 class AngularVelocityEstimator:
@@ -512,6 +559,23 @@ class AngularVelocityEstimator:
         self.event_evaluations += n * (res.evaluations + extra)
         return self.omega.copy(), res, res.fun
 
+    def measures_motion(self, events: Events, t_ref: float) -> bool:
+        """Whether ``events`` (a longer span ending with a flat packet: ``FrontendRunner``'s lookback) measure any
+        motion: the score test of omega = 0 over them (one evaluation)."""
+        n = self._objective(events, t_ref)[2]
+        g_zero = self.ws.evaluate(np.zeros(3), self.K, self.config.contrast_measure)[1]
+        self.checks += 1
+        self.score_tests += 1
+        self.event_evaluations += n
+        return self.motion_score(g_zero) >= self.config.frontend_min_motion_score
+
+    def declare_flat(self) -> None:
+        """The last packet is flat after all (``FrontendRunner``: its motion is not confirmed over a longer span)."""
+        if not self.last_flat:
+            self.last_flat = True
+            self.flat_packets += 1
+            self.reset()
+
     def motion_score(self, g_zero) -> float:
         """Score statistic of omega = 0 for the loaded packet: g0^T S^-1 g0, with g0 its contrast gradient at
         omega = 0 (the workspace's last evaluation) and S the noise covariance of g0 estimated from the spread of
@@ -557,7 +621,16 @@ class FrontendRunner:
         self.config = config
         self.estimator = AngularVelocityEstimator(camera, config, dtype)
         self.slicer = PacketSlicer(config)
+        self.lookback = None
+        if config.frontend_flat_lookback > 0 and config.frontend_flat_is_still:
+            # the shortest lookback (LOOKBACK_FACTOR x the minimum span) may hold a full packet cap of events
+            cap = max(config.num_events_per_packet, config.frontend_max_packet_events)
+            base = max(config.frontend_min_packet_span, config.dt_ang_vel)
+            self.lookback = Lookback(config.frontend_flat_lookback, cap / (LOOKBACK_FACTOR * base))
+        self._flat_run = 0  # flat packets in a row
+        self._last_look = 0.0  # span of the run's last lookback that measured a motion (0: none)
         self.rows: list[tuple] = []
+        self.last_moving = False  # the last packet measured a motion (itself, or a lookback around it)
         self.events_processed = 0  # events in non-still packets (each counted once per packet): packet_events
         self.input_events = 0  # counted by counted(); 0: the slicer's count is the input
         self.compile_seconds = 0.0
@@ -583,20 +656,67 @@ class FrontendRunner:
         cpu_tic = time.process_time()
         if packet.still:
             self.estimator.reset()
-            self.rows.append((packet.t_ref, 0.0, 0.0, 0.0, 0, packet.span, 0, 0, True, np.nan, np.nan, False, False))
+            self._flat_run = 0
+            self.last_moving = False
+            self.rows.append((packet.t_ref, 0.0, 0.0, 0.0, 0, packet.span, 0, 0, True, np.nan, np.nan, False, False,
+                              0.0))
             omega = np.zeros(3)
         else:
-            omega, res, cost = self.estimator.estimate(packet.events, packet.t_ref)
+            est = self.estimator
+            omega, res, cost = est.estimate(packet.events, packet.t_ref)
+            looked = 0.0
+            if self.lookback is not None:
+                self.lookback.add(packet.events)
+                looked = self._past_motion(packet)
+                if not looked and self._flat_run and not est.last_flat:  # a motion after a flat packet, unconfirmed
+                    est.declare_flat()
+                    omega = np.zeros(3)
+                if est.last_flat:
+                    self._flat_run += 1
+                else:
+                    self._flat_run = 0
+            self.last_moving = not est.last_flat or looked > 0
             self.events_processed += len(packet.events)
             self.rows.append((packet.t_ref, *omega, len(packet.events), packet.span, res.iterations,
-                              res.evaluations, False, cost, self.estimator.last_gain, self.estimator.last_suspect,
-                              self.estimator.last_flat))
+                              res.evaluations, False, cost, est.last_gain, est.last_suspect, est.last_flat, looked))
         self.seconds += time.perf_counter() - tic
         self.cpu_seconds += time.process_time() - cpu_tic
         return omega
 
+    def _look_back(self, packet: Packet) -> float:
+        """Whether the recent past of a packet measures a motion (``frontend_flat_lookback``): the score test over
+        the events of the last 4x, 16x, ... its span, up to that many seconds. Returns the span of the first lookback
+        that does (0: none; the camera is still as far as the events tell)."""
+        length = LOOKBACK_FACTOR * max(packet.span, self.config.frontend_min_packet_span)
+        covered = packet.span
+        while True:
+            events = self.lookback.recent(min(length, self.lookback.span))
+            if len(events) < 2 or events.duration <= 1.01 * covered:  # no events older than those already tried
+                return 0.0
+            if self.estimator.measures_motion(events, 0.5 * (float(events.t[0]) + float(events.t[-1]))):
+                return float(events.duration)
+            if length >= self.lookback.span:
+                return 0.0
+            covered, length = events.duration, length * LOOKBACK_FACTOR
+
+    def _past_motion(self, packet: Packet) -> float:
+        """The lookback's answer for the packet just estimated, the span that measured a motion (0: none), where one
+        is needed: a flat packet (is the camera still, or moving too slowly for one packet?) and a packet that
+        measures a motion right after a flat one (a start, or a false alarm: a packet of noise passes the score test
+        at its 0.1 % rate, and a short run of noise packets with an isolated pass was measured to move the poses 1.8
+        deg; a real start measures over the longer span too). In a run of flat packets one of LOOKBACK_EVERY looks
+        back, the others take its answer. A flat packet keeps omega = 0 either way: a constant angular velocity fitted
+        over a lookback is too coarse for the trajectory (its roll, the least constrained axis, 0.015-0.035 rad/s off
+        on simulated starts; CMax-SLAM on a DAVIS240C pan +27 % abs error), while the back-end refines a window that
+        moved (SlidingWindowBackend: a window without a measured motion gets no BA)."""
+        if not self.estimator.last_flat:
+            return self._look_back(packet) if self._flat_run else 0.0
+        if self._flat_run % LOOKBACK_EVERY == 0:
+            self._last_look = self._look_back(packet)
+        return self._last_look
+
     def result(self) -> FrontendResult:
-        arr = list(zip(*self.rows)) if self.rows else [()] * 13
+        arr = list(zip(*self.rows)) if self.rows else [()] * 14
         evals = np.asarray(arr[7], dtype=int)
         processed = self.events_processed
         inputs = self.input_events or self.events_read
@@ -630,6 +750,7 @@ class FrontendRunner:
             gain=np.asarray(arr[10], float),
             suspect=np.asarray(arr[11], bool),
             flat=np.asarray(arr[12], bool),
+            lookback=np.asarray(arr[13], float),
             timing=timing,
             config=self.config,
         )
@@ -661,5 +782,5 @@ def report_parameters(config: FrontendConfig) -> dict:
     return config_to_dict(config)
 
 
-__all__ = ["FrontendResult", "PacketSlicer", "Packet", "AngularVelocityEstimator", "estimate_angular_velocity",
-           "SLICING_RULES", "FrontendRunner", "as_chunks", "downsampled"]
+__all__ = ["FrontendResult", "PacketSlicer", "Packet", "Lookback", "AngularVelocityEstimator",
+           "estimate_angular_velocity", "SLICING_RULES", "FrontendRunner", "as_chunks", "downsampled"]

@@ -799,7 +799,6 @@ class LoopCloser:
         the old map of chunks[:n_old] holding the votes of chunks[n_old:n_voted] already; None: none yet). The
         same additions in the same order either way: the same maps."""
         backend = self.backend
-        bs = backend.cfg.event_batch_size
         for chunk in self.chunks[n_old:self._n_old]:  # aged while the rebuild ran in slices
             self._age_chunk(chunk, maps)
         self.old, self.age, self.visit = maps

@@ -90,6 +90,8 @@ def _backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
     return {
         "windows": len(backend.windows),
         "windows_optimized": len(optimized),
+        # windows over which the front-end measured no motion (backend_skip_still_windows): no BA
+        "windows_still": sum(1 for w in backend.windows if w.still),
         "mean_iterations": float(np.mean([w.iterations for w in optimized])) if optimized else 0.0,
         "mean_evaluations": float(np.mean([w.evaluations for w in optimized])) if optimized else 0.0,
         "events_settled": int(backend.events_settled),
@@ -346,10 +348,11 @@ class OnlineSlam:
             self._r_src = self._r_src @ so3.exp(0.5 * (self._w_prev + omega) * (packet.t_ref - self._t_prev))
         self._t_prev, self._w_prev = packet.t_ref, omega
         backend = self._feed.backend
-        backend.push_source_poses([packet.t_ref], self._r_src[None])
+        moving = [self.runner.last_moving]
+        backend.push_source_poses([packet.t_ref], self._r_src[None], moving)
         if self._worker is not None:
             self._send_events()  # every event pushed so far goes before the pose, as in the sequential run
-            self._worker.send(("pose", packet.t_ref, self._r_src))
+            self._worker.send(("pose", packet.t_ref, self._r_src, moving))
             return
         while backend.ready():
             tic, cpu = time.perf_counter(), time.process_time()
@@ -492,8 +495,8 @@ class _BackendProcess:
 
 def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, degradation,
                     loop_slice_seconds: float | None = None) -> None:
-    """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R), ("map",) (send a
-    copy of the map) and ("finish",); ``degradation``: the back-end's ba_cap, ba_every and ba_budget in shared memory
+    """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R, moving), ("map",)
+    (send a copy of the map) and ("finish",); ``degradation``: the back-end's ba_cap, ba_every and ba_budget in shared memory
     (-1: None; set by OnlineSlam.degrade), read before each step. With ``loop_slice_seconds`` a loop verification
     runs in slices (LoopCloser.slice_seconds): also one slice at a time while no message waits (idle time)."""
     try:
@@ -535,7 +538,7 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
             backend.ba_budget = None if ba_budget < 0 else float(ba_budget)
             tic, cpu = time.perf_counter(), time.process_time()
             if kind == "pose":
-                backend.push_source_poses([args[0]], args[1][None])
+                backend.push_source_poses([args[0]], args[1][None], args[2])
                 new = len(backend.windows)
                 while backend.ready():
                     backend.step()

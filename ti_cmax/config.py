@@ -177,6 +177,12 @@ class FrontendConfig(Params):
     frontend_flat_is_still: bool = param(True, "a packet whose motion is not significant (score test) takes omega = 0")
     frontend_min_motion_score: float = param(16.3, "score of omega = 0 a tested packet needs to keep its motion "
                                                    "(chi-square 3 dof; 16.3: 0.1 % false motion)", ge=0)
+    # a flat packet's recent past is score-tested too (pipelines/frontend.FrontendRunner._look_back): the events of the
+    # last 4x its span, then 16x, ..., up to this many seconds (0: off); motions far under a pixel per packet (starts,
+    # stops, slow pans) add up to pixels over a longer span. The packet keeps omega = 0; a window of flat packets none
+    # of whose lookbacks measured a motion gets no BA (backend_skip_still_windows)
+    frontend_flat_lookback: float = param(0.64, "a flat packet's past is tested for motion over the events of the "
+                                                "last 4x, 16x ... its span, up to this (0: off)", unit="s", ge=0)
     # the scheduled checks (a cost-only evaluation: vote and blur, ~0.6 of a full one) feed the status, a majority
     # over them: 10 per second of data (100 Hz packets) are plenty for that (1 of 4 until session 14)
     frontend_gain_check_every: int = param(10, "the contrast at omega = 0 (suspect check) is evaluated on 1 of this "
@@ -235,6 +241,11 @@ class BackendConfig(Params):
     freeze_pixels: bool = param(False, "map pixels stop updating max_update_time after first seen")
     max_update_time: float = param(10.0, "time a map pixel stays updatable (with freeze_pixels)", unit="s", gt=0)
     lambda0: float = param(1.0, "weight of the event area in the map quality figures", ge=0)
+    # a window over which the source measured no motion (the front-end: flat or still packets only, none of whose
+    # lookbacks measured a motion; other sources: poses that do not change) holds nothing the BA could refine: its
+    # events are noise or a still scene, which a BA fits with degrees of spurious rotation
+    # (pipelines/backend.SlidingWindowBackend._source_still)
+    backend_skip_still_windows: bool = param(True, "no BA on windows over which the source measured no motion")
     # a window whose optimum moves the trajectory at its events by more than this (rad) is a false maximum (e.g. a
     # map too coarse for the sensor, or a textureless window): the initialization is kept for that window
     backend_max_correction: float = param(0.1, "a window's larger correction is a false maximum (kept as initialized)",

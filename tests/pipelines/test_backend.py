@@ -168,3 +168,40 @@ def test_event_buffer_ranges_drops_and_views_stay_valid():
         assert len(buf._tt) <= 2 * (most + 700) + 1024  # bounded by the live events, not the 20 000 pushed
     (vt, _), expected = view
     assert np.array_equal(vt, expected)
+
+
+@pytest.mark.parametrize("flags", ["given", "none", "off"])
+def test_windows_over_which_the_source_measured_no_motion_get_no_ba(ti_runtime, flags):
+    """Noise events seen by a still camera: a BA would fit its poses to them. Windows over which the source measured
+    no motion (the front-end's moving flags) keep their initialization exactly; windows reaching the samples where
+    the source moves get their BA. A source without flags (a given trajectory, IMU; here constant poses until 0.6 s)
+    or backend_skip_still_windows=false: every window gets its BA."""
+    from ti_cmax import Camera, so3
+    from ti_cmax.config import BackendConfig
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+    from ti_cmax.pipelines.sensor_defaults import resolve_backend
+
+    cam = Camera(240, 180, 200.0, 200.0, 119.5, 89.5)
+    cfg = resolve_backend(BackendConfig(backend_skip_still_windows=flags != "off"), cam)
+    rng = np.random.default_rng(0)
+    t = np.sort(rng.uniform(0.0, 1.0, 60000))
+    bearings = cam.bearings(rng.integers(0, 240, len(t)), rng.integers(0, 180, len(t)))
+    src_t = 0.005 + 0.01 * np.arange(100)
+    moving = src_t > 0.6
+    src_r = so3.exp(np.outer(np.maximum(src_t - 0.6, 0.0), [0.0, 0.2, 0.0]))  # turning from 0.6 s on
+    be = SlidingWindowBackend(cfg, 0.0)
+    for k in range(len(src_t)):
+        be.push_events(t[(t >= src_t[k] - 0.01) & (t < src_t[k])], bearings[(t >= src_t[k] - 0.01) & (t < src_t[k])],
+                       complete_until=float(src_t[k]))
+        be.push_source_poses(src_t[k:k + 1], src_r[k:k + 1], moving[k:k + 1] if flags == "given" else None)
+        while be.ready():
+            be.step()
+    early = [w for w in be.windows if w.t_end < 0.58]
+    late = [w for w in be.windows if w.t_start > 0.62]
+    assert len(early) >= 3 and late
+    if flags != "given":
+        assert all(w.optimized and not w.still for w in early)
+    else:
+        assert all(w.still and not w.optimized for w in early) and all(not w.still for w in late)
+        knots = be.spline.knot_times()
+        np.testing.assert_array_equal(be.spline.control_R[knots < 0.3], np.eye(3)[None].repeat(np.sum(knots < 0.3), 0))

@@ -395,3 +395,99 @@ def test_a_collapsed_carried_curvature_does_not_hold_the_estimate(ti_runtime):
     est.inv_hessian = np.diag([1e-4, 1.0, 1.0])
     w, _, _ = est.estimate(events, 0.01)
     assert np.linalg.norm(w - omega) < 0.03 * np.linalg.norm(omega)
+
+
+def _slow_stream(omega, duration, seed, scene_rate=40000, noise_rate=20000):
+    """A camera turning at ``omega`` from t = 0 (R(t) = exp([w]x t)) over a scene of edges, integer pixels as a
+    sensor gives them, plus uniform noise events."""
+    n_scene, n_noise = int(scene_rate * duration), int(noise_rate * duration)
+    ev = _synthetic_events(omega, 0.0, duration, n_scene, seed=seed, t_mid=0.0)
+    rng = np.random.default_rng(seed)
+    t = np.concatenate([ev.t, rng.uniform(0, duration, n_noise)])
+    order = np.argsort(t, kind="stable")
+    x = np.concatenate([np.round(ev.x), rng.integers(0, CAM.width, n_noise)])[order].astype(np.uint16)
+    y = np.concatenate([np.round(ev.y), rng.integers(0, CAM.height, n_noise)])[order].astype(np.uint16)
+    return Events(t[order], x, y, np.ones(len(t)))
+
+
+def test_a_lookback_finds_a_motion_too_slow_for_one_packet_and_none_in_a_still_scene(ti_runtime):
+    """0.005 rad/s moves a 0.1 s packet's events by +-0.05 px: every packet is flat (omega = 0). Over the last 0.4 s
+    the same motion is +-0.2 px, which 20 000 events measure: the flat packets' lookbacks find it once 0.4 s of
+    events are there, and those packets count as moving for the back-end (``last_moving``) while keeping omega = 0.
+    The same scene seen by a still camera: no lookback finds a motion. Off (frontend_flat_lookback=0): no lookback."""
+    from ti_cmax.pipelines.frontend import FrontendRunner, as_chunks
+
+    def run(events, **kw):
+        runner = FrontendRunner(CAM, FrontendConfig(**kw))
+        moving = []
+        for packet in runner.slicer(as_chunks(events)):
+            runner.process(packet)
+            moving.append(runner.last_moving)
+        return runner.result(), np.array(moving)
+
+    slow = np.array([0.003, -0.004, 0.0])
+    fr, moving = run(_slow_stream(slow, 0.8, seed=7))
+    assert fr.flat.mean() > 0.9 and np.all(fr.omega[fr.flat] == 0)  # (a few packets measure the motion themselves)
+    late = fr.t > 0.5
+    assert np.all(fr.lookback[late & fr.flat] > 0.3) and moving[late].all()
+    assert not np.any(fr.lookback[fr.t < 0.15]) and not moving[fr.t < 0.15].any()  # too little past to measure it
+    fr, moving = run(_slow_stream(np.zeros(3), 0.8, seed=7))
+    assert fr.flat.all() and not np.any(fr.lookback) and not moving.any()
+    assert fr.summary()["lookback_packets"] == 0
+    fr, moving = run(_slow_stream(slow, 0.8, seed=7), frontend_flat_lookback=0.0)
+    assert not np.any(fr.lookback) and not moving[fr.flat].any()
+
+
+def test_a_motion_right_after_flat_packets_must_show_over_a_lookback(ti_runtime):
+    """A packet of a still scene that passes its score test by chance (forced here) right after flat packets is a
+    false alarm unless the longer span measures a motion too: it is declared flat, omega = 0. A real start (the
+    scene turning at 1 rad/s after 0.3 s at rest) is confirmed by its lookback and keeps its omega."""
+    from ti_cmax.pipelines.frontend import FrontendRunner, as_chunks
+
+    runner = FrontendRunner(CAM, FrontendConfig())
+    est = runner.estimator
+    real_estimate = est.estimate
+    forced = []
+
+    def estimate(events, t_ref, omega0=None):
+        out = real_estimate(events, t_ref, omega0)
+        if est.packets_estimated == 40:  # pretend the score test passed: a motion of 0.3 rad/s
+            est.flat_packets -= est.last_flat
+            est.last_flat, est.omega = False, np.array([0.0, 0.0, 0.3])
+            forced.append(t_ref)
+            return est.omega.copy(), out[1], out[2]
+        return out
+
+    est.estimate = estimate
+    omegas = {p.t_ref: runner.process(p) for p in runner.slicer(as_chunks(_slow_stream(np.zeros(3), 0.6, seed=8)))}
+    fr = runner.result()
+    assert forced and fr.flat.all() and np.all(fr.omega == 0) and not np.any(fr.lookback)
+    assert all(not np.any(w) for w in omegas.values())
+
+    still = _slow_stream(np.zeros(3), 0.3, seed=9)
+    turning = _synthetic_events(np.array([0.6, -0.8, 0.0]), 0.3, 0.6, 18000, seed=9, t_mid=0.45)
+    turning = Events(turning.t, np.round(turning.x).astype(np.uint16), np.round(turning.y).astype(np.uint16),
+                     turning.p)
+    fr = estimate_angular_velocity(Events.concatenate([still, turning]), CAM, FrontendConfig())
+    assert fr.flat[fr.t < 0.3].all()
+    start = np.flatnonzero(~fr.flat)[0]  # the first moving packet: its lookback measured the motion too
+    assert 0.3 < fr.t[start] < 0.4 and fr.lookback[start] > 0
+    assert not fr.flat[start:].any() and np.allclose(fr.omega[start:], [0.6, -0.8, 0.0], atol=0.02)
+
+
+def test_the_lookback_holds_its_span_at_a_bounded_density():
+    """The lookback keeps the last ``span`` seconds, each packet's new events thinned to the density cap, whatever
+    the event rate and however often it is read (reading joins its parts)."""
+    from ti_cmax.pipelines.frontend import Lookback
+
+    look = Lookback(span=0.5, density=10000.0)
+    rng = np.random.default_rng(0)
+    for k in range(300):  # 3 s of 10 ms slices at 200 000 events/s, overlapping by half a slice
+        t = np.sort(rng.uniform(0.01 * k - 0.005, 0.01 * (k + 1), 3000))
+        look.add(Events(t, np.zeros(len(t), np.uint16), np.zeros(len(t), np.uint16), np.ones(len(t))))
+        if k % 3 == 0:
+            recent = look.recent(0.2)
+            assert recent.t[-1] > t[-1] - 1e-3 and recent.t[0] >= t[-1] - 0.2 and np.all(np.diff(recent.t) >= 0)
+    held = look.recent(1.0)
+    assert held.t[0] >= 2.99 - 0.5 - 0.01 and len(held) <= 1.1 * 0.5 * 10000
+    assert len(look.recent(0.2)) == pytest.approx(0.2 * 10000, rel=0.1)
