@@ -59,7 +59,7 @@ class WindowReport:
     rejected: bool = False  # the correction exceeded backend_max_correction and was not applied
     seconds: float = 0.0
     skipped: bool = False  # BA skipped by the real-time controller (ba_cap = 0): front-end poses kept
-    still: bool = False  # the source measured no motion over the window: no BA (SlidingWindowBackend._source_still)
+    still: bool = False  # the source measured no motion over the window: no BA (SlidingWindowBackend._moving_from)
     cut_short: bool = False  # BA stopped at the real-time controller's time budget (ba_budget): its best point kept
     done_at: float = 0.0  # time.monotonic() when the window completed (the same clock in every process)
     ba_seconds: float = 0.0  # wall time of the BA (part of ``seconds``)
@@ -357,9 +357,9 @@ class SlidingWindowBackend:
         n = len(ev_t)
         rate = n / max(t1 - t0, 1e-9)
         report = WindowReport(t0, t1, n, optimized=False, alpha=0.0)
-        still = self._source_still(t0, t1)
+        moving_from = self._moving_from(t0, t1) if cfg.backend_skip_still_windows else t0
         if n >= 2 * cfg.event_batch_size and rate >= cfg.backend_min_ev_rate:
-            if cfg.backend_skip_still_windows and still:
+            if moving_from is None:
                 report.still = True
             elif self.ba_cap == 0 or len(self.windows) % max(1, self.ba_every):
                 report.skipped = True
@@ -367,7 +367,7 @@ class SlidingWindowBackend:
                 self._refresh_stale_map()  # the map the BA reads, after a loop correction
                 ba0 = time.perf_counter()
                 with clock("ba"):
-                    self._refine(ev_t, ev_b, t0, report)
+                    self._refine(ev_t, ev_b, t0, report, moving_from)
                 report.ba_seconds = time.perf_counter() - ba0
         settle_end = t1 + 1.0 if final else t0 + cfg.backend_sliding_window_stride
         with clock("settle"):
@@ -419,16 +419,19 @@ class SlidingWindowBackend:
         return out
 
     # ---- internals -------------------------------------------------------------------------------------------------
-    def _source_still(self, t0: float, t1: float) -> bool:
-        """The source measured no motion over [t0, t1] (``push_source_poses``' moving flags): its events then hold
-        nothing the BA could refine (a still camera: noise, flicker), and a BA fits the poses to them: 0.9-1.4 deg at
-        the start of a simulated DVS128 pan starting from rest with 1 Hz/px noise, the error that run kept as an
-        offset. Forgets the spans before t0 (windows advance in time)."""
+    def _moving_from(self, t0: float, t1: float) -> float | None:
+        """The first time in [t0, t1] from which the source measured a motion (``push_source_poses``' moving flags);
+        None: none over the whole window. Where the source measured none the events hold nothing the BA could refine
+        (a still camera: noise, flicker) and a BA fits the poses to them: 0.9-1.4 deg at the start of a simulated
+        DVS128 pan starting from rest with 1 Hz/px noise, an offset that run kept. So a window without motion gets no
+        BA, and a window that starts still keeps the control poses of its still part (``_refine``). Forgets the spans
+        before t0 (windows advance in time)."""
         while self._src_moves and self._src_moves[0][1] < t0:
             self._src_moves.popleft()
         if not len(self._src_t) or self._src_t[-1] < t1:
-            return False
-        return not any(a < t1 and b > t0 for a, b in self._src_moves)
+            return t0
+        starts = [a for a, b in self._src_moves if a < t1 and b > t0]
+        return max(t0, min(starts)) if starts else None
 
     def _source_segment(self, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:
         """Source poses in (t_from, t_to] plus the first one beyond t_to + _TIME_EPS, re-anchored to the spline at
@@ -509,7 +512,7 @@ class SlidingWindowBackend:
         idx = ((np.arange(cap) + 0.5) * (n / cap)).astype(np.int64)
         return ev_t[idx], np.take(ev_b, idx, axis=0)  # take: 4x faster than ev_b[idx] on (n, 3) rows
 
-    def _refine(self, ev_t, ev_b, t0, report: WindowReport) -> None:
+    def _refine(self, ev_t, ev_b, t0, report: WindowReport, moving_from: float | None = None) -> None:
         cfg = self.cfg
         spline = self.spline
         ev_t, ev_b = self._sample(ev_t, ev_b)
@@ -517,6 +520,9 @@ class SlidingWindowBackend:
         knots = spline.knot_times()
         first_free = int(np.searchsorted(knots, t0 - _TIME_EPS, side="left"))
         first_free = max(first_free, 1)  # the very first pose anchors the gauge (world frame)
+        if moving_from is not None and moving_from > t0:  # the window starts still: its poses there stay
+            reach = 0.5 * (cfg.spline_degree + 1) * cfg.dt_knots  # a control pose shapes R(t) within this of its knot
+            first_free = max(first_free, int(np.searchsorted(knots, moving_from - reach, side="right")))
         mids = batch_mid_times(ev_t, cfg.event_batch_size)
         s, u = spline.support(mids)
         # alpha from the event densities of the initial local map and the global map (Eq. 16-17): PanoIWE takes

@@ -242,10 +242,11 @@ class BackendConfig(Params):
     max_update_time: float = param(10.0, "time a map pixel stays updatable (with freeze_pixels)", unit="s", gt=0)
     lambda0: float = param(1.0, "weight of the event area in the map quality figures", ge=0)
     # a window over which the source measured no motion (the front-end: flat or still packets only, none of whose
-    # lookbacks measured a motion; other sources: poses that do not change) holds nothing the BA could refine: its
-    # events are noise or a still scene, which a BA fits with degrees of spurious rotation
-    # (pipelines/backend.SlidingWindowBackend._source_still)
-    backend_skip_still_windows: bool = param(True, "no BA on windows over which the source measured no motion")
+    # lookbacks measured a motion; a given trajectory or IMU always counts as moving) holds nothing the BA could
+    # refine: its events are noise or a still scene, which a BA fits with degrees of spurious rotation; a window that
+    # starts still keeps the control poses of its still part (pipelines/backend.SlidingWindowBackend._moving_from)
+    backend_skip_still_windows: bool = param(True, "no BA over the parts of windows where the source measured no "
+                                                   "motion")
     # a window whose optimum moves the trajectory at its events by more than this (rad) is a false maximum (e.g. a
     # map too coarse for the sensor, or a textureless window): the initialization is kept for that window
     backend_max_correction: float = param(0.1, "a window's larger correction is a false maximum (kept as initialized)",
