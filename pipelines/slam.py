@@ -496,9 +496,10 @@ class _BackendProcess:
 def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, degradation,
                     loop_slice_seconds: float | None = None) -> None:
     """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R, moving), ("map",)
-    (send a copy of the map) and ("finish",); ``degradation``: the back-end's ba_cap, ba_every and ba_budget in shared memory
-    (-1: None; set by OnlineSlam.degrade), read before each step. With ``loop_slice_seconds`` a loop verification
-    runs in slices (LoopCloser.slice_seconds): also one slice at a time while no message waits (idle time)."""
+    (send a copy of the map) and ("finish",); ``degradation``: the back-end's ba_cap, ba_every and ba_budget in
+    shared memory (-1: None; set by OnlineSlam.degrade), read before each step. With ``loop_slice_seconds`` a loop
+    verification runs in slices (LoopCloser.slice_seconds): also one slice at a time while no message waits (idle
+    time)."""
     try:
         from ti_cmax import progress
         from ti_cmax.kernels import runtime
