@@ -491,3 +491,22 @@ def test_the_lookback_holds_its_span_at_a_bounded_density():
     held = look.recent(1.0)
     assert held.t[0] >= 2.99 - 0.5 - 0.01 and len(held) <= 1.1 * 0.5 * 10000
     assert len(look.recent(0.2)) == pytest.approx(0.2 * 10000, rel=0.1)
+
+
+@pytest.mark.parametrize("backend_process", [False, True])
+def test_slam_gives_no_ba_to_a_still_start(ti_runtime, backend_process):
+    """CMax-SLAM on a camera at rest for 0.4 s (a still scene plus noise) that then turns: the front-end's moving
+    flags reach the back-end (also in its worker process), the windows of the still start get no BA and the
+    trajectory stays exactly at rest there; the turning part gets its BA."""
+    from ti_cmax.config import SlamConfig
+    from ti_cmax.pipelines.slam import run_slam
+
+    still = _slow_stream(np.zeros(3), 0.4, seed=10)
+    turning = _synthetic_events(np.array([0.6, -0.8, 0.0]), 0.4, 1.0, 36000, seed=10, t_mid=0.4)
+    turning = Events(turning.t, np.round(turning.x).astype(np.uint16), np.round(turning.y).astype(np.uint16),
+                     turning.p)
+    res = run_slam(Events.concatenate([still, turning]), CAM, SlamConfig(), backend_process=backend_process)
+    assert res.report["backend"]["windows_still"] >= 2
+    assert any(w.optimized for w in res.windows if w.t_start > 0.45)
+    at_rest = res.rotation_at(np.linspace(0.02, 0.15, 5))
+    np.testing.assert_array_equal(at_rest, np.eye(3)[None].repeat(5, 0))
