@@ -550,12 +550,8 @@ class AngularVelocityEstimator:
                     g_zero = self.ws.evaluate(np.zeros(3), self.K, cfg.contrast_measure)[1]
                     self.checks += 1
                     extra += 1
-        if tested:
-            self.score_tests += 1
-            if self.motion_score(g_zero) < cfg.frontend_min_motion_score:
-                self.last_flat = True
-                self.flat_packets += 1
-                self.reset()
+        if tested and not self._significant(g_zero):
+            self.declare_flat()
         self.event_evaluations += n * (res.evaluations + extra)
         return self.omega.copy(), res, res.fun
 
@@ -565,12 +561,17 @@ class AngularVelocityEstimator:
         n = self._objective(events, t_ref)[2]
         g_zero = self.ws.evaluate(np.zeros(3), self.K, self.config.contrast_measure)[1]
         self.checks += 1
-        self.score_tests += 1
         self.event_evaluations += n
+        return self._significant(g_zero)
+
+    def _significant(self, g_zero) -> bool:
+        """The score test of omega = 0 on the loaded events (:meth:`motion_score`) passes: they measure a motion."""
+        self.score_tests += 1
         return self.motion_score(g_zero) >= self.config.frontend_min_motion_score
 
     def declare_flat(self) -> None:
-        """The last packet is flat after all (``FrontendRunner``: its motion is not confirmed over a longer span)."""
+        """The last packet is flat: omega = 0 and the warm start reset (``estimate``'s score test, or
+        ``FrontendRunner``: its motion is not confirmed over a longer span)."""
         if not self.last_flat:
             self.last_flat = True
             self.flat_packets += 1
