@@ -467,6 +467,8 @@ class SlidingWindowBackend:
             rots = np.concatenate([self.r_start[None], rots])
             if len(times) < 2:
                 times, rots = np.array([self.t_start, t_end]), np.stack([self.r_start, self.r_start])
+            elif times[-1] < t_end:  # the source ends before the events do (a stream shorter than one window)
+                times, rots = np.append(times, t_end), np.concatenate([rots, self._extrapolate(t_end)[None]])
             lead = (cfg.spline_degree - 1) // 2
             self.spline = SO3Spline(cfg.spline_degree, self.t_start - lead * cfg.dt_knots, cfg.dt_knots,
                                     np.broadcast_to(self.r_start, (cfg.spline_degree + 1, 3, 3)).copy())

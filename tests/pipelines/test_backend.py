@@ -77,6 +77,33 @@ def test_window_initialization_reaches_beyond_the_window_end():
     assert times[-1] > t_end + 1e-3
 
 
+def test_a_stream_shorter_than_one_window_whose_events_outlast_the_source(ti_runtime):
+    """The whole stream in the first window, the last source pose 5 ms before the last event (the front-end's last
+    packet ends there): the spline must reach the last event (it stopped at the last pose's knot interval and the
+    BA raised 'outside the spline's valid range'; seen on the first 0.15 s of a 2 M ev/s recording)."""
+    from ti_cmax import Camera, so3
+    from ti_cmax.config import BackendConfig
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+    from ti_cmax.pipelines.sensor_defaults import resolve_backend
+
+    cam = Camera(240, 180, 200.0, 200.0, 119.5, 89.5)
+    rng = np.random.default_rng(1)
+    t = np.sort(rng.uniform(0.0271, 0.1772, 30000))
+    src_t = np.arange(0.0321, 0.1722, 0.005)  # ends 5 ms before the events, past the last knot the poses reach
+    src_r = so3.exp(np.outer(src_t, [0.0, 0.5, 0.0]))
+    be = SlidingWindowBackend(resolve_backend(BackendConfig(), cam), 0.0271, src_r[0])
+    be.push_events(t, cam.bearings(rng.integers(0, 240, len(t)), rng.integers(0, 180, len(t))),
+                   complete_until=float(t[-1]))
+    be.push_source_poses(src_t, src_r)
+    assert not be.ready()
+    be.finish()
+    assert len(be.windows) == 1 and be.windows[0].optimized
+    assert be.spline.valid_time_range()[1] >= t[-1]
+    traj = be.trajectory(1000.0)
+    late = traj.at(np.array([src_t[-1], t[-1]]))  # extrapolated at the source's last angular velocity
+    np.testing.assert_allclose(so3.log(late[0].T @ late[1])[1] / (t[-1] - src_t[-1]), 0.5, atol=0.1)
+
+
 @pytest.mark.parametrize("field,value", [("backend_cg_step_guess", "newton"), ("backend_cg_max_line_evals", 0)])
 def test_backend_rejects_bad_line_search_settings(field, value):
     """The CG line-search settings are config fields (YAML / --set): a bad value is one clear error naming the
