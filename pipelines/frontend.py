@@ -73,6 +73,10 @@ from .optim import bfgs, fletcher_reeves
 from .sensor_defaults import resolve_frontend
 
 
+NO_MOTION_MEASURABLE = ("the events span no time (no events, or all at one timestamp): no packet, so no angular "
+                        "velocity, can be estimated")
+
+
 @dataclass(frozen=True, eq=False)
 class FrontendResult:
     """Angular velocity per packet and what happened in each packet."""
@@ -111,7 +115,7 @@ class FrontendResult:
     def trajectory(self) -> Trajectory:
         """Integrate omega (midpoint rule on SO(3)) to R_world_from_camera at the packet times, R(t_0) = I."""
         if len(self.t) == 0:
-            raise InputError("the front-end produced no angular velocity (no events?)")
+            raise InputError(NO_MOTION_MEASURABLE)
         return Trajectory(self.t, so3.integrate_angular_velocity(self.t, self.omega))
 
     def summary(self) -> dict:
@@ -243,6 +247,7 @@ class PacketSlicer:
         self._pending: list[Events] = []  # chunks pushed since the buffer was last joined (joined when a packet may be due)
         self._t_last = -np.inf
         self.t_ref: float | None = None  # the next packet's centre (None before the first event)
+        self.packets_emitted = 0
 
     def __call__(self, chunks: Iterable[Events]) -> Iterator[Packet]:
         for chunk in chunks:
@@ -254,7 +259,7 @@ class PacketSlicer:
         if len(chunk) == 0:
             return
         if chunk.t[0] < self._t_last:
-            raise InputError(f"event chunks are not in time order (t={chunk.t[0]!r} after {self._t_last!r})")
+            raise InputError(f"event chunks are not in time order (t={float(chunk.t[0])!r} after {self._t_last!r})")
         self._t_last = float(chunk.t[-1])
         self.events_read += len(chunk)
         self._pending.append(chunk)
@@ -269,8 +274,12 @@ class PacketSlicer:
             yield self._emit()
 
     def flush(self) -> Iterator[Packet]:
-        """The stream has ended: yield the packets up to the last event (clipped at the end)."""
+        """The stream has ended: yield the packets up to the last event (clipped at the end). A stream shorter than
+        half a step (dt_ang_vel / 2, where the first packet is centred) still gets one packet, centred on its last
+        event, if it spans any time at all."""
         self._join()
+        if not self.packets_emitted and len(self._buf) and self._buf.t[0] < self._buf.t[-1] < self.t_ref:
+            self.t_ref = float(self._buf.t[-1])
         while self.t_ref is not None and len(self._buf) and self.t_ref <= self._buf.t[-1]:
             yield self._emit()
 
@@ -320,6 +329,7 @@ class PacketSlicer:
         drop = max(0, min(int(buf.index_at(self.t_ref)) - half, int(buf.index_at(self.t_ref - 0.5 * self.min_span))))
         if drop > 0:
             self._buf = buf[drop:]
+        self.packets_emitted += 1
         return Packet(t_ref, Events.empty() if still else packet, span, still)
 
 
@@ -622,6 +632,8 @@ class FrontendRunner:
         self.config = config
         self.estimator = AngularVelocityEstimator(camera, config, dtype)
         self.slicer = PacketSlicer(config)
+        self.width, self.height = camera.width, camera.height
+        self._t_checked: float | None = None  # the last event time check() saw
         self.lookback = None
         if config.frontend_flat_lookback > 0 and config.frontend_flat_is_still:
             # the shortest lookback (LOOKBACK_FACTOR x the minimum span) may hold a full packet cap of events
@@ -643,10 +655,33 @@ class FrontendRunner:
         return self.slicer.events_read
 
     def counted(self, chunks: Iterable[Events]) -> Iterator[Events]:
-        """The input chunks, counted before any event sampling (the unit of us_per_event: input events)."""
+        """The input chunks, checked (``check``) and counted before any event sampling (the unit of us_per_event:
+        input events)."""
         for chunk in chunks:
+            self.check(chunk)
             self.input_events += len(chunk)
             yield chunk
+
+    def check(self, chunk: Events) -> None:
+        """Raise one InputError on events the pipelines cannot take: non-finite or decreasing timestamps (also
+        against the previous chunk), pixels off the sensor, or a pause longer than ``max_event_gap`` (a stray event
+        or a clock jump: bridging it would take ~0.04 s per second of pause). The readers check files already; this
+        guards the Python API (2 ns per event)."""
+        if len(chunk) == 0:
+            return
+        chunk.validate(self.width, self.height, source="events")
+        t = chunk.t
+        if self._t_checked is not None and t[0] < self._t_checked:
+            raise InputError(f"event chunks are not in time order (t={float(t[0])!r} after {self._t_checked!r})")
+        gaps = np.diff(t)
+        k = int(np.argmax(gaps)) if len(gaps) else -1
+        gap, at = (float(gaps[k]), float(t[k])) if k >= 0 else (0.0, 0.0)
+        if self._t_checked is not None and t[0] - self._t_checked > gap:
+            gap, at = float(t[0] - self._t_checked), self._t_checked
+        if gap > self.config.max_event_gap:
+            raise InputError(f"no events for {gap:.6g} s after t={at!r}: a stray event or a jump of the clock? "
+                             f"(max_event_gap={self.config.max_event_gap:g} s; cut the events there, or raise it)")
+        self._t_checked = float(t[-1])
 
     def compile(self) -> float:
         self.compile_seconds = self.estimator.compile()

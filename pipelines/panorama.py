@@ -43,10 +43,12 @@ def render_panorama(chunks: Iterable[Events], camera: Camera, trajectory: Trajec
                     batch_size: int = 100, t_start: float | None = None, t_end: float | None = None) -> PanoramaResult:
     """Vote every event within the trajectory's time range (and [t_start, t_end] if given) into a panorama.
 
-    Batches are counted from the first event used, across chunk boundaries, so the map does not depend on how
-    the input was chunked."""
-    lo = max(trajectory.t_start, -np.inf if t_start is None else t_start)
-    hi = min(trajectory.t_end, np.inf if t_end is None else t_end)
+    The range is widened by the rounding of a TUM file's 9-decimal times (``slam``'s own trajectory.txt then covers
+    its first and last events; ``at`` clamps there). Batches are counted from the first event used, across chunk
+    boundaries, so the map does not depend on how the input was chunked."""
+    tol = 1e-9 + 1e-15 * max(abs(trajectory.t_start), abs(trajectory.t_end))
+    lo = max(trajectory.t_start - tol, -np.inf if t_start is None else t_start)
+    hi = min(trajectory.t_end + tol, np.inf if t_end is None else t_end)
     image = np.zeros((height, width), np.float32)
     used = 0
     carry = Events.empty()  # the head of a batch that the next chunk completes

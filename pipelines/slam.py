@@ -28,7 +28,7 @@ from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
 from .backend import SlidingWindowBackend, StageClock
-from .frontend import FrontendResult, FrontendRunner, Packet, as_chunks, every_qth
+from .frontend import NO_MOTION_MEASURABLE, FrontendResult, FrontendRunner, Packet, as_chunks, every_qth
 from .loop_closure import LoopCloser
 from .sensor_defaults import derived_summary, resolve_config
 
@@ -205,8 +205,7 @@ class OnlineSlam:
             raise InputError(f"expected Events chunks, got {type(events).__name__}")
         if len(events) == 0:
             return
-        if self.t_last is not None and events.t[0] < self.t_last:
-            raise InputError(f"event chunks are not in time order (t={events.t[0]!r} after {self.t_last!r})")
+        self.runner.check(events)  # times, pixels and pauses (one clear InputError)
         offset = self.events_read
         if self._worker is None:
             self._feed.push(events)
@@ -233,10 +232,10 @@ class OnlineSlam:
             return self._result
         for packet in self.runner.slicer.flush():
             self._packet(packet)
-        if self._feed.backend is None:
+        if self._feed.backend is None or self._t_prev is None:  # no events, or no packet: nothing to refine
             if self._worker is not None:
-                self._worker.stop()
-            raise InputError("no events to process")
+                self._worker.cancel()
+            raise InputError("no events to process" if self._feed.backend is None else NO_MOTION_MEASURABLE)
         if self._worker is not None:
             self._send_events()
             self._worker.send(("finish",))
@@ -491,6 +490,11 @@ class _BackendProcess:
         self.proc.join(timeout=10)
         if self.proc.is_alive():
             self.proc.terminate()
+
+    def cancel(self) -> None:
+        """End a worker that was never told to finish (nothing to wait for)."""
+        self.proc.terminate()
+        self.proc.join(timeout=10)
 
 
 def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, degradation,

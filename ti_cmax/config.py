@@ -147,6 +147,9 @@ class FrontendConfig(Params):
     dt_ang_vel: float = param(0.01, "spacing of the packet centres, 1/f", unit="s", gt=0)
     still_span_factor: float = param(10.0, "a packet spanning more than this x dt_ang_vel means a still camera",
                                      gt=0)
+    # a longer pause is taken for a stray event or a jump of the clock (a lone event at t = 0 before Unix-time
+    # stamps: 1.7e9 s), which would cost ~0.04 s of packets and windows per second of pause: one clear error instead
+    max_event_gap: float = param(60.0, "longest pause between two events the pipelines accept", unit="s", gt=0)
     # "bounded" (default): a packet spanning more than W = still_span_factor*dt_ang_vel is shrunk to the
     # events within t_ref +- W/2, and omega = 0 only if fewer than frontend_min_event_rate*W remain.
     # "paper": the reference rule (omega = 0 as soon as the N events span more than W).

@@ -103,12 +103,12 @@ class Events:
         bad = ~np.isfinite(self.t)
         if bad.any():
             i = int(np.argmax(bad))
-            raise InputError(f"event {i} has a non-finite timestamp ({self.t[i]})", source=source)
+            raise InputError(f"event {i} has a non-finite timestamp ({float(self.t[i])})", source=source)
         dec = np.diff(self.t) < 0
         if dec.any():
             i = int(np.argmax(dec)) + 1
             raise InputError(
-                f"timestamps are not sorted: event {i} at t={self.t[i]!r} comes after t={self.t[i - 1]!r}",
+                f"timestamps are not sorted: event {i} at t={float(self.t[i])!r} comes after t={float(self.t[i - 1])!r}",
                 source=source,
             )
         if self.has_subpixel_coordinates:

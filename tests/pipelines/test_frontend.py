@@ -127,10 +127,15 @@ def test_still_camera_too_few_events_and_empty_stream():
     for rule in ("bounded", "paper"):
         packets = list(PacketSlicer(replace(cfg, frontend_slicing=rule))([ev]))
         assert packets and all(p.still and len(p.events) == 0 for p in packets)
-    # 20 events over 40 ms: still packets; timestamps stop at the last event; no events: no packets
-    few = ev[:20]
+    # 60 events over 13 ms: the packet timestamps stop at the last event; 20 events over 3.4 ms, shorter than the
+    # first packet's centre (dt / 2): one packet at the last event; one event or none: no packets
+    few = ev[:60]
     packets = list(PacketSlicer(cfg)([few]))
-    assert len(packets) == int((few.t[-1] - few.t[0]) / 0.01 + 0.5) and all(p.still for p in packets)
+    assert len(packets) == int((few.t[-1] - few.t[0]) / 0.01 + 0.5) and packets[-1].t_ref <= few.t[-1]
+    short = ev[:20]
+    assert short.t[-1] - short.t[0] < 0.005
+    packets = list(PacketSlicer(cfg)([short]))
+    assert [p.t_ref for p in packets] == [short.t[-1]] and len(packets[0].events) == 20
     assert list(PacketSlicer(cfg)([ev[:1]])) == []
     assert list(PacketSlicer(cfg)([Events.empty()])) == []
     res = estimate_angular_velocity(ev, CAM, cfg)

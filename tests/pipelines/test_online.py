@@ -110,3 +110,37 @@ def test_backend_process_equals_the_sequential_run(half_second):
     t_mid = float(ev.t[0]) + 0.1
     assert so3.geodesic_angle(online.pose(t_mid)[0], sequential.rotation_at(t_mid)[0]) < 1e-5
     assert result.report["backend_process"]["cpu_seconds"] > 0
+
+
+def test_pushed_events_are_checked_before_anything_runs(half_second):
+    """The Python API checks what the file readers check (one InputError, nothing processed): timestamps out of order
+    inside a chunk (one moved the trajectory 1.7 deg), pixels off the sensor (x = width became pixel (0, y + 1)), and
+    a pause longer than max_event_gap (a stray event at t = 0 before Unix-time stamps made `slam` run for hours), in
+    OnlineSlam and in the front-end alone."""
+    from ti_cmax import Events
+    from ti_cmax.config import FrontendConfig, load_config
+    from ti_cmax.pipelines.frontend import estimate_angular_velocity
+
+    seq, ev = half_second
+    cam = seq.camera
+    head = ev[:2000]
+    t = head.t.copy()
+    t[1000] = t[0]
+    unsorted = Events(t, head.x, head.y, head.p)
+    x = head.x.copy()
+    x[5] = cam.width
+    off_sensor = Events(head.t, x, head.y, head.p)
+    paused = Events.concatenate([head, Events(head.t[-1:] + 61.0, head.x[:1], head.y[:1], head.p[:1])])
+    for bad, message in ((unsorted, "not sorted"), (off_sensor, "outside the sensor"), (paused, "no events for 61")):
+        online = OnlineSlam(cam, SlamConfig())
+        with pytest.raises(InputError, match=message):
+            online.push(bad)
+        assert online.events_read == 0
+        with pytest.raises(InputError, match=message):
+            estimate_angular_velocity(bad, cam)
+    online = OnlineSlam(cam, SlamConfig())
+    online.push(head)
+    with pytest.raises(InputError, match="no events for 61"):  # across chunks too
+        online.push(paused[-1:])
+    cfg = load_config(FrontendConfig, None, ["max_event_gap=100"])
+    assert len(estimate_angular_velocity(paused, cam, cfg).t) > 0

@@ -280,3 +280,64 @@ def test_image_gradient_is_scipys_sobel():
     gx, gy = image_gradient(img)
     np.testing.assert_allclose(gx, ndimage.sobel(img, axis=1) / 8.0, atol=1e-14)
     np.testing.assert_allclose(gy, ndimage.sobel(img, axis=0) / 8.0, atol=1e-14)
+
+
+def test_short_and_still_streams(short_sequence):
+    """Streams a new user may hand over: shorter than half a front-end step (the first packet's centre) still get a
+    packet and a trajectory; events that all share one timestamp get one clear InputError (it was an IndexError from
+    the back-end), also with the back-end worker; a still camera's noise keeps the trajectory at rest even in the
+    final window (its BA used to run whatever the front-end measured: 0.9-2.8 deg); a 20 ms stream starts exactly at
+    the identity (the first window's BA had turned it 1.2 deg) and stays near the truth."""
+    from ti_cmax import Events, InputError
+
+    cam = short_sequence.camera
+    cfg = load_config(SlamConfig, None, ["loop_closure=false"])
+    n = 50
+    tiny = Events(1.0 + np.linspace(0.0, 0.004, n), np.full(n, 100), np.full(n, 90), np.ones(n))
+    assert len(run_slam(tiny, cam, cfg).trajectory) >= 1
+    same = Events(np.ones(n), np.full(n, 100), np.full(n, 90), np.ones(n))
+    for worker in (False, True):
+        with pytest.raises(InputError, match="no angular velocity"):
+            run_slam(same, cam, cfg, backend_process=worker)
+
+    rng = np.random.default_rng(1)
+    for duration in (0.03, 0.5):
+        k = int(50_000 * duration)
+        noise = Events(np.sort(rng.uniform(0.0, duration, k)), rng.integers(0, cam.width, k),
+                       rng.integers(0, cam.height, k), rng.integers(0, 2, k))
+        res = run_slam(noise, cam, cfg)
+        assert res.report["backend"]["windows_optimized"] == 0
+        np.testing.assert_array_equal(res.trajectory.R, np.eye(3)[None].repeat(len(res.trajectory), 0))
+
+    ev = short_sequence.events
+    t0 = float(ev.t[0])
+    head = ev[: int(np.searchsorted(ev.t, t0 + 0.02))]
+    res = run_slam(head, cam, cfg)
+    assert res.report["backend"]["windows_optimized"] == 1
+    np.testing.assert_allclose(res.trajectory.R[0], np.eye(3), atol=1e-9)
+    gt = short_sequence.groundtruth
+    rel_gt = gt.at(np.array([t0]))[0].T @ gt.at(res.trajectory.t)
+    err = so3.geodesic_angle(res.trajectory.R, rel_gt)
+    assert np.degrees(err.max()) < 0.3
+
+
+def test_map_takes_every_event_of_a_rounded_trajectory_and_refuses_one_without_overlap(short_dataset, tmp_path,
+                                                                                       capsys):
+    """A TUM file keeps 9 decimals, so the trajectory `slam` writes may start a fraction of a nanosecond after the
+    first event: the map still takes it. A trajectory that overlaps no event: one clear error, no output (it wrote
+    an empty map with exit 0)."""
+    from ti_cmax import Camera, Events, Trajectory
+
+    cam = Camera(240, 180, 200.0, 200.0, 119.5, 89.5)
+    t = 0.1234567891234 + np.arange(300) * 1e-4
+    ev = Events(t, np.full(300, 120), np.full(300, 90), np.ones(300))
+    rounded = Trajectory(np.round([t[0], t[-1]], 9) + [4e-10, -4e-10], np.eye(3)[None].repeat(2, 0))
+    assert rounded.t_start > t[0] and rounded.t_end < t[-1]
+    assert render_panorama([ev], cam, rounded, 256, 128).events_used == 300
+
+    late = tmp_path / "late.txt"
+    late.write_text("100.0 0 0 0 0 0 0 1\n101.0 0 0 0 0 0 0 1\n")
+    out = tmp_path / "m.png"
+    assert main(["map", str(short_dataset), "--trajectory", str(late), "--out", str(out)]) == 2
+    assert "no event falls in the trajectory's time range" in capsys.readouterr().err
+    assert not out.exists() and not out.with_suffix(".json").exists()

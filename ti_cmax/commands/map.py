@@ -46,6 +46,13 @@ def run(args) -> int:
     trajectory = read_tum(args.trajectory)
     result = render_panorama(dataset.iter_events(cfg.dataset.chunk_size), dataset.camera, trajectory, width, height,
                              cfg.backend.event_batch_size, args.t_start, args.t_end)
+    if result.events_used == 0:
+        from ..errors import InputError
+
+        raise InputError(f"no event falls in the trajectory's time range [{trajectory.t_start:.6f}, "
+                         f"{trajectory.t_end:.6f}] s" + (" and --t-start/--t-end" if args.t_start is not None
+                                                         or args.t_end is not None else "") + ": nothing to render",
+                         source=args.trajectory)
     figures = result.figures(cfg.backend.lambda0)
     out = Path(args.out)
     with atomic_path(out) as tmp:
