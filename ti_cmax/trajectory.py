@@ -27,7 +27,7 @@ class Trajectory:
             raise InputError("trajectory is empty")
         if len(t) > 1 and np.any(np.diff(t) <= 0):
             i = int(np.argmax(np.diff(t) <= 0)) + 1
-            raise InputError(f"trajectory timestamps must increase strictly (sample {i}, t={t[i]!r})")
+            raise InputError(f"trajectory timestamps must increase strictly (sample {i}, t={float(t[i])!r})")
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "R", r)
 

@@ -76,7 +76,7 @@ def _sorted_times(t: np.ndarray, source: str, strict: bool):
     if bad.any():
         i = int(np.argmax(bad)) + 1
         raise InputError(f"timestamps must increase{' strictly' if strict else ''} "
-                         f"(data row {i + 1}: t={t[i]!r} after t={t[i - 1]!r})", source=source)
+                         f"(data row {i + 1}: t={float(t[i])!r} after t={float(t[i - 1])!r})", source=source)
 
 
 # TUM ---------------------------------------------------------------------------------------------
