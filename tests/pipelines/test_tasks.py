@@ -141,3 +141,13 @@ def test_batch_cli_parameter_sets_on_a_process_pool(tmp_path):
     bad.write_text("datasets: {x: /nowhere}\n")
     assert main(["batch", str(bad), "--out", str(tmp_path / "bad_out"), "--quiet"]) == 2
     assert not (tmp_path / "bad_out").exists()
+
+
+def test_tasks_line_counts_method_runs_that_ended_in_an_error():
+    """A method that raises on one dataset is a row (status "error", its note in tables.md), not a failed task: the
+    summary line says so instead of only "0 failed"."""
+    from ti_cmax.commands.batch import tasks_line
+
+    groups = [{"tasks": {"done": 2}, "rows": [{"status": "ok"}, {"status": "error", "note": "InputError: ..."}]}]
+    assert "1 method run(s) ended in an error" in tasks_line(groups, 1.0)
+    assert "error" not in tasks_line([{"tasks": {"done": 1}, "rows": [{"status": "lost"}]}], 1.0)

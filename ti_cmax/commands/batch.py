@@ -182,8 +182,10 @@ def write_tables(out, groups: list[dict], meta: dict, extra_doc: dict) -> str:
 
 def tasks_line(groups: list[dict], wall: float) -> str:
     n = {k: sum(g["tasks"].get(k, 0) for g in groups) for k in ("done", "failed", "skipped")}
+    errors = sum(r.get("status") == "error" for g in groups for r in g["rows"])  # a method raised on a dataset
     return (f"tasks: {n['done'] + n['failed']} ({n['skipped']} skipped as done before, {n['failed']} failed) "
-            f"in {wall:.1f} s")
+            f"in {wall:.1f} s" + (f"; {errors} method run(s) ended in an error (their notes in tables.md)"
+                                  if errors else ""))
 
 
 def run(args) -> int:
