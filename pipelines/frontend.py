@@ -664,9 +664,9 @@ class FrontendRunner:
 
     def check(self, chunk: Events) -> None:
         """Raise one InputError on events the pipelines cannot take: non-finite or decreasing timestamps (also
-        against the previous chunk), integer pixels off the sensor, or a pause longer than ``max_event_gap`` (a stray event
-        or a clock jump: bridging it would take ~0.04 s per second of pause). The readers check files already; this
-        guards the Python API (2 ns per event)."""
+        against the previous chunk), integer pixels off the sensor, or a pause longer than ``max_event_gap`` (a
+        stray event or a clock jump: bridging it would take ~0.04 s per second of pause). The readers check files
+        already; this guards the Python API (2 ns per event)."""
         if len(chunk) == 0:
             return
         if chunk.has_subpixel_coordinates:  # undistorted coordinates (star tracking) may fall off the sensor

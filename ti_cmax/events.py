@@ -108,7 +108,8 @@ class Events:
         if dec.any():
             i = int(np.argmax(dec)) + 1
             raise InputError(
-                f"timestamps are not sorted: event {i} at t={float(self.t[i])!r} comes after t={float(self.t[i - 1])!r}",
+                f"timestamps are not sorted: event {i} at t={float(self.t[i])!r} comes after "
+                f"t={float(self.t[i - 1])!r}",
                 source=source,
             )
         if self.has_subpixel_coordinates:
