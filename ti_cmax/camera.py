@@ -33,6 +33,9 @@ class Camera:
             raise InputError(f"sensor size must be positive, got {self.width}x{self.height}")
         if not (self.fx > 0 and self.fy > 0):
             raise InputError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if not np.all(np.isfinite([self.fx, self.fy, self.cx, self.cy, *d])):
+            raise InputError(f"camera intrinsics must be finite numbers, got fx={self.fx}, fy={self.fy}, "
+                             f"cx={self.cx}, cy={self.cy}, distortion={d}")
 
     @property
     def K(self) -> np.ndarray:
@@ -98,8 +101,29 @@ class Camera:
         """Per-pixel bearings in the first 3 columns of a (height*width, 4) float32 table (4th column 0)."""
         ys, xs = np.mgrid[0 : self.height, 0 : self.width]
         lut = np.zeros((self.height * self.width, 4), np.float32)
-        lut[:, :3] = self.unproject(xs.ravel(), ys.ravel())
+        lut[:, :3] = self._checked_unprojection(xs.ravel(), ys.ravel())
         return lut
+
+    def _checked_unprojection(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """``unproject`` of every sensor pixel, checked: each bearing must project back onto its pixel (within 0.01
+        px; real calibrations come back within 1e-10). Coefficients whose distortion folds over inside the sensor
+        have no inverse there, and the fixed-point iteration then returns NaN or directions up to 1e10 px off (a
+        trajectory 40 deg off with status ok)."""
+        if not self.has_distortion:
+            return self.unproject(x, y)
+        xd, yd = (np.asarray(x, dtype=float) - self.cx) / self.fx, (np.asarray(y, dtype=float) - self.cy) / self.fy
+        with np.errstate(all="ignore"):  # a folding distortion overflows: that is what is checked
+            for iterations in (20, 200):  # 20 as OpenCV (bitwise unproject); strong distortion may need more
+                xn, yn = self.undistort_normalized(xd, yd, iterations)
+                bearings = np.stack([xn, yn, np.ones_like(xn)], axis=-1)
+                back = self.project(bearings)
+                off = np.hypot(back[:, 0] - x, back[:, 1] - y)
+                if np.all(off <= 0.01):  # False for NaN too
+                    return bearings
+        i = int(np.argmax(np.where(np.isfinite(off), off, np.inf)))
+        raise InputError(f"the distortion coefficients {self.dist} (k1 k2 p1 p2 k3) cannot be inverted over the "
+                         f"sensor: pixel ({int(x[i])}, {int(y[i])}) has no undistorted direction that maps back to it "
+                         f"({off[i]:.3g} px off); check the calibration")
 
     def bearings(self, x: np.ndarray, y: np.ndarray, dtype=np.float32, columns: int = 3) -> np.ndarray:
         """Bearings of event pixels (n, 3): table lookup for integer pixels, direct undistortion otherwise.

@@ -89,12 +89,25 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         p.add_argument("--config", metavar="FILE.yaml", help="YAML file of parameters")
         p.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="overrides",
                        help="override one parameter (repeatable), e.g. --set num_events_per_packet=20000")
-        p.add_argument("--threads", type=int, default=None,
+        p.add_argument("--threads", type=_thread_count, default=None,
                        help="CPU threads for the kernels (default: all cores; slam with a back-end worker: half "
                             "per process)")
         p.add_argument("--quiet", action="store_true", help="no progress bars")
         p.set_defaults(_run=module.run)
     return parser
+
+
+def _thread_count(text: str) -> int:
+    """--threads: an integer from 1 to 1024 (argparse reports anything else as one usage error)."""
+    import argparse
+
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if not 1 <= n <= 1024:
+        raise argparse.ArgumentTypeError(f"expected a thread count from 1 to 1024, got {text!r}")
+    return n
 
 
 def configured_threads(args) -> int | None:
@@ -112,7 +125,7 @@ def configured_threads(args) -> int | None:
             if isinstance(loaded, dict):
                 values = {**loaded, **(loaded.get("output") if isinstance(loaded.get("output"), dict) else {}),
                           **values}
-    except (InputError, OSError, yaml.YAMLError):
+    except (InputError, OSError, ValueError, yaml.YAMLError):  # ValueError: a file that is not UTF-8 text
         return None
     n = values.get("output.num_threads", values.get("num_threads"))
     return n if isinstance(n, int) and not isinstance(n, bool) and n > 0 else None

@@ -140,10 +140,10 @@ class FrontendConfig(Params):
     """CMax-omega front-end (Sec. II-B, III-C1)."""
 
     contrast_measure: str = param("variance", "contrast of the image of warped events", choices=CONTRAST_MEASURES)
-    frontend_blur_sigma: float = param(1.0, "Gaussian blur of the IWE", unit="px", ge=0)
+    frontend_blur_sigma: float = param(1.0, "Gaussian blur of the IWE", unit="px", ge=0, le=50)
     frontend_event_sample_rate: int = param(1, "keep 1 of Q events", ge=1)
     num_events_per_packet: int = param(0, "events per packet N (Sec. III-C1); derived: 10000 x max(1, pixels / 43200)",
-                                       unit="events", ge=2, zero="derived")
+                                       unit="events", ge=2, le=10_000_000, zero="derived")
     dt_ang_vel: float = param(0.01, "spacing of the packet centres, 1/f", unit="s", gt=0)
     still_span_factor: float = param(10.0, "a packet spanning more than this x dt_ang_vel means a still camera",
                                      gt=0)
@@ -164,7 +164,8 @@ class FrontendConfig(Params):
     # packets holding more events than this are thinned uniformly (1 of k, k = ceil(n / max)) before the
     # optimisation: the span (motion) is kept, the cost per packet is bounded at high event rates
     frontend_max_packet_events: int = param(0, "packets with more events are thinned 1 of k; derived: 20000 x max(1, "
-                                               "pixels / 43200)", unit="events", ge=2, zero="derived", off=-1)
+                                               "pixels / 43200)", unit="events", ge=2, le=10_000_000, zero="derived",
+                                       off=-1)
     # each integer event pixel is dithered by up to this many pixels (uniform, from a fixed table: deterministic)
     # before warping, so that omega = 0 is not favoured by the pixel grid (pipelines/frontend.PixelDither); 0: none
     frontend_pixel_dither: float = param(0.5, "sub-pixel dither of event coordinates against the pixel-grid bias",
@@ -222,7 +223,7 @@ class FrontendConfig(Params):
 class BackendConfig(Params):
     """Sliding-window CMax bundle adjustment (Sec. III-B, III-C2)."""
 
-    backend_blur_sigma: float = param(1.0, "Gaussian blur of the panoramic IWE", unit="px", ge=0)
+    backend_blur_sigma: float = param(1.0, "Gaussian blur of the panoramic IWE", unit="px", ge=0, le=50)
     event_batch_size: int = param(100, "events sharing one pose", unit="events", ge=1)
     backend_event_sample_rate: int = param(1, "keep 1 of Q events", ge=1)
     backend_time_window_size: float = param(0.2, "sliding window length", unit="s", gt=0)
@@ -230,10 +231,10 @@ class BackendConfig(Params):
     # 1 linear, 3 cubic. The reference defaults to linear; cubic is measured better at a similar cost on every
     # simulated sequence we ran (rel RMSE 0.12-0.30 vs 0.25-0.36 deg/s, abs 0.07-0.18 vs 0.09-0.21 deg)
     spline_degree: int = param(3, "trajectory spline: 1 linear, 3 cubic", choices=(1, 3))
-    dt_knots: float = param(0.05, "control-pose spacing", unit="s", gt=0)
+    dt_knots: float = param(0.05, "control-pose spacing (<= backend_sliding_window_stride)", unit="s", ge=1e-3)
     pano_height: int = param(0, "panoramic map height; derived: width 2 pi f x pano_pixels_per_sensor_pixel, up to a "
-                                "multiple of 256, at most 8192", unit="px", ge=8, zero="derived")
-    pano_width: int = param(0, "panoramic map width", unit="px", ge=16, zero="2 x pano_height")
+                                "multiple of 256, at most 8192", unit="px", ge=8, le=16384, zero="derived")
+    pano_width: int = param(0, "panoramic map width", unit="px", ge=16, le=32768, zero="2 x pano_height")
     pano_pixels_per_sensor_pixel: float = param(1.5, "map pixels per sensor pixel at the image centre (derived size)",
                                                 gt=0)
     backend_min_ev_rate: float = param(0.0, "below this rate the camera is still: no BA; derived: 10000 x pixels / "
@@ -243,7 +244,7 @@ class BackendConfig(Params):
                                               "window / 0.2 s", unit="events", ge=200, zero="derived", off=-1)
     freeze_pixels: bool = param(False, "map pixels stop updating max_update_time after first seen")
     max_update_time: float = param(10.0, "time a map pixel stays updatable (with freeze_pixels)", unit="s", gt=0)
-    lambda0: float = param(1.0, "weight of the event area in the map quality figures", ge=0)
+    lambda0: float = param(1.0, "weight of the event area in the map quality figures", gt=0)
     # a window over which the source measured no motion (the front-end: flat or still packets only, none of whose
     # lookbacks measured a motion; a given trajectory or IMU always counts as moving) holds nothing the BA could
     # refine: its events are noise or a still scene, which a BA fits with degrees of spurious rotation; a window that
@@ -279,6 +280,9 @@ class BackendConfig(Params):
         if self.backend_sliding_window_stride > self.backend_time_window_size:
             raise InputError(f"backend_sliding_window_stride must be <= backend_time_window_size "
                              f"({self.backend_time_window_size:g} s), got {self.backend_sliding_window_stride:g}")
+        if self.dt_knots > self.backend_sliding_window_stride * (1 + 1e-6):  # windows would refine poses far outside
+            raise InputError(f"dt_knots must be <= backend_sliding_window_stride "
+                             f"({self.backend_sliding_window_stride:g} s), got {self.dt_knots:g}")
 
     @property
     def pano_size(self) -> tuple[int, int]:
@@ -370,8 +374,10 @@ class OutputConfig(Params):
     """What the outputs look like."""
 
     gamma: float = param(0.75, "gamma of the map images", gt=0)
-    trajectory_rate: float = param(200.0, "rate at which continuous trajectories are sampled to TUM", unit="Hz", gt=0)
-    num_threads: int = param(0, "CPU threads of the kernels (--threads wins)", ge=1, zero="all cores or TI_CMAX_THREADS")
+    trajectory_rate: float = param(200.0, "rate at which continuous trajectories are sampled to TUM", unit="Hz", gt=0,
+                                   le=100_000)
+    num_threads: int = param(0, "CPU threads of the kernels (--threads wins)", ge=1, le=1024,
+                             zero="all cores or TI_CMAX_THREADS")
 
 
 @dataclass(frozen=True)
@@ -535,6 +541,9 @@ def load_config(cls, path: str | os.PathLike | None = None, overrides: list[str]
                 loaded = yaml.safe_load(fh)
         except FileNotFoundError:
             raise InputError("config file not found", source=str(path)) from None
+        except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, not a text file
+            raise InputError(f"cannot read the config file ({type(exc).__name__}: "
+                             f"{getattr(exc, 'strerror', None) or exc})", source=str(path)) from None
         except yaml.YAMLError as exc:
             line = getattr(getattr(exc, "problem_mark", None), "line", None)
             raise InputError("not valid YAML", source=str(path), line=None if line is None else line + 1) from None

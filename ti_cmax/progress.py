@@ -41,7 +41,7 @@ def progress(total=None, desc: str = "", unit: str = "it", **kw) -> tqdm:
     """A tqdm bar on stderr; ``bar.update(n)`` as work advances. ``unit="s"``: seconds of data."""
     common = dict(desc=desc, file=sys.stderr, disable=_QUIET["value"], dynamic_ncols=True, leave=False)
     if unit == "s":
-        total = None if total is None or total <= 0 else float(total)
+        total = None if total is None or not 0 < total < float("inf") else float(total)  # NaN/inf: open bar
         return DataBar(total=total, unit="s", bar_format=_DATA_BAR if total else _DATA_OPEN, **common, **kw)
     kw.setdefault("unit_scale", True)
     return tqdm(total=total, unit=unit, **common, **kw)

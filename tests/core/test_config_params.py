@@ -18,9 +18,13 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.mark.parametrize("override, message", [
     ("spline_degree=2", "spline_degree must be one of 1, 3, got 2"),
-    ("pano_height=-5", r"pano_height must be 0 \(derived\) or >= 8 px, got -5"),
-    ("dt_knots=-1", "dt_knots must be > 0 s"),
-    ("trajectory_rate=0", "trajectory_rate must be > 0 Hz"),
+    ("pano_height=-5", r"pano_height must be 0 \(derived\) or >= 8 and <= 16384 px, got -5"),
+    ("dt_knots=-1", "dt_knots must be >= 0.001 s"),
+    ("dt_knots=0.2", r"dt_knots must be <= backend_sliding_window_stride \(0.1 s\), got 0.2"),
+    ("trajectory_rate=0", "trajectory_rate must be > 0 and <= 100000 Hz"),
+    ("lambda0=0", "lambda0 must be > 0"),  # it divides
+    ("num_events_per_packet=1000000000", "num_events_per_packet must be 0"),  # sizes memory up front (22 GB)
+    ("pano_height=100000", "pano_height must be 0"),
     ("backend_time_window_size=0", "backend_time_window_size must be > 0 s"),
     ("gamma=-1", "gamma must be > 0"),
     ("gamma=.nan", r"gamma expects float \(finite\)"),

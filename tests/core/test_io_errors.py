@@ -232,3 +232,52 @@ def test_info_sensor_size_sources(tmp_path, capsys):
     (d / "calib.txt").write_text("199 199 120 90\n346 x\n")
     assert main(["info", str(d)]) == 2
     assert "calib.txt, line 2: expected the sensor size 'width height'" in capsys.readouterr().err
+
+
+def test_odd_calibrations_and_attributes_are_one_clear_error(tmp_path):
+    """Found by fuzzing: a NaN principal point (camera_info YAML, HDF5 attributes) and distortion coefficients that
+    fold over inside the sensor were accepted (a trajectory 40 deg off with status ok, or a crash later); malformed
+    HDF5 attributes and a non-list distortion gave tracebacks. Real distortion keeps its bitwise table."""
+    import h5py
+
+    with pytest.raises(InputError, match="must be finite"):
+        Camera(240, 180, 200.0, 200.0, float("nan"), 89.5)
+    for dist in ((-3.0, -20.0, 0, 0, 0), (50.0, 0, 0, 0, 0), (0, 0, 2.0, 2.0, 0)):
+        with pytest.raises(InputError, match="cannot be inverted over the sensor"):
+            Camera(240, 180, 199.0, 199.0, 119.5, 89.5, dist).bearing_lut
+    real = Camera(240, 180, 199.09, 198.83, 132.19, 110.71, (-0.368, 0.151, -0.0003, -0.00076, 0.0))
+    ys, xs = np.mgrid[0:180, 0:240]
+    assert np.array_equal(real.bearing_lut, real.unproject(xs.ravel(), ys.ravel()).astype(np.float32))
+
+    yaml_path = tmp_path / "camera_info.yaml"
+    yaml_path.write_text("image_width: 240\nimage_height: 180\n"
+                         "camera_matrix: {data: [200, 0, 120, 0, 200, 90, 0, 0, 1]}\ndistortion_coefficients: abc\n")
+    with pytest.raises(InputError, match="malformed camera_info YAML"):
+        read_calib(yaml_path)
+    n = 100
+    for attrs in ({"sensor_resolution": [180]}, {"t_offset": np.array([], np.int64)}):
+        path = tmp_path / "events.h5"
+        with h5py.File(path, "w") as f:
+            for k, v in (("t", np.arange(n, dtype=np.int64)), ("x", np.zeros(n, np.uint16)),
+                         ("y", np.zeros(n, np.uint16)), ("p", np.ones(n, np.int8))):
+                f[f"events/{k}"] = v
+            f.attrs.update({"width": 240, "height": 180} if "t_offset" in attrs else {}, **attrs)
+        with pytest.raises(InputError, match="malformed attribute"):
+            open_dataset(path)
+
+
+def test_cli_refuses_bad_arguments_and_config_files(tmp_path, capsys):
+    """--threads -3 (a Taichi C++ error), --config naming a folder or a non-UTF-8 file, map --gamma 0 (an all-black
+    PNG with exit 0): one usage or input error each."""
+    (tmp_path / "folder").mkdir()
+    binary = tmp_path / "bad.yaml"
+    binary.write_bytes(b"\xff\xfe\x00bad")
+    with pytest.raises(SystemExit) as exc:
+        main(["params", "--threads", "-3"])
+    assert exc.value.code == 2 and "expected a thread count" in capsys.readouterr().err
+    for cfg in (tmp_path / "folder", binary):
+        assert main(["params", "--config", str(cfg)]) == 2
+        assert "cannot read the config file" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(["map", "x", "--trajectory", "t.txt", "--out", str(tmp_path / "m.png"), "--gamma", "0"])
+    assert exc.value.code == 2 and "expected a finite number > 0" in capsys.readouterr().err

@@ -151,3 +151,18 @@ def test_tasks_line_counts_method_runs_that_ended_in_an_error():
     groups = [{"tasks": {"done": 2}, "rows": [{"status": "ok"}, {"status": "error", "note": "InputError: ..."}]}]
     assert "1 method run(s) ended in an error" in tasks_line(groups, 1.0)
     assert "error" not in tasks_line([{"tasks": {"done": 1}, "rows": [{"status": "lost"}]}], 1.0)
+
+
+def test_suite_files_refuse_names_that_leave_the_output_folder_and_odd_method_lists(tmp_path):
+    """A dataset name becomes file names (plots): 'a/../../ESCAPED' wrote outside --out; `methods: 5` was a
+    TypeError."""
+    from ti_cmax.commands.batch import load_suite
+    from ti_cmax.errors import InputError
+
+    (tmp_path / "d").mkdir()
+    for text, message in (("datasets:\n  'a/../../ESCAPED': d\nmethods: [cmax-omega]\n", "must not be empty, hold"),
+                          ("datasets:\n  d: d\nmethods: 5\n", "methods: expected a list")):
+        suite = tmp_path / "suite.yaml"
+        suite.write_text(text)
+        with pytest.raises(InputError, match=message):
+            load_suite(suite, {})

@@ -1,6 +1,20 @@
 """One module per ``ti-cmax`` subcommand: ``HELP``, ``add_arguments(parser)``, ``run(args) -> int``."""
 
 
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0 (argparse reports anything else as one usage error)."""
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
 def add_sensor_arguments(parser, topic_help: str = "ROS bag event topic") -> None:
     """--width, --height, --topic: what a dataset's files may not say (info, convert)."""
     parser.add_argument("--width", type=int, default=None, help="sensor width (overrides what the files say)")

@@ -79,6 +79,9 @@ def load_suite(path, cli_overrides: dict):
         raise InputError("datasets: expected a mapping of name: path or name: {simulate: {...}}", source=src)
     for name, entry in entries.items():
         name = str(name)
+        if not name or "/" in name or "\\" in name or name.startswith("."):  # names become file names
+            raise InputError(f"datasets: the name {name!r} must not be empty, hold '/' or '\\' or start with '.' "
+                             "(it names output files)", source=src)
         if isinstance(entry, str):
             p = Path(entry) if Path(entry).is_absolute() else base_dir / entry
             if not p.exists():
@@ -100,6 +103,8 @@ def load_suite(path, cli_overrides: dict):
     methods = doc.get("methods") or []
     if isinstance(methods, str):
         methods = [m.strip() for m in methods.split(",") if m.strip()]
+    if not isinstance(methods, list):
+        raise InputError("methods: expected a list of method names or a comma-separated string", source=src)
     try:
         methods = B.resolve_methods([str(m) for m in methods])
     except InputError as exc:

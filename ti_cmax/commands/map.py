@@ -5,6 +5,8 @@ import argparse
 import json
 from pathlib import Path
 
+from . import positive_float
+
 HELP = "render the panoramic image of warped events of a trajectory (PNG + JSON with EA, GM, variance)"
 
 
@@ -25,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trajectory", required=True, metavar="TRAJ.txt", help="trajectory (TUM)")
     parser.add_argument("--out", required=True, metavar="MAP.png", help="output image; MAP.json is written beside it")
     parser.add_argument("--size", default=None, metavar="WxH", help="map size (default: 2*pano_height x pano_height)")
-    parser.add_argument("--gamma", type=float, default=None, help="display gamma (default 0.75)")
+    parser.add_argument("--gamma", type=positive_float, default=None, help="display gamma (default 0.75)")
     parser.add_argument("--t-start", type=float, default=None, help="first event time to use (s)")
     parser.add_argument("--t-end", type=float, default=None, help="last event time to use (s)")
 

@@ -6,6 +6,8 @@ import json
 
 import numpy as np
 
+from . import positive_float
+
 HELP = ("star tracking: front-end + offline BA; trajectory.txt, angular_velocity.txt, star_map.png, "
         "angular_velocity.png, report.json (400 ms relative-rotation RMSE/std when ground truth exists)")
 
@@ -17,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--spline", choices=("linear", "cubic"), default=None,
                         help="trajectory model of the BA (default: spline_degree of the config, linear)")
-    parser.add_argument("--window", type=float, default=0.4, metavar="S",
+    parser.add_argument("--window", type=positive_float, default=0.4, metavar="S",
                         help="interval of the relative rotations evaluated (default 0.4 s, as Chin et al.)")
     parser.add_argument("--groundtruth", default=None, metavar="GT.txt",
                         help="ground truth (TUM); default: groundtruth.txt of the dataset when present")

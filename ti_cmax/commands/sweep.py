@@ -34,6 +34,8 @@ def run(args) -> int:
     cfg = load_config(SlamConfig, args.config, args.overrides)
     params = [p.strip() for p in args.parameters.split(",") if p.strip()]
     unknown = [p for p in params if p not in SWEEPS]
+    if not params:
+        raise InputError(f"--parameters: expected some of {', '.join(SWEEPS)}, got {args.parameters!r}")
     if unknown:
         raise InputError(f"--parameters: unknown {', '.join(unknown)} (expected some of {', '.join(SWEEPS)})")
     out = Path(args.out)

@@ -73,7 +73,7 @@ def read_camera_info_yaml(path, width: int | None = None, height: int | None = N
         h = int(height or d["image_height"])
         model = str(d.get("distortion_model", "plumb_bob"))
         dist = [float(v) for v in (d.get("distortion_coefficients") or {}).get("data", [])]
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise InputError(f"malformed camera_info YAML ({type(exc).__name__}: {exc}); expected image_width, "
                          "image_height, camera_matrix.data (9 numbers), distortion_coefficients.data",
                          source=source) from None

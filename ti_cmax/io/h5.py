@@ -135,30 +135,34 @@ class H5Events:
             self.t_scale = _UNITS[str(unit).lower()] if unit is not None else 1e-6
         else:
             raise InputError(f"{self._names[0]} has dtype {dsets[0].dtype}, expected numbers", source=self.source)
-        off = 0
-        if "t_offset" in f and isinstance(f["t_offset"], h5py.Dataset):
-            off = int(np.asarray(f["t_offset"][()]).reshape(-1)[0])
-        elif "t_offset" in f.attrs:
-            off = int(np.asarray(f.attrs["t_offset"]).reshape(-1)[0])
-        self.t_offset_raw = off  # same unit as the stored t
-        self.has_ms_to_idx = "ms_to_idx" in f
-        groups = [f] + ([f["events"]] if "events" in f and isinstance(f["events"], h5py.Group) else [])
-        w = h = None
-        for g in groups:
-            if w is None and "width" in g.attrs and "height" in g.attrs:
-                w, h = int(g.attrs["width"]), int(g.attrs["height"])
-            if w is None and "sensor_resolution" in g.attrs:
-                res = np.asarray(g.attrs["sensor_resolution"]).reshape(-1)
-                h, w = int(res[0]), int(res[1])
-            if w is None and "geometry" in g.attrs:  # Metavision: "WIDTHxHEIGHT"
-                w, h = _geometry(g.attrs["geometry"], self.source)
-        self.sensor_size = (w, h) if w is not None else None
-        self.intrinsics = None
-        for g in groups:
-            if all(k in g.attrs for k in ("fx", "fy", "cx", "cy")):
-                dist = tuple(np.asarray(g.attrs["dist"], dtype=float).ravel()) if "dist" in g.attrs else ()
-                self.intrinsics = tuple(float(g.attrs[k]) for k in ("fx", "fy", "cx", "cy")) + (dist,)
-                break
+        try:  # attributes written by other tools: one clear error for a malformed one
+            off = 0
+            if "t_offset" in f and isinstance(f["t_offset"], h5py.Dataset):
+                off = int(np.asarray(f["t_offset"][()]).reshape(-1)[0])
+            elif "t_offset" in f.attrs:
+                off = int(np.asarray(f.attrs["t_offset"]).reshape(-1)[0])
+            self.t_offset_raw = off  # same unit as the stored t
+            self.has_ms_to_idx = "ms_to_idx" in f
+            groups = [f] + ([f["events"]] if "events" in f and isinstance(f["events"], h5py.Group) else [])
+            w = h = None
+            for g in groups:
+                if w is None and "width" in g.attrs and "height" in g.attrs:
+                    w, h = int(g.attrs["width"]), int(g.attrs["height"])
+                if w is None and "sensor_resolution" in g.attrs:
+                    res = np.asarray(g.attrs["sensor_resolution"]).reshape(-1)
+                    h, w = int(res[0]), int(res[1])
+                if w is None and "geometry" in g.attrs:  # Metavision: "WIDTHxHEIGHT"
+                    w, h = _geometry(g.attrs["geometry"], self.source)
+            self.sensor_size = (w, h) if w is not None else None
+            self.intrinsics = None
+            for g in groups:
+                if all(k in g.attrs for k in ("fx", "fy", "cx", "cy")):
+                    dist = tuple(np.asarray(g.attrs["dist"], dtype=float).ravel()) if "dist" in g.attrs else ()
+                    self.intrinsics = tuple(float(g.attrs[k]) for k in ("fx", "fy", "cx", "cy")) + (dist,)
+                    break
+        except (IndexError, ValueError, TypeError) as exc:
+            raise InputError(f"malformed attribute (t_offset, width / height, sensor_resolution [h, w], geometry, "
+                             f"fx fy cx cy dist): {type(exc).__name__}: {exc}", source=self.source) from None
         self.integer_xy = all(np.issubdtype(d.dtype, np.integer) for d in dsets[1:3])
 
     # ------------------------------------------------------------------------------------------
