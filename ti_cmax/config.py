@@ -456,7 +456,11 @@ def _convert(value, typ, key: str, source: str):
                 if low in ("0", "false", "no", "off"):
                     return False
                 raise ValueError
-            return bool(value)
+            if isinstance(value, bool) or (isinstance(value, numbers.Integral) and value in (0, 1)):
+                return bool(value)
+            raise ValueError  # 2, [1], 0.5: not a yes / no
+        if isinstance(value, bool) and typ in (int, float):  # YAML's true is not the number 1 for a size
+            raise ValueError
         if typ is int:
             if isinstance(value, float) and not value.is_integer():
                 raise ValueError

@@ -186,3 +186,15 @@ def test_a_command_builds_only_its_own_arguments():
         with pytest.raises(SystemExit) as exc:
             main([command, "--help"])
         assert exc.value.code == 0
+
+
+def test_yaml_booleans_and_numbers_do_not_pass_for_each_other(tmp_path):
+    """`width: true` became 1 and `loop_closure: 2` or `[1]` became true; 0 / 1 and yes / no strings stay allowed."""
+    for text, message in (("dataset:\n  width: true\n", "'dataset.width' expects int, got True"),
+                          ("loop_closure: 2\n", "expects bool, got 2"), ("loop_closure: [1]\n", "expects bool")):
+        path = tmp_path / "c.yaml"
+        path.write_text(text)
+        with pytest.raises(InputError, match=message):
+            load_config(SlamConfig, path)
+    assert load_config(SlamConfig, None, ["loop_closure=0"]).loop.loop_closure is False
+    assert load_config(SlamConfig, None, {"loop_closure": 1}).loop.loop_closure is True
