@@ -281,3 +281,8 @@ def test_cli_refuses_bad_arguments_and_config_files(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["map", "x", "--trajectory", "t.txt", "--out", str(tmp_path / "m.png"), "--gamma", "0"])
     assert exc.value.code == 2 and "expected a finite number > 0" in capsys.readouterr().err
+    for bad in (["--scene", "bogus"], ["--duration", "-1"]):  # refused before the sequence folder is made
+        with pytest.raises(SystemExit) as exc:
+            main(["sweep", "--out", str(tmp_path / "sweep"), "--quick", *bad])
+        assert exc.value.code == 2 and not (tmp_path / "sweep").exists()
+    capsys.readouterr()

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from . import positive_float
 from .batch import add_executor_arguments, executor_from_args
 
 HELP = "sensitivity sweep (Fig. 19): abs error and runtime vs dt_knots, window, map size, event sampling"
@@ -16,8 +17,11 @@ HELP = "sensitivity sweep (Fig. 19): abs error and runtime vs dt_knots, window, 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder: sweep.md, sweep.csv, sweep.png")
     parser.add_argument("--dataset", default=None, help="dataset with groundtruth.txt (default: simulate one)")
-    parser.add_argument("--scene", default="bicycle", help="simulated scene (default: bicycle, as in the paper)")
-    parser.add_argument("--duration", type=float, default=5.0, help="simulated duration (s)")
+    from ..simulate.config import SCENES
+
+    parser.add_argument("--scene", default="bicycle", choices=SCENES,
+                        help="simulated scene (default: bicycle, as in the paper)")
+    parser.add_argument("--duration", type=positive_float, default=5.0, help="simulated duration (s)")
     parser.add_argument("--parameters", default="control_pose_frequency,window_size,map_height,event_sample_rate",
                         help="comma-separated subset")
     parser.add_argument("--quick", action="store_true", help="two values per parameter")
