@@ -81,7 +81,10 @@ def read_camera_info_yaml(path, width: int | None = None, height: int | None = N
         raise InputError(f"distortion_model {model!r} is not supported (use plumb_bob)", source=source)
     if model == "rational_polynomial" and any(dist[5:]):
         raise InputError("rational_polynomial with k4..k6 != 0 is not supported", source=source)
-    return Camera(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(dist[:5]))
+    try:
+        return Camera(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(dist[:5]))
+    except InputError as exc:  # NaN or non-positive intrinsics: name the file
+        raise InputError(str(exc), source=source) from None
 
 
 def write_camera_info_yaml(path, camera: Camera, camera_name: str = "event_camera") -> Path:

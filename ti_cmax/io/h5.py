@@ -180,7 +180,10 @@ class H5Events:
         if self.intrinsics is None or self.sensor_size is None:
             return None
         fx, fy, cx, cy, dist = self.intrinsics
-        return Camera(self.sensor_size[0], self.sensor_size[1], fx, fy, cx, cy, dist)
+        try:
+            return Camera(self.sensor_size[0], self.sensor_size[1], fx, fy, cx, cy, dist)
+        except InputError as exc:  # NaN or non-positive intrinsics in the attributes: name the file
+            raise InputError(str(exc), source=self.source) from None
 
     def num_events(self) -> int:
         return self.n
