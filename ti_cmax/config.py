@@ -352,6 +352,9 @@ class RealtimeConfig(Params):
         if self.realtime_max_lag < self.realtime_target_lag:
             raise InputError(f"realtime_max_lag must be >= realtime_target_lag ({self.realtime_target_lag:g} s), "
                              f"got {self.realtime_max_lag:g}")
+        if self.realtime_chunk > self.realtime_target_lag:  # a longer hand-over is a lag by itself
+            raise InputError(f"realtime_chunk must be <= realtime_target_lag ({self.realtime_target_lag:g} s), "
+                             f"got {self.realtime_chunk:g}")
 
 
 @dataclass(frozen=True)

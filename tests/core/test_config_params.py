@@ -23,6 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
     ("dt_knots=0.2", r"dt_knots must be <= backend_sliding_window_stride \(0.1 s\), got 0.2"),
     ("trajectory_rate=0", "trajectory_rate must be > 0 and <= 100000 Hz"),
     ("lambda0=0", "lambda0 must be > 0"),  # it divides
+    ("realtime_chunk=100", r"realtime_chunk must be <= realtime_target_lag \(0.3 s\)"),  # a 0.6 s replay took 104 s
     ("num_events_per_packet=1000000000", "num_events_per_packet must be 0"),  # sizes memory up front (22 GB)
     ("pano_height=100000", "pano_height must be 0"),
     ("backend_time_window_size=0", "backend_time_window_size must be > 0 s"),
