@@ -11,6 +11,7 @@ any given trajectory (another method's output, IMU dead reckoning) instead of th
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
@@ -497,6 +498,21 @@ class _BackendProcess:
         self.proc.join(timeout=10)
 
 
+def _next_message(inbox, poll: float = 1.0):
+    """The worker's next message; it exits when its parent process has died meanwhile (killed, or out of memory):
+    otherwise it would sleep forever, holding the terminal's pipes open (``slam | tee log`` never ended)."""
+    import multiprocessing
+    import queue
+
+    while True:
+        try:
+            return inbox.get(timeout=poll)
+        except queue.Empty:
+            parent = multiprocessing.parent_process()
+            if parent is not None and not parent.is_alive():
+                os._exit(1)
+
+
 def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox, degradation,
                     loop_slice_seconds: float | None = None) -> None:
     """Worker process: the sequential back-end loop on messages ("events", chunk), ("pose", t, R, moving), ("map",)
@@ -527,7 +543,7 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
                     loop.idle_slice()
             tic = time.perf_counter()
             with clock("receive"):
-                kind, *args = inbox.get()
+                kind, *args = _next_message(inbox)
             waited += time.perf_counter() - tic
             if kind == "events":
                 with clock("events"):

@@ -136,6 +136,19 @@ def main(argv: list[str] | None = None) -> int:
     # the subcommand is the first argument that is not an option (the top level has only --help and --version)
     parser = build_parser(next((a for a in argv if not a.startswith("-")), None))
     args = parser.parse_args(argv)
+    import signal
+    import threading
+
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main_thread else None
+    try:
+        return _run_command(args)
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
+def _run_command(args) -> int:
     from . import progress
 
     if args.quiet:
@@ -158,9 +171,19 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"ti-cmax {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"ti-cmax {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, _Terminated)
+        print(f"ti-cmax {args.command}: {'terminated' if terminated else 'interrupted'}", file=sys.stderr)
+        return 143 if terminated else 130
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, a job scheduler's time limit) taken as Ctrl-C is: the command's outputs are removed on the
+    way out (OutputDir), a worker process is stopped. Without it the process died with partial outputs."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -169,7 +169,9 @@ def test_one_thread_bitwise_offline_and_parallel_undegraded_realtime(tmp_path):
     assert worker_peak > 50 and report["peak_rss_mb"] > worker_peak + 50
 
 
-def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path):
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path, sig):
+    """Ctrl-C (SIGINT to the process group) and `kill PID` (SIGTERM to the main process; it left partial outputs)."""
     out = tmp_path / "interrupted"
     env = {**os.environ, "TI_CMAX_NO_PROGRESS": "1"}
     # replayed at a twentieth of the sensor's speed (24 s for the 1.2 s sequence; the interrupt ends it): the
@@ -186,13 +188,16 @@ def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path):
         assert "replaying" in lines[-1], lines
         time.sleep(0.3)
         assert proc.poll() is None, "the replay ended before the interrupt"
-        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
+        if sig == "SIGINT":
+            os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
+        else:
+            os.kill(proc.pid, signal.SIGTERM)
         stdout, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, stderr
-    assert "interrupted" in stderr and "Traceback" not in stderr, stderr
+    assert proc.returncode == (130 if sig == "SIGINT" else 143), stderr
+    assert ("interrupted" if sig == "SIGINT" else "terminated") in stderr and "Traceback" not in stderr, stderr
     assert not out.exists() or not any(out.iterdir())
 
 
@@ -360,3 +365,28 @@ def test_benchmark_realtime_rounds_are_checked(tmp_path, capsys):
     assert main(["benchmark", "--realtime", "--rounds", "0", "--out", str(tmp_path / "rt")]) == 2
     assert "--rounds must be at least 1, got 0" in capsys.readouterr().err
     assert not (tmp_path / "rt").exists()
+
+
+def test_the_worker_ends_when_its_parent_died(monkeypatch):
+    """A back-end worker whose main process was killed (SIGKILL, out of memory) used to sleep in inbox.get() forever,
+    holding the terminal's pipes open (`slam | tee log` never ended): it polls and exits."""
+    import multiprocessing
+    import queue
+
+    from ti_cmax.pipelines import slam as slam_module
+
+    class Dead:
+        def is_alive(self):
+            return False
+
+    class Silent:
+        def get(self, timeout=None):
+            raise queue.Empty
+
+    def exit_(code):
+        raise SystemExit(code)
+
+    monkeypatch.setattr(multiprocessing, "parent_process", lambda: Dead())
+    monkeypatch.setattr(slam_module.os, "_exit", exit_)
+    with pytest.raises(SystemExit):
+        slam_module._next_message(Silent(), poll=0.01)
