@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import shutil
 import time
 import typing
@@ -39,6 +38,7 @@ import numpy as np
 
 from ti_cmax.config import Params, SlamConfig, config_to_dict, param, update_config
 from ti_cmax.errors import InputError
+from ti_cmax.outputs import json_ready  # noqa: F401 - the tables and tasks use it from here
 
 from .bench_slam import PAPER_TAB2, PAPER_TAB6, _fmt, _slam_extra
 
@@ -853,17 +853,6 @@ def rows_for_csv(results: list[dict]) -> list[dict]:
     return [{k: r.get(k) for k in ROW_FIELDS} for res in results for r in res["rows"]]
 
 
-def json_ready(obj):
-    """NaN/inf -> None, numpy scalars -> Python (results.json is strict JSON)."""
-    if isinstance(obj, dict):
-        return {k: json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_ready(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
 
 
 def settings_line(cfg, quick: bool) -> str:

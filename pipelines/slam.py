@@ -21,7 +21,7 @@ import numpy as np
 from ti_cmax import so3
 from ti_cmax.camera import Camera
 from ti_cmax.config import SlamConfig, config_to_dict
-from ti_cmax.errors import InputError
+from ti_cmax.errors import InputError, WorkerLost
 from ti_cmax.events import Events
 from ti_cmax.outputs import peak_rss_mb
 from ti_cmax.progress import progress
@@ -461,7 +461,8 @@ class _BackendProcess:
                 if not self.proc.is_alive():
                     for _ in self.messages(None):  # raises the worker's error, if it sent one
                         pass
-                    raise RuntimeError(f"the back-end process ended (exit {self.proc.exitcode})") from None
+                    raise WorkerLost(f"the back-end process ended (exit {self.proc.exitcode}: killed or out of "
+                                     "memory?)") from None
         self.blocked_seconds += time.perf_counter() - tic
 
     def messages(self, until: str | None):
@@ -476,7 +477,8 @@ class _BackendProcess:
                 if not until:
                     return
                 if not self.proc.is_alive():
-                    raise RuntimeError(f"the back-end process ended without a result (exit {self.proc.exitcode})")
+                    raise WorkerLost(f"the back-end process ended without a result (exit {self.proc.exitcode}: "
+                                     "killed or out of memory?)")
                 continue
             if msg[0] == "ready":
                 self.ready = True

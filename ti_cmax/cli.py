@@ -11,7 +11,7 @@ import importlib
 import os
 import sys
 
-from .errors import InputError
+from .errors import InputError, WorkerLost
 
 # subcommand name -> module in ti_cmax.commands
 COMMANDS = {
@@ -171,6 +171,9 @@ def _run_command(args) -> int:
     except InputError as exc:
         print(f"ti-cmax {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except WorkerLost as exc:
+        print(f"ti-cmax {args.command}: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt as exc:
         terminated = isinstance(exc, _Terminated)
         print(f"ti-cmax {args.command}: {'terminated' if terminated else 'interrupted'}", file=sys.stderr)

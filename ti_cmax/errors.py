@@ -1,6 +1,11 @@
 """User-facing errors: one clear line, caught by the CLI and printed without a traceback."""
 
 
+class WorkerLost(RuntimeError):
+    """A worker process of ours ended without a result (killed from outside, out of memory): not a bug in the input
+    nor in the code, so the CLI reports it in one line (exit 1)."""
+
+
 class InputError(ValueError):
     """Bad input data or configuration. The message names the file, line or field and what was expected."""
 

@@ -286,3 +286,17 @@ def test_cli_refuses_bad_arguments_and_config_files(tmp_path, capsys):
             main(["sweep", "--out", str(tmp_path / "sweep"), "--quick", *bad])
         assert exc.value.code == 2 and not (tmp_path / "sweep").exists()
     capsys.readouterr()
+
+
+def test_a_lost_worker_is_one_error_line(monkeypatch, capsys):
+    """A back-end worker killed from outside (out of memory) gave a RuntimeError traceback: one line, exit 1."""
+    from ti_cmax.commands import params
+    from ti_cmax.errors import WorkerLost
+
+    def lost(args):
+        raise WorkerLost("the back-end process ended without a result (exit -9: killed or out of memory?)")
+
+    monkeypatch.setattr(params, "run", lost)
+    assert main(["params"]) == 1
+    err = capsys.readouterr().err
+    assert "error: the back-end process ended" in err and "Traceback" not in err

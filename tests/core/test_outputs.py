@@ -40,3 +40,17 @@ def test_command_outputs_respect_umask(tmp_path, umask, capsys):
     assert main(["evaluate", "--groundtruth", str(gt), "--estimate", str(gt), "--out", str(tmp_path / "e.json")]) == 0
     for name in ("ev.h5", "e.json"):
         assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644, name
+
+
+def test_json_ready_makes_strict_json():
+    """Every report.json is strict JSON: NaN (an error over a sequence shorter than its window) was written as NaN."""
+    import json
+
+    import numpy as np
+
+    from ti_cmax.outputs import json_ready
+
+    doc = json_ready({"a": float("nan"), "b": [np.float32(1.5), np.inf], "c": np.int64(3), "d": np.array([1.0, np.nan]),
+                      "e": np.bool_(True)})
+    assert json.loads(json.dumps(doc, allow_nan=False)) == {"a": None, "b": [1.5, None], "c": 3, "d": [1.0, None],
+                                                            "e": True}

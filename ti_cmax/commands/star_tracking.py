@@ -77,7 +77,7 @@ def run(args) -> int:
     import imageio.v3 as iio
 
     from ..io import read_tum
-    from ..outputs import OutputDir
+    from ..outputs import OutputDir, json_ready
     from ..pipelines.panorama import map_to_uint8
     from ..pipelines.star_tracking import open_star_or_dataset, run_star_tracking, star_tracking_config
     from ..plots import plot_trajectories
@@ -113,5 +113,5 @@ def run(args) -> int:
         line += (f"; {args.window * 1000:.0f} ms relative rotation RMSE {e['ba']['rmse_deg']:.3f} deg "
                  f"(std {e['ba']['std_deg']:.3f}), front-end alone {e['frontend']['rmse_deg']:.3f} deg")
     print(f"{line} -> {out}")
-    print(json.dumps({k: report.get(k) for k in ("rmse_deg", "std_deg")} if res.errors else {}))
+    print(json.dumps(json_ready({k: report.get(k) for k in ("rmse_deg", "std_deg")} if res.errors else {})))
     return 0
