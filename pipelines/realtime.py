@@ -6,10 +6,29 @@ is handed to :class:`~ti_cmax.pipelines.slam.OnlineSlam` once the wall clock rea
 ``realtime_chunk`` of sensor time is due and pushes it; when it is behind, it pushes every due event at once (one read
 chunk per push). No busy waiting.
 
-Lag: when a window completes (wall time ``done``), lag = done - due(window end), where due(t) is the wall time at
-which sensor time t was handed over in an ideal replay. The latency from an event to its first refined pose is that
-window's lag plus the event's age within the window's new stride: the events of (previous window end, window end]
-get their first refined pose when the window completes (mean over time: lag + stride / 2; max: lag + stride).
+Lag: how far the processing is behind its input. When a window completes (wall time ``done``), lag = done -
+due(window end) - dead(window end), where due(t) is the wall time at which sensor time t was handed over in an ideal
+replay and dead(t) the time without events that the result at t had to wait through: a window completes only once
+the front-end has a packet at or after its end, which takes events after it, so a window ending in or just before a
+pause of the stream (a camera seeing a static scene, a stalled driver) completes only once the first event after the
+pause is handed over; the system cannot know earlier that time went on. A pause is a gap between two events longer
+than the front-end's still window W = still_span_factor x dt_ang_vel (0.1 s by default); the replay records each
+one as (a, b): its last event before and first after, and the front-end's last packet time fe before b was handed
+over. dead(t) = sum of (b - max(a, t)) / speed over the pauses with b > t and fe < t (the events before b could not
+complete the result at t). So a system still busy with the events before a pause keeps its lag (a window those
+events completed is not affected, and a backlog handed over late after the pause still counts from due(b)); shorter
+gaps count as before, so a run without a pause has the same lags. The catch-up after a pause is real lag: its
+packets and windows (no events; 10-15 ms per window in the worker) are processed once it ends, push() waits for the
+worker meanwhile, and the burst of the pause's windows, each completing a little later than the last, reads as a
+rising lag. Measured 2026-12-03 (2 s DAVIS240C, 0.5 M ev/s, the events after t = 1 s shifted by 3 s, --parallel,
+2 shared cores; defaults, then target 0.8 s and bound 1.5 s): lag max 3.11 -> 0.43-0.63 s, mean 1.29 -> 0.25-0.39 s,
+but the 0.3-0.5 s catch-up still escalated to level 4 with input thinning (events used 0.33 -> 0.13-0.31; the
+same stream without the pause 0.91-1.00); with the looser target lag max 3.05 -> 0.48 s, events used 0.40 -> 1.00,
+level 4 3.9 -> 0 s.
+
+The latency from an event to its first refined pose is that window's lag plus the event's age within the window's
+new stride: the events of (previous window end, window end] get their first refined pose when the window completes
+(mean over time: lag + stride / 2; max: lag + stride).
 
 Controller (one rule, applied after every completed window, with lag L, target T = ``realtime_target_lag`` and
 bound M = ``realtime_max_lag``): degradation level l in 0..4:
@@ -69,9 +88,9 @@ second of data), so c/4 and c/8 on every window saved little.
   under T / 2 no longer relaxes on its own: after the start-up transient a window completes at least one BA after
   its end, so that threshold was rarely met even with spare time, and was met by a backlog that had drained at a
   level still too costly.
-The front-end's lag (now - due(time of its last packet)), taken once per stride of its progress or of wall time, is a
-second input to the escalating rules: when the front-end is the bottleneck, windows complete too rarely to react in
-time; an escalation it causes goes on to the next level that changes the front-end's work.
+The front-end's lag (now - due(t) - dead(t), t the time of its last packet), taken once per stride of its progress
+or of wall time, is a second input to the escalating rules: when the front-end is the bottleneck, windows complete
+too rarely to react in time; an escalation it causes goes on to the next level that changes the front-end's work.
 Costs that do not scale with events (a front-end packet's optimisation, a window's BA) are cut first: levels 1-4 keep
 every event in the map; q (the hard bound) also cuts the per-event costs. Front-end packets are skipped because their
 cost is mostly per evaluation, not per event (thinning a packet's events saves little). report.json's "realtime"
@@ -157,10 +176,18 @@ class RealtimeController:
         self._ba_recent: list[tuple[float, int]] = []  # (seconds, events) of the last RELAX_WINDOWS windows with a BA
         self.predicted: list[float] = []  # predicted cost of the level below at each relaxation (report)
         self.trace: list[tuple] = []  # one row per completed window (TRACE_COLUMNS): realtime_windows.csv
+        # pauses of the stream (module docstring, Lag), recorded by run_realtime: (last event before, first event
+        # after, frontend_until just before that one was handed over)
+        self.pauses: list[tuple[float, float, float | None]] = []
 
     def due(self, t: float) -> float:
         """Wall time (time.monotonic) at which sensor time t is handed over."""
         return self.wall0 + (t - self.t0) / self.speed
+
+    def dead(self, t: float) -> float:
+        """Wall seconds of the pauses after sensor time t that the result at t had to wait through (module
+        docstring, Lag): those that end after t and whose end was handed over before the front-end reached t."""
+        return sum(b - max(a, t) for a, b, fe in self.pauses if b > t and (fe is None or fe < t - 1e-9)) / self.speed
 
     def ba_cap(self, level: int, window_events: int | None = None) -> int | None:
         divisor = LEVELS[level][1]
@@ -195,7 +222,8 @@ class RealtimeController:
             return
         end = report.t_end
         prev = self._prev_end if self._prev_end is not None else report.t_start
-        lag = report.done_at - self.due(end)
+        lag = report.done_at - self.due(end) - self.dead(end)
+        self.pauses = [p for p in self.pauses if p[1] > end]  # later windows and packets are past them
         self.lags.append(lag)
         new = max(end - prev, 0.0) / self.speed
         self.latency_mean.append(lag + 0.5 * new)
@@ -298,7 +326,7 @@ class RealtimeController:
                 and now < self._fe_tick[1] + self.stride / self.speed:
             return
         self._fe_tick = (t, now)
-        self._fe_lag = now - self.due(t)
+        self._fe_lag = now - self.due(t) - self.dead(t)
         self._control(self._fe_lag, "frontend")
 
     def _control(self, lag: float, source: str = "window") -> None:
@@ -403,6 +431,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     config = resolve_config(config, camera)
     rt = config.realtime
     speed = float(rt.realtime_speed)
+    min_pause = config.frontend.still_span_factor * config.frontend.dt_ang_vel  # W: a longer gap is a pause
     ctl = RealtimeController(config, speed, worker=backend_process)
     be = config.backend
     # with a worker, push() waits while the events sent run more than two windows and a stride ahead of the
@@ -455,19 +484,29 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                     sleep_s += wait
                     idle["sleep"] = sleep_s
                 continue
+            last = handed_until
             batch, pending, handed_until = _take_due(pending, s_now)
-            q = ctl.thinning
-            if q > 1:
-                kept = every_qth(batch, q, handed + dropped)
-                dropped += len(batch) - len(kept)
-                batch = kept
-            handed += len(batch)
-            if len(batch):
-                online.push(batch)
-                ctl.on_frontend(time.monotonic(), online.frontend_until)
-                if online.frontend_until is not None:
-                    bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
-                    shown = online.frontend_until
+            # the event ending a pause goes in a push of its own, recorded with the front-end's progress before it
+            gaps = np.diff(batch.t, prepend=last if last > -math.inf else batch.t[0])
+            cuts = np.flatnonzero(gaps > min_pause)
+            bounds = [0, *cuts[cuts > 0].tolist(), len(batch)]
+            for i0, i1 in zip(bounds[:-1], bounds[1:]):
+                part = batch[i0:i1]
+                if gaps[i0] > min_pause:
+                    ctl.pauses.append((last if i0 == 0 else float(batch.t[i0 - 1]), float(part.t[0]),
+                                       online.frontend_until))
+                q = ctl.thinning
+                if q > 1:
+                    kept = every_qth(part, q, handed + dropped)
+                    dropped += len(part) - len(kept)
+                    part = kept
+                handed += len(part)
+                if len(part):
+                    online.push(part)
+                    ctl.on_frontend(time.monotonic(), online.frontend_until)
+                    if online.frontend_until is not None:
+                        bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
+                        shown = online.frontend_until
         if read == 0:
             raise InputError("no events to process")
         result = online.close()

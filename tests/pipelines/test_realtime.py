@@ -282,6 +282,54 @@ def test_replay_behind_schedule_hands_over_without_waiting():
     assert R._wake_time(0.7, 0.5, 0.49, 0.002, 0.0) == pytest.approx(0.7)  # nothing due until 0.7
 
 
+def test_a_pause_of_the_stream_is_not_lag():
+    """Time without events after a window's end, before the event that let it complete was handed over, is not lag
+    (module docstring, Lag): a window ending in or just before a pause completes only once the pause has ended. The
+    pause recorded here: events until 1.02 s, none until 4.0 s; the front-end had reached 0.95 s before that."""
+    cfg = load_config(SlamConfig, None, ["backend_max_window_events=200000"])
+    ctl = R.RealtimeController(cfg, 1.0)
+    ctl.wall0, ctl.t0 = 100.0, 0.0
+    assert ctl.dead(1.0) == 0.0  # no pause: the lag is done - due(end), as before
+    ctl.pauses.append((1.02, 4.0, 0.95))
+    ctl.on_frontend(ctl.due(4.0) + 0.05, 3.9)  # a packet of the pause, emitted once the event at 4.0 s came
+    assert ctl._fe_lag == pytest.approx(0.05)
+    for t_end in (1.0, 2.0, 3.9):  # all complete 0.1 s after the event at 4.0 s was handed over
+        ctl.on_window(_report(t_end, 4.1 - t_end, ctl))
+    ctl.on_window(_report(4.1, 0.1, ctl))  # after the pause: due(4.1) as always
+    assert ctl.lags == pytest.approx([0.12, 0.1, 0.1, 0.1])  # (1.0 s: the 20 ms of events after it are counted)
+    assert ctl.level == 0 and ctl.pauses == []  # no window later than 4.1 s can have waited through it
+    # a system still busy with the events before the pause keeps its lag: the window ending at 0.9 s could complete
+    # without the event at 4.0 s (the front-end was past 0.9 s), so its completion after it is 3.2 s late
+    slow = R.RealtimeController(cfg, 1.0)
+    slow.wall0, slow.t0 = 100.0, 0.0
+    slow.pauses.append((1.02, 4.0, 0.95))
+    slow.on_window(_report(0.9, 3.2, slow))
+    assert slow.lags == pytest.approx([3.2]) and slow.level == R.MAX_LEVEL
+
+
+def test_a_replay_with_a_pause_keeps_every_event(short_sequence):
+    """A stream with a pause (0.8 s of sensor time without events, 1.6 s of wall time at speed 0.5: longer than the
+    lag bound): the replay records it and the windows that waited through it are not late; every event is used.
+    (Counting the pause as lag gave lag max 1.64-1.66 s, level 4, events used 0.4-0.6.)"""
+    ev = short_sequence.events
+    t0 = float(ev.t[0])
+    ev = ev.slice_time(t0, t0 + 0.5).downsample(4)  # ~0.6 M ev/s: kept up with on a loaded 2-core machine
+    t = ev.t.copy()
+    t[t > t0 + 0.3] += 0.8
+    paused = Events(t, ev.x, ev.y, ev.p)
+    cfg = load_config(SlamConfig, None, ["pano_height=256", "realtime_speed=0.5", "realtime_target_lag=0.8",
+                                         "realtime_max_lag=1.2"])
+    result = R.run_realtime(iter([paused[i:i + 50_000] for i in range(0, len(paused), 50_000)]),
+                            short_sequence.camera, cfg)
+    rt = result.report["realtime"]
+    assert rt["events_used_fraction"] == 1.0 and rt["input_events_dropped"] == 0
+    assert not rt["degradation_applied"] or rt["ba_windows_cut_short"] > 0  # at most the cold window's budget
+    # under the target, far below the pause's 1.6 s of wall time (measured 0.31-0.33 s: the catch-up after it)
+    assert rt["max_lag_s"] < 0.8
+    in_pause = [row[2] for row in result.realtime_trace if t0 + 0.3 < row[1] < t0 + 1.1]
+    assert len(in_pause) >= 6 and max(in_pause) < 0.8
+
+
 def test_input_thinning_keeps_the_packets_time_span(short_sequence):
     """Handing over 1 of q events, the front-end's packets take N / q of them (their span stays, their cost falls with
     the input); degrade() restores N."""
