@@ -348,22 +348,22 @@ class SlidingWindowBackend:
         if final:
             last = max(self.events.t[-1] if len(self.events.t) else t0, self._src_t[-1] if len(self._src_t) else t0)
             t1 = max(t0 + 1e-6, min(t1, last))
-        with clock("fit"):
-            self._initialize_until(t1)
-        if self.loop is not None:  # loop closure: a revisit is closed before this window's BA
-            with clock("loop"):
-                self.loop.before_window(t0, t1, final)
         ev_t, ev_b = self.events.range(t0, t1, include_end=True)
         n = len(ev_t)
         rate = n / max(t1 - t0, 1e-9)
         report = WindowReport(t0, t1, n, optimized=False, alpha=0.0)
         moving_from = self._moving_from(t0, t1, final) if cfg.backend_skip_still_windows else t0
-        if n >= 2 * cfg.event_batch_size and rate >= cfg.backend_min_ev_rate:
-            if moving_from is None:
-                report.still = True
-            elif self.ba_cap == 0 or len(self.windows) % max(1, self.ba_every):
-                report.skipped = True
-            else:
+        enough = n >= 2 * cfg.event_batch_size and rate >= cfg.backend_min_ev_rate
+        if enough:
+            report.still = moving_from is None
+            report.skipped = not report.still and (self.ba_cap == 0 or len(self.windows) % max(1, self.ba_every) > 0)
+        with clock("fit"):
+            self._initialize_until(t1, refit_past=not enough or report.still or report.skipped)
+        if self.loop is not None:  # loop closure: a revisit is closed before this window's BA
+            with clock("loop"):
+                self.loop.before_window(t0, t1, final)
+        if enough:
+            if not (report.still or report.skipped):
                 self._refresh_stale_map()  # the map the BA reads, after a loop correction
                 ba0 = time.perf_counter()
                 with clock("ba"):
@@ -459,8 +459,16 @@ class SlidingWindowBackend:
     def _source_at(self, t: float) -> np.ndarray:
         return Trajectory(self._src_t, self._src_R).at(t)[0] if len(self._src_t) > 1 else self._src_R[0]
 
-    def _initialize_until(self, t_end: float) -> None:
-        """Fit control poses for (anchor, t_end] to the re-anchored source (lift-solve-retract)."""
+    def _initialize_until(self, t_end: float, refit_past: bool = False) -> None:
+        """Fit control poses for (anchor, t_end] to the re-anchored source (lift-solve-retract).
+
+        ``refit_past`` (a window that gets no BA): the control poses that shape R(t) just after the anchor but were
+        fixed before it are refitted too, to the spline's own samples over the preceding knot intervals plus the new
+        ones. Without it the new poses alone must continue whatever slope the last BA left at the window's end
+        (poses its events barely reached): fitted one window after another with the earlier ones fixed, cubic poses
+        overshoot in turn, and over windows without a BA to damp it the oscillation grew window by window (refining
+        the ground truth of a pan that slows to 0.7 deg/s: +-2 to 4.8 deg at the knot spacing over its last 0.5 s).
+        A window with a BA keeps the plain fit (its BA refines those poses anyway; outputs bitwise as before)."""
         cfg = self.cfg
         if self.spline is None:
             r_src0 = self._source_at(self.t_start)
@@ -491,6 +499,15 @@ class SlidingWindowBackend:
         # include the anchor itself so the new segment starts where the optimized trajectory is
         times = np.concatenate([[t_a], times])
         rots = np.concatenate([self._anchor[2][None], rots])
+        start, end = self.spline.valid_time_range()
+        shaping = int(self.spline.support(min(t_a, end))[0][0])  # first pose that shapes R(t) at the anchor
+        if refit_past and 1 <= shaping < first_free:
+            # samples every half knot interval over the knot intervals those poses shape before the anchor
+            past = t_a - 0.5 * cfg.dt_knots * np.arange(2 * cfg.spline_degree, 0, -1)
+            past = past[past >= start]
+            times = np.concatenate([past, times])
+            rots = np.concatenate([self.spline.evaluate(past), rots])
+            first_free = shaping
         self.spline.fit_new_segment(times, rots, first_free=first_free, refine_iters=1)
         self._anchor_at(float(times[-1]))
 
