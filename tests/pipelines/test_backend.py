@@ -149,7 +149,7 @@ def test_source_poses_before_the_anchor_are_dropped_and_poses_ahead_unchanged():
     append stay bounded); pose_at beyond the anchor still reads the re-anchored source at every time."""
     from ti_cmax import Camera, so3
     from ti_cmax.config import BackendConfig
-    from ti_cmax.pipelines.backend import SlidingWindowBackend
+    from ti_cmax.pipelines.backend import _EMPTY_WINDOWS_PER_FIT, SlidingWindowBackend
     from ti_cmax.pipelines.sensor_defaults import resolve_backend
     from ti_cmax.trajectory import Trajectory
 
@@ -163,6 +163,8 @@ def test_source_poses_before_the_anchor_are_dropped_and_poses_ahead_unchanged():
         while be.ready():
             be.step()
     window = cfg.backend_time_window_size + cfg.backend_sliding_window_stride
+    # (windows without events are fitted 10 strides at a time: the source kept spans at most that much more)
+    window += _EMPTY_WINDOWS_PER_FIT * cfg.backend_sliding_window_stride
     assert len(be.windows) > 30 and len(be._src_t) <= window / 0.01 + 3
     t_a, r_src_a, r_spl_a = be._anchor
     ahead = np.linspace(t_a + 1e-3, src_t[-1], 7)
@@ -254,9 +256,10 @@ def test_windows_without_ba_do_not_oscillate_after_a_kink():
     src_r = so3.exp(np.outer(src_t, [0.0, 0.2, 0.0]))
     be = SlidingWindowBackend(cfg, 0.0)
     kinked = False
-    for k in range(len(src_t)):  # no events: no window gets a BA
+    bearings = Camera(240, 180, 200.0, 200.0, 119.5, 89.5).bearings(np.full(5, 100.0), np.full(5, 80.0))
+    for k in range(len(src_t)):  # 500 events/s, below backend_min_ev_rate: no window gets a BA
         be.push_source_poses(src_t[k:k + 1], src_r[k:k + 1])
-        be.push_events(np.zeros(0), np.zeros((0, 3), np.float32), complete_until=float(src_t[k]))
+        be.push_events(src_t[k] - 0.002 * np.arange(5, 0, -1), bearings, complete_until=float(src_t[k]))
         while be.ready():
             be.step()
             if not kinked and be.window_start >= 0.5:  # as a BA would leave them: the last two poses turned 0.57 deg
@@ -264,7 +267,36 @@ def test_windows_without_ba_do_not_oscillate_after_a_kink():
                 be.spline.control_R[n - 2:] = so3.exp(np.array([0.0, 0.0, 0.01])) @ be.spline.control_R[n - 2:]
                 be._anchor_at(be._anchor[0])
                 kinked = True
-    assert kinked and be.window_start > 1.5
+    assert kinked and be.window_start > 1.5 and not any(w.optimized for w in be.windows)
     t = np.linspace(0.8, be.window_start, 200)
     offset = so3.log(np.swapaxes(so3.exp(np.outer(t, [0.0, 0.2, 0.0])), 1, 2) @ be.spline.evaluate(t))
     assert np.degrees(np.ptp(offset, axis=0)).max() < 0.1  # 0.63 deg with the plain fit
+
+
+def test_windows_without_events_are_fitted_with_the_next_one_that_has_some():
+    """A pause of the stream: its empty windows cost no fit each (one fit over the pause, with the next window that
+    has events); the poses over the pause are those of the source, as before."""
+    from ti_cmax import Camera, so3
+    from ti_cmax.config import BackendConfig
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+    from ti_cmax.pipelines.sensor_defaults import resolve_backend
+
+    cfg = resolve_backend(BackendConfig(), Camera(240, 180, 200.0, 200.0, 119.5, 89.5))
+    src_t = 0.01 * np.arange(200)
+    src_r = so3.exp(np.outer(src_t, [0.0, 0.2, 0.0]))
+    bearings = Camera(240, 180, 200.0, 200.0, 119.5, 89.5).bearings(np.full(5, 100.0), np.full(5, 80.0))
+    be = SlidingWindowBackend(cfg, 0.0)
+    fits = []
+    fit = be._initialize_until
+    be._initialize_until = lambda t, **kw: (fits.append(t), fit(t, **kw))
+    for k in range(len(src_t)):  # events until 0.5 s and from 1.5 s on, none in between
+        be.push_source_poses(src_t[k:k + 1], src_r[k:k + 1])
+        ev_t = src_t[k] - 0.002 * np.arange(5, 0, -1) if not 0.5 < src_t[k] < 1.5 else np.zeros(0)
+        be.push_events(ev_t, bearings[:len(ev_t)], complete_until=float(src_t[k]))
+        while be.ready():
+            be.step()
+    paused = [w for w in be.windows if w.num_events == 0]
+    assert len(paused) >= 8 and sum(0.6 < t < 1.45 for t in fits) == 1  # one fit for the 9 windows of 1 s
+    t = np.linspace(0.1, be.window_start, 300)
+    offset = so3.log(np.swapaxes(so3.exp(np.outer(t, [0.0, 0.2, 0.0])), 1, 2) @ be.spline.evaluate(t))
+    assert np.degrees(np.abs(offset)).max() < 0.01
