@@ -416,6 +416,12 @@ class Lookback:
 # moved 0.1-0.9 px but for jumps; 2 px found the same flats (bay 14 s, city 1 M ev/s) with 1.7-1.8x the evaluations at
 # omega = 0 (measured with an earlier noise estimate: 8 sub-packets)
 SLOW_PX = 1.0
+# ... and where the optimum lies at least 1 px and this fraction of its own motion from the warm start: an optimiser
+# wandering on a flat cost lands anywhere (its jump is about its own size), a fast motion's packets move by 50-200 px
+# and a 1 px jump is a 1 % change of omega; testing those at omega = 0, where the IWE is blurred flat over the whole
+# motion, declared 40 of 49 packets of a 20 rad/s DAVIS240C pan flat (front-end alone 105 deg; 2.0 with the fraction;
+# the paper suite, the bay / street / town / DVS128 pans: the same tests, bitwise the same)
+JUMP_FRACTION = 0.25
 # the carried BFGS inverse Hessian is dropped above this condition number (optim.bfgs max_condition): measured on
 # six sequences at 1 and 1 of 4 packets, at most 290 (99 % under 145); a collapsed one read 2e4-4e4 and held the
 # front-end 0.1 rad/s off a rotation for a second (a 14 s pan at real-time level 4: abs 4.9 deg instead of ~0.5)
@@ -526,8 +532,9 @@ class AngularVelocityEstimator:
 
         The contrast at omega = 0 is evaluated (cost only) on 1 of ``frontend_gain_check_every`` packets (the
         suspect check: gain of the optimum over omega = 0, for the run's status). With ``frontend_flat_is_still``,
-        a packet whose optimum moves its farthest event by under SLOW_PX, or lies 1 px or more from the warm start
-        (which a smooth motion seldom does while an optimiser wandering on a flat cost does at every packet), or a
+        a packet whose optimum moves its farthest event by under SLOW_PX, or lies 1 px and JUMP_FRACTION of its motion
+        or more from the warm start (which a smooth motion seldom does while an optimiser wandering on a flat cost does
+        at every packet), or a
         suspect one, is score-tested (:meth:`motion_score`): under ``frontend_min_motion_score`` its events do not
         measure any motion (under a pixel over the packet against the noise, or a noise-only IWE) and its optimum
         is noise, so it is flat: omega = 0 and the warm start is reset."""
@@ -539,7 +546,8 @@ class AngularVelocityEstimator:
         scheduled = self.packets_estimated % int(cfg.frontend_gain_check_every) == 0
         # x is the displacement in pixels of the packet's farthest-in-time event
         moved = float(np.linalg.norm(res.x))
-        tested = cfg.frontend_flat_is_still and (moved < SLOW_PX or float(np.linalg.norm(res.x - w0 * s)) >= 1.0)
+        jump = float(np.linalg.norm(res.x - w0 * s))
+        tested = cfg.frontend_flat_is_still and (moved < SLOW_PX or jump >= max(1.0, JUMP_FRACTION * moved))
         self.packets_estimated += 1
         self.last_gain, self.last_suspect, self.last_flat = np.nan, False, False
         extra = 0  # evaluations (in packets' worth of events) beyond the optimiser's
