@@ -276,6 +276,7 @@ class SlidingWindowBackend:
         self.events_optimized = 0  # event-window pairs that went through BA
         self._last_correction: float | None = None  # |x| of the last window's CG solution
         self._inv_hessian = None  # BFGS: (first free control pose, inverse Hessian) of the last window
+        self.fitted_from: int | None = None  # the first control pose a fit changed since the owner reset it to None
         self.loop = None  # loop closure hook (pipelines/loop_closure.LoopCloser), attached by its owner
         self.clock = StageClock()  # per-stage CPU and wall seconds (fit, ba, settle, loop)
         # real-time degradation (pipelines/realtime.py): BA events per window at most instead of
@@ -491,6 +492,7 @@ class SlidingWindowBackend:
                                     np.broadcast_to(self.r_start, (cfg.spline_degree + 1, 3, 3)).copy())
             self.spline.fit_new_segment(times, rots, first_free=0, refine_iters=1)
             self._anchor_at(float(times[-1]))
+            self.fitted_from = 0
             return
         t_a = self._anchor[0]
         if t_end <= t_a + _TIME_EPS and self.spline.valid_time_range()[1] >= t_end - _TIME_EPS:
@@ -516,6 +518,7 @@ class SlidingWindowBackend:
             first_free = shaping
         self.spline.fit_new_segment(times, rots, first_free=first_free, refine_iters=1)
         self._anchor_at(float(times[-1]))
+        self.fitted_from = first_free if self.fitted_from is None else min(self.fitted_from, first_free)
 
     def _fix_gauge(self) -> None:
         """After the first window's BA: R(t_start) = r_start exactly (the world frame is the camera's at the first

@@ -579,9 +579,11 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
                 report.busy_seconds, last_done, waited = max(0.0, now - last_done - waited), now, 0.0
                 # control poses before the window's first free one (minus one) did not change, unless a loop was
                 # closed
+                # ... and those a fit changed (after a pause: its windows are fitted with a later one)
+                fitted = backend.fitted_from if backend.fitted_from is not None else len(spline.control_R)
                 first = 0 if applied > loops_applied else \
-                    max(0, int(np.floor((report.t_start - spline.t0) / spline.dt)) - 1)
-                loops_applied = applied
+                    max(0, min(int(np.floor((report.t_start - spline.t0) / spline.dt)) - 1, fitted))
+                loops_applied, backend.fitted_from = applied, None
                 with clock("send"):
                     outbox.put(("window", report, first, spline.control_R[first:].copy(), backend._anchor,
                                 backend.window_start, (spline.degree, spline.t0, spline.dt)))

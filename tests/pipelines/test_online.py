@@ -144,3 +144,28 @@ def test_pushed_events_are_checked_before_anything_runs(half_second):
         online.push(paused[-1:])
     cfg = load_config(FrontendConfig, None, ["max_event_gap=100"])
     assert len(estimate_angular_velocity(paused, cam, cfg).t) > 0
+
+
+def test_pose_after_a_pause_of_the_stream_follows_the_worker(half_second):
+    """A pause of the stream (0.8 s without events): the back-end fits its empty windows with the next one that has
+    events, adding control poses before that window's; pose() in the main process follows the worker's spline
+    there too (a shadow spline missing those poses put the later ones at the wrong knots)."""
+    from ti_cmax.events import Events
+
+    seq, ev = half_second
+    t0 = float(ev.t[0])
+    ev = ev.slice_time(t0, t0 + 0.4)
+    t = ev.t.copy()
+    t[t > t0 + 0.2] += 0.8
+    paused = Events(t, ev.x, ev.y, ev.p)
+    online = OnlineSlam(seq.camera, SlamConfig(), backend_process=True)
+    for i in range(0, len(paused), 20_000):
+        online.push(paused[i:i + 20_000])
+    online.map()  # waits until the worker has handled every event pushed (its window messages applied)
+    anchor = online._feed.backend._anchor[0]  # the spline is fitted up to here; earlier than 0.2 s before: final
+    assert anchor - 0.2 > t0 + 0.9  # through the pause (its poses fitted with the first window after it)
+    t_check = np.linspace(t0 + 0.05, anchor - 0.2, 25)
+    before_close = online.pose(t_check)
+    result = online.close()
+    assert any(w.num_events == 0 for w in result.windows)
+    assert np.max(so3.geodesic_angle(before_close, result.rotation_at(t_check))) < 1e-6
