@@ -661,8 +661,13 @@ def plot_group(plots_dir, group: dict, out_dir, suffix: str = "") -> list[str]:
                     arrays[row["method"]] = a
     order = [r["method"] for r in group["rows"]]
     arrays = {m: arrays[m] for m in order if m in arrays}
-    gt = open_dataset(group["folder"]).groundtruth
-    if not arrays or gt is None:
+    if not arrays:  # every task of the dataset failed (e.g. it cannot be read): nothing to plot, nor to open
+        return []
+    try:
+        gt = open_dataset(group["folder"]).groundtruth
+    except InputError:  # the tasks' results say what is wrong with the dataset: no plot rather than no tables
+        return []
+    if gt is None:
         return []
     return write_plots(plots_dir, group["sequence"] + suffix, arrays, gt)
 

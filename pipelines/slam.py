@@ -444,7 +444,19 @@ class _BackendProcess:
         self.proc = ctx.Process(target=_backend_worker, daemon=True,
                                 args=(camera, config, threads or runtime.num_threads(), self.inbox, self.outbox,
                                       (self.ba_cap, self.ba_every, self.ba_budget), loop_slice_seconds))
-        self.proc.start()
+        # Ctrl-C is this process's to handle (the CLI: one line, exit 130; OnlineSlam's caller stops the worker), but a
+        # terminal sends it to the whole process group. Blocked while the worker is spawned, SIGINT stays blocked in
+        # it from its first instruction (the mask survives fork and exec): neither its start-up imports nor its loop
+        # print a traceback; a Ctrl-C meanwhile reaches this process when unblocked (as multiprocessing's own
+        # resource_tracker does)
+        import signal
+
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if hasattr(signal, "pthread_sigmask") else None
+        try:
+            self.proc.start()
+        finally:
+            if mask is not None:
+                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         self.blocked_seconds = 0.0
         self.ready = False  # the worker has prepared its kernels
 

@@ -22,7 +22,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from ti_cmax.camera import Camera
-from ti_cmax.config import SlamConfig, update_config
+from ti_cmax.config import SlamConfig, check_map_size, update_config
 from ti_cmax.errors import InputError
 from ti_cmax.metrics import event_area_percent, gradient_magnitude
 from ti_cmax.outputs import peak_rss_mb
@@ -46,8 +46,9 @@ def parse_sizes(text: str) -> list[tuple[int, int]]:
         except ValueError:
             raise InputError(f"--sizes expects WIDTHxHEIGHT[,WIDTHxHEIGHT...], e.g. 512x256,1024x512, got {item!r}") \
                 from None
-        if h < 8 or w != 2 * h:
-            raise InputError(f"map size {item}: the equirectangular map needs width = 2 x height and height >= 8")
+        if w != 2 * h:
+            raise InputError(f"--sizes {item}: the equirectangular map needs width = 2 x height")
+        check_map_size(w, h, "--sizes", item)  # the back-end's bounds (BackendConfig pano_width, pano_height)
         sizes.append((w, h))
     if not sizes:
         raise InputError("--sizes is empty")

@@ -53,20 +53,26 @@ def dataset_fingerprint(path, sample_bytes: int = 1 << 20) -> str:
     """Fingerprint of a dataset folder or file: per file its name, size and the bytes of its first, middle and
     last ``sample_bytes`` (a re-simulated or replaced recording changes it; reading all of a 5 GB file would not
     be worth it on every run). Paths and modification times are left out, so a copy keeps its fingerprint."""
+    from ti_cmax.errors import InputError
+
     path = Path(path)
     if not path.exists():
-        from ti_cmax.errors import InputError
-
         raise InputError("dataset not found", source=str(path))
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    if not (path.is_dir() or path.is_file()):  # a FIFO or device: reading it could block or never end
+        raise InputError("not a file or folder", source=str(path))
     h = hashlib.sha256()
-    for f in files:
-        size = f.stat().st_size
-        h.update(f"{f.relative_to(path) if path.is_dir() else f.name}\0{size}\0".encode())
-        with open(f, "rb") as fh:
-            for offset in sorted({0, max(0, size // 2 - sample_bytes // 2), max(0, size - sample_bytes)}):
-                fh.seek(offset)
-                h.update(fh.read(sample_bytes))
+    f = path
+    try:  # a file that cannot be read (permissions, I/O error): one clear error naming it, not a traceback
+        files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+        for f in files:
+            size = f.stat().st_size
+            h.update(f"{f.relative_to(path) if path.is_dir() else f.name}\0{size}\0".encode())
+            with open(f, "rb") as fh:
+                for offset in sorted({0, max(0, size // 2 - sample_bytes // 2), max(0, size - sample_bytes)}):
+                    fh.seek(offset)
+                    h.update(fh.read(sample_bytes))
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror or exc}", source=str(f)) from None
     return h.hexdigest()[:16]
 
 

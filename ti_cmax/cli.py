@@ -11,7 +11,8 @@ import importlib
 import os
 import sys
 
-from .errors import InputError, WorkerLost
+from .errors import (InputError, WorkerLost, clear_interrupt, interrupt_pending, note_interrupt,
+                     raise_if_interrupted)
 
 # subcommand name -> module in ti_cmax.commands
 COMMANDS = {
@@ -132,20 +133,41 @@ def configured_threads(args) -> int | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    entry = argv is None  # the process's own command line (the console script, python -m ti_cmax.cli)
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     # the subcommand is the first argument that is not an option (the top level has only --help and --version)
-    parser = build_parser(next((a for a in argv if not a.startswith("-")), None))
-    args = parser.parse_args(argv)
-    import signal
-    import threading
-
-    in_main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main_thread else None
+    command = next((a for a in argv if not a.startswith("-")), None)
+    name = command if command in COMMANDS else None
+    previous: dict = {}
+    code = None
+    clear_interrupt()
+    # Ctrl-C or SIGTERM from here on, also while the command modules, Taichi and the pipelines import (it printed a
+    # traceback), is the interruption of a running command: one line, exit 130 (143), outputs removed
     try:
-        return _run_command(args)
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            for sig, handler in ((signal.SIGTERM, _on_sigterm), (signal.SIGINT, _on_sigint)):
+                previous[sig] = signal.signal(sig, handler)
+        parser = build_parser(command)
+        args = parser.parse_args(argv)
+        code = _run_command(args)
+    except KeyboardInterrupt as exc:
+        code = _interrupted(name, exc)
+    except Exception:
+        if not interrupt_pending():
+            raise
+        # the interruption, turned into another error by third-party code (see _on_sigint)
+        code = _interrupted(name, interrupt_pending()())
     finally:
-        if in_main_thread:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+        clear_interrupt()
+        # interrupted, the process only exits now: a second Ctrl-C (a terminal's repeated key, `timeout`'s signal to
+        # the process and then to its group) printed a traceback from multiprocessing's exit handler
+        ignore = entry and code in (130, 143)
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_IGN if ignore else signal.SIG_DFL if handler is None else handler)
+    return code
 
 
 def _run_command(args) -> int:
@@ -162,22 +184,28 @@ def _run_command(args) -> int:
     try:
         code = int(args._run(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
+        raise_if_interrupted()  # a Ctrl-C that third-party code swallowed (see errors.raise_if_interrupted)
         return code
     except BrokenPipeError:
         # the reader of stdout went away (``ti-cmax evaluate ... | head -2``): end quietly, like a SIGPIPE
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
-    except InputError as exc:
+    except (InputError, WorkerLost) as exc:
+        if interrupt_pending():  # e.g. Ctrl-C also ended the back-end worker: the interruption, not an error
+            return _interrupted(args.command, interrupt_pending()())
         print(f"ti-cmax {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except WorkerLost as exc:
-        print(f"ti-cmax {args.command}: error: {exc}", file=sys.stderr)
-        return 1
+        return 2 if isinstance(exc, InputError) else 1
     except KeyboardInterrupt as exc:
-        terminated = isinstance(exc, _Terminated)
-        print(f"ti-cmax {args.command}: {'terminated' if terminated else 'interrupted'}", file=sys.stderr)
-        return 143 if terminated else 130
+        return _interrupted(args.command, exc)
+
+
+def _interrupted(command: str | None, exc: KeyboardInterrupt) -> int:
+    """The one line and exit code of Ctrl-C (130) or SIGTERM (143)."""
+    terminated = isinstance(exc, _Terminated)
+    print(f"ti-cmax{' ' + command if command else ''}: {'terminated' if terminated else 'interrupted'}",
+          file=sys.stderr)
+    return 143 if terminated else 130
 
 
 class _Terminated(KeyboardInterrupt):
@@ -186,7 +214,23 @@ class _Terminated(KeyboardInterrupt):
 
 
 def _on_sigterm(signum, frame):
+    if isinstance(sys.exc_info()[1], KeyboardInterrupt):  # see _on_sigint
+        return
+    note_interrupt(_Terminated)
     raise _Terminated()
+
+
+def _on_sigint(signum, frame):
+    """Python's own Ctrl-C handler (KeyboardInterrupt), noting the interrupt first. A KeyboardInterrupt raised inside
+    third-party code can be swallowed (a bare ``except:`` in Taichi's kernel decorator, run for every kernel while
+    Taichi and our kernels import: the run went on to exit 0 with its outputs) or turned into another error
+    (during the init of Taichi's C++ module: ImportError "initialization failed"); see errors.raise_if_interrupted.
+    A second Ctrl-C while the first one's KeyboardInterrupt is on its way out (its cleanup: outputs removed, the
+    worker stopped) is ignored: raised there, it cut the cleanup short (partial outputs and a traceback)."""
+    if isinstance(sys.exc_info()[1], KeyboardInterrupt):
+        return
+    note_interrupt(KeyboardInterrupt)
+    raise KeyboardInterrupt()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -94,6 +94,20 @@ def check_field(key: str, value, typ, meta) -> None:
         raise InputError(f"{key} must be {rule_text(meta)}{unit}, got {value!r}")
 
 
+def check_map_size(width: int, height: int, option: str, text: str, cls=None) -> None:
+    """A map size given on the command line (``option``, e.g. --size, as ``text``) within the bounds of the
+    ``pano_width`` and ``pano_height`` of ``cls`` (default: BackendConfig, the back-end's map): the size its own
+    config would refuse is refused in one line naming the option (``map --size 2x1`` rendered a 2x1 panorama)."""
+    for value, key, what in ((width, "pano_width", "width"), (height, "pano_height", "height")):
+        meta = {**next(f for f in fields(cls or BackendConfig) if f.name == key).metadata, "zero": None, "off": None}
+        try:
+            check_field(key, value, int, meta)
+        except InputError:
+            unit = f" {meta['unit']}" if meta.get("unit") else ""
+            raise InputError(f"{option} {text}: the map {what} must be {rule_text(meta)}{unit} (as {key}), "
+                             f"got {value}") from None
+
+
 class Params:
     """Base of the config dataclasses: checks every field declared with :func:`param` when built (also by
     ``dataclasses.replace``), then the class's ``_relations`` (rules between fields)."""
@@ -400,7 +414,7 @@ class GrayscaleConfig(Params):
                              ge=0)
     event_batch_size: int = param(100, "events sharing one pose (at the batch's mid-time)", unit="events", ge=1)
     pano_height: int = param(512, "map height", unit="px", ge=2)
-    pano_width: int = param(0, "map width", unit="px", ge=2, zero="2 x pano_height")
+    pano_width: int = param(0, "map width", unit="px", ge=4, zero="2 x pano_height")  # the mapper's minimum
     mapping_precision: str = param("f32", "float precision of the EKFs: f32 (production) or f64", choices=("f32", "f64"))
     coverage_interval: float = param(0.01, "time between poses marked in the observed-area mask", unit="s", gt=0)
     display_percentile_low: float = param(1.0, "robust 8-bit normalization of M over the observed pixels: low",

@@ -25,3 +25,31 @@ def missing_extra(what: str, package: str, extra: str) -> str:
     """The message for an optional dependency that is not installed: how to add it from PyPI or a checkout."""
     return (f"{what} needs the '{package}' package: pip install {package} "
             f"(or, in a checkout of ti_cmax: pip install -e \".[{extra}]\")")
+
+
+# The command line's Ctrl-C / SIGTERM handlers (cli.main) note the interruption before they raise it: a third-party
+# bare ``except:`` can swallow the KeyboardInterrupt (Taichi's kernel decorator does, ~0.5 s of a command's start-up
+# while Taichi and the kernels import: the run then went on and ended with exit 0 and every output written).
+# ``raise_if_interrupted`` raises it again where a command starts writing (outputs.OutputDir, outputs.atomic_path)
+# and when it returns. Only the command line notes interruptions: the Python API never sees one here.
+_INTERRUPT: dict = {"type": None}
+
+
+def note_interrupt(kind: type = KeyboardInterrupt) -> None:
+    """Record that the process was interrupted (``kind``: KeyboardInterrupt or a subclass, raised again later)."""
+    _INTERRUPT["type"] = kind
+
+
+def clear_interrupt() -> None:
+    _INTERRUPT["type"] = None
+
+
+def interrupt_pending() -> type | None:
+    """The KeyboardInterrupt (sub)class of an interruption the command line received, or None."""
+    return _INTERRUPT["type"]
+
+
+def raise_if_interrupted() -> None:
+    """Raise the interruption the command line received, if any (once noted, it stays until the command ends)."""
+    if _INTERRUPT["type"] is not None:
+        raise _INTERRUPT["type"]()

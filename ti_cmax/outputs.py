@@ -25,7 +25,11 @@ def current_umask() -> int:
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None):
     """Yield a temp file path in the target's folder; on success move it onto ``path``."""
+    from .errors import raise_if_interrupted
+
+    raise_if_interrupted()  # a Ctrl-C the command line received and third-party code swallowed: write nothing
     path = Path(path)
+    created = [d for d in path.parents if not d.exists()]  # folders made for it, removed again on failure
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=path.parent)
     os.close(fd)
@@ -36,6 +40,9 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        for d in created:  # innermost first; only while empty (Ctrl-C during `map --out new/m.png` left new/)
+            with contextlib.suppress(OSError):
+                d.rmdir()
         raise
 
 
@@ -48,6 +55,9 @@ class OutputDir:
         self._before: set[str] = set()
 
     def __enter__(self) -> Path:
+        from .errors import raise_if_interrupted
+
+        raise_if_interrupted()  # a Ctrl-C the command line received and third-party code swallowed: write nothing
         if self.path.exists() and not self.path.is_dir():
             from .errors import InputError
 

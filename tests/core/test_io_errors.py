@@ -171,7 +171,7 @@ def test_cli_bad_input_leaves_no_output(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert err[-1].startswith("ti-cmax convert: error: ") and "events.txt, line 16" in err[-1]
         assert not out.exists()
-    assert list(out.parent.iterdir()) == []  # the temporary file is gone too
+    assert not out.parent.exists()  # the temporary file is gone too, and the folder made for it
     assert main(["info", str(tmp_path / "nothing")]) == 2
     assert "no such file or folder" in capsys.readouterr().err
 
@@ -286,6 +286,31 @@ def test_cli_refuses_bad_arguments_and_config_files(tmp_path, capsys):
             main(["sweep", "--out", str(tmp_path / "sweep"), "--quick", *bad])
         assert exc.value.code == 2 and not (tmp_path / "sweep").exists()
     capsys.readouterr()
+
+
+def test_map_sizes_the_pipelines_would_refuse_are_one_error_naming_the_option(tmp_path, capsys):
+    """Found by fuzzing: `map --size 2x1` (or 40000x20000) rendered a panorama with exit 0, past the back-end's own
+    bounds (pano_width 16..32768, pano_height 8..16384 px); grayscale's 3x2 failed later without naming --size;
+    super-resolution's --sizes 65536x32768 named pano_height, once the smaller sizes had run."""
+    d = folder_with(tmp_path, GOOD)
+    traj = tmp_path / "traj.txt"
+    traj.write_text("0 0 0 0 0 0 0 1\n0.05 0 0 0 0 0 0 1\n")
+    png = tmp_path / "out" / "m.png"
+    cases = [(["map", "--size", "2x1"], "--size 2x1: the map width must be >= 16 and <= 32768 px (as pano_width)"),
+             (["map", "--size", "16x7"], "--size 16x7: the map height must be >= 8 and <= 16384 px"),
+             (["map", "--size", "40000x20000"], "--size 40000x20000: the map width must be >= 16 and <= 32768"),
+             (["grayscale", "--size", "3x2"], "--size 3x2: the map width must be >= 4 px (as pano_width), got 3"),
+             (["grayscale", "--sizes", "64x32,4x1"], "--sizes 4x1: the map height must be >= 2 px")]
+    for (command, *size), message in cases:
+        assert main([command, str(d), "--trajectory", str(traj), "--out", str(png), *size, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and message in err, err
+        assert not png.parent.exists()
+    for sizes in ("8x4", "65536x32768", "512x256,33000x16500"):
+        assert main(["super-resolution", str(d), "--out", str(png.parent), "--sizes", sizes, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"--sizes {sizes.split(',')[-1]}: the map " in err, err
+        assert not png.parent.exists()
 
 
 def test_a_lost_worker_is_one_error_line(monkeypatch, capsys):

@@ -177,6 +177,41 @@ def test_h5_other_layouts_written_by_h5py(tmp_path):
     assert_same(open_dataset(tmp_path / "us.h5", allow_default_calibration=True).read_events(), ev, atol=6e-7)
 
 
+def test_h5_float_times_in_another_unit_than_seconds_need_their_attribute(tmp_path):
+    """Found by fuzzing: float times without a units attribute are seconds (CONVENTIONS.md), and microseconds stored
+    as floats were read as such: a 1 s recording became 11.6 days at a few events per "second", silently; a float
+    unit not known (e.g. 'minutes') was taken for seconds too. Refused in one line naming the attribute; with it the
+    file reads; dense float seconds without it (E2VID style) read as before."""
+    import h5py
+
+    from ti_cmax.errors import InputError
+
+    ev = random_events(2000, w=640, h=480, t0=0.0)
+
+    def write(name, t, units=None):
+        with h5py.File(tmp_path / name, "w") as f:
+            f["events/t"] = t
+            if units is not None:
+                f["events/t"].attrs["units"] = units
+            f["events/x"], f["events/y"], f["events/p"] = ev.x, ev.y, (ev.p > 0)
+            f.attrs["width"], f.attrs["height"] = 640, 480
+        return tmp_path / name
+
+    path = write("us_float.h5", ev.t * 1e6)
+    with pytest.raises(InputError, match=r"us_float.h5: events/t holds float times without a 'units' attribute.*"
+                                         r"Set the attribute units on events/t to their unit: 'us'"):
+        open_dataset(path, allow_default_calibration=True)
+    for units in ("us", "usec", b"microseconds"):
+        got = open_dataset(write("us_float.h5", ev.t * 1e6, units), allow_default_calibration=True).read_events()
+        assert_same(got, ev, atol=1e-9)
+    with pytest.raises(InputError, match=r"unknown time unit 'minutes' on events/t"):
+        open_dataset(write("minutes.h5", ev.t / 60, "minutes"), allow_default_calibration=True)
+    got = open_dataset(write("s_float.h5", ev.t), allow_default_calibration=True).read_events()
+    assert_same(got, ev, atol=0)
+    sparse = write("sparse_s.h5", ev.t * 1e6, "s")  # stated seconds are seconds, however sparse
+    assert open_dataset(sparse, allow_default_calibration=True).time_range()[1] == pytest.approx(ev.t[-1] * 1e6)
+
+
 def test_h5_compressed_with_hdf5plugin(tmp_path):
     hdf5plugin = pytest.importorskip("hdf5plugin")
     import h5py

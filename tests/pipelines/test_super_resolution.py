@@ -12,7 +12,7 @@ def test_parse_sizes():
     from ti_cmax.pipelines.super_resolution import parse_sizes
 
     assert parse_sizes("512x256, 1024x512") == [(512, 256), (1024, 512)]
-    for bad in ("512x512", "abc", "", "8x4"):
+    for bad in ("512x512", "abc", "", "8x4", "65536x32768", "0x0"):
         with pytest.raises(InputError):
             parse_sizes(bad)
 

@@ -166,3 +166,36 @@ def test_suite_files_refuse_names_that_leave_the_output_folder_and_odd_method_li
         suite.write_text(text)
         with pytest.raises(InputError, match=message):
             load_suite(suite, {})
+
+
+def test_batch_records_datasets_that_cannot_be_read_and_refuses_unreadable_files(tmp_path, capsys):
+    """Found by fuzzing: with a dataset folder without events (or a corrupt file) every task of it failed, recorded
+    as designed, but the plots (on by default) opened the dataset again: exit 2 after tasks/ was written, and no
+    tables. A file that cannot be read at all (I/O error, permissions) was a traceback."""
+    from ti_cmax.cli import main
+
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "corrupt.h5").write_bytes(b"not an HDF5 file")
+    suite = tmp_path / "suite.yaml"
+    suite.write_text("datasets:\n  empty: empty\n  corrupt: corrupt.h5\nmethods: [imu]\n")
+    out = tmp_path / "out"
+    assert main(["batch", str(suite), "--out", str(out), "--quiet"]) == 1  # failed tasks: exit 1, their errors kept
+    results = [json.loads(p.read_text()) for p in sorted((out / "tasks").glob("*/result.json"))]
+    assert [(r["id"], r["status"]) for r in results] == [
+        ("default-corrupt-gt", "failed"), ("default-corrupt-imu", "failed"), ("default-empty-gt", "failed"),
+        ("default-empty-imu", "failed")]
+    assert not [p for p in (out / "tasks").iterdir() if p.name.startswith(T.TMP_PREFIX)]
+    tables = (out / "tables.md").read_text()
+    assert "IMU dead reckoning on empty: failed, InputError" in tables and "no events found" in tables
+    assert "cannot open as HDF5" in tables
+    rows = json.loads((out / "results.json").read_text())["results"]
+    assert {r["status"] for g in rows for r in g["rows"]} == {"failed"}
+    assert (out / "results.csv").is_file() and (out / "config.yaml").is_file()
+    capsys.readouterr()
+
+    if os.path.isfile("/proc/self/mem"):  # exists, and every read of its first page is an I/O error
+        suite.write_text("datasets:\n  mem: /proc/self/mem\nmethods: [imu]\n")
+        assert main(["batch", str(suite), "--out", str(tmp_path / "out2"), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "datasets.mem: /proc/self/mem: cannot read" in err, err
+        assert not (tmp_path / "out2").exists()

@@ -58,6 +58,7 @@ def load_suite(path, cli_overrides: dict):
     from ..config import update_config
     from ..errors import InputError
     from ..pipelines import benchmark as B
+    from ..pipelines.tasks import dataset_fingerprint
 
     src = str(path)
     try:
@@ -86,6 +87,10 @@ def load_suite(path, cli_overrides: dict):
             p = Path(entry) if Path(entry).is_absolute() else base_dir / entry
             if not p.exists():
                 raise InputError(f"datasets.{name}: {entry} not found", source=src)
+            try:  # readable: an unreadable file (permissions, I/O error) gave a traceback, before any task ran
+                dataset_fingerprint(p)
+            except InputError as exc:
+                raise InputError(f"datasets.{name}: {exc}", source=src) from None
             datasets.append((name, str(p), {"sensor": "", "scene": p.name}))
         elif isinstance(entry, dict) and set(entry) == {"simulate"} and isinstance(entry["simulate"], dict):
             spec = _spec(name, entry["simulate"], src)

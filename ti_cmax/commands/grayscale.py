@@ -27,7 +27,7 @@ class GrayscaleCommandConfig:
 def parse_sizes(text: str) -> list[tuple[int, int]]:
     from .map import parse_size
 
-    sizes = [parse_size(s.strip()) for s in text.split(",") if s.strip()]
+    sizes = [parse_size(s.strip(), "--sizes", GrayscaleConfig) for s in text.split(",") if s.strip()]
     if not sizes:
         from ..errors import InputError
 
@@ -65,7 +65,8 @@ def run(args) -> int:
     if args.size and args.sizes:
         raise InputError("give either --size or --sizes, not both")
     multi = bool(args.sizes)
-    sizes = parse_sizes(args.sizes) if multi else [parse_size(args.size) if args.size else gcfg.pano_size]
+    sizes = parse_sizes(args.sizes) if multi else [parse_size(args.size, "--size", GrayscaleConfig) if args.size
+                                                   else gcfg.pano_size]
     if args.contrast is not None and not args.contrast > 0:
         raise InputError(f"--contrast must be positive, got {args.contrast}")
     out = Path(args.out)

@@ -10,7 +10,10 @@ from . import positive_float
 HELP = "render the panoramic image of warped events of a trajectory (PNG + JSON with EA, GM, variance)"
 
 
-def parse_size(text: str) -> tuple[int, int]:
+def parse_size(text: str, option: str = "--size", config_cls=None) -> tuple[int, int]:
+    """WIDTHxHEIGHT within the map bounds of ``config_cls`` (default BackendConfig, the back-end's map: 16..32768 x
+    8..16384 px; grayscale: its GrayscaleConfig); anything else is one error naming ``option``."""
+    from ..config import check_map_size
     from ..errors import InputError
 
     try:
@@ -18,7 +21,8 @@ def parse_size(text: str) -> tuple[int, int]:
         if w <= 0 or h <= 0:
             raise ValueError
     except ValueError:
-        raise InputError(f"--size expects WIDTHxHEIGHT, e.g. 1024x512, got {text!r}") from None
+        raise InputError(f"{option} expects WIDTHxHEIGHT, e.g. 1024x512, got {text!r}") from None
+    check_map_size(w, h, option, text, config_cls)
     return w, h
 
 
@@ -43,8 +47,9 @@ def run(args) -> int:
 
     cfg = load_config(SlamConfig, args.config, args.overrides)
     gamma = cfg.output.gamma if args.gamma is None else args.gamma
+    size = parse_size(args.size) if args.size else None
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
-    width, height = parse_size(args.size) if args.size else pano_size(cfg.backend, dataset.camera)
+    width, height = size or pano_size(cfg.backend, dataset.camera)
     trajectory = read_tum(args.trajectory)
     result = render_panorama(dataset.iter_events(cfg.dataset.chunk_size), dataset.camera, trajectory, width, height,
                              cfg.backend.event_batch_size, args.t_start, args.t_end)

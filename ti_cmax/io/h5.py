@@ -1,9 +1,12 @@
 """Events in HDF5: our layout (writer + reader) and the common layouts of other tools (reader).
 
 Layouts read (first match wins):
-- ``events/{t,x,y,p}`` (ours; also DSEC / TUM-VIE): t float seconds, or integer with an attribute
-  ``units`` / ``unit`` in {s, ms, us, ns} (integer without it: microseconds). A root dataset or attribute
-  ``t_offset`` (microseconds, DSEC) is added. ``ms_to_idx`` (DSEC) speeds up seeking.
+- ``events/{t,x,y,p}`` (ours; also DSEC / TUM-VIE): t float or integer, with an attribute ``units`` / ``unit``
+  in {s, ms, us, ns} (a unit not known is refused); without it float is seconds and integer microseconds
+  (CONVENTIONS.md). Float times without the attribute whose first events are too sparse to be seconds of an event
+  camera (median gap >= 10 ms: microseconds stored as floats read as seconds) are refused, naming the attribute to
+  set. A root dataset or attribute ``t_offset`` (microseconds, DSEC) is added. ``ms_to_idx`` (DSEC) speeds up
+  seeking.
 - ``events/{ts,xs,ys,ps}`` (E2VID-era): same time rules; root attribute ``sensor_resolution`` = (height, width).
 - ``t,x,y,p`` at the root.
 - ``CD/events`` (Prophesee Metavision HDF5): one compound dataset (x, y, p, t in microseconds); sensor size from
@@ -36,7 +39,13 @@ except ImportError:  # pragma: no cover
 import h5py
 
 BLOCK_EVENTS = 1 << 20  # events per slice read
-_UNITS = {"s": 1.0, "sec": 1.0, "seconds": 1.0, "ms": 1e-3, "us": 1e-6, "microseconds": 1e-6, "ns": 1e-9}
+_UNITS = {"s": 1.0, "sec": 1.0, "second": 1.0, "seconds": 1.0, "ms": 1e-3, "msec": 1e-3, "millisecond": 1e-3,
+          "milliseconds": 1e-3, "us": 1e-6, "usec": 1e-6, "\u00b5s": 1e-6, "\u03bcs": 1e-6, "microsecond": 1e-6,
+          "microseconds": 1e-6, "ns": 1e-9, "nsec": 1e-9, "nanosecond": 1e-9, "nanoseconds": 1e-9}
+# float times without a unit are seconds, unless their first events are sparser than this median gap (s): under
+# 100 events/s, not an event camera's seconds (microseconds stored as floats: a 1 s recording read as 11.6 days)
+FLOAT_SECONDS_MAX_MEDIAN_GAP = 0.01
+FLOAT_SECONDS_SAMPLE = 4096  # events at the start of the file that test it (at least 100 distinct times)
 _LAYOUTS = (("events", ("t", "x", "y", "p")), ("events", ("ts", "xs", "ys", "ps")), ("", ("t", "x", "y", "p")))
 METAVISION_EVENTS = "CD/events"
 ECF_FILTER = 0x8ECF  # Prophesee's Event Compression Format, as an HDF5 filter id
@@ -125,16 +134,16 @@ class H5Events:
             raise InputError(f"event datasets {self._names} must be 1-D and of the same length", source=self.source)
         self.n = lengths.pop()
         tds = f[METAVISION_EVENTS] if self.compound else dsets[0]  # units attribute, if any
-        if np.issubdtype(dsets[0].dtype, np.floating):
-            unit = _attr(tds, "units", "unit")
-            self.t_scale = _UNITS.get(str(unit).lower(), 1.0) if unit is not None else 1.0
-        elif np.issubdtype(dsets[0].dtype, np.integer):
-            unit = _attr(tds, "units", "unit")
-            if unit is not None and str(unit).lower() not in _UNITS:
-                raise InputError(f"unknown time unit {unit!r} on {self._names[0]}", source=self.source)
-            self.t_scale = _UNITS[str(unit).lower()] if unit is not None else 1e-6
-        else:
+        is_float = np.issubdtype(dsets[0].dtype, np.floating)
+        if not is_float and not np.issubdtype(dsets[0].dtype, np.integer):
             raise InputError(f"{self._names[0]} has dtype {dsets[0].dtype}, expected numbers", source=self.source)
+        unit = _attr(tds, "units", "unit")
+        if unit is not None and str(unit).strip().lower() not in _UNITS:  # a float one was taken for seconds
+            raise InputError(f"unknown time unit {unit!r} on {self._names[0]} (expected one of s, ms, us, ns)",
+                             source=self.source)
+        self.t_scale = _UNITS[str(unit).strip().lower()] if unit is not None else 1.0 if is_float else 1e-6
+        if is_float and unit is None:
+            self._check_float_seconds(dsets[0])
         try:  # attributes written by other tools: one clear error for a malformed one
             off = 0
             if "t_offset" in f and isinstance(f["t_offset"], h5py.Dataset):
@@ -164,6 +173,21 @@ class H5Events:
             raise InputError(f"malformed attribute (t_offset, width / height, sensor_resolution [h, w], geometry, "
                              f"fx fy cx cy dist): {type(exc).__name__}: {exc}", source=self.source) from None
         self.integer_xy = all(np.issubdtype(d.dtype, np.integer) for d in dsets[1:3])
+
+    def _check_float_seconds(self, ds) -> None:
+        """Float times without a unit attribute are seconds (CONVENTIONS.md); refuse them when the file's first
+        events are too sparse for that (FLOAT_SECONDS_MAX_MEDIAN_GAP): microseconds stored as floats were read as
+        seconds, a 1 s recording as 11.6 days at a few events per "second", without a word."""
+        gaps = np.diff(np.asarray(ds[:min(self.n, FLOAT_SECONDS_SAMPLE)], dtype=np.float64))
+        gaps = gaps[gaps > 0]
+        if len(gaps) < 100:  # too few distinct times to tell
+            return
+        median = float(np.median(gaps))
+        if median >= FLOAT_SECONDS_MAX_MEDIAN_GAP:
+            raise InputError(f"{self._names[0]} holds float times without a 'units' attribute, read as seconds, but "
+                             f"its first events are {median:.3g} s apart (median): too sparse for an event camera. "
+                             f"Set the attribute units on {self._names[0]} to their unit: 'us', 'ms' or 'ns' (or "
+                             "'s' to read them as seconds)", source=self.source)
 
     # ------------------------------------------------------------------------------------------
     def _times(self, raw: np.ndarray) -> np.ndarray:
