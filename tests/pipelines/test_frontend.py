@@ -532,5 +532,25 @@ def test_a_fast_pan_is_not_declared_flat(ti_runtime, monkeypatch):
     assert not np.any(res.flat) and np.max(np.linalg.norm(truth, axis=1)) > 18
     fast = np.linalg.norm(truth, axis=1) > 12  # (slower: 40 ms packets average omega over a 250 rad/s^2 ramp)
     assert np.all(np.linalg.norm(res.omega - truth, axis=1)[fast] < 0.1 * np.linalg.norm(truth, axis=1)[fast])
-    monkeypatch.setattr(frontend, "JUMP_FRACTION", 0.0)  # every jump of 1 px tested: the fast packets are flat
+    monkeypatch.setattr(frontend, "JUMP_FRACTION", 0.0)  # every jump of 1 px tested: still kept by the sub-span test
+    assert not np.any(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat)
+    monkeypatch.setattr(frontend, "FAST_PX", np.inf)  # and without it (as before session 19): most packets flat
+    assert np.count_nonzero(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat) > 5
+
+
+def test_a_stream_that_starts_at_full_speed_is_not_declared_flat(ti_runtime, monkeypatch):
+    """A stream starting in a pan that reaches 40 rad/s within 60 ms: no warm start, so every packet's optimum is far
+    from it and score-tested at omega = 0, where a 40 ms packet's IWE is blurred flat; the test is repeated over the
+    sub-span in which the optimum moves events by SUB_PX (without it: 11 of 12 packets flat, omega 0)."""
+    from ti_cmax.pipelines import frontend
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
+
+    seq = simulate_sequence(SimulatorConfig(scene="city", duration=0.12, trajectory="pan", turns=2.4 / (2 * np.pi)))
+    res = estimate_angular_velocity(seq.events, seq.camera, FrontendConfig())
+    truth = np.array([np.interp(res.t, seq.omega_t, seq.omega[:, k]) for k in range(3)]).T
+    fast = np.linalg.norm(truth, axis=1) > 30
+    assert not np.any(res.flat) and np.count_nonzero(fast) >= 3
+    # (40 ms packets average omega over a 700 rad/s^2 ramp: within 15 % at the peak)
+    assert np.all(np.linalg.norm(res.omega - truth, axis=1)[fast] < 0.15 * np.linalg.norm(truth, axis=1)[fast])
+    monkeypatch.setattr(frontend, "FAST_PX", np.inf)
     assert np.count_nonzero(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat) > 5
