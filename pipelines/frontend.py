@@ -538,10 +538,10 @@ class AngularVelocityEstimator:
         suspect check: gain of the optimum over omega = 0, for the run's status). With ``frontend_flat_is_still``,
         a packet whose optimum moves its farthest event by under SLOW_PX, or lies 1 px and JUMP_FRACTION of its motion
         or more from the warm start (which a smooth motion seldom does while an optimiser wandering on a flat cost does
-        at every packet), or a
-        suspect one, is score-tested (:meth:`motion_score`): under ``frontend_min_motion_score`` its events do not
-        measure any motion (under a pixel over the packet against the noise, or a noise-only IWE) and its optimum
-        is noise, so it is flat: omega = 0 and the warm start is reset."""
+        at every packet), or a suspect one, is score-tested (:meth:`motion_score`): under
+        ``frontend_min_motion_score`` its events do not measure any motion (under a pixel over the packet against the
+        noise, or a noise-only IWE) and its optimum is noise, so it is flat: omega = 0 and the warm start is reset;
+        unless its optimum moves events by FAST_PX or more and the test passes over a sub-span (:meth:`_fast_motion`)."""
         cfg = self.config
         fun, s, n = self._objective(events, t_ref)
         w0 = self.warm_start() if omega0 is None else np.asarray(omega0, float)
