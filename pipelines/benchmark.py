@@ -858,8 +858,6 @@ def rows_for_csv(results: list[dict]) -> list[dict]:
     return [{k: r.get(k) for k in ROW_FIELDS} for res in results for r in res["rows"]]
 
 
-
-
 def settings_line(cfg, quick: bool) -> str:
     b = cfg.backend
     s = cfg.benchmark

@@ -18,11 +18,12 @@ over. dead(t) = sum of (b - max(a, t)) / speed over the pauses with b > t and fe
 complete the result at t). So a system still busy with the events before a pause keeps its lag (a window those
 events completed is not affected, and a backlog handed over late after the pause still counts from due(b)); shorter
 gaps count as before, so a run without a pause has the same lags. The catch-up after a pause is real lag: its
-packets and windows (no events; 10-15 ms per window in the worker) are processed once it ends, push() waits for the
+packets and windows (no events; 10-15 ms per window in the worker, of which the back-end's fit ~1 ms since its empty
+windows are fitted 10 at a time, backend.SlidingWindowBackend.step) are processed once it ends, push() waits for the
 worker meanwhile, and the burst of the pause's windows, each completing a little later than the last, reads as a
-rising lag. Measured 2026-12-03 (2 s DAVIS240C, 0.5 M ev/s, the events after t = 1 s shifted by 3 s, --parallel,
-2 shared cores; defaults, then target 0.8 s and bound 1.5 s): lag max 3.11 -> 0.43-0.63 s, mean 1.29 -> 0.25-0.39 s,
-but the 0.3-0.5 s catch-up still escalated to level 4 with input thinning (events used 0.33 -> 0.13-0.31; the
+rising lag (measured below before that change). Measured 2026-12-03 (2 s DAVIS240C, 0.5 M ev/s, the events after
+t = 1 s shifted by 3 s, --parallel, 2 shared cores; defaults, then target 0.8 s and bound 1.5 s): lag max 3.11 ->
+0.43-0.63 s, mean 1.29 -> 0.25-0.39 s, but the 0.3-0.5 s catch-up still escalated to level 4 with input thinning (events used 0.33 -> 0.13-0.31; the
 same stream without the pause 0.91-1.00); with the looser target lag max 3.05 -> 0.48 s, events used 0.40 -> 1.00,
 level 4 3.9 -> 0 s.
 
