@@ -541,7 +541,8 @@ class AngularVelocityEstimator:
         at every packet), or a suspect one, is score-tested (:meth:`motion_score`): under
         ``frontend_min_motion_score`` its events do not measure any motion (under a pixel over the packet against the
         noise, or a noise-only IWE) and its optimum is noise, so it is flat: omega = 0 and the warm start is reset;
-        unless its optimum moves events by FAST_PX or more and the test passes over a sub-span (:meth:`_fast_motion`)."""
+        unless its optimum moves events by FAST_PX or more and the test passes over a sub-span
+        (:meth:`_fast_motion`)."""
         cfg = self.config
         fun, s, n = self._objective(events, t_ref)
         w0 = self.warm_start() if omega0 is None else np.asarray(omega0, float)

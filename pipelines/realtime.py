@@ -12,20 +12,20 @@ replay and dead(t) the time without events that the result at t had to wait thro
 the front-end has a packet at or after its end, which takes events after it, so a window ending in or just before a
 pause of the stream (a camera seeing a static scene, a stalled driver) completes only once the first event after the
 pause is handed over; the system cannot know earlier that time went on. A pause is a gap between two events longer
-than the front-end's still window W = still_span_factor x dt_ang_vel (0.1 s by default); the replay records each
-one as (a, b): its last event before and first after, and the front-end's last packet time fe before b was handed
-over. dead(t) = sum of (b - max(a, t)) / speed over the pauses with b > t and fe < t (the events before b could not
+than the front-end's still window W = still_span_factor x dt_ang_vel (0.1 s by default); the replay records each one
+as (a, b): its last event before and first after, and the front-end's last packet time fe before b was handed over.
+dead(t) = sum of (b - max(a, t)) / speed over the pauses with b > t and fe < t (the events before b could not
 complete the result at t). So a system still busy with the events before a pause keeps its lag (a window those
 events completed is not affected, and a backlog handed over late after the pause still counts from due(b)); shorter
 gaps count as before, so a run without a pause has the same lags. The catch-up after a pause is real lag: its
 packets and windows (no events; 10-15 ms per window in the worker, of which the back-end's fit ~1 ms since its empty
 windows are fitted 10 at a time, backend.SlidingWindowBackend.step) are processed once it ends, push() waits for the
 worker meanwhile, and the burst of the pause's windows, each completing a little later than the last, reads as a
-rising lag (measured below before that change). Measured 2026-12-03 (2 s DAVIS240C, 0.5 M ev/s, the events after
-t = 1 s shifted by 3 s, --parallel, 2 shared cores; defaults, then target 0.8 s and bound 1.5 s): lag max 3.11 ->
-0.43-0.63 s, mean 1.29 -> 0.25-0.39 s, but the 0.3-0.5 s catch-up still escalated to level 4 with input thinning (events used 0.33 -> 0.13-0.31; the
-same stream without the pause 0.91-1.00); with the looser target lag max 3.05 -> 0.48 s, events used 0.40 -> 1.00,
-level 4 3.9 -> 0 s.
+rising lag (measured below before that change). Measured 2026-12-03 (2 s DAVIS240C, 0.5 M ev/s, the events after t =
+1 s shifted by 3 s, --parallel, 2 shared cores; defaults, then target 0.8 s and bound 1.5 s): lag max 3.11 ->
+0.43-0.63 s, mean 1.29 -> 0.25-0.39 s, but the 0.3-0.5 s catch-up still escalated to level 4 with input thinning
+(events used 0.33 -> 0.13-0.31; the same stream without the pause 0.91-1.00); with the looser target lag max 3.05 ->
+0.48 s, events used 0.40 -> 1.00, level 4 3.9 -> 0 s.
 
 The latency from an event to its first refined pose is that window's lag plus the event's age within the window's
 new stride: the events of (previous window end, window end] get their first refined pose when the window completes
