@@ -12,6 +12,7 @@ any given trajectory (another method's output, IMU dead reckoning) instead of th
 from __future__ import annotations
 
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
@@ -425,6 +426,9 @@ class OnlineSlam:
         return SlamResult(spline, trajectory, global_map, report, frontend, windows)
 
 
+_EXIT_UNGUARDED_MAIN = 86  # a worker's exit code: it found itself re-running an unguarded script (see below)
+
+
 class _BackendProcess:
     """The back-end in a spawned worker process (a forked one would hang after ti.init), connected by a bounded
     queue of inputs (``send`` blocks while it is full: back-pressure, nothing dropped) and a queue of results."""
@@ -435,6 +439,13 @@ class _BackendProcess:
 
         from ti_cmax.kernels import runtime
 
+        if getattr(mp.current_process(), "_inheriting", False):
+            # This is the worker itself, still starting: spawn runs the caller's main script again, and the script
+            # asked for a worker at its top level (no ``if __name__ == "__main__":``). Multiprocessing would raise
+            # here with a page of traceback; one line, and an exit code the parent explains, instead
+            sys.stderr.write("ti_cmax: the back-end worker re-ran the calling script's top level\n")
+            sys.stderr.flush()
+            os._exit(_EXIT_UNGUARDED_MAIN)
         ctx = mp.get_context("spawn")
         self.inbox, self.outbox = ctx.Queue(max(1, queue_size)), ctx.Queue()
         self.inbox.cancel_join_thread()  # never hang at exit on a worker that stopped reading (it failed)
@@ -473,9 +484,16 @@ class _BackendProcess:
                 if not self.proc.is_alive():
                     for _ in self.messages(None):  # raises the worker's error, if it sent one
                         pass
-                    raise WorkerLost(f"the back-end process ended (exit {self.proc.exitcode}: killed or out of "
-                                     "memory?)") from None
+                    raise WorkerLost(self._ended("")) from None
         self.blocked_seconds += time.perf_counter() - tic
+
+    def _ended(self, what: str) -> str:
+        """Why the worker is gone, in one line."""
+        if self.proc.exitcode == _EXIT_UNGUARDED_MAIN:
+            return ("the back-end worker could not start: a worker process runs the calling script again (Python's "
+                    "spawn), and this script starts CMax-SLAM at its top level; put that code under "
+                    "`if __name__ == \"__main__\":` or pass backend_process=False")
+        return f"the back-end process ended{what} (exit {self.proc.exitcode}: killed or out of memory?)"
 
     def messages(self, until: str | None):
         """Messages ready now; with ``until`` (a message kind: "done", "map") block (1 s timeouts, to notice a dead
@@ -489,8 +507,7 @@ class _BackendProcess:
                 if not until:
                     return
                 if not self.proc.is_alive():
-                    raise WorkerLost(f"the back-end process ended without a result (exit {self.proc.exitcode}: "
-                                     "killed or out of memory?)")
+                    raise WorkerLost(self._ended(" without a result"))
                 continue
             if msg[0] == "ready":
                 self.ready = True

@@ -169,3 +169,44 @@ def test_pose_after_a_pause_of_the_stream_follows_the_worker(half_second):
     result = online.close()
     assert any(w.num_events == 0 for w in result.windows)
     assert np.max(so3.geodesic_angle(before_close, result.rotation_at(t_check))) < 1e-6
+
+
+def test_unguarded_script_asking_for_a_worker_gets_one_clear_error(tmp_path):
+    """A script that starts a back-end worker at its top level (no ``if __name__ == "__main__":``) is run again by
+    the spawned worker; it must end with one message saying so, not hang (it hung in multiprocessing's launch while
+    the camera's 1.2 MB of bearing tables filled the pipe) nor print multiprocessing's page of traceback."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "import numpy as np\n"
+        "from ti_cmax.camera import Camera\n"
+        "from ti_cmax.config import SlamConfig\n"
+        "from ti_cmax.events import Events\n"
+        "from ti_cmax.pipelines.slam import run_slam\n"
+        "rng = np.random.default_rng(0)\n"
+        "n = 60_000\n"
+        "camera = Camera(240, 180, 200.0, 200.0, 120.0, 90.0)\n"
+        "camera.bearing_lut4  # built before the worker is sent the camera\n"
+        "ev = Events(np.sort(rng.uniform(0, 0.6, n)), rng.integers(0, 240, n), rng.integers(0, 180, n),\n"
+        "            rng.integers(0, 2, n))\n"
+        "run_slam(ev, camera, SlamConfig(), backend_process=True)\n")
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    assert proc.returncode != 0
+    assert "WorkerLost" in proc.stderr and 'if __name__ == "__main__":' in proc.stderr
+    assert "bootstrapping phase" not in proc.stderr  # multiprocessing's own message is not shown
+
+
+def test_camera_pickles_without_its_bearing_tables():
+    import pickle
+
+    from ti_cmax.camera import Camera
+
+    camera = Camera(240, 180, 200.0, 200.0, 121.0, 89.0, (0.1, -0.02, 0.001, 0.0, 0.0))
+    table = camera.bearing_lut4.copy()
+    data = pickle.dumps(camera)
+    assert len(data) < 4096  # the tables are 1.2 MB
+    copy = pickle.loads(data)
+    assert copy == camera and "bearing_lut4" not in vars(copy)
+    np.testing.assert_array_equal(copy.bearing_lut4, table)
