@@ -269,10 +269,20 @@ class OnlineSlam:
         after ``ba_budget`` seconds (None: no budget). ``input_thinning`` q: the caller hands over 1 of q events, so
         a packet takes N / q of them (the same time span, at least the minimum span: the front-end's cost falls with
         the input; with N it would span q times longer and cost as much: VGA at 12.6 M ev/s kept 71 000-event
-        packets at 1 of 16). ``degrade()`` restores the full computation."""
-        self.frontend_keep = max(1, int(frontend_keep))
-        self.runner.slicer.n = max(1, int(self._packet_events) // max(1, int(input_thinning)))
-        self._ba_cap, self._ba_every, self._ba_budget = ba_cap, max(1, int(ba_every)), ba_budget
+        packets at 1 of 16). ``degrade()`` restores the full computation. Values out of these ranges raise
+        ValueError (they meant different things in one process and in the worker, which shares them as integers)."""
+        counts = {"frontend_keep": frontend_keep, "ba_every": ba_every, "input_thinning": input_thinning}
+        for name, value in counts.items():
+            if int(value) != value or value < 1:
+                raise ValueError(f"degrade: {name} must be an integer >= 1, got {value!r}")
+        if ba_cap is not None and (int(ba_cap) != ba_cap or ba_cap < 0):
+            raise ValueError(f"degrade: ba_cap must be None or an integer >= 0, got {ba_cap!r}")
+        if ba_budget is not None and not ba_budget >= 0:
+            raise ValueError(f"degrade: ba_budget must be None or >= 0 seconds, got {ba_budget!r}")
+        ba_cap = None if ba_cap is None else int(ba_cap)
+        self.frontend_keep = int(frontend_keep)
+        self.runner.slicer.n = max(1, int(self._packet_events) // int(input_thinning))
+        self._ba_cap, self._ba_every, self._ba_budget = ba_cap, int(ba_every), ba_budget
         if self._worker is not None:  # shared memory: acts at the worker's next window, not behind its queue
             self._worker.ba_cap.value = -1 if ba_cap is None else int(ba_cap)
             self._worker.ba_every.value = self._ba_every

@@ -341,6 +341,18 @@ def test_input_thinning_keeps_the_packets_time_span(short_sequence):
     assert online.runner.slicer.n == n
 
 
+@pytest.mark.parametrize("kwargs", [{"ba_cap": -5}, {"ba_cap": 2.5}, {"ba_budget": -1.0}, {"ba_every": 0},
+                                    {"frontend_keep": 1.5}, {"input_thinning": 0}])
+def test_degrade_refuses_values_the_worker_would_read_otherwise(short_sequence, kwargs):
+    """In one process a ba_cap of -5 meant no cap and 2.5 a fractional one, a ba_budget of -1 no iteration at all;
+    the worker shares them as integers (-1: None), so they meant something else there: refused in both."""
+    online = OnlineSlam(short_sequence.camera, load_config(SlamConfig, None, ["pano_height=256"]))
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        online.degrade(**kwargs)
+    online.degrade(ba_cap=np.int64(2000), ba_every=2.0, ba_budget=0.0)  # integral values of any type are fine
+    assert online._ba_cap == 2000 and online._ba_every == 2
+
+
 def test_the_real_time_worker_takes_every_core_unless_threads_were_chosen(monkeypatch):
     from ti_cmax.kernels import runtime
 
