@@ -22,7 +22,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from ti_cmax.camera import Camera
-from ti_cmax.config import SlamConfig, check_map_size, update_config
+from ti_cmax.config import SlamConfig, parse_map_sizes, update_config
 from ti_cmax.errors import InputError
 from ti_cmax.metrics import event_area_percent, gradient_magnitude
 from ti_cmax.outputs import peak_rss_mb
@@ -37,21 +37,10 @@ CENTRAL_FRACTION = 0.5  # quality figures on the central half (in both direction
 
 def parse_sizes(text: str) -> list[tuple[int, int]]:
     """'512x256,1024x512' -> [(512, 256), (1024, 512)] (width x height; the projection needs w = 2 h)."""
-    sizes = []
-    for item in str(text).replace(" ", "").split(","):
-        if not item:
-            continue
-        try:
-            w, h = (int(v) for v in item.lower().split("x"))
-        except ValueError:
-            raise InputError(f"--sizes expects WIDTHxHEIGHT[,WIDTHxHEIGHT...], e.g. 512x256,1024x512, got {item!r}") \
-                from None
+    sizes = parse_map_sizes(text, "--sizes")  # the back-end's bounds (BackendConfig pano_width, pano_height)
+    for w, h in sizes:
         if w != 2 * h:
-            raise InputError(f"--sizes {item}: the equirectangular map needs width = 2 x height")
-        check_map_size(w, h, "--sizes", item)  # the back-end's bounds (BackendConfig pano_width, pano_height)
-        sizes.append((w, h))
-    if not sizes:
-        raise InputError("--sizes is empty")
+            raise InputError(f"--sizes {w}x{h}: the equirectangular map needs width = 2 x height")
     return sizes
 
 

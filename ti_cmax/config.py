@@ -108,6 +108,27 @@ def check_map_size(width: int, height: int, option: str, text: str, cls=None) ->
                              f"got {value}") from None
 
 
+def parse_map_size(text: str, option: str = "--size", cls=None) -> tuple[int, int]:
+    """A command line's WIDTHxHEIGHT (``option``) within the map bounds of ``cls`` (:func:`check_map_size`);
+    anything else is one error naming ``option``."""
+    try:
+        w, h = (int(v) for v in str(text).strip().lower().split("x"))
+        if w <= 0 or h <= 0:
+            raise ValueError
+    except ValueError:
+        raise InputError(f"{option} expects WIDTHxHEIGHT, e.g. 1024x512, got {text!r}") from None
+    check_map_size(w, h, option, text, cls)
+    return w, h
+
+
+def parse_map_sizes(text: str, option: str = "--sizes", cls=None) -> list[tuple[int, int]]:
+    """'512x256,1024x512' -> [(512, 256), (1024, 512)], each as :func:`parse_map_size`; none is an error."""
+    sizes = [parse_map_size(item.strip(), option, cls) for item in str(text).split(",") if item.strip()]
+    if not sizes:
+        raise InputError(f"{option} expects WIDTHxHEIGHT[,WIDTHxHEIGHT...], e.g. 512x256,1024x512, got {text!r}")
+    return sizes
+
+
 class Params:
     """Base of the config dataclasses: checks every field declared with :func:`param` when built (also by
     ``dataclasses.replace``), then the class's ``_relations`` (rules between fields)."""

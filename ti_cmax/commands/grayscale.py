@@ -24,17 +24,6 @@ class GrayscaleCommandConfig:
     grayscale: GrayscaleConfig = field(default_factory=GrayscaleConfig)
 
 
-def parse_sizes(text: str) -> list[tuple[int, int]]:
-    from .map import parse_size
-
-    sizes = [parse_size(s.strip(), "--sizes", GrayscaleConfig) for s in text.split(",") if s.strip()]
-    if not sizes:
-        from ..errors import InputError
-
-        raise InputError(f"--sizes expects WxH[,WxH...], got {text!r}")
-    return list(dict.fromkeys(sizes))
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", metavar="DATASET", help="dataset folder or events file")
     parser.add_argument("--trajectory", required=True, metavar="TRAJ.txt", help="trajectory (TUM)")
@@ -52,21 +41,19 @@ def run(args) -> int:
     import imageio.v3 as iio
     import numpy as np
 
-    from ..config import config_to_dict, load_config
+    from ..config import config_to_dict, load_config, parse_map_size, parse_map_sizes
     from ..errors import InputError
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import atomic_path
     from ..pipelines.mapping import reconstruct_panoramas, resolve_contrast
-    from .map import parse_size
-
     wall = time.perf_counter()
     cfg = load_config(GrayscaleCommandConfig, args.config, args.overrides)
     gcfg = cfg.grayscale
     if args.size and args.sizes:
         raise InputError("give either --size or --sizes, not both")
     multi = bool(args.sizes)
-    sizes = parse_sizes(args.sizes) if multi else [parse_size(args.size, "--size", GrayscaleConfig) if args.size
-                                                   else gcfg.pano_size]
+    sizes = list(dict.fromkeys(parse_map_sizes(args.sizes, "--sizes", GrayscaleConfig))) if multi else \
+        [parse_map_size(args.size, "--size", GrayscaleConfig) if args.size else gcfg.pano_size]
     if args.contrast is not None and not args.contrast > 0:
         raise InputError(f"--contrast must be positive, got {args.contrast}")
     out = Path(args.out)

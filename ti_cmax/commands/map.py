@@ -10,22 +10,6 @@ from . import positive_float
 HELP = "render the panoramic image of warped events of a trajectory (PNG + JSON with EA, GM, variance)"
 
 
-def parse_size(text: str, option: str = "--size", config_cls=None) -> tuple[int, int]:
-    """WIDTHxHEIGHT within the map bounds of ``config_cls`` (default BackendConfig, the back-end's map: 16..32768 x
-    8..16384 px; grayscale: its GrayscaleConfig); anything else is one error naming ``option``."""
-    from ..config import check_map_size
-    from ..errors import InputError
-
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-        if w <= 0 or h <= 0:
-            raise ValueError
-    except ValueError:
-        raise InputError(f"{option} expects WIDTHxHEIGHT, e.g. 1024x512, got {text!r}") from None
-    check_map_size(w, h, option, text, config_cls)
-    return w, h
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", metavar="DATASET", help="dataset folder or events file")
     parser.add_argument("--trajectory", required=True, metavar="TRAJ.txt", help="trajectory (TUM)")
@@ -39,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     import imageio.v3 as iio
 
-    from ..config import SlamConfig, load_config
+    from ..config import SlamConfig, load_config, parse_map_size
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import atomic_path
     from ..pipelines.panorama import map_to_uint8, render_panorama
@@ -47,7 +31,7 @@ def run(args) -> int:
 
     cfg = load_config(SlamConfig, args.config, args.overrides)
     gamma = cfg.output.gamma if args.gamma is None else args.gamma
-    size = parse_size(args.size) if args.size else None
+    size = parse_map_size(args.size) if args.size else None
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     width, height = size or pano_size(cfg.backend, dataset.camera)
     trajectory = read_tum(args.trajectory)
