@@ -277,6 +277,7 @@ class SlidingWindowBackend:
         self._last_correction: float | None = None  # |x| of the last window's CG solution
         self._inv_hessian = None  # BFGS: (first free control pose, inverse Hessian) of the last window
         self.fitted_from: int | None = None  # the first control pose a fit changed since the owner reset it to None
+        self._fitted_after: tuple | None = None  # the anchor the last _initialize_until continued from
         self.loop = None  # loop closure hook (pipelines/loop_closure.LoopCloser), attached by its owner
         self.clock = StageClock()  # per-stage CPU and wall seconds (fit, ba, settle, loop)
         # real-time degradation (pipelines/realtime.py): BA events per window at most instead of
@@ -377,6 +378,12 @@ class SlidingWindowBackend:
                     self._refine(ev_t, ev_b, t0, report, moving_from)
                     if t0 <= self.t_start + _TIME_EPS:
                         self._fix_gauge()
+                if report.rejected and self._fitted_after is not None:
+                    # the window keeps its initialization, as a window without a BA: fitted as one (refit_past),
+                    # else runs of rejected windows overshoot in turn and grow (x2 per 0.5 s on a cubic pan)
+                    with clock("fit"):
+                        self._anchor = self._fitted_after
+                        self._initialize_until(t1, refit_past=True)
                 report.ba_seconds = time.perf_counter() - ba0
         settle_end = t1 + 1.0 if final else t0 + stride
         with clock("settle"):
@@ -493,10 +500,13 @@ class SlidingWindowBackend:
             self.spline.fit_new_segment(times, rots, first_free=0, refine_iters=1)
             self._anchor_at(float(times[-1]))
             self.fitted_from = 0
+            self._fitted_after = None
             return
         t_a = self._anchor[0]
         if t_end <= t_a + _TIME_EPS and self.spline.valid_time_range()[1] >= t_end - _TIME_EPS:
+            self._fitted_after = None
             return
+        self._fitted_after = self._anchor  # the anchor this fit continued from (a rejected BA refits from there)
         times, rots = self._source_segment(t_a, t_end)
         # knots after the anchor were only extrapolated so far: refit them together with the new ones
         first_free = int(np.searchsorted(self.spline.knot_times(), t_a + _TIME_EPS, side="right"))

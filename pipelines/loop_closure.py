@@ -741,6 +741,7 @@ class LoopCloser:
         ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
         if spline is self.backend.spline:
             self.backend._anchor_at(self.backend._anchor[0])
+            self.backend._fitted_after = None  # a rejected BA's refit would restart from the uncorrected anchor
             self.corrections += 1
         return spline
 
