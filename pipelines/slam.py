@@ -22,7 +22,8 @@ import numpy as np
 from ti_cmax import so3
 from ti_cmax.camera import Camera
 from ti_cmax.config import SlamConfig, config_to_dict
-from ti_cmax.errors import InputError, WorkerLost
+from ti_cmax.errors import (UNGUARDED_MAIN, UNGUARDED_MAIN_EXIT, InputError, WorkerLost,
+                            exit_if_spawn_bootstrapping)
 from ti_cmax.events import Events
 from ti_cmax.outputs import peak_rss_mb
 from ti_cmax.progress import progress
@@ -436,9 +437,6 @@ class OnlineSlam:
         return SlamResult(spline, trajectory, global_map, report, frontend, windows)
 
 
-_EXIT_UNGUARDED_MAIN = 86  # a worker's exit code: it found itself re-running an unguarded script (see below)
-
-
 class _BackendProcess:
     """The back-end in a spawned worker process (a forked one would hang after ti.init), connected by a bounded
     queue of inputs (``send`` blocks while it is full: back-pressure, nothing dropped) and a queue of results."""
@@ -449,13 +447,7 @@ class _BackendProcess:
 
         from ti_cmax.kernels import runtime
 
-        if getattr(mp.current_process(), "_inheriting", False):
-            # This is the worker itself, still starting: spawn runs the caller's main script again, and the script
-            # asked for a worker at its top level (no ``if __name__ == "__main__":``). Multiprocessing would raise
-            # here with a page of traceback; one line, and an exit code the parent explains, instead
-            sys.stderr.write("ti_cmax: the back-end worker re-ran the calling script's top level\n")
-            sys.stderr.flush()
-            os._exit(_EXIT_UNGUARDED_MAIN)
+        exit_if_spawn_bootstrapping()  # in a worker re-running an unguarded script: one line, a known exit
         ctx = mp.get_context("spawn")
         self.inbox, self.outbox = ctx.Queue(max(1, queue_size)), ctx.Queue()
         self.inbox.cancel_join_thread()  # never hang at exit on a worker that stopped reading (it failed)
@@ -499,10 +491,8 @@ class _BackendProcess:
 
     def _ended(self, what: str) -> str:
         """Why the worker is gone, in one line."""
-        if self.proc.exitcode == _EXIT_UNGUARDED_MAIN:
-            return ("the back-end worker could not start: a worker process runs the calling script again (Python's "
-                    "spawn), and this script starts CMax-SLAM at its top level; put that code under "
-                    "`if __name__ == \"__main__\":` or pass backend_process=False")
+        if self.proc.exitcode == UNGUARDED_MAIN_EXIT:
+            return f"the back-end worker could not start: {UNGUARDED_MAIN}, or pass backend_process=False"
         return f"the back-end process ended{what} (exit {self.proc.exitcode}: killed or out of memory?)"
 
     def messages(self, until: str | None):

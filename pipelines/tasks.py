@@ -301,6 +301,9 @@ class LocalExecutor:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
+        from ti_cmax.errors import exit_if_spawn_bootstrapping
+
+        exit_if_spawn_bootstrapping()  # in a pool worker re-running an unguarded script: one line, a known exit
         return ProcessPoolExecutor(max_workers=self.jobs, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=_pool_initializer, initargs=(self.threads,))
 
@@ -310,6 +313,8 @@ class LocalExecutor:
         that kills its worker again alone is the one reported failed, and never the calls that ran beside it."""
         from concurrent.futures import FIRST_COMPLETED, wait
         from concurrent.futures.process import BrokenProcessPool
+
+        from ti_cmax.errors import UNGUARDED_MAIN, UNGUARDED_MAIN_EXIT
 
         queue = list(range(len(args_list)))[::-1]  # pop() takes the next one
         alone: list = []  # calls in flight when the pool broke: retried one at a time
@@ -334,7 +339,9 @@ class LocalExecutor:
                         value = fut.result()
                     except BrokenProcessPool:
                         broken = True
-                        if retried:
+                        if _exit_codes(pool) & {UNGUARDED_MAIN_EXIT}:  # the same for every call: no retry
+                            yield i, False, UNGUARDED_MAIN
+                        elif retried:
                             yield i, False, lost
                         else:
                             alone.append(i)
@@ -367,6 +374,12 @@ def _pool_initializer(threads: int | None) -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     setup_process(threads)
+
+
+def _exit_codes(pool) -> set:
+    """Exit codes of a pool's worker processes that have ended (the executor keeps them privately)."""
+    procs = getattr(pool, "_processes", None) or {}
+    return {p.exitcode for p in list(procs.values()) if p.exitcode is not None}
 
 
 def _stop_pool(pool) -> None:

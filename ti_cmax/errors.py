@@ -53,3 +53,24 @@ def raise_if_interrupted() -> None:
     """Raise the interruption the command line received, if any (once noted, it stays until the command ends)."""
     if _INTERRUPT["type"] is not None:
         raise _INTERRUPT["type"]()
+
+
+# A spawned worker process imports the caller's main script again; a script that starts workers at its top level
+# (no ``if __name__ == "__main__":``) makes that worker try to start one in turn. Multiprocessing then raises in the
+# worker with a page of traceback, and the parent saw only a dead worker (or hung, writing it a large payload).
+UNGUARDED_MAIN_EXIT = 86  # the exit code of such a worker, which its parent explains with UNGUARDED_MAIN
+UNGUARDED_MAIN = ("a worker process runs the calling script again (Python's spawn), and this script starts worker "
+                  "processes at its top level; put that code under `if __name__ == \"__main__\":`")
+
+
+def exit_if_spawn_bootstrapping() -> None:
+    """Called before starting a worker: in a worker still importing the caller's main script, print one line and
+    exit with UNGUARDED_MAIN_EXIT."""
+    import multiprocessing
+    import os
+    import sys
+
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        sys.stderr.write("ti_cmax: a worker process re-ran the calling script's top level\n")
+        sys.stderr.flush()
+        os._exit(UNGUARDED_MAIN_EXIT)

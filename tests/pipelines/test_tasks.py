@@ -2,6 +2,7 @@
 tasks, a failing task or a dying worker is reported while the others finish."""
 import json
 import os
+import sys
 import time
 
 import pytest
@@ -199,3 +200,19 @@ def test_batch_records_datasets_that_cannot_be_read_and_refuses_unreadable_files
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "datasets.mem: /proc/self/mem: cannot read" in err, err
         assert not (tmp_path / "out2").exists()
+
+
+def test_unguarded_script_running_calls_in_a_pool_is_told_why(tmp_path):
+    """A script that runs calls on a local pool at its top level: each spawned worker runs the script again and
+    would start a pool itself. The calls fail with the reason (they failed as 'worker process died (crash or out of
+    memory)', under multiprocessing's page of traceback from every worker)."""
+    import subprocess
+
+    script = tmp_path / "unguarded_pool.py"
+    script.write_text("import math\n"
+                      "from ti_cmax.pipelines.tasks import LocalExecutor, run_calls\n"
+                      "print(run_calls(LocalExecutor(jobs=2, threads=1), math.sqrt, [(4.0,), (9.0,)], quiet=True))\n")
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 0
+    assert proc.stdout.count('if __name__ == "__main__":') == 2, proc.stdout
+    assert "bootstrapping phase" not in proc.stderr
