@@ -12,7 +12,6 @@ any given trajectory (another method's output, IMU dead reckoning) instead of th
 from __future__ import annotations
 
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
