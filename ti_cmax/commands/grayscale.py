@@ -46,6 +46,7 @@ def run(args) -> int:
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import atomic_path
     from ..pipelines.mapping import reconstruct_panoramas, resolve_contrast
+
     wall = time.perf_counter()
     cfg = load_config(GrayscaleCommandConfig, args.config, args.overrides)
     gcfg = cfg.grayscale
