@@ -376,10 +376,15 @@ def _pool_initializer(threads: int | None) -> None:
     setup_process(threads)
 
 
-def _exit_codes(pool) -> set:
-    """Exit codes of a pool's worker processes that have ended (the executor keeps them privately)."""
-    procs = getattr(pool, "_processes", None) or {}
-    return {p.exitcode for p in list(procs.values()) if p.exitcode is not None}
+def _exit_codes(pool, wait: float = 5.0) -> set:
+    """Exit codes of a broken pool's worker processes (the executor keeps them privately), waiting up to ``wait``
+    seconds for them to end: the calls fail with BrokenProcessPool before the dead worker has been reaped."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    deadline = time.monotonic() + wait
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.join(max(0.0, deadline - time.monotonic()))
+    return {p.exitcode for p in procs if p.exitcode is not None}
 
 
 def _stop_pool(pool) -> None:
