@@ -250,6 +250,30 @@ class GlobalMap:
         self.area = float(np.sum(1.0 - np.exp(voted / -self.lambda0)))
 
 
+def perturbation_objective(cost_and_grad, base: np.ndarray, first_free: int, gauge_free: bool = False):
+    """The BA's parameters: left perturbations x (3 per control pose from ``first_free`` on) of the control poses
+    ``base``, R_i = exp(x_i) R_i; with ``gauge_free`` their common rotation is projected out (x_i - mean x: the first
+    window, see ``_refine``). Returns (step, objective): step(x), the perturbations applied, (n, 3); objective(x) =
+    (cost, gradient w.r.t. x) from ``cost_and_grad(control_R) -> (cost, (M, 3) left-perturbation gradient)``."""
+
+    def step(x: np.ndarray) -> np.ndarray:
+        delta = x.reshape(-1, 3)
+        return delta - delta.mean(axis=0) if gauge_free else delta
+
+    def objective(x: np.ndarray):
+        delta = step(x)
+        ctrl = base.copy()
+        ctrl[first_free:] = so3.exp(delta) @ base[first_free:]
+        cost, grad = cost_and_grad(ctrl)
+        # chain the left-perturbation gradient through exp: d/dx exp(x) R = Jl(x)
+        g = np.einsum("nji,nj->ni", so3.left_jacobian(delta), grad[first_free:])
+        if gauge_free:
+            g = g - g.mean(axis=0)  # the chain through step's projection (symmetric)
+        return cost, g.reshape(-1)
+
+    return step, objective
+
+
 class SlidingWindowBackend:
     """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""
 
@@ -602,25 +626,15 @@ class SlidingWindowBackend:
         # tolerances act on the relative variance (scale-free): the cost is divided by var0, the variance at the
         # initialization, which the optimiser's first evaluation (x = 0) gives
         var0 = scale = None
-
-        def step(x: np.ndarray) -> np.ndarray:
-            delta = x.reshape(-1, 3)
-            return delta - delta.mean(axis=0) if gauge_free else delta
+        step, perturbed = perturbation_objective(problem.cost_and_grad, base, first_free, gauge_free)
 
         def objective(x: np.ndarray):
             nonlocal var0, scale
-            delta = step(x)
-            ctrl = base.copy()
-            ctrl[first_free:] = so3.exp(delta) @ base[first_free:]
-            var, grad = problem.cost_and_grad(ctrl)
+            var, g = perturbed(x)
             if scale is None:
                 var0 = var if not np.any(x) else problem.cost(base)
                 scale = 1.0 / var0 if var0 > 0 else 1.0
-            # chain the left-perturbation gradient through exp: d/dx exp(x) R = Jl(x)
-            g = np.einsum("nji,nj->ni", so3.left_jacobian(delta), grad[first_free:])
-            if gauge_free:
-                g = g - g.mean(axis=0)  # the chain through step's projection (symmetric)
-            return var * scale, g.reshape(-1) * scale
+            return var * scale, g * scale
 
         deadline = None if self.ba_budget is None else time.monotonic() + self.ba_budget
         if cfg.backend_optimizer == "bfgs":

@@ -311,3 +311,41 @@ def test_windows_without_events_are_fitted_with_the_next_one_that_has_some():
     t = np.linspace(0.1, be.window_start, 300)
     offset = so3.log(np.swapaxes(so3.exp(np.outer(t, [0.0, 0.2, 0.0])), 1, 2) @ be.spline.evaluate(t))
     assert np.degrees(np.abs(offset)).max() < 0.01
+
+
+@pytest.mark.parametrize("gauge_free", [False, True])
+def test_ba_objective_gradient_matches_central_differences(gauge_free):
+    """The BA's objective over left perturbations of the free control poses (the first window's with their common
+    rotation projected out) against central differences, in float64 on the full-map numpy twin of the cost."""
+    from scipy.spatial.transform import Rotation
+
+    from ti_cmax.camera import Camera
+    from ti_cmax.kernels import pano
+    from ti_cmax.pipelines.backend import perturbation_objective
+    from ti_cmax.spline import SO3Spline
+
+    rng = np.random.default_rng(3)
+    kt = 0.05 * np.arange(7)
+    spline = SO3Spline(3, 0.0, 0.05, Rotation.from_rotvec(np.stack([0.2 * np.sin(7 * kt), 1.0 * kt, 0.1 * kt], 1)
+                                                         + rng.normal(size=(7, 3)) * 0.02).as_matrix())
+    start, end = spline.valid_time_range()
+    t = np.sort(rng.uniform(start, end, 1500))
+    bearings = Camera.ideal(120, 90, 70.0).bearings(rng.uniform(0, 119, 1500), rng.uniform(0, 89, 1500),
+                                                    dtype=np.float64)
+    s, u = spline.support(pano.batch_mid_times(t, 100))
+    gmap = pano.blur_map(pano.vote_map_numpy(bearings[::2], spline.evaluate(t[::2]), 128, 64), 1.0)
+
+    def cost_and_grad(ctrl):
+        var, grad, _ = pano.pano_iwe_numpy(bearings, s, u, ctrl, 3, 128, 64, 1.0, gmap, 0.5, 100)
+        return var, grad
+
+    first_free = 1
+    step, objective = perturbation_objective(cost_and_grad, spline.control_R.copy(), first_free, gauge_free)
+    x = rng.normal(size=3 * (7 - first_free)) * 0.01
+    _, g = objective(x)
+    eps = 1e-6
+    fd = np.array([(objective(x + eps * e)[0] - objective(x - eps * e)[0]) / (2 * eps) for e in np.eye(len(x))])
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+    if gauge_free:  # the common rotation is not a direction of the step
+        np.testing.assert_allclose(step(x + 0.3).mean(axis=0), 0.0, atol=1e-12)
+        np.testing.assert_allclose(g.reshape(-1, 3).sum(axis=0), 0.0, atol=1e-9 * np.abs(g).max())
