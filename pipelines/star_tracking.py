@@ -13,7 +13,8 @@ window), so
   event-rate floor is lowered to 1000 ev/s: about 7 px of motion per packet, enough to measure omega;
 * the back-end windows are 0.4 s (stride 0.2 s) with the event-rate floor at 1000 ev/s (the global default
   10 000 ev/s would skip BA on the sparsest real sequences, 1.4 M events over 45 s = 31 k ev/s, and on any
-  fainter field); the map is 2048x1024, about one sensor pixel per map pixel at this focal length.
+  fainter field). The map follows the sensor rule (``sensor_defaults``: 2048x1024 on a DAVIS240C); it was fixed
+  at that size, which a longer focal length or a larger sensor would have sampled coarser than its pixels.
 """
 from __future__ import annotations
 
@@ -40,7 +41,6 @@ STAR_DEFAULTS: dict = {
     "backend_time_window_size": 0.4,
     "backend_sliding_window_stride": 0.2,
     "backend_min_ev_rate": 1000.0,
-    "pano_height": 1024,
 }
 
 

@@ -155,3 +155,16 @@ def test_first_window_does_not_turn_a_fast_star_field_nor_bend_its_start(ti_runt
     est, gt = res.trajectory.at(ts), seq.groundtruth.at(ts)
     start_errors = np.degrees(so3.geodesic_angle(est[0].T @ est[1:], gt[0].T @ gt[1:]))
     assert np.max(start_errors) < 0.08  # deg; 0.13-0.17 before
+
+
+def test_star_tracking_map_follows_the_sensor():
+    """The star-tracking defaults leave the map to the sensor rule: 2048x1024 on a DAVIS240C as before, finer on a
+    VGA sensor (a fixed 2048x1024 sampled its 0.13 deg pixels at 0.18 deg), the user's value still wins."""
+    from ti_cmax.pipelines.sensor_defaults import pano_size
+    from ti_cmax.pipelines.star_tracking import star_tracking_config
+    from ti_cmax.simulate import sensor_camera
+
+    cfg = star_tracking_config()
+    assert pano_size(cfg.backend, sensor_camera("DAVIS240C")) == (2048, 1024)
+    assert pano_size(cfg.backend, sensor_camera("VGA"))[1] > 1024
+    assert pano_size(star_tracking_config(overrides=["pano_height=512"]).backend, sensor_camera("VGA")) == (1024, 512)
