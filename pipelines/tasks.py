@@ -377,9 +377,9 @@ def _pool_initializer(threads: int | None) -> None:
 
 
 def _exit_codes(pool, wait: float = 5.0) -> set:
-    """Exit codes of a broken pool's worker processes (the executor keeps them privately), waiting up to ``wait``
-    seconds for them to end: the calls fail with BrokenProcessPool before the dead worker has been reaped."""
-    procs = list((getattr(pool, "_processes", None) or {}).values())
+    """Exit codes of a broken pool's worker processes, waiting up to ``wait`` seconds for them to end: the calls
+    fail with BrokenProcessPool before the dead worker has been reaped."""
+    procs = _pool_workers(pool)
     deadline = time.monotonic() + wait
     for p in procs:
         with contextlib.suppress(Exception):
@@ -387,8 +387,14 @@ def _exit_codes(pool, wait: float = 5.0) -> set:
     return {p.exitcode for p in procs if p.exitcode is not None}
 
 
+def _pool_workers(pool) -> list:
+    """A process pool's worker processes: the executor keeps them privately (no public way to reach them), and
+    forgets them once shut down."""
+    return list((getattr(pool, "_processes", None) or {}).values())
+
+
 def _stop_pool(pool) -> None:
-    procs = list(getattr(pool, "_processes", {}).values())  # the executor has no public way to kill its workers
+    procs = _pool_workers(pool)
     pool.shutdown(wait=False, cancel_futures=True)
     for p in procs:
         with contextlib.suppress(Exception):
