@@ -18,7 +18,7 @@ CONFIGS = {
     "evaluate": ("ti_cmax.metrics", "EvaluationConfig"),
     "grayscale": ("ti_cmax.commands.grayscale", "GrayscaleCommandConfig"),
     "baseline": ("ti_cmax.pipelines.baselines", "BaselineConfig"),
-    "benchmark": ("ti_cmax.pipelines.benchmark", "BenchmarkConfig"),
+    "benchmark": ("ti_cmax.pipelines.evaluation.benchmark", "BenchmarkConfig"),
 }
 
 

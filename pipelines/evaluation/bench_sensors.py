@@ -1,6 +1,6 @@
 """Sensor suite: CMax-SLAM with the default (sensor-derived) settings from a DVS128 to an HD sensor.
 
-    python -m ti_cmax.pipelines.bench_sensors --out DIR [--sensors DVS128,DAVIS240C,...] [--duration S]
+    python -m ti_cmax.pipelines.evaluation.bench_sensors --out DIR [--sensors DVS128,DAVIS240C,...] [--duration S]
 
 The cases are ``pipelines.benchmark.SUITES["sensors"]`` (``ti-cmax benchmark --suite sensors`` runs the same
 sequences through the task model; this script adds per-case peak memory, the derived parameters and the cost per
@@ -153,7 +153,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.bench_sensors", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.evaluation.bench_sensors", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True, metavar="DIR", help="sequences, runs and the tables go here")
     ap.add_argument("--sensors", default="", help="comma-separated case names or sensors (default: all)")
@@ -161,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="slam override for every case")
     args = ap.parse_args(argv)
-    from .benchmark import SUITES
+    from ti_cmax.pipelines.evaluation.benchmark import SUITES
 
     wanted = {s.strip().lower() for s in args.sensors.split(",") if s.strip()}
     cases = [c for c in SUITES["sensors"].values() if not wanted or c.name in wanted or c.sensor.lower() in wanted]
