@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from ti_cmax.cli import main
-from ti_cmax.commands.params import CONFIGS, config_class, rows
+from ti_cmax.commands.params import CONFIGS, config_class
 from ti_cmax.config import BackendConfig, FrontendConfig, SlamConfig, iter_params, load_config
 from ti_cmax.errors import InputError
 
