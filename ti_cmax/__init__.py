@@ -15,7 +15,7 @@ import os as _os
 # 0.4-1.2 CPU s more with them)
 _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 _LAZY = {  # name -> (module, attribute; None: the module itself)
     "so3": ("ti_cmax.so3", None),

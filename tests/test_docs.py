@@ -1,0 +1,139 @@
+"""The documentation stays true: the site builds strictly, its Python snippets run, and it speaks only of the project.
+
+* ``mkdocs build --strict`` (mkdocs.yml: no broken link or anchor, no page left out of the navigation).
+* The ```python blocks of README.md and docs/*.md run, each file's blocks in order in one namespace, in a temporary
+  working folder. A block preceded by ``<!-- no-run -->`` is skipped (e.g. a script that needs its own main module).
+* No file under ``HISTORY_GUARD_ROOTS`` tells how the project was developed: numbered work periods, tracker numbers,
+  commit hashes, remarks about the build machine, or dates (but a changelog's release headings and the benchmark
+  page's measurement line).
+"""
+from __future__ import annotations
+
+import importlib.util
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+
+# the files and folders the history guard scans (relative to the repository root)
+HISTORY_GUARD_ROOTS = ("README.md", "mkdocs.yml", "CHANGELOG.md", "docs")
+
+HISTORY_PATTERNS = {
+    "numbered work period": re.compile(r"\bsessions? \d+", re.IGNORECASE),
+    "tracker number": re.compile(r"\b(?:issues?|PR) #?\d+", re.IGNORECASE),
+    "helper number": re.compile(r"\bhelper-\d+", re.IGNORECASE),
+    "remark about the build machine": re.compile(r"\bthis VM\b", re.IGNORECASE),
+    # a hexadecimal word with a letter and a digit, after words that introduce a revision
+    "commit hash": re.compile(r"\b(?:commit|at|code) (?=[0-9a-f]*[a-f])(?=[0-9a-f]*\d)[0-9a-f]{7,12}\b"),
+    "date": re.compile(r"\b20\d\d-\d\d-\d\d\b"),
+}
+# lines where a date belongs: a changelog's release headings, the benchmark page's measurement line
+DATE_LINES = {"CHANGELOG.md": re.compile(r"^## \["), "docs/benchmarks.md": re.compile(r"^Measured on ")}
+
+NO_RUN = "<!-- no-run -->"
+_BLOCK = re.compile(r"^```python[^\n]*\n(.*?)^```", re.MULTILINE | re.DOTALL)
+
+
+def python_blocks(text: str) -> list[str]:
+    """The ```python blocks of a markdown text, without those marked ``<!-- no-run -->`` on the line before."""
+    blocks = []
+    for m in _BLOCK.finditer(text):
+        before = text[:m.start()].rstrip("\n").rsplit("\n", 1)[-1].strip()
+        if before != NO_RUN:
+            blocks.append(m.group(1))
+    return blocks
+
+
+def history_findings(relpath: str, text: str) -> list[str]:
+    """'path:line: what (the matched text)' for every mention of the project's development in ``text``."""
+    found = []
+    date_line = DATE_LINES.get(relpath)
+    for number, line in enumerate(text.splitlines(), 1):
+        for what, pattern in HISTORY_PATTERNS.items():
+            if what == "date" and date_line is not None and date_line.search(line):
+                continue
+            for m in pattern.finditer(line):
+                found.append(f"{relpath}:{number}: {what} ({m.group(0)!r})")
+    return found
+
+
+def guarded_files() -> list[Path]:
+    """Files under HISTORY_GUARD_ROOTS: git's tracked and untracked (not ignored) ones, else every file."""
+    try:
+        out = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "--",
+                              *HISTORY_GUARD_ROOTS], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+        files = [ROOT / line for line in out.splitlines() if line]
+    except (OSError, subprocess.CalledProcessError):
+        files = []
+        for root in HISTORY_GUARD_ROOTS:
+            path = ROOT / root
+            files += [path] if path.is_file() else [p for p in path.rglob("*") if p.is_file()]
+    return [f for f in files if f.is_file() and "__pycache__" not in f.parts]
+
+
+def _snippet_files() -> list[Path]:
+    files = [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
+    return [f for f in files if python_blocks(f.read_text(encoding="utf-8"))]
+
+
+def test_mkdocs_build_strict(tmp_path):
+    if importlib.util.find_spec("mkdocs") is None:
+        pytest.skip("mkdocs is not installed (pip install -e '.[docs]')")
+    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--config-file",
+                           str(ROOT / "mkdocs.yml"), "--site-dir", str(tmp_path / "site")],
+                          cwd=tmp_path, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert (tmp_path / "site" / "index.html").is_file()
+    assert (tmp_path / "site" / "changelog" / "index.html").read_text(encoding="utf-8").count("0.2.0") >= 1
+
+
+def test_every_docs_page_is_in_the_navigation():
+    import yaml
+
+    class _Loader(yaml.SafeLoader):
+        pass
+
+    _Loader.add_multi_constructor("!", lambda loader, suffix, node: None)  # mkdocs' !relative and the like
+    config = yaml.load((ROOT / "mkdocs.yml").read_text(encoding="utf-8"), Loader=_Loader)
+    listed = {next(iter(entry.values())) for entry in config["nav"]}
+    assert listed == {p.name for p in DOCS.glob("*.md")}
+
+
+@pytest.mark.parametrize("path", _snippet_files(), ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_python_snippets_run(path, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    namespace = {"__name__": "__docs__"}
+    for i, block in enumerate(python_blocks(path.read_text(encoding="utf-8")), 1):
+        code = compile(block, f"{path.relative_to(ROOT).as_posix()} (python block {i})", "exec")
+        exec(code, namespace)
+
+
+def test_snippet_extraction_skips_marked_blocks():
+    text = "a\n```python\nx = 1\n```\n<!-- no-run -->\n```python\nraise SystemExit\n```\n```python\ny = 2\n```\n"
+    assert python_blocks(text) == ["x = 1\n", "y = 2\n"]
+
+
+def test_history_patterns_catch_development_remarks():
+    bad = ["measured in session 12", "see issue #38", "by helper-3", "slow on this VM", "fixed at 4f78af1",
+           "since commit 0060b2a", "on 2026-12-02 the suite", "Issue 15 is blocked"]
+    for line in bad:
+        assert history_findings("docs/x.md", line), line
+    good = ["at 1000000 events", "a 2048x1024 map", "the issues page", "## [0.2.0] - unreleased",
+            "0.1 s sessions of data", "code 2 on bad input"]
+    for line in good:
+        assert not history_findings("docs/x.md", line), line
+    assert not history_findings("CHANGELOG.md", "## [0.1.0] - 2026-12-03")
+    assert history_findings("CHANGELOG.md", "- fixed on 2026-12-03")
+    assert not history_findings("docs/benchmarks.md", "Measured on 2026-12-04, 2 cores")
+
+
+def test_docs_do_not_tell_the_development_history():
+    findings = [f for path in guarded_files()
+                for f in history_findings(path.relative_to(ROOT).as_posix(), path.read_text(encoding="utf-8",
+                                                                                          errors="replace"))]
+    assert not findings, "\n".join(findings)
