@@ -113,6 +113,25 @@ def test_python_snippets_run(path, tmp_path, monkeypatch):
         exec(code, namespace)
 
 
+def test_command_line_page_lists_every_command_and_option():
+    import argparse
+
+    from ti_cmax.cli import COMMANDS, build_parser
+
+    page = (DOCS / "command-line.md").read_text(encoding="utf-8")
+    sections = dict(re.findall(r"^## ([a-z-]+)\n(.*?)(?=^## |\Z)", page, re.MULTILINE | re.DOTALL))
+    common = {"--config", "--set", "--threads", "--quiet", "-h", "--help"}
+    for name in COMMANDS:
+        assert name in sections, f"command-line.md has no section for {name}"
+        parser = build_parser(name)
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+        for action in sub._actions:
+            for option in set(action.option_strings) - common:
+                assert f"`{option}" in sections[name], f"command-line.md, {name}: {option} is missing"
+    for option in common - {"-h", "--help"}:
+        assert f"`{option}" in page
+
+
 def test_snippet_extraction_skips_marked_blocks():
     text = "a\n```python\nx = 1\n```\n<!-- no-run -->\n```python\nraise SystemExit\n```\n```python\ny = 2\n```\n"
     assert python_blocks(text) == ["x = 1\n", "y = 2\n"]
