@@ -132,6 +132,14 @@ def test_command_line_page_lists_every_command_and_option():
         assert f"`{option}" in page
 
 
+def test_readme_is_a_front_page():
+    """The README says what and why, how to install and run, and links into docs/; the rest lives in docs/."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(readme.splitlines()) <= 250
+    linked = set(re.findall(r"\(docs/([a-z-]+\.md)", readme))
+    assert linked <= {p.name for p in DOCS.glob("*.md")}, linked - {p.name for p in DOCS.glob("*.md")}
+
+
 def test_snippet_extraction_skips_marked_blocks():
     text = "a\n```python\nx = 1\n```\n<!-- no-run -->\n```python\nraise SystemExit\n```\n```python\ny = 2\n```\n"
     assert python_blocks(text) == ["x = 1\n", "y = 2\n"]
