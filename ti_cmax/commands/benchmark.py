@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "offline at 1, 2, 5 (DAVIS240C) and 12 (VGA) M events/s; --sequences picks cases")
     parser.add_argument("--rounds", type=int, default=1, metavar="N",
                         help="with --realtime: run the cases N times, case after case, and count per case the rounds "
-                             "meeting the target (this machine's speed drifts: one run decides nothing)")
+                             "meeting the target (a machine's speed varies from run to run: one run decides nothing)")
     add_executor_arguments(parser)
 
 
