@@ -27,7 +27,7 @@ quasi-Newton one; it stops once its next step would move the farthest event by l
 ``frontend_bfgs_step_tol`` (0.05 px): about 2.2 evaluations per packet. ``"cg"`` is the reference's Fletcher-Reeves CG with the
 "secant" first trial step and a loose line search (tolerance 0.5, at most 4 evaluations): 4-5 evaluations per
 packet instead of 13-16 with the reference's strict line search, for the same accuracy
-(pipelines/bench_frontend.py).
+(pipelines/evaluation/bench_frontend.py).
 
 Pixel grid (``frontend_pixel_dither``): integer event pixels are dithered by up to half a pixel (``PixelDither``), or
 the contrast favours omega = 0 whenever a packet's motion is below about a pixel (starts, slow phases).

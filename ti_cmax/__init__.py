@@ -33,7 +33,7 @@ _LAZY = {  # name -> (module, attribute; None: the module itself)
     "estimate_angular_velocity": ("ti_cmax.pipelines.frontend", "estimate_angular_velocity"),
     "run_slam": ("ti_cmax.pipelines.slam", "run_slam"),
     "refine": ("ti_cmax.pipelines.slam", "refine"),
-    "dead_reckoning": ("ti_cmax.pipelines.imu", "dead_reckoning"),
+    "dead_reckoning": ("ti_cmax.pipelines.baselines.imu", "dead_reckoning"),
     "render_panorama": ("ti_cmax.pipelines.panorama", "render_panorama"),
     "evaluate_rotations": ("ti_cmax.metrics", "evaluate_rotations"),
     "simulate_sequence": ("ti_cmax.simulate", "simulate_sequence"),

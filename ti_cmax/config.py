@@ -243,7 +243,7 @@ class FrontendConfig(Params):
     # Fletcher-Reeves CG
     frontend_cg_init_step: float = param(0.1, "CG first trial step (BFGS: its first step without a Hessian)", gt=0)
     # 0.5 with the "secant" step guess (the reference's 0.05 costs ~2.5x the evaluations for no accuracy on
-    # this smooth 3-parameter cost; measured with pipelines/bench_frontend.py)
+    # this smooth 3-parameter cost; measured with pipelines/evaluation/bench_frontend.py)
     frontend_cg_line_search_tol: float = param(0.5, "CG line-search (strong Wolfe curvature) tolerance", gt=0, lt=1)
     frontend_cg_max_iters: int = param(50, "CG (BFGS) line searches per packet at most", ge=1)
     frontend_cg_grad_tol: float = param(1e-3, "CG (BFGS) stops below this gradient norm", ge=0)
@@ -420,7 +420,7 @@ class OutputConfig(Params):
 
 @dataclass(frozen=True)
 class GrayscaleConfig(Params):
-    """Mapping module of SMT (App. B; pipelines/mapping.py). Load with ``load_config(GrayscaleConfig, ...)`` or nest
+    """Mapping module of SMT (App. B; pipelines/workflows/grayscale.py). Load with ``load_config(GrayscaleConfig, ...)`` or nest
     it in a config."""
 
     contrast_threshold: float = param(0.0, "contrast threshold C", ge=0,

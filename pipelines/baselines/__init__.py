@@ -88,7 +88,7 @@ def _known_span(events_or_chunks) -> float | None:
 
 def run_imu(events_or_chunks, camera, config: BaselineConfig = BaselineConfig(), imu=None) -> BaselineResult:
     """IMU dead reckoning (gyro integration from the identity) and the panoramic IWE of the events along it."""
-    from ti_cmax.pipelines.imu import dead_reckoning
+    from ti_cmax.pipelines.baselines.imu import dead_reckoning
     from ti_cmax.pipelines.panorama import render_panorama
     from ti_cmax.pipelines.sensor_defaults import pano_size
 

@@ -98,7 +98,7 @@ def rmsprop_maximize(fun, x0, iterations, step, decay, mask=None, eps=1e-12):
 
 
 def _compile(camera) -> float:
-    from ti_cmax.kernels import gae as G
+    from ti_cmax.kernels.baselines import gae as G
 
     tic = time.perf_counter()
     kv = G.view_K(camera.K, 4, 4)
@@ -113,8 +113,8 @@ def _compile(camera) -> float:
 def run_cmax_gae(events_or_chunks, camera, config=None, imu=None):
     """CMax-GAE on events (Events, chunks or a dataset, streamed) -> BaselineResult (40 Hz trajectory, sphere
     histogram)."""
-    from ti_cmax.kernels import gae as G
-    from ti_cmax.kernels.rtpt import footprint_bbox, view_border_rays
+    from ti_cmax.kernels.baselines import gae as G
+    from ti_cmax.kernels.baselines.rtpt import footprint_bbox, view_border_rays
     from ti_cmax.pipelines.frontend import time_intervals
 
     from . import AngularVelocity, BaselineConfig, BaselineResult, CountedChunks

@@ -57,7 +57,7 @@ class RTPTConfig(Params):
 
 
 def _compile(camera, dtype=np.float32) -> float:
-    from ti_cmax.kernels import rtpt as K
+    from ti_cmax.kernels.baselines import rtpt as K
 
     tic = time.perf_counter()
     b = np.array([[0.0, 0.0, 1.0]] * 4, dtype)
@@ -71,7 +71,7 @@ def _compile(camera, dtype=np.float32) -> float:
 def run_rtpt(events_or_chunks, camera, config=None, imu=None):
     """RTPT on events (Events, chunks or a dataset, streamed) -> BaselineResult (trajectory at packet mid-times,
     edge map). Reading stops where tracking is lost."""
-    from ti_cmax.kernels import rtpt as K
+    from ti_cmax.kernels.baselines import rtpt as K
     from ti_cmax.pipelines.frontend import downsampled, fixed_count_packets
 
     from . import BaselineConfig, BaselineResult, CountedChunks

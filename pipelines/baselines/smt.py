@@ -1,12 +1,12 @@
 """SMT baseline (Kim et al. BMVC 2014, as re-implemented by the paper, Sec. II-A, App. B): simultaneous mosaicing
 and tracking with a particle-filter (PF-SMT) or an error-state EKF (EKF-SMT) tracker.
 
-Mapping: :class:`~ti_cmax.pipelines.mapping.GrayscaleMapper` (per-pixel EKF on the log-intensity gradient,
+Mapping: :class:`~ti_cmax.pipelines.workflows.grayscale.GrayscaleMapper` (per-pixel EKF on the log-intensity gradient,
 Eq. 38, outliers beyond 10 map px, 5 visits cap; Poisson M only for the output map), fed the tracked poses in
 chunks of ``map_update_events`` events, lagging the tracker (parallel tracking and mapping). Tracking: events
 in batches of ``batch_size`` sharing one pose R (world_from_camera); the brightness increment of a sensor pixel
 along its map segment is predicted from the GRADIENT map, z_hat = g(p_mid) . dp, and compared with p n C
-(kernels/smt.py). Bootstrap: for the first ``bootstrap_seconds`` the poses come from IMU dead reckoning (started
+(kernels/baselines/smt.py). Bootstrap: for the first ``bootstrap_seconds`` the poses come from IMU dead reckoning (started
 at the ground-truth pose when it is known) or from ground truth when there is no IMU. C: App. B's values (0.2
 synthetic: the simulator's from simulation.json; 0.22 real).
 
@@ -24,7 +24,7 @@ benchmark`` with ground truth, 1024 x 512 map):
   information per batch than pan and tilt (measured), so its prior dominated: even on a map built from
   ground-truth poses the random-walk EKF drifted in roll until it failed (DVS128 playroom at 2.34 s; with the
   constant-velocity model 0.1-0.2 deg to the end). ``motion_model=random_walk`` keeps the original.
-* State references (``reference=velocity``, kernels/smt.py): the reference point of a segment is predicted from
+* State references (``reference=velocity``, kernels/baselines/smt.py): the reference point of a segment is predicted from
   the state being estimated, p(R exp(-w dt_ref) b), not taken from the pose estimated for the reference's batch
   (``reference=pose``). With pose references each event measures R relative to an earlier estimate taken as
   exact: the pose std shrank to 0.01 deg at 0.2 deg of error, and reference errors fed back into the pose until
@@ -32,7 +32,7 @@ benchmark`` with ground truth, 1024 x 512 map):
   ground-truth poses; with ground-truth references instead: 0.04 deg to the end). The state reference makes the
   increment a measurement of the angular velocity, as Eq. 38 writes it (h = -g . v dt), with the constant-
   velocity extrapolation's variance (q_acc^2 dt_ref^3 / 3 per axis) in S; the update is 6-d.
-* Constant-acceleration EKF (``motion_model=constant_acceleration``, state R, w, a; kernels/smt.py): a reference
+* Constant-acceleration EKF (``motion_model=constant_acceleration``, state R, w, a; kernels/baselines/smt.py): a reference
   segment dt_ref long measures the mean angular velocity over it, w - a dt_ref / 2; the constant-velocity state
   read it as the current w, so its velocity lagged under angular acceleration and its velocity random walk
   (``angular_acceleration_std``) could only trade that lag for noise. Measured on bicycle (paper suite, seed 1),
@@ -88,7 +88,7 @@ benchmark`` with ground truth, 1024 x 512 map):
   40 ms speed collapse at 5 rad/s, caught by the ratio; it tracks since session 10's 2 px segment gate, below);
   without the crossing noise it tracks (1.00 deg), but then the benchmark's city 231 is lost at 2.73 s and street
   102 drifts to 4.1 deg, so both terms stay on.
-* Crossing-position noise in S (``crossing_position_var`` = 1/6, i.e. 2 x 1/12 map px^2, kernels/smt.py; the
+* Crossing-position noise in S (``crossing_position_var`` = 1/6, i.e. 2 x 1/12 map px^2, kernels/baselines/smt.py; the
   default since session 9: with the per-second jerk noise the paper suite's city is lost at a turn-back; with the
   per-batch acceleration steps above every benchmark sequence tracks, see the end of that item): each end of a
   segment is a level crossing somewhere within its map pixel, so the increment read from the gradient is
@@ -163,7 +163,7 @@ benchmark`` with ground truth, 1024 x 512 map):
 * The motion-consistency loss check below (the paper reports failures by inspection).
 
 * EKF-SMT: error-state EKF, update with Huber-weighted normal equations of the batch (iterated
-  ``ekf_iterations`` times), see kernels/smt.py.
+  ``ekf_iterations`` times), see kernels/baselines/smt.py.
 * PF-SMT: ``num_particles`` poses, random walk exp(n) R with n ~ N(0, (sigma_w dt)^2 I), weights times
   prod_k (N(r_k; 0, S_k) + floor), systematic resampling when the effective sample size drops below
   ``pf_resample_ess`` N; estimate = weighted mean on SO(3); numpy Generator seeded by ``seed``; references
@@ -201,12 +201,12 @@ from ti_cmax.config import Params, param
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
 from ti_cmax.kernels import mapping as km
-from ti_cmax.kernels import smt as ks
+from ti_cmax.kernels.baselines import smt as ks
 from ti_cmax.kernels.pano import batch_mid_times
 from ti_cmax.trajectory import Trajectory
 
-from ..imu import dead_reckoning
-from ..mapping import GrayscaleConfig, GrayscaleMapper, GrayscaleResult, resolve_contrast
+from ti_cmax.pipelines.baselines.imu import dead_reckoning
+from ti_cmax.pipelines.workflows.grayscale import GrayscaleConfig, GrayscaleMapper, GrayscaleResult, resolve_contrast
 from .consistency import MotionConsistencyCheck
 
 TRACKERS = ("ekf", "pf")
@@ -363,7 +363,7 @@ class _Context:
     bearings: np.ndarray
     pix: np.ndarray
     pol: np.ndarray
-    refs: dict  # per-pixel reference state (kernels/smt.new_reference_state), local batch indices
+    refs: dict  # per-pixel reference state (kernels/baselines/smt.new_reference_state), local batch indices
     ref_uv: np.ndarray
     ref_n: np.ndarray
     ref_src: np.ndarray
@@ -394,7 +394,7 @@ class _Context:
 
 class EkfTracker:
     """Error-state EKF on SO(3), constant-velocity (or random-walk) motion model, batched brightness-increment
-    updates with state (or pose) references; a chunk of batches per kernel launch (kernels/smt.ekf_track)."""
+    updates with state (or pose) references; a chunk of batches per kernel launch (kernels/baselines/smt.ekf_track)."""
 
     name = "ekf"
 
@@ -424,7 +424,7 @@ class EkfTracker:
         self.q_jerk = cfg.angular_jerk_std if ca else 0.0
         self.step_std = cfg.acceleration_step_std if ca else 0.0
         self.jerk_used = []  # jerk intensity of each call (per-batch steps; report)
-        self.kappa_sums = np.zeros(2)  # innovation consistency statistic (kernels/smt.py): numerator, denominator
+        self.kappa_sums = np.zeros(2)  # innovation consistency statistic (kernels/baselines/smt.py): numerator, denominator
 
     def run(self, b0: int, b1: int, ctx: _Context) -> np.ndarray:
         """Track batches b0..b1-1; returns (b1 - b0, 7): valid, supported, agreeing measurements, pose std (deg),
@@ -663,7 +663,7 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
     map_batches = max(1, cfg.map_update_events // bs)
     rng = np.random.default_rng(cfg.seed)
 
-    # per sensor pixel: reference state (kernels/smt.py) with GLOBAL batch ids (-1: none); the poses they need
+    # per sensor pixel: reference state (kernels/baselines/smt.py) with GLOBAL batch ids (-1: none); the poses they need
     refs_g = ks.new_reference_state(camera.width * camera.height)
     ref_gid = refs_g["ref_b"].astype(np.int64)
     last_gid = refs_g["last_b"].astype(np.int64)
@@ -864,7 +864,7 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
         report["angular_jerk_std_range"] = [float(np.min(trk.jerk_used)), float(np.median(trk.jerk_used)),
                                             float(np.max(trk.jerk_used))]
     if isinstance(trk, EkfTracker) and trk.kappa_sums[1] > 0:
-        # innovation consistency (kernels/smt.py): ~1 when the batch innovations match the filter's covariance
+        # innovation consistency (kernels/baselines/smt.py): ~1 when the batch innovations match the filter's covariance
         report["innovation_kappa"] = float(trk.kappa_sums[0] / trk.kappa_sums[1])
     return SmtResult(trajectory, gmap, report)
 

@@ -105,8 +105,8 @@ def test_the_engines_agree_within_a_tolerance_with_fast_math(engine_dataset, tmp
 @pytest.mark.slow
 @both_engines
 def test_the_per_event_benchmark_gives_a_row_per_engine(tmp_path, monkeypatch, capsys):
-    from ti_cmax.pipelines import bench_sensors
-    from ti_cmax.pipelines.benchmark import SUITES, SequenceSpec
+    from ti_cmax.pipelines.evaluation import bench_sensors
+    from ti_cmax.pipelines.evaluation.benchmark import SUITES, SequenceSpec
 
     tiny = SequenceSpec("tiny", "DVS128", "town", 0.25, 2)
     monkeypatch.setitem(SUITES, "sensors", {"tiny": tiny})

@@ -312,7 +312,7 @@ def test_bench_level_holds_the_realtime_degradation(short_dataset):
     """bench_loops --level 4 (the drift benchmark's setting): the real-time controller's last level held offline,
     every window keeps the front-end's poses (BA skipped)."""
     from ti_cmax.config import SlamConfig
-    from ti_cmax.pipelines.bench_loops import run_at_level
+    from ti_cmax.pipelines.evaluation.bench_loops import run_at_level
 
     res = run_at_level(short_dataset, SlamConfig(), 4)
     backend = res.report["backend"]
@@ -550,7 +550,7 @@ def test_error_trace_gives_the_first_turns_part_of_the_abs_error():
     only the second does."""
     import re
 
-    from ti_cmax.pipelines.bench_loops import error_trace
+    from ti_cmax.pipelines.evaluation.bench_loops import error_trace
     from ti_cmax.trajectory import Trajectory
 
     t = np.arange(0, 4.0, 0.01)

@@ -366,7 +366,7 @@ def test_the_real_time_worker_takes_every_core_unless_threads_were_chosen(monkey
 def test_summaries_name_a_cut_short_cold_window():
     """A run whose only degradation is level 0's budget cutting a BA short (the cold first window) says so, in the
     command's line and the benchmark's table."""
-    from ti_cmax.pipelines.bench_realtime import _degradation
+    from ti_cmax.pipelines.evaluation.bench_realtime import _degradation
 
     rt = {"max_lag_s": 0.2, "mean_lag_s": 0.1, "latency_mean_s": 0.15, "events_used_fraction": 1.0,
           "level_sensor_seconds": {"0": 4.0, "1": 0.0, "2": 0.0, "3": 0.0, "4": 0.0}, "degradation_applied": True,
@@ -380,7 +380,7 @@ def test_summaries_name_a_cut_short_cold_window():
 def test_benchmark_rounds_say_where_the_target_held():
     """bench_realtime --rounds: each row is judged against issue 14's target (real time with every event and the
     offline accuracy up to 2.5 Mev/s, a bounded lag above) and the summary counts the rounds per case."""
-    from ti_cmax.pipelines.bench_realtime import summarize, target_met
+    from ti_cmax.pipelines.evaluation.bench_realtime import summarize, target_met
 
     def row(case, rate, used, lag, abs_ratio, rel_ratio=1.0, rnd=1):
         return {"case": case, "mode": "parallel", "event_rate_mev_s": rate, "abs_ratio": abs_ratio,
@@ -402,8 +402,8 @@ def test_benchmark_rounds_say_where_the_target_held():
 def test_speed_probe_times_a_fixed_front_end_evaluation(ti_runtime):
     """The benchmarks' machine-speed probe: milliseconds per evaluation of one fixed packet, positive and of the
     order of the front-end's measured cost (0.7-1.4 ms on this 2-core VM), and in the benchmark table."""
-    from ti_cmax.pipelines.bench_realtime import format_table
-    from ti_cmax.pipelines.bench_sensors import speed_probe
+    from ti_cmax.pipelines.evaluation.bench_realtime import format_table
+    from ti_cmax.pipelines.evaluation.bench_sensors import speed_probe
 
     ms = speed_probe(evaluations=5)
     assert 0.01 < ms < 100

@@ -11,7 +11,7 @@ from ti_cmax.cli import main
 from ti_cmax.config import BackendConfig, SlamConfig, load_config
 from ti_cmax.metrics import evaluate_rotations
 from ti_cmax.pipelines.backend import SlidingWindowBackend
-from ti_cmax.pipelines.imu import dead_reckoning
+from ti_cmax.pipelines.baselines.imu import dead_reckoning
 from ti_cmax.pipelines.panorama import render_panorama
 from ti_cmax.pipelines.slam import refine, run_slam
 from ti_cmax.pipelines.sensor_defaults import resolve_backend

@@ -37,7 +37,7 @@ def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def executor_from_args(args):
-    from ..pipelines.tasks import make_executor
+    from ti_cmax.pipelines.evaluation.tasks import make_executor
 
     return make_executor(args.scheduler, args.jobs, args.threads, args.address)
 
@@ -57,8 +57,8 @@ def load_suite(path, cli_overrides: dict):
 
     from ..config import update_config
     from ..errors import InputError
-    from ..pipelines import benchmark as B
-    from ..pipelines.tasks import dataset_fingerprint
+    from ti_cmax.pipelines.evaluation import benchmark as B
+    from ti_cmax.pipelines.evaluation.tasks import dataset_fingerprint
 
     src = str(path)
     try:
@@ -141,7 +141,7 @@ def _spec(name: str, values: dict, src: str):
     from dataclasses import fields
 
     from ..errors import InputError
-    from ..pipelines.benchmark import SequenceSpec
+    from ti_cmax.pipelines.evaluation.benchmark import SequenceSpec
     from ..simulate import SimulatorConfig
 
     known = {f.name for f in fields(SimulatorConfig)}
@@ -167,7 +167,7 @@ def write_tables(out, groups: list[dict], meta: dict, extra_doc: dict) -> str:
     import json
 
     from ..outputs import atomic_path
-    from ..pipelines import benchmark as B
+    from ti_cmax.pipelines.evaluation import benchmark as B
 
     sets = list(dict.fromkeys(g.get("parameters", "") for g in groups))
     parts = []
@@ -226,8 +226,8 @@ def _run(args, tic, datasets, methods, configs, base_cfg, out, executor) -> int:
     from ..config import save_config
     from ..kernels import runtime
     from ..outputs import atomic_path
-    from ..pipelines import benchmark as B
-    from ..pipelines.tasks import run_tasks
+    from ti_cmax.pipelines.evaluation import benchmark as B
+    from ti_cmax.pipelines.evaluation.tasks import run_tasks
 
     def log(msg: str) -> None:
         if not args.quiet:

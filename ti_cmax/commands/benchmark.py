@@ -10,7 +10,7 @@ simulated sequences (DIR/sequences). Writes DIR/tables.md, DIR/results.csv (one 
 DIR/results.json, DIR/plots/ (violins of the errors, trajectories per axis, maps side by side, per sequence) and
 DIR/config.yaml. ``--quick``: 2 sequences of 1.5 s, linear BA only, 512x256 back-end maps and capped CG iterations
 (smoke runs; figures not comparable with the full suite). ``--realtime``: the real-time table instead
-(``pipelines/bench_realtime.py``: ``slam --realtime --parallel`` against the offline run, 1-12 M events/s).
+(``pipelines/evaluation/bench_realtime.py``: ``slam --realtime --parallel`` against the offline run, 1-12 M events/s).
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ HELP = "paper-style benchmark tables (Tab. II, IV, VI) on simulated sequences: t
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..pipelines.benchmark import METHOD_KEYS, SUITES
+    from ti_cmax.pipelines.evaluation.benchmark import METHOD_KEYS, SUITES
 
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (sequences are cached in DIR/sequences)")
     parser.add_argument("--quick", action="store_true", help="2 short sequences, linear BA only, smaller maps")
@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"comma-separated subset of {','.join(METHOD_KEYS)} (default: all)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--realtime", action="store_true",
-                        help="real-time table instead (pipelines/bench_realtime.py): slam --realtime --parallel vs "
+                        help="real-time table instead (pipelines/evaluation/bench_realtime.py): slam --realtime --parallel vs "
                              "offline at 1, 2, 5 (DAVIS240C) and 12 (VGA) M events/s; --sequences picks cases")
     parser.add_argument("--rounds", type=int, default=1, metavar="N",
                         help="with --realtime: run the cases N times, case after case, and count per case the rounds "
@@ -56,10 +56,10 @@ def run(args) -> int:
     from ..errors import InputError
     from ..kernels import runtime
     from ..outputs import atomic_path
-    from ..pipelines import benchmark as B
+    from ti_cmax.pipelines.evaluation import benchmark as B
 
     if args.realtime:
-        from ..pipelines import bench_realtime
+        from ti_cmax.pipelines.evaluation import bench_realtime
 
         log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
         print(bench_realtime.run(Path(args.out), _split(args.sequences), threads=args.threads,

@@ -45,7 +45,7 @@ def run(args) -> int:
     from ..errors import InputError
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import atomic_path
-    from ..pipelines.mapping import reconstruct_panoramas, resolve_contrast
+    from ti_cmax.pipelines.workflows.grayscale import reconstruct_panoramas, resolve_contrast
 
     wall = time.perf_counter()
     cfg = load_config(GrayscaleCommandConfig, args.config, args.overrides)

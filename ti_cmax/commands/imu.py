@@ -20,7 +20,7 @@ def run(args) -> int:
     from ..errors import InputError
     from ..io import open_dataset_from_config, write_tum
     from ..outputs import OutputDir, write_report
-    from ..pipelines.imu import dead_reckoning
+    from ti_cmax.pipelines.baselines.imu import dead_reckoning
 
     tic = time.perf_counter()
     cfg = load_config(SlamConfig, args.config, args.overrides)

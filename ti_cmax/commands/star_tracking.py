@@ -79,7 +79,7 @@ def run(args) -> int:
     from ..io import read_tum
     from ..outputs import OutputDir, json_ready
     from ..pipelines.panorama import map_to_uint8
-    from ..pipelines.star_tracking import open_star_or_dataset, run_star_tracking, star_tracking_config
+    from ti_cmax.pipelines.workflows.star_tracking import open_star_or_dataset, run_star_tracking, star_tracking_config
     from ..plots import plot_trajectories
     from .slam import spline_override, write_result
 

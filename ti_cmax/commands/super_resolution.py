@@ -44,8 +44,8 @@ def run(args) -> int:
     from ..io import write_tum
     from ..outputs import OutputDir, write_report
     from ..pipelines.panorama import map_to_uint8
-    from ..pipelines.star_tracking import open_star_or_dataset
-    from ..pipelines.super_resolution import (iter_super_resolution, parse_sizes, quality_availability,
+    from ti_cmax.pipelines.workflows.star_tracking import open_star_or_dataset
+    from ti_cmax.pipelines.workflows.super_resolution import (iter_super_resolution, parse_sizes, quality_availability,
                                               runtime_table)
     from .slam import spline_override
 

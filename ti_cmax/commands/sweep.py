@@ -33,7 +33,7 @@ def run(args) -> int:
 
     from ..config import SlamConfig, load_config
     from ..errors import InputError
-    from ..pipelines.sensitivity import SWEEPS
+    from ti_cmax.pipelines.evaluation.sensitivity import SWEEPS
 
     cfg = load_config(SlamConfig, args.config, args.overrides)
     params = [p.strip() for p in args.parameters.split(",") if p.strip()]
@@ -65,13 +65,13 @@ def _run(args, cfg, params, out, executor) -> int:
     from ..config import save_config
     from ..errors import InputError
     from ..outputs import atomic_path
-    from ..pipelines.benchmark import json_ready
-    from ..pipelines.sensitivity import plot_sweep, rows_to_dicts, rows_to_markdown, run_sweep
+    from ti_cmax.pipelines.evaluation.benchmark import json_ready
+    from ti_cmax.pipelines.evaluation.sensitivity import plot_sweep, rows_to_dicts, rows_to_markdown, run_sweep
 
     if args.dataset:
         dataset, name = args.dataset, Path(args.dataset).name
     else:
-        from ..pipelines.benchmark import BenchmarkSettings, SequenceSpec, prepare_sequences
+        from ti_cmax.pipelines.evaluation.benchmark import BenchmarkSettings, SequenceSpec, prepare_sequences
 
         spec = SequenceSpec(f"sweep-{args.scene}", "DAVIS240C", args.scene, args.duration, 0,
                             options=(("max_angular_velocity", 3.0),))

@@ -8,7 +8,7 @@ import pytest
 
 from ti_cmax.cli import main
 from ti_cmax.errors import InputError
-from ti_cmax.pipelines import benchmark as B
+from ti_cmax.pipelines.evaluation import benchmark as B
 
 
 def _rows(path):

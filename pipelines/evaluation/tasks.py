@@ -136,7 +136,7 @@ def _replace_dir(tmp: Path, final: Path) -> None:
 
 def _write_json(path: Path, doc: dict) -> dict:
     """Write ``doc`` as strict JSON; returns what a reader of the file gets (NaN -> None, numpy -> Python)."""
-    from .benchmark import json_ready
+    from ti_cmax.pipelines.evaluation.benchmark import json_ready
 
     doc = json_ready(doc)
     path.write_text(json.dumps(doc, indent=2) + "\n")
@@ -179,8 +179,8 @@ def run_task(task: Task, out_dir) -> dict:
     an interruption leaves nothing behind."""
     from ti_cmax.config import build_config
 
-    from . import benchmark as B
-    from .bench_slam import peak_rss_mb
+    from ti_cmax.pipelines.evaluation import benchmark as B
+    from ti_cmax.pipelines.evaluation.bench_slam import peak_rss_mb
 
     with _task_folder(task, out_dir) as tmp:
         with open(tmp / "task.log", "w") as log_fh:

@@ -10,7 +10,7 @@ from ti_cmax.errors import InputError
 from ti_cmax.events import Events
 from ti_cmax.metrics import evaluate_rotations
 from ti_cmax.pipelines.baselines.smt import SmtConfig, run_smt, run_smt_ekf
-from ti_cmax.pipelines.mapping import GrayscaleConfig
+from ti_cmax.pipelines.workflows.grayscale import GrayscaleConfig
 from ti_cmax.trajectory import Trajectory
 
 

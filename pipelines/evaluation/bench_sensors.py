@@ -1,6 +1,7 @@
 """Sensor suite: CMax-SLAM with the default (sensor-derived) settings from a DVS128 to an HD sensor.
 
-    python -m ti_cmax.pipelines.bench_sensors --out DIR [--sensors DVS128,DAVIS240C,...] [--engines taichi,quadrants]
+    python -m ti_cmax.pipelines.evaluation.bench_sensors --out DIR [--sensors DVS128,DAVIS240C,...]
+        [--engines taichi,quadrants]
 
 The cases are ``pipelines.benchmark.SUITES["sensors"]`` (``ti-cmax benchmark --suite sensors`` runs the same
 sequences through the task model; this script adds per-case peak memory, the derived parameters and the cost per
@@ -135,15 +136,17 @@ def _f(v, digits=2) -> str:
 
 def format_table(rows: list[dict]) -> str:
     lines = [
-        "| sensor (case) | engine | events (Mev/s) | front-end abs / rel | CMax-SLAM abs / rel | status | FE + BE us/ev "
-        "| s per s of data (steady) | compile s | peak RSS MB | map | packet / cap | BA events used | load |",
+        "| sensor (case) | engine | events (Mev/s) | front-end abs / rel | CMax-SLAM abs / rel | status "
+        "| FE + BE us/ev | s per s of data (steady) | compile s | peak RSS MB | map | packet / cap | BA events used "
+        "| load |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         d = r["derived"]
         size = f"{2 * d['pano_height']}x{d['pano_height']}" if "pano_height" in d else "user"
         lines.append(" | ".join([
-            f"| {r['case']['sensor']} ({r['case']['name']})", r["engine"], f"{r['events'] / 1e6:.1f} M ({r['event_rate_mev_s']:.1f})",
+            f"| {r['case']['sensor']} ({r['case']['name']})", r["engine"],
+            f"{r['events'] / 1e6:.1f} M ({r['event_rate_mev_s']:.1f})",
             f"{_f(r['frontend_abs_deg'])} / {_f(r['frontend_rel_deg_s'])}",
             f"{_f(r['slam_abs_deg'], 3)} / {_f(r['slam_rel_deg_s'], 3)}", r["status"],
             f"{_f(r['frontend_us_per_event'])} + {_f(r['backend_us_per_event'])}",
@@ -158,7 +161,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.bench_sensors", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.evaluation.bench_sensors", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True, metavar="DIR", help="sequences, runs and the tables go here")
     ap.add_argument("--sensors", default="", help="comma-separated case names or sensors (default: all)")
@@ -169,8 +172,7 @@ def main(argv: list[str] | None = None) -> int:
                     "installed one: taichi, quadrants)")
     args = ap.parse_args(argv)
     from ti_cmax.kernels.engine import ENGINES, installed_engines
-
-    from .benchmark import SUITES
+    from ti_cmax.pipelines.evaluation.benchmark import SUITES
 
     engines = [e.strip().lower() for e in args.engines.split(",") if e.strip()] or installed_engines()
     if set(engines) - set(ENGINES):

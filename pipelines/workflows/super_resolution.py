@@ -28,8 +28,8 @@ from ti_cmax.metrics import event_area_percent, gradient_magnitude
 from ti_cmax.outputs import peak_rss_mb
 from ti_cmax.trajectory import Trajectory
 
-from .panorama import render_panorama
-from .slam import run_slam
+from ti_cmax.pipelines.panorama import render_panorama
+from ti_cmax.pipelines.slam import run_slam
 
 DEFAULT_SIZES = ((512, 256), (1024, 512), (2048, 1024), (4096, 2048), (8192, 4096))
 CENTRAL_FRACTION = 0.5  # quality figures on the central half (in both directions) of the visited region
@@ -74,7 +74,7 @@ def piqe_score(image_u8: np.ndarray) -> float | None:
 
 def quality_figures(image: np.ndarray, gamma: float = 0.75, lambda0: float = 1.0) -> dict:
     """GM and EA% of the central part; PIQE of its display form when available; NIQE unavailable."""
-    from .panorama import map_to_uint8
+    from ti_cmax.pipelines.panorama import map_to_uint8
 
     crop = central_crop(np.asarray(image, dtype=np.float64))
     out = {

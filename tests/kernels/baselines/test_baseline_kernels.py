@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from ti_cmax import so3
-from ti_cmax.kernels import gae, rtpt
+from ti_cmax.kernels.baselines import gae, rtpt
 
 
 @pytest.fixture(scope="module")

@@ -1,11 +1,11 @@
-"""SMT tracker kernels (kernels/smt.py): Taichi vs numpy twins (f64, f32), reference selection rules, Jacobian vs
+"""SMT tracker kernels (kernels/baselines/smt.py): Taichi vs numpy twins (f64, f32), reference selection rules, Jacobian vs
 central differences, the iterated EKF update vs its information form."""
 import numpy as np
 import pytest
 
 from ti_cmax import so3
 from ti_cmax.camera import Camera
-from ti_cmax.kernels import smt as ks
+from ti_cmax.kernels.baselines import smt as ks
 
 W, H = 256, 128
 C, SIGMA, OUTLIER, MIN_DISP, HUBER, FLOOR = 0.2, 0.1, 10.0, 1.0, 2.0, 0.05

@@ -40,10 +40,10 @@ from ti_cmax.config import Params, SlamConfig, config_to_dict, param, update_con
 from ti_cmax.errors import InputError
 from ti_cmax.outputs import json_ready  # noqa: F401 - the tables and tasks use it from here
 
-from .bench_slam import PAPER_TAB2, PAPER_TAB6, _fmt, _slam_extra
+from ti_cmax.pipelines.evaluation.bench_slam import PAPER_TAB2, PAPER_TAB6, _fmt, _slam_extra
 
 try:  # the baselines are written concurrently: an unimportable registry means "not implemented" rows
-    from .baselines import BASELINES, BaselineConfig
+    from ti_cmax.pipelines.baselines import BASELINES, BaselineConfig
     BASELINES_IMPORT_ERROR = None
 except Exception as exc:  # noqa: BLE001 - any failure of the registry only removes the baselines
     BASELINES, BaselineConfig = {}, None
@@ -86,7 +86,7 @@ SUITES = {
         SequenceSpec("dvxplorer", "DVXplorer", "city", 1.5, 0, options=(("max_angular_velocity", 3.0),)),
         SequenceSpec("hd", "HD", "city", 1.5, 0, options=(("max_angular_velocity", 3.0),)),
     ),
-    # real-time replay (``ti-cmax benchmark --realtime``, pipelines/bench_realtime.py): steady random motion from the
+    # real-time replay (``ti-cmax benchmark --realtime``, pipelines/evaluation/bench_realtime.py): steady random motion from the
     # start (random_ramp_start 1) at about 1, 2 and 5 M events/s on a DAVIS240C and 12 M events/s on a VGA sensor
     # (the motion's peak and the 5 M case's contrast threshold scaled from trial simulations of these seeds)
     "realtime": make_suite(
@@ -375,9 +375,9 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
     """Run every selected method (and the BA of each front-end that kept track) on one sequence; "gt" in
     ``methods`` adds the ground-truth row (its map: the reference of Tab. IV). ``contrast_threshold``: the
     sequence's C for SMT (App. B: the simulator's value on synthetic data)."""
-    from .frontend import estimate_angular_velocity
-    from .imu import dead_reckoning
-    from .slam import refine, run_slam
+    from ti_cmax.pipelines.frontend import estimate_angular_velocity
+    from ti_cmax.pipelines.baselines.imu import dead_reckoning
+    from ti_cmax.pipelines.slam import refine, run_slam
 
     settings = cfg.benchmark
     degrees = settings.degrees()
@@ -464,8 +464,8 @@ def score(run: MethodRun, groundtruth, events, camera, cfg) -> tuple[dict, dict]
     map. ``events`` as in :func:`run_sequence_methods`."""
     from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
 
-    from .frontend import as_chunks
-    from .panorama import render_panorama
+    from ti_cmax.pipelines.frontend import as_chunks
+    from ti_cmax.pipelines.panorama import render_panorama
 
     row = {k: None for k in ROW_FIELDS}
     fe, be = run.frontend_us, run.backend_us
@@ -525,7 +525,7 @@ def run_method(dataset, cfg, method: str, log=None) -> MethodOutput:
             log(f"{run.method}: {run.status}" + (f", {run.wall_s:.1f} s" if run.wall_s is not None else "")
                 + (f" ({run.note})" if run.note else ""))
 
-    from ti_cmax.pipelines.mapping import resolve_contrast
+    from ti_cmax.pipelines.workflows.grayscale import resolve_contrast
 
     smt_c = resolve_contrast(cfg.smt.mapping, dataset) if hasattr(cfg, "smt") else None
     out = MethodOutput([], [], {}, info)
@@ -565,7 +565,7 @@ def prepare_sequences(sequences: list[SequenceSpec], settings: BenchmarkSettings
                       quiet: bool = True) -> dict:
     """Simulate the sequences not cached yet (in parallel on ``executor``). Returns name -> (folder, info,
     simulate seconds) or name -> error text for a sequence that could not be simulated."""
-    from .tasks import run_calls
+    from ti_cmax.pipelines.evaluation.tasks import run_calls
 
     Path(cache_dir).mkdir(parents=True, exist_ok=True)
 
@@ -584,7 +584,7 @@ def prepare_sequences(sequences: list[SequenceSpec], settings: BenchmarkSettings
 def suite_tasks(datasets: list[tuple[str, str, dict]], methods: list[str], configs: dict) -> list:
     """Tasks for datasets x parameter sets x methods. ``datasets``: (name, path, labels); ``configs``: parameter
     set name -> BenchmarkConfig ("" for a single unnamed set)."""
-    from .tasks import Task, dataset_fingerprint, task_id
+    from ti_cmax.pipelines.evaluation.tasks import Task, dataset_fingerprint, task_id
 
     tasks = []
     for name, path, labels in datasets:
@@ -643,7 +643,7 @@ def plot_group(plots_dir, group: dict, out_dir, suffix: str = "") -> list[str]:
     from ti_cmax.io import open_dataset
     from ti_cmax.trajectory import Trajectory
 
-    from .tasks import TASKS_DIR
+    from ti_cmax.pipelines.evaluation.tasks import TASKS_DIR
 
     arrays: dict = {}
     for tid in group["task_ids"]:
@@ -677,7 +677,7 @@ def run_benchmark(cfg, sequences: list[SequenceSpec], methods: list[str], out_di
     """Run the suite as tasks (one per sequence and method, plus its ground-truth map) on ``executor`` (default:
     in this process). Sequences are cached in out_dir/sequences, task results in out_dir/tasks (finished ones are
     skipped on a rerun), plots go to out_dir/plots. Returns the per-sequence results."""
-    from .tasks import LocalExecutor, run_tasks
+    from ti_cmax.pipelines.evaluation.tasks import LocalExecutor, run_tasks
 
     out_dir = Path(out_dir)
     executor = executor or LocalExecutor()

@@ -94,11 +94,11 @@ import functools
 
 import numpy as np
 
-from . import bilinear
-from .bilinear import bilinear_funcs
-from .pano import _proj_funcs, equirect_numpy
-from .runtime import ensure_init, ti
-from .so3 import so3_funcs as _so3_funcs
+from ti_cmax.kernels import bilinear
+from ti_cmax.kernels.bilinear import bilinear_funcs
+from ti_cmax.kernels.pano import _proj_funcs, equirect_numpy
+from ti_cmax.kernels.runtime import ensure_init, ti
+from ti_cmax.kernels.so3 import so3_funcs as _so3_funcs
 
 # slots of the ekf_accumulate output
 ACC = ("h00", "h01", "h02", "h11", "h12", "h22", "b0", "b1", "b2",

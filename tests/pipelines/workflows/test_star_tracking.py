@@ -19,7 +19,7 @@ def _constant(rate_vec, duration=10.0, hz=200.0):
 
 
 def test_relative_rotation_metric_with_constant_rate_error():
-    from ti_cmax.pipelines.star_tracking import relative_errors
+    from ti_cmax.pipelines.workflows.star_tracking import relative_errors
 
     axis = np.array([0.2, -0.5, 0.84])
     axis /= np.linalg.norm(axis)
@@ -96,7 +96,7 @@ def test_ecd_folder_is_not_star_form(tmp_path):
 @pytest.fixture(scope="module")
 def star_sequence(ti_runtime, tmp_path_factory):
     """3 s Chin-like sequence (constant 4 deg/s, ~60 k events/s) written in the star dataset's form."""
-    from ti_cmax.pipelines.star_tracking import simulate_star_sequence
+    from ti_cmax.pipelines.workflows.star_tracking import simulate_star_sequence
 
     out = tmp_path_factory.mktemp("star") / "seq"
     info = simulate_star_sequence(out, 3.0, seed=2)
@@ -145,7 +145,7 @@ def test_first_window_does_not_turn_a_fast_star_field_nor_bend_its_start(ti_runt
     it (the 400 ms error of the first star-tracking window 4x the others'). Refined from the ground truth, the
     trajectory must stay on it."""
     from ti_cmax.pipelines.slam import refine
-    from ti_cmax.pipelines.star_tracking import star_simulator_config, star_tracking_config
+    from ti_cmax.pipelines.workflows.star_tracking import star_simulator_config, star_tracking_config
     from ti_cmax.simulate import simulate_sequence
 
     seq = simulate_sequence(star_simulator_config(0.8, rate_deg=30.0, seed=1))
@@ -161,7 +161,7 @@ def test_star_tracking_map_follows_the_sensor():
     """The star-tracking defaults leave the map to the sensor rule: 2048x1024 on a DAVIS240C as before, finer on a
     VGA sensor (a fixed 2048x1024 sampled its 0.13 deg pixels at 0.18 deg), the user's value still wins."""
     from ti_cmax.pipelines.sensor_defaults import pano_size
-    from ti_cmax.pipelines.star_tracking import star_tracking_config
+    from ti_cmax.pipelines.workflows.star_tracking import star_tracking_config
     from ti_cmax.simulate import sensor_camera
 
     cfg = star_tracking_config()

@@ -1,6 +1,6 @@
 """Benchmark of CMax-SLAM on simulated sequences (issue 4; a command, not a test).
 
-    python -m ti_cmax.pipelines.bench_slam [--duration 5] [--sensors DAVIS240C,DVS128,DAVIS346]
+    python -m ti_cmax.pipelines.evaluation.bench_slam [--duration 5] [--sensors DAVIS240C,DVS128,DAVIS346]
         [--scenes bay,city] [--set key=value ...] [--threads N] [--refine-degree 1] [--json OUT.json] [--quick]
 
 For each simulated sequence (every sensor x scene) it prints a markdown table with one row per method:
@@ -29,7 +29,7 @@ import numpy as np
 
 from ti_cmax.outputs import peak_rss_mb
 
-from .sensor_defaults import pano_size
+from ti_cmax.pipelines.sensor_defaults import pano_size
 
 METHODS = ("front-end (CMax-omega)", "SLAM linear", "SLAM cubic", "IMU dead reckoning", "IMU + offline BA")
 ROW_KEYS = ("method", "abs_rmse_deg", "rel_rmse_deg_per_s", "ea_percent", "gm", "map_events",
@@ -79,11 +79,11 @@ def bench_sequence(sensor: str, scene: str, duration: float, overrides: dict | N
     from ti_cmax.config import SlamConfig, update_config
     from ti_cmax.simulate import SimulatorConfig, simulate_sequence
 
-    from .imu import dead_reckoning
-    from .panorama import render_panorama
-    from .slam import refine, run_slam
+    from ti_cmax.pipelines.baselines.imu import dead_reckoning
+    from ti_cmax.pipelines.panorama import render_panorama
+    from ti_cmax.pipelines.slam import refine, run_slam
 
-    from .bench_sensors import speed_probe
+    from ti_cmax.pipelines.evaluation.bench_sensors import speed_probe
 
     load_start = os.getloadavg()
     probe_start = speed_probe()
@@ -214,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     from ti_cmax.config import parse_overrides
     from ti_cmax.kernels import runtime
 
-    ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.bench_slam", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.evaluation.bench_slam", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=5.0)
     ap.add_argument("--sensors", default="DAVIS240C")

@@ -31,8 +31,8 @@ from ti_cmax.events import Events
 from ti_cmax.metrics import STAR_WINDOW, star_tracking_errors
 from ti_cmax.trajectory import Trajectory
 
-from .frontend import FrontendResult, estimate_angular_velocity
-from .slam import SlamResult, refine
+from ti_cmax.pipelines.frontend import FrontendResult, estimate_angular_velocity
+from ti_cmax.pipelines.slam import SlamResult, refine
 
 STAR_DEFAULTS: dict = {
     "frontend_min_packet_span": 0.5,

@@ -2,7 +2,7 @@
 as re-implemented by the paper), reusable by a tracker.
 
 Pipeline: events + rotations -> per-map-pixel EKFs on the log-intensity gradient (kernels/mapping.py, Eq. 38)
--> Poisson integration on the bounding box of visited pixels (pipelines/poisson.py, periodic in longitude)
+-> Poisson integration on the bounding box of visited pixels (pipelines/workflows/poisson.py, periodic in longitude)
 -> log-intensity panorama M (defined up to a constant; zero mean on the solved box).
 
 ``GrayscaleMapper`` is incremental: ``update(events, rotations)`` any number of times (a tracker passes its
@@ -33,7 +33,7 @@ from ti_cmax.kernels import mapping as km
 from ti_cmax.kernels.pano import batch_mid_times, equirect_numpy
 from ti_cmax.trajectory import Trajectory
 
-from .poisson import integrate_box
+from ti_cmax.pipelines.workflows.poisson import integrate_box
 
 C_SYNTHETIC = 0.2  # contrast threshold used by the paper for synthetic data
 C_REAL = 0.22  # ... and for real data (its true value is unknown there)

@@ -8,8 +8,8 @@ import time
 import pytest
 
 from ti_cmax.config import update_config
-from ti_cmax.pipelines import benchmark as B
-from ti_cmax.pipelines import tasks as T
+from ti_cmax.pipelines.evaluation import benchmark as B
+from ti_cmax.pipelines.evaluation import tasks as T
 
 TINY = {"benchmark.duration": 0.3, "backend.pano_height": 64, "benchmark.map_height": 64, "benchmark.ba_degrees": "",
         "frontend_cg_max_iters": 10}
@@ -210,7 +210,7 @@ def test_unguarded_script_running_calls_in_a_pool_is_told_why(tmp_path):
 
     script = tmp_path / "unguarded_pool.py"
     script.write_text("import math\n"
-                      "from ti_cmax.pipelines.tasks import LocalExecutor, run_calls\n"
+                      "from ti_cmax.pipelines.evaluation.tasks import LocalExecutor, run_calls\n"
                       "print(run_calls(LocalExecutor(jobs=2, threads=1), math.sqrt, [(4.0,), (9.0,)], quiet=True))\n")
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert proc.returncode == 0

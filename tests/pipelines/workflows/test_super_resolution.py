@@ -9,7 +9,7 @@ from ti_cmax.errors import InputError
 
 
 def test_parse_sizes():
-    from ti_cmax.pipelines.super_resolution import parse_sizes
+    from ti_cmax.pipelines.workflows.super_resolution import parse_sizes
 
     assert parse_sizes("512x256, 1024x512") == [(512, 256), (1024, 512)]
     for bad in ("512x512", "abc", "", "8x4", "65536x32768", "0x0"):
@@ -18,7 +18,7 @@ def test_parse_sizes():
 
 
 def test_central_crop_and_quality_figures():
-    from ti_cmax.pipelines.super_resolution import central_crop, quality_figures
+    from ti_cmax.pipelines.workflows.super_resolution import central_crop, quality_figures
 
     img = np.zeros((64, 128), np.float32)
     img[16:48, 32:96] = np.random.default_rng(0).poisson(2.0, (32, 64))

@@ -1,6 +1,6 @@
 """Benchmark of the CMax-omega front-end on simulated sequences (a command, not a test).
 
-    python -m ti_cmax.pipelines.bench_frontend [--duration 5] [--scenes city,town] [--sensors DAVIS240C,DVS128]
+    python -m ti_cmax.pipelines.evaluation.bench_frontend [--duration 5] [--scenes city,town] [--sensors DAVIS240C,DVS128]
         [--threads 2] [--set key=value ...] [--rules bounded,paper] [--json OUT.json]
 
 For each simulated sequence (ti_cmax.simulate; every scene x sensor) and slicing rule it prints a table row:
@@ -31,7 +31,7 @@ def run_one(scene: str, duration: float, rule: str, overrides: dict, seed: int =
     from ti_cmax.metrics import evaluate_rotations
     from ti_cmax.simulate import SimulatorConfig, simulate_sequence
 
-    from .frontend import estimate_angular_velocity
+    from ti_cmax.pipelines.frontend import estimate_angular_velocity
 
     t0 = time.perf_counter()
     seq = simulate_sequence(SimulatorConfig(scene=scene, duration=duration, sensor=sensor, seed=seed))
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     from ti_cmax.config import parse_overrides
     from ti_cmax.kernels import runtime
 
-    ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.bench_frontend", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.evaluation.bench_frontend", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=5.0)
     ap.add_argument("--scenes", default="city,town")

@@ -1,7 +1,7 @@
 """Real-time benchmark: `ti-cmax slam --realtime` against the offline run on simulated sequences of rising event rate.
 
     ti-cmax benchmark --realtime --out DIR [--sequences davis240c-1m,...] [--threads N]
-    python -m ti_cmax.pipelines.bench_realtime --out DIR [--sequences ...] [--modes parallel,sequential]
+    python -m ti_cmax.pipelines.evaluation.bench_realtime --out DIR [--sequences ...] [--modes parallel,sequential]
 
 The cases are ``pipelines.benchmark.SUITES["realtime"]``: DAVIS240C at about 1, 2 and 5 M events/s and a VGA sensor at
 about 12 M events/s, steady random motion (simulated once into DIR/sequences, reused when simulation.json matches).
@@ -28,7 +28,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from .bench_sensors import _f, speed_probe
+from ti_cmax.pipelines.evaluation.bench_sensors import _f, speed_probe
 
 MODES = ("parallel", "sequential")
 REAL_TIME_RATE = 2.5  # Mev/s: up to this mean rate the target is real time with every event, above it a bounded lag
@@ -68,8 +68,8 @@ def evaluate_case(spec, root: Path, modes=("parallel",), threads: int | None = N
     from ti_cmax.io import read_tum
     from ti_cmax.metrics import evaluate_rotations
 
-    from .bench_sensors import _run_slam
-    from .benchmark import BenchmarkSettings, ensure_sequence
+    from ti_cmax.pipelines.evaluation.bench_sensors import _run_slam
+    from ti_cmax.pipelines.evaluation.benchmark import BenchmarkSettings, ensure_sequence
 
     seq, info, _ = ensure_sequence(spec, BenchmarkSettings(), root / "sequences")
     gt = read_tum(seq / "groundtruth.txt")
@@ -160,7 +160,7 @@ def run(out: Path, names: list[str] | None = None, modes=("parallel",), threads:
         overrides=(), log=print, rounds: int = 1) -> str:
     from ti_cmax.errors import InputError
 
-    from .benchmark import SUITES
+    from ti_cmax.pipelines.evaluation.benchmark import SUITES
 
     suite = SUITES["realtime"]
     unknown = [n for n in names or [] if n not in suite]
@@ -191,7 +191,7 @@ def run(out: Path, names: list[str] | None = None, modes=("parallel",), threads:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.bench_realtime", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.evaluation.bench_realtime", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True, metavar="DIR", help="sequences, runs and the table go here")
     ap.add_argument("--sequences", default="", help="comma-separated subset of the realtime suite (default: all)")

@@ -25,11 +25,11 @@ import numpy as np
 
 from ti_cmax import so3
 
-from . import bilinear
-from .bilinear import ADD, ATOMIC, CLEAR, bilinear_funcs
-from .pano import _ti_dtype
-from .runtime import ensure_init, ti
-from .so3 import so3_funcs
+from ti_cmax.kernels import bilinear
+from ti_cmax.kernels.bilinear import ADD, ATOMIC, CLEAR, bilinear_funcs
+from ti_cmax.kernels.pano import _ti_dtype
+from ti_cmax.kernels.runtime import ensure_init, ti
+from ti_cmax.kernels.so3 import so3_funcs
 
 _STORE = 15  # per event: u, v, valid, du/dparams (6), dv/dparams (6)
 

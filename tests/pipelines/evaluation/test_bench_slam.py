@@ -1,7 +1,7 @@
 """Smoke test of the CMax-SLAM benchmark: one tiny sequence, every method row present and well formed."""
 import math
 
-from ti_cmax.pipelines.bench_slam import METHODS, ROW_KEYS, bench_sequence, format_table
+from ti_cmax.pipelines.evaluation.bench_slam import METHODS, ROW_KEYS, bench_sequence, format_table
 
 
 def test_bench_sequence_rows_on_tiny_dvs128():

@@ -26,11 +26,11 @@ import numpy as np
 
 from ti_cmax import so3
 
-from . import bilinear
-from .bilinear import ATOMIC, bilinear_funcs
-from .pano import _proj_funcs, _ti_dtype, equirect_numpy
-from .runtime import ensure_init, ti
-from .so3 import so3_funcs
+from ti_cmax.kernels import bilinear
+from ti_cmax.kernels.bilinear import ATOMIC, bilinear_funcs
+from ti_cmax.kernels.pano import _proj_funcs, _ti_dtype, equirect_numpy
+from ti_cmax.kernels.runtime import ensure_init, ti
+from ti_cmax.kernels.so3 import so3_funcs
 
 
 # ----------------------------------------------------------------------------------------------------------------

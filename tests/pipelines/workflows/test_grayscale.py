@@ -1,11 +1,11 @@
-"""Grayscale panorama: Poisson integration (pipelines/poisson.py), GrayscaleMapper on a simulated sequence,
+"""Grayscale panorama: Poisson integration (pipelines/workflows/poisson.py), GrayscaleMapper on a simulated sequence,
 ``ti-cmax grayscale`` CLI."""
 import json
 
 import numpy as np
 import pytest
 
-from ti_cmax.pipelines import poisson
+from ti_cmax.pipelines.workflows import poisson
 
 
 def smooth_band(n=40, w=128, seed=0):
@@ -74,7 +74,7 @@ def test_integrate_box_uses_cyclic_column_interval():
 
 @pytest.fixture(scope="module")
 def seq_results(short_sequence):
-    from ti_cmax.pipelines.mapping import GrayscaleConfig, reconstruct_panoramas
+    from ti_cmax.pipelines.workflows.grayscale import GrayscaleConfig, reconstruct_panoramas
 
     cfg = GrayscaleConfig(contrast_threshold=short_sequence.config.contrast_threshold)
     return reconstruct_panoramas([short_sequence.events], short_sequence.camera, short_sequence.groundtruth,
@@ -82,7 +82,7 @@ def seq_results(short_sequence):
 
 
 def test_reconstruction_correlates_with_true_panorama(short_sequence, seq_results):
-    from ti_cmax.pipelines.mapping import normalized_cross_correlation, resample_panorama
+    from ti_cmax.pipelines.workflows.grayscale import normalized_cross_correlation, resample_panorama
 
     res = seq_results[0]
     truth = resample_panorama(np.log(short_sequence.config.log_eps + short_sequence.panorama), 512, 256)
@@ -100,7 +100,7 @@ def test_reconstruction_correlates_with_true_panorama(short_sequence, seq_result
 def test_incremental_updates_match_one_shot(short_sequence):
     """Feeding a tracker-style stream in pieces (own poses per batch) gives the same map as one call."""
     from ti_cmax.kernels.pano import batch_mid_times
-    from ti_cmax.pipelines.mapping import GrayscaleConfig, GrayscaleMapper
+    from ti_cmax.pipelines.workflows.grayscale import GrayscaleConfig, GrayscaleMapper
 
     ev = short_sequence.events[:200_000]
     gt = short_sequence.groundtruth
@@ -121,7 +121,7 @@ def test_incremental_updates_match_one_shot(short_sequence):
 def test_config_loads_with_overrides(tmp_path):
     from ti_cmax.config import load_config
     from ti_cmax.errors import InputError
-    from ti_cmax.pipelines.mapping import GrayscaleConfig
+    from ti_cmax.pipelines.workflows.grayscale import GrayscaleConfig
 
     cfg = load_config(GrayscaleConfig, None, ["max_updates_per_pixel=0", "pano_height=256", "measurement_noise=0.1"])
     assert cfg.max_updates_per_pixel == 0 and cfg.pano_size == (512, 256) and cfg.measurement_noise == 0.1

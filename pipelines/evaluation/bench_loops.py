@@ -1,6 +1,6 @@
 """Benchmark of loop closure (issue 15; a command, not a test): CMax-SLAM with loop_closure=false and =true.
 
-    python -m ti_cmax.pipelines.bench_loops --cache DIR [--sequences SPEC,...] [--set key=value ...] [--threads N]
+    python -m ti_cmax.pipelines.evaluation.bench_loops --cache DIR [--sequences SPEC,...] [--set key=value ...] [--threads N]
         [--modes off,on] [--level L] [--loop-slice S] [--out RUNS [--saved | --summarize] [--trace STEP]]
 
 A SPEC is sensor:scene:duration:trajectory[:turns[:wobble]][:key=value...] (e.g. DAVIS240C:bay:12:pan:2.2:0.5, or
@@ -166,8 +166,8 @@ def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, repo
     from ti_cmax.io import open_dataset, read_tum
     from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
 
-    from .panorama import render_panorama
-    from .sensor_defaults import resolve_config
+    from ti_cmax.pipelines.panorama import render_panorama
+    from ti_cmax.pipelines.sensor_defaults import resolve_config
 
     ds = open_dataset(dataset)
     gt = read_tum(dataset / "groundtruth.txt")
@@ -204,9 +204,9 @@ def run_at_level(dataset: Path, cfg, level: int, loop_slice: float | None = None
     ``loop_slice``: loop verifications in slices (OnlineSlam's loop_slice_seconds; None: at once)."""
     from ti_cmax.io import open_dataset
 
-    from .realtime import LEVELS, RealtimeController
-    from .slam import OnlineSlam
-    from .sensor_defaults import resolve_config
+    from ti_cmax.pipelines.realtime import LEVELS, RealtimeController
+    from ti_cmax.pipelines.slam import OnlineSlam
+    from ti_cmax.pipelines.sensor_defaults import resolve_config
 
     ds = open_dataset(dataset)
     online = OnlineSlam(ds.camera, cfg, loop_slice_seconds=loop_slice)
@@ -227,7 +227,7 @@ def bench(dataset: Path, overrides: list[str], out: Path | None = None, modes=(F
     from ti_cmax.config import SlamConfig, load_config
     from ti_cmax.io import open_dataset, read_tum, write_tum
 
-    from .slam import run_slam
+    from ti_cmax.pipelines.slam import run_slam
 
     rows = []
     for on in modes:

@@ -1,0 +1,1 @@
+"""Evaluation: tasks and executors, benchmark suites and tables, sensitivity sweeps, the bench_* scripts."""
