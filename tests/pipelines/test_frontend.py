@@ -551,9 +551,9 @@ def test_a_fast_pan_is_not_declared_flat(ti_runtime, monkeypatch):
     assert not np.any(res.flat) and np.max(np.linalg.norm(truth, axis=1)) > 18
     fast = np.linalg.norm(truth, axis=1) > 12  # (slower: 40 ms packets average omega over a 250 rad/s^2 ramp)
     assert np.all(np.linalg.norm(res.omega - truth, axis=1)[fast] < 0.1 * np.linalg.norm(truth, axis=1)[fast])
-    monkeypatch.setattr(frontend_policies, "JUMP_FRACTION", 0.0)  # every jump of 1 px tested: still kept by the sub-span test
+    monkeypatch.setattr(frontend_policies, "JUMP_FRACTION", 0.0)  # every 1 px jump tested: the sub-span test keeps them
     assert not np.any(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat)
-    monkeypatch.setattr(frontend_policies, "FAST_PX", np.inf)  # and without it : most packets flat
+    monkeypatch.setattr(frontend_policies, "FAST_PX", np.inf)  # and without it: most packets flat
     assert np.count_nonzero(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat) > 5
 
 
