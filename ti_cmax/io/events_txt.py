@@ -26,6 +26,7 @@ from ..events import Events
 from ._common import Block
 
 BLOCK_BYTES = 8 << 20  # ~350 k events per block
+_XY_MAX = 65535  # pixel coordinates are stored as uint16: a larger one is refused, never wrapped
 _EXPECTED = "expected 't x y p' (time in seconds, pixel x, pixel y, polarity 0/1 or -1/+1)"
 
 
@@ -110,7 +111,7 @@ def _parse_fast(buf: bytes):
     if not ok:
         return None
     y, ok = _uint_swar(words, sp[:, 2], ylen)
-    if not ok:
+    if not ok or int(x.max()) > _XY_MAX or int(y.max()) > _XY_MAX:  # 5 digits reach 99999: the exact tier names it
         return None
     plen = le - sp[:, 2] - 1
     last = a[le - 1]
@@ -199,7 +200,11 @@ def _parse_exact(toks: list, lines: np.ndarray):
         p[i] = 1 if pv > 0 else -1
         if not (np.isfinite(xy[i]).all() and (xy[i] >= 0).all()):
             raise _LineError(f"pixel coordinates must be finite and >= 0, got {text[:80]!r}", line)
-    if n and np.all(xy == np.round(xy)) and xy.max() < 65536:
+        if xy[i].max() > _XY_MAX:
+            k = int(np.argmax(xy[i]))
+            raise _LineError(f"{'xy'[k]}={parts[1 + k].decode(errors='replace')} is beyond any sensor "
+                             f"(pixel coordinates are at most {_XY_MAX})", line)
+    if n and np.all(xy == np.round(xy)):
         return Events(t, xy[:, 0].astype(np.uint16), xy[:, 1].astype(np.uint16), p)
     return Events(t, xy[:, 0].astype(np.float32), xy[:, 1].astype(np.float32), p)
 
