@@ -468,6 +468,46 @@ class SlamConfig(Params):
 
 
 # ------------------------------------------------------------------------------------------
+# work a config implies over a recording
+# ------------------------------------------------------------------------------------------
+
+# packets, control poses, windows, trajectory samples or real-time hand-overs a run may need at most: 1e7 packets are
+# a day of data at the default 100 Hz; more means a parameter far off its scale (dt_ang_vel=1e-9: 3e8 packets, hours)
+MAX_WORK_ITEMS = 10_000_000
+
+
+def check_workload(cfg, t_start: float, t_end: float, *, realtime: bool = False) -> None:
+    """Refuse, before any work, a config whose spacings imply more than MAX_WORK_ITEMS packets (dt_ang_vel), control
+    poses (dt_knots), windows (backend_sliding_window_stride) or, with
+    ``realtime``, hand-overs (realtime_chunk) over the recording's time range [t_start, t_end] (s): one InputError
+    with the estimate. ``cfg``: a SlamConfig or any config holding some of these sections."""
+    duration = max(float(t_end) - float(t_start), 0.0)
+    fe, be, rt = (getattr(cfg, k, None) for k in ("frontend", "backend", "realtime"))
+    items = []  # (key, value, unit, count, what)
+    if fe is not None:
+        items.append(("dt_ang_vel", fe.dt_ang_vel, "s", duration / fe.dt_ang_vel, "front-end packets"))
+    if be is not None:
+        items.append(("dt_knots", be.dt_knots, "s", duration / be.dt_knots, "control poses"))
+        items.append(("backend_sliding_window_stride", be.backend_sliding_window_stride, "s",
+                      duration / be.backend_sliding_window_stride, "back-end windows"))
+    if realtime and rt is not None:
+        items.append(("realtime_chunk", rt.realtime_chunk, "s", duration / rt.realtime_chunk, "real-time hand-overs"))
+    for key, value, unit, count, what in items:
+        if count > MAX_WORK_ITEMS:
+            raise InputError(f"{key}={value:g} {unit} over this recording's {duration:.6g} s (t = {t_start:.6g} to "
+                             f"{t_end:.6g} s) means {count:.3g} {what}, more than {MAX_WORK_ITEMS:.0e}: refused before "
+                             f"any work; set {key} to its scale (default {_default_of(cfg, key):g} {unit})")
+
+
+def _default_of(cfg, key: str):
+    """The default of the leaf field ``key`` of a (nested) config."""
+    for _, f, _ in iter_params(type(cfg)):
+        if f.name == key:
+            return field_default(f)
+    raise KeyError(key)
+
+
+# ------------------------------------------------------------------------------------------
 # generic loading of nested frozen dataclasses
 # ------------------------------------------------------------------------------------------
 
@@ -640,4 +680,5 @@ __all__ = [
     "CONTRAST_MEASURES", "OPTIMIZERS", "SLICING_RULES", "WARM_STARTS", "STEP_GUESSES", "DatasetConfig", "FrontendConfig",
     "BackendConfig", "LoopClosureConfig", "RealtimeConfig", "OutputConfig", "SlamConfig",
     "load_config", "update_config", "build_config", "save_config", "config_to_dict", "parse_overrides", "replace",
+    "check_workload", "MAX_WORK_ITEMS",
 ]

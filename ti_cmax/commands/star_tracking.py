@@ -76,6 +76,7 @@ def run(args) -> int:
 
     import imageio.v3 as iio
 
+    from ..config import check_workload
     from ..io import read_tum
     from ..outputs import OutputDir, json_ready
     from ..pipelines.panorama import map_to_uint8
@@ -87,6 +88,7 @@ def run(args) -> int:
     dataset = open_star_or_dataset(args.dataset, cfg.dataset)
     gt = read_tum(args.groundtruth) if args.groundtruth else dataset.groundtruth
     t0, t1 = dataset.time_range()
+    check_workload(cfg, t0, t1)
     res = run_star_tracking(dataset, dataset.camera, cfg, groundtruth=gt, window=args.window,
                             progress_total=t1 - t0)
     report = dict(res.report)
