@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 import numpy as np
 
@@ -115,5 +116,7 @@ def run(args) -> int:
         line += (f"; {args.window * 1000:.0f} ms relative rotation RMSE {e['ba']['rmse_deg']:.3f} deg "
                  f"(std {e['ba']['std_deg']:.3f}), front-end alone {e['frontend']['rmse_deg']:.3f} deg")
     print(f"{line} -> {out}")
+    for warning in report.get("warnings", []):
+        print(f"ti-cmax star-tracking: warning: {warning}", file=sys.stderr)
     print(json.dumps(json_ready({k: report.get(k) for k in ("rmse_deg", "std_deg")} if res.errors else {})))
     return 0
