@@ -48,3 +48,18 @@ def test_commands_refuse_absurd_work_before_starting(tmp_path, capsys, command):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "dt_ang_vel=1e-09 s over this recording's 2.999 s" in err[0]
     assert "3e+09 front-end packets" in err[0] and not out.exists()
+
+
+def test_the_smallest_input_for_a_trustworthy_omega():
+    """20 or 100 events gave omega 10 rad/s off with status ok: the rule the status reports from (2000 events per
+    packet on a DAVIS240C-sized sensor, scaled with the pixels of larger ones)."""
+    from ti_cmax.config import MIN_OMEGA_EVENTS, min_events_for_omega, too_few_events_for_omega
+
+    assert MIN_OMEGA_EVENTS == 2000
+    assert min_events_for_omega(240, 180) == min_events_for_omega(128, 128) == 2000
+    assert min_events_for_omega(1280, 720) == 42667
+    assert too_few_events_for_omega(2000, 240, 180) is None
+    assert too_few_events_for_omega(100, 240, 180) == ("100 events are too few for a trustworthy angular velocity on "
+                                                       "a 240x180 sensor (at least 2000: with fewer, omega was off by "
+                                                       "100 % of the rotation or more)")
+    assert "at least 42667" in too_few_events_for_omega(20_000, 1280, 720)
