@@ -28,6 +28,19 @@ _POSITIVE = frozenset(("1", "+1", "+", "1.0", "+1.0", "on", "true", "pos", "posi
 _NEGATIVE = frozenset(("0", "-1", "-", "0.0", "-1.0", "off", "false", "neg", "negative", "n"))
 
 
+def polarity_word(text: str) -> int | None:
+    """+1 or -1 for a polarity written as text (1/0, +1/-1, +/-, on/off, true/false, or a number equal to 1, 0 or
+    -1 such as 1e0), else None."""
+    word = text.strip().lower()
+    if word in _POSITIVE or word in _NEGATIVE:
+        return 1 if word in _POSITIVE else -1
+    try:
+        value = float(word)
+    except ValueError:
+        return None
+    return 1 if value == 1 else -1 if value in (0, -1) else None
+
+
 def polarity_signs(p, what: str = "polarity") -> np.ndarray:
     """Polarities of any common dtype as int8 {-1, +1}, checked: bool; integers or floats in {-1, 0, 1} (0 and -1
     are negative); bytes or strings such as 1/0, +1/-1, +/-, on/off, true/false. Anything else (a 7, NaN, 'x', a
@@ -54,8 +67,7 @@ def polarity_signs(p, what: str = "polarity") -> np.ndarray:
             signs = np.zeros(len(values), np.int8)
             for k, v in enumerate(values.tolist()):
                 text = v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)
-                word = text.strip().lower()
-                signs[k] = 1 if word in _POSITIVE else -1 if word in _NEGATIVE else 0
+                signs[k] = polarity_word(text) or 0
                 if signs[k] == 0:
                     i = int(np.argmax(inverse.reshape(-1) == k))
                     raise InputError(f"{what}: value {text[:20]!r} at position {i} is not a polarity (expected "

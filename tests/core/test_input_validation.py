@@ -198,3 +198,13 @@ def test_star_reader_names_the_line_and_value(tmp_path, bad, message):
     d = star_folder(tmp_path / "c", f"# comment\n0.1 1.5 2.5 1\n\n0.2 -3.5 182.25 0\n{bad}\n")
     with pytest.raises(InputError, match=r"events.txt, " + message.replace("line 3", "line 5")):
         open_star_dataset(d).read_events()
+
+
+def test_text_polarity_words(tmp_path):
+    """Text polarities as +/-, on/off or numbers equal to 1/0/-1 read as signs; anything else names the line."""
+    path = tmp_path / "ev.txt"
+    path.write_text("0.1 1 2 +\n0.2 3 4 -\n0.3 5 6 on\n0.4 7 8 1e0\n0.5 9 9 -1.0\n")
+    assert list(read(path, width=240, height=180).p) == [1, -1, 1, 1, -1]
+    path.write_text("0.1 1 2 +\n0.2 3 4 2\n")
+    with pytest.raises(InputError, match=r"ev.txt, line 2: polarity must be 0/1 or -1/\+1 \(or \+/-\), got '2'"):
+        read(path, width=240, height=180)

@@ -22,7 +22,7 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import InputError
-from ..events import Events
+from ..events import Events, polarity_word
 from ._common import Block
 
 BLOCK_BYTES = 8 << 20  # ~350 k events per block
@@ -192,12 +192,12 @@ def _parse_exact(toks: list, lines: np.ndarray):
             t[i] = float(parts[0])
             xy[i, 0] = float(parts[1])
             xy[i, 1] = float(parts[2])
-            pv = float(parts[3])
         except ValueError:
             raise _LineError(f"{_EXPECTED}, got {text[:80]!r}", line) from None
-        if pv not in (0.0, 1.0, -1.0):
-            raise _LineError(f"polarity must be 0/1 or -1/+1, got {parts[3].decode(errors='replace')!r}", line)
-        p[i] = 1 if pv > 0 else -1
+        sign = polarity_word(parts[3].decode("utf-8", "replace"))
+        if sign is None:
+            raise _LineError(f"polarity must be 0/1 or -1/+1 (or +/-), got {parts[3].decode(errors='replace')!r}", line)
+        p[i] = sign
         if not (np.isfinite(xy[i]).all() and (xy[i] >= 0).all()):
             raise _LineError(f"pixel coordinates must be finite and >= 0, got {text[:80]!r}", line)
         if xy[i].max() > _XY_MAX:

@@ -146,6 +146,7 @@ def test_a_star_field_turning_beyond_the_design_range_gets_a_warning(ti_runtime)
     assert warning.startswith(f"the camera turns at up to {max(rates):.0f} deg/s, beyond the 60 deg/s")
     assert figures["frontend_p95_deg_per_s"] == 0.0
     assert motion_warning(np.full((40, 3), np.radians(2.0)), [0.0, 3.9])[1] is None
+    assert f"up to {max(rates):.0f} deg/s" in motion_warning(np.full((40, 3), 50.0), rates)[1]  # noise: the probe's
     assert "beyond" in motion_warning(np.full((40, 3), np.radians(50.0)), [])[1]  # the front-end's omega alone
 
 
