@@ -164,6 +164,10 @@ def test_intrinsics_that_do_not_fit_the_sensor_are_one_error(tmp_path, fx, cx, m
     (d / "calib.txt").write_text(f"{fx} {fx} {cx} 90\n")
     with pytest.raises(InputError, match=r"calib.txt: camera intrinsics do not fit the 240x180 sensor: " + message):
         open_dataset(d, 240, 180).camera
+    with pytest.raises(InputError, match=message):  # `info` showed such a file as "no calib.txt"
+        open_dataset(d, 240, 180).calibration_source
+    (d / "calib.txt").unlink()
+    assert open_dataset(d, 240, 180).calibration_source is None
     Camera(240, 180, 10.0, 10.0, -100.0, 250.0)  # a wide lens with an off-centre principal point still fits
 
 

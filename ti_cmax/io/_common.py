@@ -91,9 +91,10 @@ class ScannedSource(NoCompanions):
 
 # times read in an assumed unit are refused when what they imply is beyond any recording: a duration over this
 # (s; microseconds read as seconds: 1 s of data spans 11.6 days) or, over at least MIN_EVENTS_FOR_RATE events, a mean
-# event rate over this (events/s; seconds or milliseconds read as microseconds). Event cameras peak near 1e9 events/s
+# event rate over this (events/s; seconds or milliseconds read as microseconds), more than the readout of any event
+# camera
 MAX_DURATION = 1e5
-MAX_EVENT_RATE = 2e9
+MAX_EVENT_RATE = 1e9
 MIN_EVENTS_FOR_RATE = 1000
 
 

@@ -178,6 +178,10 @@ def _find_calib(folder: Path) -> Path | None:
     return None
 
 
+class _NoCalibration(InputError):
+    """No intrinsics found (as opposed to intrinsics that are wrong)."""
+
+
 class Dataset:
     """An opened dataset: camera, optional ground truth and IMU, and streamed events."""
 
@@ -255,7 +259,7 @@ class Dataset:
         try:
             return self._find_camera()
         except InputError as exc:  # intrinsics that do not fit the sensor: name the file they come from
-            if exc.source is not None:
+            if exc.source is not None or isinstance(exc, _NoCalibration):
                 raise
             raise InputError(str(exc), source=str(self.calib_path or self.events_path)) from None
 
@@ -272,7 +276,7 @@ class Dataset:
             return Camera(w, h, cam.fx, cam.fy, cam.cx, cam.cy, cam.dist), f"{self.format} file"
         if self.allow_default_calibration:
             return Camera.ideal(w, h, DEFAULT_FOV_DEG), f"default (ideal pinhole, {DEFAULT_FOV_DEG:g} deg field of view)"
-        raise InputError("no camera calibration: expected calib.txt or a camera_info YAML beside the events (or "
+        raise _NoCalibration("no camera calibration: expected calib.txt or a camera_info YAML beside the events (or "
                          f"use an ideal {DEFAULT_FOV_DEG:g} deg pinhole: --set allow_default_calibration=true)",
                          source=str(self.path))
 
@@ -282,10 +286,11 @@ class Dataset:
 
     @property
     def calibration_source(self) -> str | None:
-        """Where the intrinsics come from, or None when there are none."""
+        """Where the intrinsics come from, or None when there are none (intrinsics that do not fit the sensor raise
+        their InputError)."""
         try:
             return self._camera_and_source[1]
-        except InputError:
+        except _NoCalibration:
             return None
 
     # companions ------------------------------------------------------------------------------------
