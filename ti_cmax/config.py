@@ -401,9 +401,9 @@ class DatasetConfig(Params):
     allow_default_calibration: bool = param(False, "no intrinsics found: use an ideal 60 deg camera instead of failing")
     topic: str = param("", "ROS bag event topic (empty: the only dvs_msgs/EventArray topic)")
     chunk_size: int = param(1_000_000, "events per streamed chunk", unit="events", ge=1)
-    time_unit: str = param("", "unit of the event times of text and HDF5 files (empty: the file's: seconds in text, "
-                               "HDF5 its units attribute, else seconds for floats, microseconds for integers)",
-                           choices=("", "s", "ms", "us", "ns"))
+    time_unit: str = param("auto", "unit of the event times of text and HDF5 files (auto: the file's: seconds in "
+                                   "text; in HDF5 its units attribute, else seconds for floats, microseconds for "
+                                   "integers)", choices=("auto", "s", "ms", "us", "ns"))
 
     def _relations(self) -> None:
         if (self.width == 0) != (self.height == 0):

@@ -132,6 +132,10 @@ def test_text_times_in_microseconds_are_refused_until_the_unit_is_given(tmp_path
     ev = read(path, time_unit="us")
     assert ev.t[0] == pytest.approx(1.0) and ev.t[-1] == pytest.approx(1.1995)
     assert open_dataset(path, allow_default_calibration=True, time_unit="us").time_range()[1] == pytest.approx(1.1995)
+    from ti_cmax.cli import main
+
+    assert main(["info", str(path), "--set", "allow_default_calibration=true", "--set", "time_unit=us"]) == 0
+    assert main(["info", str(path), "--set", "allow_default_calibration=true"]) == 2
     (tmp_path / "x.aedat4").write_bytes(b"x")
     with pytest.raises(InputError, match="time_unit applies to text and HDF5 files"):
         open_dataset(tmp_path / "x.aedat4", time_unit="us")

@@ -37,7 +37,7 @@ from .text import ImuData, read_imu_txt, read_tum
 def open_dataset_from_config(path, cfg: DatasetConfig) -> "Dataset":
     return open_dataset(path, cfg.width or None, cfg.height or None,
                         allow_default_calibration=cfg.allow_default_calibration, topic=cfg.topic or None,
-                        time_unit=cfg.time_unit or None)
+                        time_unit=None if cfg.time_unit == "auto" else cfg.time_unit)
 
 
 EVENT_FILE_SUFFIXES = (".txt", ".h5", ".hdf5", ".bag", ".aedat4", ".raw")
