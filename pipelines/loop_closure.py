@@ -1,8 +1,9 @@
 """Loop closure on revisits for the sliding-window back-end (beyond the paper, Sec. VI names it as missing).
 
 Without it, drift builds up over a 360-degree pan until the camera sees the first turn's map again; the global map
-then pulls the new windows back, so the trajectory carries the drift and a jump. ``LoopCloser`` hooks into
-``SlidingWindowBackend`` (``backend.loop``), and around every window:
+then pulls the new windows back, so the trajectory carries the drift and a jump. ``LoopCloser`` observes a
+``SlidingWindowBackend`` (``backend.attach``: the back-end notifies it around every window) and changes it only
+through ``correct_poses`` and ``drop_map``:
 
 1. keeps a subsample of the settled events (at most ``loop_stored_event_rate`` per second, each stride 1 of k with
    weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and, delayed
@@ -37,8 +38,8 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
    the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
    spline, so later windows align to one consistent map (the global map at once: the rebuilt old map plus the
    recent strides' votes, blurred once; stride by stride only with pixel freezing). The global map is rebuilt when
-   it is next read (``refresh_map``: before the next BA, for the output): while the BA is skipped (real-time level 4)
-   several loops cost one rebuild and the strides settled meanwhile are not voted into the stale map.
+   the back-end next needs it (``SlidingWindowBackend.refresh_map`` asks ``rebuilt_map``: before the next BA, for the
+   output): while the BA is skipped (real-time level 4) several loops cost one rebuild and the strides settled meanwhile are not voted into the stale map.
 
    The old map and the age map restart from the checkpoint the last rebuild left when the correction left its
    strides' poses unchanged (every later loop closes only the drift since the last one), so a rebuild votes the
@@ -67,7 +68,7 @@ from ti_cmax.kernels.pano import (
     PanoIWE, batch_mid_times, blur_radius, blur_region, equirect_numpy, event_density,
 )
 
-from .backend import GlobalMap
+from .backend import GlobalMap, WindowObserver
 from .optim import bfgs
 
 _CELL = 4  # map pixels per side of an age cell
@@ -181,11 +182,15 @@ class _Slices:
             raise self._error
 
 
-class LoopCloser:
+class LoopCloser(WindowObserver):
     """Loop detection, verification and correction for one ``SlidingWindowBackend`` (module docstring)."""
 
-    def __init__(self, config: LoopClosureConfig, backend):
-        """``config`` must be resolved for the camera (``sensor_defaults.resolve_config``): no derived 0s."""
+    stage = "loop"  # the back-end's StageClock stage of these calls
+
+    def __init__(self, config: LoopClosureConfig, backend, slice_seconds: float | None = None):
+        """``config`` must be resolved for the camera (``sensor_defaults.resolve_config``): no derived 0s.
+        ``slice_seconds``: verify in slices of at most this many wall seconds per window (real time; module
+        docstring, 5.); None verifies at once."""
         if config.loop_registration_events <= 0 or config.loop_min_travel == 0:
             raise ValueError("the loop closer needs a config resolved for the camera (sensor_defaults.resolve_config)")
         self.cfg, self.backend = config, backend
@@ -220,22 +225,22 @@ class LoopCloser:
         # else a verification runs in slices (_Slices, one cost evaluation or map step each) of at most this many
         # wall seconds before each window, and in the back-end worker's idle time (idle_slice), and its result is
         # applied before the window after it ended
-        self.slice_seconds: float | None = None
+        self.slice_seconds = slice_seconds
         self._task: _Slices | None = None  # the verification or map rebuild in flight
         self._pending: dict | None = None  # what its conclusion needs (_conclude_task)
         self._task_spline = None  # a sliced rebuild's corrected copy of the spline (the back-end's gets it at the end)
-        self.corrections = 0  # loop corrections applied to the back-end's control poses so far
-        # the global map is rebuilt when next read (backend.map: the next BA, the output), not at each correction
+        # the global map is rebuilt when the back-end next asks for it (rebuilt_map: the next BA, the output), not at
+        # each correction
         self.map_stale = False
         self._acc = None  # (raw map, n_voted): a sliced rebuild's global map votes so far (_finish_rebuild)
-        self.map_rebuilds = 0  # global maps rebuilt (refresh_map)
+        self.map_rebuilds = 0  # global maps rebuilt (rebuilt_map)
         self.seconds = self.cpu_seconds = 0.0
         self.longest_call = (0.0, 0.0)  # (wall, CPU) seconds of the longest hook call (_spent)
         self._drained = False  # a sliced run's stream has ended (drain)
         self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
 
-    # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
-    def store(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
+    # ---- notifications (from the back-end) ------------------------------------------------------------------------
+    def settled(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
         """Keep a subsample of one settled stride (1 of k, weight k)."""
         tic, cpu = time.perf_counter(), time.process_time()
         n = len(ev_t)
@@ -316,7 +321,7 @@ class LoopCloser:
             return
         tic, cpu = time.perf_counter(), time.process_time()
         ev_t, ev_b = self.backend.events.range(t0, t1, include_end=True)
-        cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * (t1 - t0))), 1)  # as stored (store())
+        cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * (t1 - t0))), 1)  # as stored (settled())
         k = max(int(math.ceil(len(ev_t) / cap)), 1)
         self._check(t1, ev_t[::k], ev_b[::k])
         self._spent(tic, cpu)
@@ -736,13 +741,15 @@ class LoopCloser:
         """Apply a loop's correction (i0, i1, spread rotations of poses i0..i1, rotation of the later poses) to a
         spline's control poses (and, on the back-end's, re-anchor its source poses); returns the spline."""
         i0, i1, spread, corr = correction
-        ctrl = spline.control_R
-        ctrl[i0:i1 + 1] = spread @ ctrl[i0:i1 + 1]
-        ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
+        def rotate(spl):
+            ctrl = spl.control_R
+            ctrl[i0:i1 + 1] = spread @ ctrl[i0:i1 + 1]
+            ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
+
         if spline is self.backend.spline:
-            self.backend._anchor_at(self.backend._anchor[0])
-            self.backend._fitted_after = None  # a rejected BA's refit would restart from the uncorrected anchor
-            self.corrections += 1
+            self.backend.correct_poses(rotate)
+        else:
+            rotate(spline)
         return spline
 
     def _rebuild(self) -> None:
@@ -755,7 +762,8 @@ class LoopCloser:
         """
         tic = time.perf_counter()
         n_old = self._n_old
-        self.backend.map = self.old = None  # free the old maps first: peak memory holds one set (+ the checkpoint)
+        self.backend.drop_map()  # free the old maps first: peak memory holds one set (+ the checkpoint)
+        self.old = None
         self._finish_rebuild(self._rebuild_old(n_old), n_old, None, 0, self._thinned)
         self.profile["rebuild"] += time.perf_counter() - tic
 
@@ -807,25 +815,23 @@ class LoopCloser:
         self._rot_cache.clear()
         self._checkpoint = (self._n_old, self.old.raw.copy(), self.age.copy(), self.visit.copy(),
                             backend.spline.control_R.copy(), thinned)
-        backend.map = None  # (offline, already freed by _rebuild): rebuilt when next read (refresh_map)
+        backend.drop_map()  # (offline, already dropped by _rebuild): rebuilt when the back-end asks (rebuilt_map)
         self.map_stale, self._acc = True, (acc, n_voted) if acc is not None else None
 
-    def refresh_map(self) -> None:
-        """Rebuild the global map after the last correction (the back-end reads ``backend.map`` only through this
-        once it is stale): the old map plus the strides stored since, blurred once (GlobalMap.set_raw); with pixel
-        freezing every stored stride in order. The strides the back-end settled meanwhile went into the store only
-        (a stale map is not voted), so several loops between two reads (BA skipped) cost one rebuild. Read right
-        after the correction (a BA follows it), the same votes in the same order as rebuilding at once."""
-        if not self.map_stale:
-            return
+    def rebuilt_map(self) -> GlobalMap:
+        """The global map after the last correction (the back-end asks once it dropped its map): the old map plus
+        the strides stored since, blurred once (GlobalMap.set_raw); with pixel freezing every stored stride in order.
+        The strides the back-end settled meanwhile went into the store only (a dropped map is not voted), so several
+        loops between two reads (BA skipped) cost one rebuild. Asked right after the correction (a BA follows it),
+        the same votes in the same order as rebuilding at once."""
         tic, cpu = time.perf_counter(), time.process_time()
-        backend, bs = self.backend, self.backend.cfg.event_batch_size
+        bs = self.backend.cfg.event_batch_size
         acc, n_voted = self._acc if self._acc is not None else (None, 0)
         self.map_stale, self._acc = False, None
-        backend.map = self._new_map()
+        gmap = self._new_map()
         if self._freeze:  # first-seen times: every stride in time order, as the back-end settled them
             for t, b, weight, t0, moving in self.chunks:
-                backend.map.add(b, self._rotations(t)[1], bs, t0, moving, weight=weight)
+                gmap.add(b, self._rotations(t)[1], bs, t0, moving, weight=weight)
         else:  # the global map is the old map plus the recent strides' votes: one blur at the end (GlobalMap.set_raw)
             if acc is None:
                 if self._task is None:  # (a sliced verification in flight votes the aged chunks itself)
@@ -835,10 +841,11 @@ class LoopCloser:
                 t, b, weight, _t0, _moving = self.chunks[i]
                 rot = self._rot_cache.get(i) if i < self._n_old else None
                 acc.add(b, self._rotations(t)[1] if rot is None else rot, bs, weight=weight)
-            backend.map.set_raw(acc.raw)
+            gmap.set_raw(acc.raw)
         self.map_rebuilds += 1
         self.profile["rebuild"] += time.perf_counter() - tic
         self._spent(tic, cpu)
+        return gmap
 
     def _advance_checkpoint(self) -> None:
         """Before the first stride a later loop may move is aged: the maps now hold the last rebuild's checkpoint

@@ -447,7 +447,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     ctl.online = online
     ctl.apply()  # level 0's BA budget
     idle = {"sleep": 0.0}
-    ctl.idle_seconds = lambda: idle["sleep"] + (online._worker.blocked_seconds if online._worker is not None else 0.0)
+    ctl.idle_seconds = lambda: idle["sleep"] + online.backend.blocked_seconds
     online.wait_ready()  # the sensor clock starts once both processes can work
     reader = iter(chunks)
     pending = Events.empty()

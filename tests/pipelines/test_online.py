@@ -162,7 +162,7 @@ def test_pose_after_a_pause_of_the_stream_follows_the_worker(half_second):
     for i in range(0, len(paused), 20_000):
         online.push(paused[i:i + 20_000])
     online.map()  # waits until the worker has handled every event pushed (its window messages applied)
-    anchor = online._feed.backend._anchor[0]  # the spline is fitted up to here; earlier than 0.2 s before: final
+    anchor = online.backend.mirror.fitted_until  # the spline is fitted up to here; earlier than 0.2 s before: final
     assert anchor - 0.2 > t0 + 0.9  # through the pause (its poses fitted with the first window after it)
     t_check = np.linspace(t0 + 0.05, anchor - 0.2, 25)
     before_close = online.pose(t_check)
