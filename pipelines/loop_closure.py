@@ -550,7 +550,7 @@ class LoopCloser(WindowObserver):
         peak_ratio, accepted, reason and ``_phi`` (the correction's rotation vector, world frame, left).
         """
         # a copy: the poses as they are now, also when the verification runs in slices between later windows
-        cfg, bcfg, spline = self.cfg, self.backend.cfg, self.backend.spline.copy()
+        cfg, spline = self.cfg, self.backend.spline.copy()
         w, h = self.backend.width, self.backend.height
         self._vote_aged(self._n_old if n_aged is None else n_aged)
         mask = np.repeat(np.repeat(old_cells, _CELL, axis=0), _CELL, axis=1)[:h, :w]
@@ -561,11 +561,37 @@ class LoopCloser(WindowObserver):
         g_raw = np.zeros((h, w), np.float32)  # the old map on the old regions (zero pages beyond their rows)
         g_rows = slice(int(rows[0]), int(rows[-1]) + 1)
         np.copyto(g_raw[g_rows], self.old.raw[g_rows], where=mask[g_rows])
+        base = spline.control_R.copy()
+        tic, paused0 = time.perf_counter(), self._paused()
+        phi, problem = self._register(t, b, spline, base, g_raw, rows)
+        if np.linalg.norm(phi) > cfg.loop_max_correction:  # a false loop: no need to refine it
+            return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
+                    "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
+                    "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
+        self.profile["register"] += time.perf_counter() - tic - (self._paused() - paused0)
+        self._slice_point()
+        conf, peak, before = self._confidence(problem, phi, base, mask, rows)
+        corr = float(np.linalg.norm(phi))
+        if conf < cfg.loop_min_confidence:
+            ok, reason = False, "confidence below loop_min_confidence"
+        elif peak < cfg.loop_min_peak_ratio:
+            ok, reason = False, "optimum not unique (peak ratio below loop_min_peak_ratio)"
+        elif corr > cfg.loop_max_correction:
+            ok, reason = False, "correction above loop_max_correction"
+        else:
+            ok, reason = True, "accepted"
+        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": before,
+                "peak_ratio": float(peak), "accepted": ok, "applied": False, "reason": reason, "_phi": phi.tolist()}
+
+    def _register(self, t, b, spline, base, g_raw, rows):
+        """One rotation phi (left, world frame) registering the events against the old map ``g_raw`` (zero beyond
+        ``rows``), coarse to fine; stops at a level whose phi exceeds loop_max_correction. Returns (phi, the finest
+        level's PanoIWE problem)."""
+        cfg, bcfg = self.cfg, self.backend.cfg
+        w, h = self.backend.width, self.backend.height
         mids, _ = self._rotations(t)
         s, u = spline.support(mids)
-        base = spline.control_R.copy()
         phi = np.zeros(3)
-        tic, paused0 = time.perf_counter(), self._paused()
         levels = [f for f in (4, 2, 1) if w % f == 0 and h % f == 0 and (w // f >= 256 or f == 1)]
         problem = None
         for f in levels:
@@ -599,12 +625,15 @@ class LoopCloser(WindowObserver):
             if hess is not None:
                 self._inv_hessian[f] = hess
             phi = res.x
-            if np.linalg.norm(phi) > cfg.loop_max_correction:  # a false loop: no need to refine it
-                return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
-                        "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
-                        "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
-        self.profile["register"] += time.perf_counter() - tic - (self._paused() - paused0)
-        self._slice_point()
+            if np.linalg.norm(phi) > cfg.loop_max_correction:
+                break
+        return phi, problem
+
+    def _confidence(self, problem, phi, base, mask, rows) -> tuple[float, float, float]:
+        """(confidence, peak ratio, confidence before): the correlation of the registered recent map with the old
+        map over the old regions, its ratio to the best correlation 4 and 8 map pixels away, and the correlation at
+        no correction."""
+        w, h = self.backend.width, self.backend.height
         # correlation of the registered recent map with the old map over the old regions, on local texture: on the
         # box around them (rows, and the cyclic column interval) with a margin for the texture filter and the shifts
         # (the box of the old regions the registered recent map covers: the correlation reads nothing else)
@@ -675,19 +704,8 @@ class LoopCloser(WindowObserver):
                 ring.append(ncc(*at_opt, shift=(int(round(r * math.sin(a))), int(round(r * math.cos(a))))))
         best_ring = max(ring)
         peak = conf / best_ring if best_ring > 0 else np.inf
-        corr = float(np.linalg.norm(phi))
-        if conf < cfg.loop_min_confidence:
-            ok, reason = False, "confidence below loop_min_confidence"
-        elif peak < cfg.loop_min_peak_ratio:
-            ok, reason = False, "optimum not unique (peak ratio below loop_min_peak_ratio)"
-        elif corr > cfg.loop_max_correction:
-            ok, reason = False, "correction above loop_max_correction"
-        else:
-            ok, reason = True, "accepted"
         self._slice_point()
-        before = ncc(*maps_at(problem.local_box(base)))
-        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": before,
-                "peak_ratio": float(peak), "accepted": ok, "applied": False, "reason": reason, "_phi": phi.tolist()}
+        return conf, peak, ncc(*maps_at(problem.local_box(base)))
 
     # ---- correction ----------------------------------------------------------------------------------------------
     def _apply(self, t, b, old_cells, phi, t_now, ages=None) -> dict:

@@ -436,8 +436,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     ctl = RealtimeController(config, speed, worker=backend_process)
     be = config.backend
     # with a worker, push() waits while the events sent run more than two windows and a stride ahead of the
-    # worker's last window (bounded in sensor time: a chunk of the catch-up phase holds READ_EVENTS events); the
-    # front-end then runs while the worker does a whole window's BA
+    # worker's last window (bounded in sensor time): the front-end then runs while the worker does a window's BA
     worker_threads = _worker_threads() if backend_process else None
     online = OnlineSlam(camera, config, on_window=ctl.on_window, backend_process=backend_process,
                         queue_size=100_000,
@@ -452,7 +451,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     reader = iter(chunks)
     pending = Events.empty()
     eof = False
-    read = handed = dropped = 0
+    counts = {"read": 0, "handed": 0, "dropped": 0}
     cpu_io = sleep_s = 0.0
     handed_until = -math.inf  # sensor time up to which events were handed over
     cpu0 = time.process_time()
@@ -467,7 +466,8 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                 if chunk is None:
                     eof = True
                 else:
-                    pending, read = chunk, read + len(chunk)
+                    pending = chunk
+                    counts["read"] += len(chunk)
                 continue
             if len(pending) == 0:
                 break
@@ -487,28 +487,11 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                 continue
             last = handed_until
             batch, pending, handed_until = _take_due(pending, s_now)
-            # the event ending a pause goes in a push of its own, recorded with the front-end's progress before it
-            gaps = np.diff(batch.t, prepend=last if last > -math.inf else batch.t[0])
-            cuts = np.flatnonzero(gaps > min_pause)
-            bounds = [0, *cuts[cuts > 0].tolist(), len(batch)]
-            for i0, i1 in zip(bounds[:-1], bounds[1:]):
-                part = batch[i0:i1]
-                if gaps[i0] > min_pause:
-                    ctl.pauses.append((last if i0 == 0 else float(batch.t[i0 - 1]), float(part.t[0]),
-                                       online.frontend_until))
-                q = ctl.thinning
-                if q > 1:
-                    kept = every_qth(part, q, handed + dropped)
-                    dropped += len(part) - len(kept)
-                    part = kept
-                handed += len(part)
-                if len(part):
-                    online.push(part)
-                    ctl.on_frontend(time.monotonic(), online.frontend_until)
-                    if online.frontend_until is not None:
-                        bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
-                        shown = online.frontend_until
-        if read == 0:
+            for _ in _hand_over(online, ctl, batch, last, min_pause, counts):
+                if online.frontend_until is not None:
+                    bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
+                    shown = online.frontend_until
+        if counts["read"] == 0:
             raise InputError("no events to process")
         result = online.close()
     except BaseException:
@@ -516,7 +499,40 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
         raise
     finally:
         bar.close()
-    cpu_total = time.process_time() - cpu0
+    counts.update(cpu_io=cpu_io, sleep_s=sleep_s, cpu_total=time.process_time() - cpu0)
+    result.report["realtime"] = _realtime_block(online, ctl, result, config, counts, backend_process, worker_threads)
+    result.realtime_trace = ctl.trace
+    return result
+
+
+def _hand_over(online, ctl: RealtimeController, batch: Events, last: float, min_pause: float, counts: dict):
+    """Push the due events (1 of the controller's q), yielding after each push. The event ending a pause goes in a
+    push of its own, recorded with the front-end's progress before it."""
+    gaps = np.diff(batch.t, prepend=last if last > -math.inf else batch.t[0])
+    cuts = np.flatnonzero(gaps > min_pause)
+    bounds = [0, *cuts[cuts > 0].tolist(), len(batch)]
+    for i0, i1 in zip(bounds[:-1], bounds[1:]):
+        part = batch[i0:i1]
+        if gaps[i0] > min_pause:
+            ctl.pauses.append((last if i0 == 0 else float(batch.t[i0 - 1]), float(part.t[0]), online.frontend_until))
+        q = ctl.thinning
+        if q > 1:
+            kept = every_qth(part, q, counts["handed"] + counts["dropped"])
+            counts["dropped"] += len(part) - len(kept)
+            part = kept
+        counts["handed"] += len(part)
+        if len(part):
+            online.push(part)
+            ctl.on_frontend(time.monotonic(), online.frontend_until)
+            yield
+
+
+def _realtime_block(online, ctl: RealtimeController, result, config: SlamConfig, counts: dict,
+                    backend_process: bool, worker_threads: int | None) -> dict:
+    """report.json's "realtime" block."""
+    rt, speed = config.realtime, float(config.realtime.realtime_speed)
+    read, handed, dropped = counts["read"], counts["handed"], counts["dropped"]
+    cpu_io, sleep_s, cpu_total = counts["cpu_io"], counts["sleep_s"], counts["cpu_total"]
     summary = ctl.summary()
     fe_cpu, be_cpu = online.runner.cpu_seconds, online.backend_cpu_seconds
     packets = max(online.packets_seen, 1)
@@ -551,9 +567,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
         "threads": {"main_process": runtime.num_threads(),
                     **({"backend_process": worker_threads or runtime.num_threads()} if backend_process else {})},
     }
-    result.report["realtime"] = report
-    result.realtime_trace = ctl.trace
-    return result
+    return report
 
 
 def describe(report: dict) -> str:
