@@ -73,7 +73,7 @@ from .optim import bfgs
 
 _CELL = 4  # map pixels per side of an age cell
 _CELL_EVERY = 4  # the cells a stored stride observed: those of 1 in this many of its events
-_VOTES_PER_SLICE = 8  # aged chunks voted into the old map per slice (~1 ms each) in a sliced verification
+_VOTES_PER_SLICE = 8  # aged chunks voted into the old map per slice in a sliced verification
 _RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's shifts from the optimum
 _ITERS = 10  # BFGS iterations per pyramid level: 3 unknowns, started near the optimum by the coarser level
 _STEP_TOL = 0.05  # level pixels: BFGS stops when its next step would move the map less (1/20 of the blur)
@@ -119,8 +119,8 @@ def _cyclic_span(used: np.ndarray, margin: int) -> np.ndarray:
 
 class _RawMap(GlobalMap):
     """The old map: raw votes only. The registration reads nothing else, so the blurred copy, the sums and the
-    event area of ``GlobalMap`` are neither kept nor updated (a third less memory: 2 instead of 3 float32 maps,
-    268 MB instead of 402 MB at 8192 x 4096, and no blur or exp per aged stride). Same votes as GlobalMap.add."""
+    event area of ``GlobalMap`` are neither kept nor updated (2 instead of 3 float32 maps, and no blur or exp per
+    aged stride). Same votes as GlobalMap.add."""
 
     def __init__(self, width: int, height: int, raw: np.ndarray | None = None):
         self.width, self.height = width, height
@@ -617,7 +617,7 @@ class LoopCloser(WindowObserver):
                 return var * scale[0], so3.left_jacobian(x).T @ grad.sum(axis=0) * scale[0]
 
             # BFGS from the inverse Hessian the last verification ended with at this level (the same normalized
-            # cost of one rotation: its first step is already quasi-Newton; 12 evaluations instead of CG's 33)
+            # cost of one rotation: its first step is already quasi-Newton, far fewer evaluations than CG)
             px = f * 2 * np.pi / w
             res, hess = bfgs(objective, phi, maximize=True, inv_hessian=self._inv_hessian.get(f), init_step=2 * px,
                              max_iter=_ITERS, grad_tol=bcfg.backend_cg_grad_tol,
@@ -672,7 +672,7 @@ class LoopCloser(WindowObserver):
         def ncc(tex, covered, shift=(0, 0)):
             """Correlation over the old regions of the recent map's texture (shifted by (rows, columns); on the
             pixels its map covers) with the old map's. Sums of products by einsum, not ``@``: a BLAS dot of this
-            length runs threaded, and its idle threads spin (on a busy machine 8 ms of CPU instead of 0.1 ms)."""
+            length runs threaded, and its idle threads spin."""
             if shift != (0, 0):
                 covered = np.roll(covered, shift, axis=(0, 1))
                 tex = np.roll(tex, shift, axis=(0, 1))
@@ -869,8 +869,8 @@ class LoopCloser(WindowObserver):
         """Before the first stride a later loop may move is aged: the maps now hold the last rebuild's checkpoint
         plus strides whose poses no later loop changes (before the last applied loop's recent block end, less the
         spline's support: a later loop spreads from there on), so they become the checkpoint. The next rebuild
-        then votes only the strides since the loop again, not the whole recent block before it (3 ms of copies
-        against ~2.5 ms per stride voted again)."""
+        then votes only the strides since the loop again, not the whole recent block before it (a few copies of the
+        maps cost less than voting those strides again)."""
         ck = self._checkpoint
         if ck is None or self._task is not None or ck[0] >= self._n_old or ck[5] != self._thinned:
             return

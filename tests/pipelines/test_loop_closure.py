@@ -216,7 +216,7 @@ def test_loop_closure_false_is_todays_output_and_refine_cli_reports_loops(short_
             for on in ("false", "true")}
     off, on = runs["false"], runs["true"]
     assert "loops" not in off.report and on.report["loops"] == []
-    assert SlamConfig().loop.loop_closure  # on by default (session 10: it never hurt where measured)
+    assert SlamConfig().loop.loop_closure  # on by default
     np.testing.assert_array_equal(off.trajectory.R, on.trajectory.R)
     np.testing.assert_array_equal(off.map, on.map)
     out = tmp_path / "ref"
