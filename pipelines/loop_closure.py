@@ -5,51 +5,47 @@ then pulls the new windows back, so the trajectory carries the drift and a jump.
 ``SlidingWindowBackend`` (``backend.attach``: the back-end notifies it around every window) and changes it only
 through ``correct_poses`` and ``drop_map``:
 
-1. keeps a subsample of the settled events (at most ``loop_stored_event_rate`` per second, each stride 1 of k with
-   weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and, delayed
-   by ``loop_recent_time``, marks them in a coarse map of the time each region was last observed (the cells of
-   1 in 4 events) and, once a verification reads it, votes them into an *old map* (a run without a revisit never
-   casts those votes);
-2. detection, before every window's BA (at most one verification per ``loop_recent_time``, less often while a
-   revisit goes on without a correction to apply: the interval doubles up to ``loop_min_age``, not after a
-   registration that ran off beyond ``loop_max_correction``: little overlap at a revisit's start, which grows as it
-   goes on; after an applied
-   loop, the next check waits until the drift rate that loop measured has moved the map by
-   ``loop_check_drift_px``, within the same bounds; at the stream's last window a check not due yet runs when
-   the last verification was ``loop_recent_time`` or more before it: no later check could close the drift built
-   up since): the recent events
-   (the last ``loop_recent_time`` seconds of settled events plus the window's, at their initialized poses: the
-   BA has not pulled them to the old map yet) at their current poses are a revisit candidate when at least
-   ``loop_min_overlap`` of them fall on *old* regions: observed, and last observed at least ``loop_min_age`` s ago
-   or, at least ``loop_recent_time`` s ago, before the camera turned ``loop_min_travel`` (the rotation travelled
-   along the settled trajectory, summed as it settles: a fast pan comes back to its start sooner than any fixed
-   age; sensor_defaults states the rule) (regions without texture give no events, so they are never observed);
+1. store: keeps a subsample of the settled events (at most ``loop_stored_event_rate`` per second, each stride 1 of
+   k with weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and,
+   delayed by ``loop_recent_time``, marks them in a coarse map of the time each region was last observed (the cells
+   of 1 in 4 events) and, once a verification reads it, votes them into an *old map* (a run without a revisit
+   never casts those votes);
+2. detection, before every window's BA: the recent events (the last ``loop_recent_time`` seconds of settled events
+   plus the window's, at their initialized poses: the BA has not pulled them to the old map yet) are a revisit
+   candidate when at least ``loop_min_overlap`` of them fall on *old* regions: observed, and last observed at least
+   ``loop_min_age`` s ago or, at least ``loop_recent_time`` s ago, before the camera turned ``loop_min_travel`` (the
+   rotation travelled along the settled trajectory: a fast pan comes back to its start sooner than any fixed age).
+   Regions without texture give no events, so they are never observed. Checks come at most once per
+   ``loop_recent_time``; while a revisit goes on without a correction to apply the interval doubles up to
+   ``loop_min_age`` (not after a registration that ran off beyond ``loop_max_correction``: the overlap grows as a
+   revisit goes on); after an applied loop the next check waits until the drift rate that loop measured has moved
+   the map by ``loop_check_drift_px``, within the same bounds; at the stream's last window a check not due yet runs
+   when the last verification was ``loop_recent_time`` or more before it (no later check could close the drift);
 3. verification: one rotation C (left, world frame) registers the recent events against the old map of those
-   regions alone, with the back-end's machinery (``PanoIWE``: Var(B(I_recent) + alpha B(I_old)), BFGS from the
-   last verification's inverse Hessian),
-   coarse to fine. The candidate is accepted when the registered maps correlate (normalized cross-correlation
-   over the old regions >= ``loop_min_confidence``), the optimum is unique (that correlation over its best value
-   4 and 8 map pixels away >= ``loop_min_peak_ratio``) and |C| <= ``loop_max_correction``;
-4. correction (when |C| >= ``loop_min_correction_px`` map pixels and the registration raised the correlation by
-   at least ``loop_min_gain``, i.e. the data support it): C is spread over the control poses between the
-   old visit (the middle of the old regions' last visit, or the last applied loop: each later revisit closes
-   only the drift since, against the corrected map) and the recent events by the chain pose graph ``so3.spread_correction``
-   (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of
-   the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
-   spline, so later windows align to one consistent map (the global map at once: the rebuilt old map plus the
-   recent strides' votes, blurred once; stride by stride only with pixel freezing). The global map is rebuilt when
-   the back-end next needs it (``SlidingWindowBackend.refresh_map`` asks ``rebuilt_map``: before the next BA, for the
-   output): while the BA is skipped (real-time level 4) several loops cost one rebuild and the strides settled meanwhile are not voted into the stale map.
-
-   The old map and the age map restart from the checkpoint the last rebuild left when the correction left its
-   strides' poses unchanged (every later loop closes only the drift since the last one), so a rebuild votes the
-   strides aged since, not every stride since the start (bitwise the same maps).
+   regions alone, coarse to fine, with the back-end's machinery (``PanoIWE``: Var(B(I_recent) + alpha B(I_old)),
+   BFGS from the last verification's inverse Hessian). The candidate is accepted when the registered maps correlate
+   (normalized cross-correlation over the old regions >= ``loop_min_confidence``), the optimum is unique (that
+   correlation over its best value 4 and 8 map pixels away >= ``loop_min_peak_ratio``) and |C| <=
+   ``loop_max_correction``;
+4. correction (when |C| >= ``loop_min_correction_px`` map pixels and the registration raised the correlation by at
+   least ``loop_min_gain``: the data support it): C is spread over the control poses between the old visit (the
+   middle of the old regions' last visit, or the last applied loop: each later revisit closes only the drift since)
+   and the recent events by the chain pose graph ``so3.spread_correction`` (weights: rotation travelled between
+   control poses, as drift grows with motion) up to the median time of the recent events on the old regions; later
+   poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples
+   along the corrected spline, so later windows align to one consistent map (the rebuilt old map plus the recent
+   strides' votes, blurred once; stride by stride with pixel freezing). The global map is rebuilt when the back-end
+   next needs it (``SlidingWindowBackend.refresh_map`` asks ``rebuilt_map``: before the next BA, for the output):
+   while the BA is skipped (real-time level 4) several loops cost one rebuild and the strides settled meanwhile are
+   not voted into a map about to be replaced. The old map and the age map restart from the checkpoint the last
+   rebuild left when the correction left its strides' poses unchanged, so a rebuild votes the strides aged since,
+   not every stride since the start (bitwise the same maps);
 5. real time (``slice_seconds``, set by ``ti-cmax slam --realtime``): the verification and the rebuild after it run
    in slices (a helper thread run as a coroutine, strictly alternating with the back-end: one cost evaluation, map
    step or stored stride per slice) for at most ``slice_seconds`` before each window and in the back-end worker's
-   idle time; the result is applied before the window after the verification ends (to the poses then: at level 4,
-   without BA, the same trajectory as at once), with the age map as detected; the old maps serve meanwhile. No
-   new check while one is in flight. Offline (None) all runs at once.
+   idle time; the result is applied before the window after the verification ends (to the poses then), with the age
+   map as detected; the old maps serve meanwhile. No new check while one is in flight. Offline (None) all runs at
+   once.
 
 Every candidate goes into ``loops`` (time, correction, confidence, accepted, applied, reason) for report.json.
 """
