@@ -210,3 +210,23 @@ def test_camera_pickles_without_its_bearing_tables():
     copy = pickle.loads(data)
     assert copy == camera and "bearing_lut4" not in vars(copy)
     np.testing.assert_array_equal(copy.bearing_lut4, table)
+
+
+@pytest.mark.parametrize("backend_process", [False, True])
+def test_the_window_budget_reaches_the_backend_wherever_it_runs(half_second, backend_process):
+    """The real-time budget is an argument of every window step: set by degrade() between pushes it applies to the
+    windows that start after it, in this process and in a worker (sent with every pose message)."""
+    seq, ev = half_second
+    windows = []
+    online = OnlineSlam(seq.camera, SlamConfig(), on_window=windows.append, backend_process=backend_process)
+    half = int(np.searchsorted(ev.t, ev.t[0] + 0.25))
+    online.degrade(ba_cap=0)
+    online.push(ev[:half])
+    online.map()  # with a worker: every window of the first half is done before the budget changes
+    online.degrade()
+    online.push(ev[half:])
+    result = online.close()
+    first = [w for w in result.windows if w.t_end <= ev.t[0] + 0.2]
+    assert first and all(w.skipped and not w.optimized for w in first)
+    assert any(w.optimized for w in result.windows)
+    assert [w.t_start for w in windows] == [w.t_start for w in result.windows]
