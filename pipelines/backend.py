@@ -36,7 +36,6 @@ from ti_cmax.trajectory import Trajectory
 
 from . import backend_policies as policy
 from .backend_policies import FULL_BUDGET, TIME_EPS, Window, WindowBudget
-from .motion import Still
 from .optim import bfgs, fletcher_reeves
 
 _TIME_EPS = TIME_EPS
@@ -61,12 +60,21 @@ class WindowReport:
     max_correction: float = 0.0  # largest change of the trajectory at the window's events (rad)
     rejected: bool = False  # the correction exceeded backend_max_correction and was not applied
     seconds: float = 0.0
-    skipped: bool = False  # BA skipped by the real-time budget (WindowBudget): the initialisation kept
-    still: Still | None = None  # why the window counts as still (no BA; backend_policies.motion_start)
+    no_ba: str | None = None  # why the window got no BA (backend_policies.why_no_ba); None: it got one
     cut_short: bool = False  # BA stopped at the real-time controller's time budget (ba_budget): its best point kept
     done_at: float = 0.0  # time.monotonic() when the window completed (the same clock in every process)
     ba_seconds: float = 0.0  # wall time of the BA (part of ``seconds``)
     busy_seconds: float | None = None  # worker process: wall time it worked since the previous window (not waiting)
+
+    @property
+    def still(self) -> bool:
+        """No motion was measured over the window (no BA: its events hold nothing to refine)."""
+        return self.no_ba == policy.STILL
+
+    @property
+    def skipped(self) -> bool:
+        """The real-time budget skipped the window's BA (its initialisation kept)."""
+        return self.no_ba == policy.SKIPPED
 
 
 class StageClock:
@@ -427,27 +435,23 @@ class SlidingWindowBackend:
         """One window (paper Sec. IV): slide the window, initialise the control poses it adds from the source,
         maximise the panoramic IWE's variance over its free control poses, and settle its first stride into the
         global map. ``budget``: what the real-time controller grants the BA; ``final`` settles every event left."""
-        tic = time.perf_counter()
-        window = self._slide(final)
+        tic, stride = time.perf_counter(), self.cfg.backend_sliding_window_stride
+        window = self._slide(final)  # 1. slide the window
         ev_t, ev_b = self.events.range(window.t0, window.t1, include_end=True)
         report = WindowReport(window.t0, window.t1, len(ev_t), optimized=False, alpha=0.0)
         moving_from = policy.motion_start(self._src_moves, self._src_t, window) \
             if self.cfg.backend_skip_still_windows else window.t0
-        no_ba = policy.why_no_ba(len(ev_t), window, moving_from, budget, len(self.windows), self.cfg)
-        report.still = no_ba if isinstance(no_ba, Still) else None
-        report.skipped = no_ba == policy.SKIPPED
-        if policy.fit_due(len(ev_t), window, None if self.spline is None else self._anchor[0],
-                          self.cfg.backend_sliding_window_stride):
+        report.no_ba = policy.why_no_ba(len(ev_t), window, moving_from, budget, len(self.windows), self.cfg)
+        if policy.fit_due(len(ev_t), window, self.fitted_until, stride):  # 2. initialise the new control poses
             with self.clock("fit"):
-                self._initialize_until(window.t1, refit_past=no_ba is not None)
+                self._initialize_until(window.t1, refit_past=report.no_ba is not None)
         with self.clock(self.observer.stage):
             self.observer.before_window(window.t0, window.t1, window.final)
-        if no_ba is None:
+        if report.no_ba is None:  # 3. maximise the contrast over the window's free control poses
             self._adjust(ev_t, ev_b, window, report, moving_from, budget)
-        with self.clock("settle"):
-            self._settle(window.t0, window.t1 + 1.0 if final else window.t0 + self.cfg.backend_sliding_window_stride,
-                         moving=report.optimized)
-        self.window_start = window.t0 + self.cfg.backend_sliding_window_stride
+        with self.clock("settle"):  # 4. update the map with the first stride's events
+            self._settle(window.t0, window.settle_end(stride), moving=report.optimized)
+        self.window_start = window.t0 + stride
         with self.clock(self.observer.stage):
             self.observer.after_window(self.window_start)
         self._drop_source_before_anchor()

@@ -10,12 +10,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .motion import Still
-
 TIME_EPS = 1e-9
 EMPTY_WINDOWS_PER_FIT = 10  # windows without events fitted at once (fit_due)
-SKIPPED = "skipped by the real-time budget"
+# why a window gets no BA (WindowReport.no_ba)
 FEW_EVENTS = "too few events"
+STILL = "no motion measured over the window"  # every packet over it was still: the window is still
+SKIPPED = "skipped by the real-time budget"
 
 
 @dataclass(frozen=True)
@@ -25,6 +25,10 @@ class Window:
     t0: float
     t1: float
     final: bool = False
+
+    def settle_end(self, stride: float) -> float:
+        """Partial windows: a window settles its first stride; the final one every event left."""
+        return self.t1 + 1.0 if self.final else self.t0 + stride
 
 
 @dataclass(frozen=True)
@@ -74,13 +78,13 @@ def motion_start(moves: deque, source_t: np.ndarray, window: Window) -> float | 
 def why_no_ba(num_events: int, window: Window, moving_from: float | None, budget: WindowBudget,
               windows_done: int, cfg) -> str | None:
     """Why the window gets no BA (None: it gets one): too few events for the variance to mean anything (fewer
-    than two batches or below backend_min_ev_rate), no motion measured over it (``Still``), or the real-time
+    than two batches or below backend_min_ev_rate), no motion measured over it (STILL), or the real-time
     budget skips it (ba_cap 0, or not 1 of ba_every windows)."""
     rate = num_events / max(window.t1 - window.t0, 1e-9)
     if num_events < 2 * cfg.event_batch_size or rate < cfg.backend_min_ev_rate:
         return FEW_EVENTS
     if moving_from is None:
-        return Still.NO_MOTION
+        return STILL
     if budget.ba_cap == 0 or windows_done % max(1, budget.ba_every) > 0:
         return SKIPPED
     return None
