@@ -217,11 +217,13 @@ class OnlineSlam:
         if self.frontend_keep > 1 and (self.packets_seen - 1) % self.frontend_keep:
             self.packets_skipped += 1  # real-time thinning: no omega here, the next packet integrates across
             return
-        omega = self.runner.process(packet)
+        row = self.runner.process(packet)
+        omega = row.omega
         if self._t_prev is not None:
             self._r_src = self._r_src @ so3.exp(0.5 * (self._w_prev + omega) * (packet.t_ref - self._t_prev))
         self._t_prev, self._w_prev = packet.t_ref, omega
-        self._notify(self.backend.advance(packet.t_ref, self._r_src, self.runner.last_moving, lambda: self.budget))
+        moving = not row.motion.still  # a motion measured here: windows over it get a BA
+        self._notify(self.backend.advance(packet.t_ref, self._r_src, moving, lambda: self.budget))
 
     def _notify(self, reports) -> None:
         for report in reports:

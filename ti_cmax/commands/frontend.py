@@ -52,8 +52,7 @@ def run(args) -> int:
         (out / "report.json").write_text(json.dumps(json_ready(report), indent=2))
     if derived:
         print(f"derived from the sensor: {describe({k: v for k, v in derived.items() if hasattr(cfg.frontend, k)})}")
-    flat = int(result.flat.sum()) if result.flat is not None else 0
-    print(f"{len(result)} angular velocities ({int(result.still.sum())} still, {flat} flat), "
+    print(f"{len(result)} angular velocities ({int(result.sparse.sum())} still, {int(result.flat.sum())} flat), "
           f"{timing['events_processed']} input events, {timing['us_per_event']:.3f} us per input event "
           f"({timing['packet_events']} packet events, {timing['us_per_packet_event']:.3f} us each) -> {out}")
     return 0
