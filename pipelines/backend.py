@@ -229,8 +229,8 @@ class GlobalMap:
             self.raw[sel] = new_raw
         self.n_events += float(votes.sum(dtype=np.float64))
         # event area: sum of exp(-old / lambda0) - exp(-new / lambda0) over the region (exactly 0 where no vote
-        # landed), the exponentials in float32 (SIMD: ~7x cheaper than gathering the voted pixels for float64 ones;
-        # the sum in float64)
+        # landed), the exponentials in float32 (vectorised: far cheaper than gathering the voted pixels for float64
+        # ones; the sum in float64)
         scale = np.float32(-1.0 / self.lambda0)
         self.area += float(np.sum(np.exp(old_raw * scale) - np.exp(new_raw * scale), dtype=np.float64))
         old_sums = _sum_and_squares(blur_region(self.raw, self.blurred, rows, cols, self.sigma))
