@@ -175,7 +175,7 @@ def test_a_command_builds_only_its_own_arguments():
     one's --help still works."""
     code = ("import sys; from ti_cmax.cli import build_parser; p = build_parser('slam'); "
             "heavy = [m for m in ('ti_cmax.pipelines.evaluation.benchmark', 'ti_cmax.simulate', 'ti_cmax.pipelines.workflows.grayscale', "
-            "'scipy.ndimage', 'taichi', 'importlib.metadata') if m in sys.modules]; print(heavy)")
+            "'scipy.ndimage', 'taichi', 'quadrants', 'importlib.metadata') if m in sys.modules]; print(heavy)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
     for command in ("benchmark", "simulate", "grayscale", "slam"):
