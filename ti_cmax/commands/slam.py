@@ -5,6 +5,8 @@ import argparse
 import json
 from pathlib import Path
 
+from . import add_map_arguments
+
 HELP = "run CMax-SLAM: trajectory.txt, angular_velocity.txt, map.png, map.npy, report.json"
 
 
@@ -23,21 +25,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--realtime", action="store_true",
                         help="replay the file in sensor time, degrading on purpose to bound the lag (report.json "
                              "\"realtime\"; --set realtime_target_lag=0.3, realtime_speed=1, ...)")
+    add_map_arguments(parser)
 
 
 def spline_override(args) -> list[str]:
     return [] if args.spline is None else [f"spline_degree={1 if args.spline == 'linear' else 3}"]
 
 
-def write_result(out: Path, result, cfg, camera=None) -> None:
-    """Files common to slam and refine: trajectory (TUM), map (PNG, gamma; and raw .npy), report, config."""
+def write_result(out: Path, result, cfg, camera=None, full_sphere: bool = False) -> None:
+    """Files common to slam and refine: trajectory (TUM), map (PNG, gamma, cropped to the observed region unless
+    ``full_sphere``: pipelines/panorama.map_image; and raw .npy), report, config."""
     import imageio.v3 as iio
     import numpy as np
 
     from ..config import SlamConfig, save_config
     from ..io import write_angular_velocity, write_tum
     from ..outputs import json_ready, peak_rss_mb
-    from ..pipelines.panorama import PanoramaResult, map_to_uint8
+    from ..pipelines.panorama import PanoramaResult, map_image
     from ..pipelines.sensor_defaults import resolve_config
 
     if isinstance(cfg, SlamConfig) and camera is not None:
@@ -47,9 +51,12 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
     if result.frontend is not None and len(result.frontend):
         write_angular_velocity(out / "angular_velocity.txt", result.frontend.t, result.frontend.omega)
     np.save(out / "map.npy", result.map)
-    iio.imwrite(out / "map.png", map_to_uint8(result.map, cfg.output.gamma), extension=".png")
+    intensity = getattr(result, "map_kind", "events") == "intensity"
+    png, shown = map_image(result.map, cfg.output.gamma, full_sphere=full_sphere, intensity=intensity)
+    iio.imwrite(out / "map.png", png, extension=".png")
     report = dict(result.report)
     report["map"] = PanoramaResult(result.map, int(round(float(result.map.sum())))).figures(cfg.backend.lambda0)
+    report["map"]["png"] = shown
     if camera is not None:
         report["camera"] = camera.to_dict()
     # of the whole process so far; with a back-end worker (--parallel) plus the worker's own peak: the sum of the two
@@ -105,7 +112,7 @@ def run(args) -> int:
         result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
                           backend_process=parallel)
     with OutputDir(args.out) as out:
-        write_result(out, result, cfg, camera)
+        write_result(out, result, cfg, camera, full_sphere=args.full_sphere)
     us = result.report["us_per_event"]
     print_derived(result.report)
     print(f"CMax-SLAM: {result.report['events_processed']} events, {len(result.trajectory)} poses, "

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 
-from . import positive_float
+from . import add_map_arguments, positive_float
 
 HELP = ("star tracking: front-end + offline BA; trajectory.txt, angular_velocity.txt, star_map.png, "
         "angular_velocity.png, report.json (400 ms relative-rotation RMSE/std when ground truth exists)")
@@ -23,6 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="interval of the relative rotations evaluated (default 0.4 s, as Chin et al.)")
     parser.add_argument("--groundtruth", default=None, metavar="GT.txt",
                         help="ground truth (TUM); default: groundtruth.txt of the dataset when present")
+    add_map_arguments(parser)
 
 
 def angular_velocity_from_trajectory(traj, spacing: float | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -61,16 +62,6 @@ def plot_angular_velocity(path, estimates: dict, groundtruth=None, title: str | 
     _save(fig, path)
 
 
-def visited_crop(image: np.ndarray, margin: int = 8) -> np.ndarray:
-    """The bounding box of the map pixels that received events (longitude wrap ignored), plus a margin."""
-    ys, xs = np.nonzero(image > 0)
-    if len(ys) == 0:
-        return image
-    h, w = image.shape
-    return image[max(ys.min() - margin, 0):min(ys.max() + margin + 1, h),
-                 max(xs.min() - margin, 0):min(xs.max() + margin + 1, w)]
-
-
 def run(args) -> int:
     import dataclasses
 
@@ -78,7 +69,7 @@ def run(args) -> int:
 
     from ..io import read_tum
     from ..outputs import OutputDir, json_ready
-    from ..pipelines.panorama import map_to_uint8
+    from ..pipelines.panorama import map_image
     from ti_cmax.pipelines.workflows.star_tracking import open_star_or_dataset, run_star_tracking, star_tracking_config
     from ..plots import plot_trajectories
     from .slam import spline_override, write_result
@@ -94,8 +85,10 @@ def run(args) -> int:
                          "calibration": getattr(dataset, "calibration_source", None),
                          "groundtruth": gt is not None}
     with OutputDir(args.out) as out:
-        write_result(out, dataclasses.replace(res.ba, frontend=res.frontend, report=report), cfg, dataset.camera)
-        iio.imwrite(out / "star_map.png", map_to_uint8(visited_crop(res.map), cfg.output.gamma), extension=".png")
+        write_result(out, dataclasses.replace(res.ba, frontend=res.frontend, report=report), cfg, dataset.camera,
+                     full_sphere=args.full_sphere)
+        iio.imwrite(out / "star_map.png", map_image(res.map, cfg.output.gamma, full_sphere=args.full_sphere)[0],
+                    extension=".png")
         est = {"front-end": (res.frontend.t, res.frontend.omega),
                "BA": angular_velocity_from_trajectory(res.trajectory, cfg.backend.dt_knots)}
         gt_w = angular_velocity_from_trajectory(gt.slice_time(t0, t1)) if gt is not None and len(gt) > 2 else None
