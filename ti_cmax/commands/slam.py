@@ -7,7 +7,7 @@ from pathlib import Path
 
 from . import add_map_arguments
 
-HELP = "run CMax-SLAM: trajectory.txt, angular_velocity.txt, map.png, map.npy, report.json"
+HELP = "run CMax-SLAM: trajectory.txt, angular_velocity.txt, map.png, map.npy, run.png, report.json"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,9 +32,11 @@ def spline_override(args) -> list[str]:
     return [] if args.spline is None else [f"spline_degree={1 if args.spline == 'linear' else 3}"]
 
 
-def write_result(out: Path, result, cfg, camera=None, full_sphere: bool = False) -> None:
-    """Files common to slam and refine: trajectory (TUM), map (PNG, gamma, cropped to the observed region unless
-    ``full_sphere``: pipelines/panorama.map_image; and raw .npy), report, config."""
+def write_result(out: Path, result, cfg, camera=None, full_sphere: bool = False, groundtruth=None,
+                 title: str | None = None) -> None:
+    """Files common to slam, refine and the baselines: trajectory (TUM), map (PNG, gamma, cropped to the observed
+    region unless ``full_sphere``: pipelines/panorama.map_image; and raw .npy), the run figure (run.png, with the
+    error over time when ``groundtruth`` is given), report, config."""
     import imageio.v3 as iio
     import numpy as np
 
@@ -63,9 +65,27 @@ def write_result(out: Path, result, cfg, camera=None, full_sphere: bool = False)
     # peaks, an upper bound of their total at any moment (the main process alone was half of it on a VGA run)
     report["peak_rss_mb"] = peak_rss_mb() + report.get("backend_process", {}).get("peak_rss_mb", 0.0)
     (out / "report.json").write_text(json.dumps(json_ready(report), indent=2, default=float))
+    write_run_figure(out / "run.png", result.trajectory, result.frontend, getattr(result, "windows", None),
+                     groundtruth, title=title or report.get("method"))
     if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
         write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
     save_config(cfg, out / "config.yaml")
+
+
+def write_run_figure(path: Path, trajectory, frontend=None, windows=None, groundtruth=None, title=None) -> None:
+    """run.png (plots.plot_run): orientation, angular velocity (the front-end's when there is one), the back-end's
+    windows, events per second of the front-end's packets, and the error over time with ground truth."""
+    import numpy as np
+
+    from ..plots import plot_run
+
+    omega = rate = None
+    if frontend is not None and len(frontend.t):
+        omega = (frontend.t, frontend.omega)
+        if getattr(frontend, "num_events", None) is not None and getattr(frontend, "span", None) is not None:
+            ok = (np.asarray(frontend.span) > 0) & (np.asarray(frontend.num_events) > 0)
+            rate = (frontend.t[ok], np.asarray(frontend.num_events)[ok] / np.asarray(frontend.span)[ok])
+    plot_run(path, trajectory, omega=omega, windows=windows, event_rate=rate, groundtruth=groundtruth, title=title)
 
 
 def write_realtime_trace(path: Path, rows: list) -> None:
@@ -112,7 +132,8 @@ def run(args) -> int:
         result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
                           backend_process=parallel)
     with OutputDir(args.out) as out:
-        write_result(out, result, cfg, camera, full_sphere=args.full_sphere)
+        write_result(out, result, cfg, camera, full_sphere=args.full_sphere, groundtruth=dataset.groundtruth,
+                     title=f"CMax-SLAM: {Path(args.dataset).name}")
     us = result.report["us_per_event"]
     print_derived(result.report)
     print(f"CMax-SLAM: {result.report['events_processed']} events, {len(result.trajectory)} poses, "

@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import json
 
-import numpy as np
 
 from . import add_map_arguments, positive_float
 
@@ -26,42 +25,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_map_arguments(parser)
 
 
-def angular_velocity_from_trajectory(traj, spacing: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame angular velocity (rad/s) at sample midpoints: log(R_i^T R_{i+1}) / dt, on samples
-    ``spacing`` s apart when given (a spline's knot spacing: finer differences only show its kinks)."""
-    from scipy.spatial.transform import Rotation
-
-    if spacing:
-        traj = traj.resampled(np.arange(traj.t_start, traj.t_end + 1e-12, spacing))
-    R = traj.R
-    rel = np.einsum("nji,njk->nik", R[:-1], R[1:])
-    dt = np.diff(traj.t)
-    return 0.5 * (traj.t[1:] + traj.t[:-1]), Rotation.from_matrix(rel).as_rotvec() / dt[:, None]
-
-
-def plot_angular_velocity(path, estimates: dict, groundtruth=None, title: str | None = None) -> None:
-    """Three panels (wx, wy, wz in deg/s vs time), estimates solid, ground truth dashed (Fig. 20a)."""
-    from ..plots import _GT_STYLE, _figure, _save
-
-    fig = _figure(9, 6.5)
-    axes = fig.subplots(3, 1, sharex=True)
-    for name, (t, w) in estimates.items():
-        for i, ax in enumerate(axes):
-            ax.plot(t, np.degrees(w[:, i]), linewidth=1.0, label=name)
-    if groundtruth is not None:
-        t, w = groundtruth
-        for i, ax in enumerate(axes):
-            ax.plot(t, np.degrees(w[:, i]), **_GT_STYLE)
-    for i, ax in enumerate(axes):
-        ax.set_ylabel(f"omega_{'xyz'[i]} [deg/s]")
-        ax.grid(alpha=0.3)
-    axes[-1].set_xlabel("time [s]")
-    axes[0].legend(fontsize="small", loc="best")
-    if title:
-        fig.suptitle(title)
-    _save(fig, path)
-
-
 def run(args) -> int:
     import dataclasses
 
@@ -71,7 +34,7 @@ def run(args) -> int:
     from ..outputs import OutputDir, json_ready
     from ..pipelines.panorama import map_image
     from ti_cmax.pipelines.workflows.star_tracking import open_star_or_dataset, run_star_tracking, star_tracking_config
-    from ..plots import plot_trajectories
+    from ..plots import angular_velocity_from_trajectory, plot_angular_velocity, plot_trajectories
     from .slam import spline_override, write_result
 
     cfg = star_tracking_config(args.config, list(args.overrides) + spline_override(args))
