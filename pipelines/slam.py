@@ -355,15 +355,23 @@ class OnlineSlam:
             self.packets_skipped += 1  # real-time thinning: no omega here, the next packet integrates across
             return
         omega = self.runner.process(packet)
+        samples = [(packet.t_ref, None)]
         if self._t_prev is not None:
             self._r_src = self._r_src @ so3.exp(0.5 * (self._w_prev + omega) * (packet.t_ref - self._t_prev))
+        elif len(packet.events) and packet.events.t[0] < packet.t_ref:
+            # the first packet's omega holds from its first event: without that sample the source stood still
+            # before it, and a stream of one packet (a few ms) gave identity poses
+            samples.insert(0, (float(packet.events.t[0]), so3.exp(-omega * (packet.t_ref - packet.events.t[0]))))
         self._t_prev, self._w_prev = packet.t_ref, omega
         backend = self._feed.backend
         moving = [self.runner.last_moving]
-        backend.push_source_poses([packet.t_ref], self._r_src[None], moving)
+        samples = [(t, self._r_src if r is None else self._r_src @ r) for t, r in samples]
+        for t, r in samples:
+            backend.push_source_poses([t], r[None], moving)
         if self._worker is not None:
             self._send_events()  # every event pushed so far goes before the pose, as in the sequential run
-            self._worker.send(("pose", packet.t_ref, self._r_src, moving))
+            for t, r in samples:
+                self._worker.send(("pose", t, r, moving))
             return
         while backend.ready():
             tic, cpu = time.perf_counter(), time.process_time()
