@@ -25,7 +25,7 @@ from ti_cmax.errors import (UNGUARDED_MAIN, UNGUARDED_MAIN_EXIT, InputError, Wor
                             exit_if_spawn_bootstrapping)
 from ti_cmax.events import Events
 from ti_cmax.outputs import peak_rss_mb
-from ti_cmax.progress import progress
+from ti_cmax.progress import StageBars, stage
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
@@ -134,7 +134,8 @@ class OnlineSlam:
     buffer and the front-end's packet slicer; each packet's omega is integrated into the source poses, and every
     window is refined as soon as the front-end has covered it. Chunks may have any size (a camera driver's
     packets, a ROS message); the results do not depend on it. ``on_window(report)`` is called after every window
-    the back-end completes (a :class:`~ti_cmax.pipelines.backend.WindowReport`); ``close()`` ends the stream and
+    the back-end completes (a :class:`~ti_cmax.pipelines.backend.WindowReport`), ``on_packet(packet, omega)`` after
+    every front-end packet (its events and angular velocity; e.g. the live viewer); ``close()`` ends the stream and
     returns the :class:`SlamResult` that ``run_slam`` returns. The trajectory starts at the identity at the first
     event (the world frame is the first camera frame).
 
@@ -149,7 +150,7 @@ class OnlineSlam:
     the BA from then on; by default nothing is degraded.
     """
 
-    def __init__(self, camera: Camera, config: SlamConfig = SlamConfig(), *, on_window=None,
+    def __init__(self, camera: Camera, config: SlamConfig = SlamConfig(), *, on_window=None, on_packet=None,
                  backend_process: bool = False, queue_size: int = 16, max_backlog: float | None = None,
                  loop_slice_seconds: float | None = None, worker_threads: int | None = None):
         self._wall0 = time.perf_counter()
@@ -160,6 +161,7 @@ class OnlineSlam:
         self.derived = derived_summary(config, camera)
         self.config = config = resolve_config(config, camera)
         self.on_window = on_window
+        self.on_packet = on_packet  # observer of each front-end packet: on_packet(packet, omega) (ti_cmax.viewer)
         self.runner = FrontendRunner(camera, config.frontend)
         self._packet_events = self.runner.slicer.n  # N of the resolved config (degrade's input thinning divides it)
         # loop_slice_seconds: loop verifications in slices of at most this many wall seconds per window (and in the
@@ -180,6 +182,7 @@ class OnlineSlam:
         self._q_front = int(config.frontend.frontend_event_sample_rate)
         self._r_src = np.eye(3)
         self._t_prev: float | None = None
+        self._first: list | None = None  # the first packet's source samples while it is the only one (_packet)
         self._w_prev: np.ndarray | None = None
         self.t_last: float | None = None  # time of the last event pushed
         self.events_read = 0
@@ -234,6 +237,12 @@ class OnlineSlam:
             return self._result
         for packet in self.runner.slicer.flush():
             self._packet(packet)
+        if self._first is not None and len(self._first) == 2:
+            # a stream of one packet: its omega holds from its first event (alone, the source stands still: a
+            # 5.5 ms recording gave identity poses)
+            first, only = self._first
+            self._push_source([first, only] if first[0] < only[0] else [only])
+            self._first[1:] = []
         if self._feed.backend is None or self._t_prev is None:  # no events, or no packet: nothing to refine
             if self._worker is not None:
                 self._worker.cancel()
@@ -355,22 +364,27 @@ class OnlineSlam:
             self.packets_skipped += 1  # real-time thinning: no omega here, the next packet integrates across
             return
         omega = self.runner.process(packet)
-        samples = [(packet.t_ref, None)]
         if self._t_prev is not None:
             self._r_src = self._r_src @ so3.exp(0.5 * (self._w_prev + omega) * (packet.t_ref - self._t_prev))
-        elif len(packet.events) and packet.events.t[0] < packet.t_ref:
-            # the first packet's omega holds from its first event: without that sample the source stood still
-            # before it, and a stream of one packet (a few ms) gave identity poses
-            samples.insert(0, (float(packet.events.t[0]), so3.exp(-omega * (packet.t_ref - packet.events.t[0]))))
         self._t_prev, self._w_prev = packet.t_ref, omega
+        if self.on_packet is not None:
+            self.on_packet(packet, omega)
+        sample = (packet.t_ref, self._r_src, [self.runner.last_moving])
+        if self._first is None:  # held until a second packet (sent as before) or the close (a one-packet stream)
+            t_first = float(packet.events.t[0]) if len(packet.events) else packet.t_ref
+            self._first = [(t_first, so3.exp(-omega * (packet.t_ref - t_first)), sample[2]), sample]
+            return
+        self._push_source([*self._first[1:], sample])
+        self._first[1:] = []
+
+    def _push_source(self, samples) -> None:
+        """Source poses (t, R, moving) to the back-end (or its worker); then every window that became ready."""
         backend = self._feed.backend
-        moving = [self.runner.last_moving]
-        samples = [(t, self._r_src if r is None else self._r_src @ r) for t, r in samples]
-        for t, r in samples:
+        for t, r, moving in samples:
             backend.push_source_poses([t], r[None], moving)
         if self._worker is not None:
             self._send_events()  # every event pushed so far goes before the pose, as in the sequential run
-            for t, r in samples:
+            for t, r, moving in samples:
                 self._worker.send(("pose", t, r, moving))
             return
         while backend.ready():
@@ -665,24 +679,26 @@ def default_backend_process(camera: Camera) -> bool:
 
 
 def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig(), *,
-             progress_total: float | None = None, backend_process: bool = False) -> SlamResult:
+             progress_total: float | None = None, backend_process: bool = False, on_packet=None) -> SlamResult:
     """CMax-SLAM on an ``Events`` object, an iterable of time-ordered chunks, or a dataset (``iter_events``).
 
     The trajectory starts at the identity at the first event (the world frame is the first camera frame).
     ``backend_process``: run the back-end in a worker process at the same time as the front-end (OnlineSlam).
+    ``on_packet``: OnlineSlam's observer of each front-end packet (e.g. ti_cmax.viewer).
     """
-    online = OnlineSlam(camera, config, backend_process=backend_process)
-    bar = progress(total=progress_total, desc="slam", unit="s")
-    try:
-        shown = None
+    with stage("start-up and compile"):
+        online = OnlineSlam(camera, config, backend_process=backend_process, on_packet=on_packet)
+    with StageBars(progress_total, ("reading", "front-end", "back-end")) as bars:
         for chunk in as_chunks(events_or_chunks):
+            if len(chunk):
+                bars.start(chunk.t[0])
             online.push(chunk)
-            if online.frontend_until is not None:
-                bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
-                shown = online.frontend_until
-        return online.close()
-    finally:
-        bar.close()
+            for name, t in (("reading", online.t_last), ("front-end", online.frontend_until),
+                            ("back-end", online.refined_until)):
+                bars.at(name, t)
+        result = online.close()
+        bars.done()
+        return result
 
 
 def _at_frontend_rate(trajectory: Trajectory, dt: float) -> Trajectory:
@@ -707,28 +723,26 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
     derived = derived_summary(config, camera)
     config = resolve_config(config, camera)
     trajectory = _at_frontend_rate(trajectory, config.frontend.dt_ang_vel)
-    compile_s = _compile_backend(config)
+    with stage("start-up and compile"):
+        compile_s = _compile_backend(config)
     feed = _BackendFeed(camera, config, lambda t0: trajectory.at(t0)[0])
     inside = (ev.slice_time(trajectory.t_start, np.nextafter(trajectory.t_end, np.inf))
               for ev in as_chunks(events_or_chunks))
     tic = time.perf_counter()
-    bar = progress(total=progress_total, desc="refine", unit="s")
-    last = None
-    try:
+    with StageBars(progress_total, ("reading", "back-end")) as bars:
         for chunk in feed(inside):
-            if last is None:
+            if bars.t0 is None:  # the first chunk: the back-end exists from here
                 feed.backend.push_source_poses(trajectory.t, trajectory.R)
+                bars.start(chunk.t[0])
+            bars.at("reading", float(chunk.t[-1]))
             while feed.backend.ready():
                 feed.backend.step()
-            if last is not None:
-                bar.update(float(chunk.t[-1]) - last)
-            last = float(chunk.t[-1])
+            bars.at("back-end", feed.backend.window_start)
         if feed.backend is None:
             raise InputError("no events within the trajectory's time range "
                              f"[{trajectory.t_start:.6f}, {trajectory.t_end:.6f}] s")
         feed.backend.finish()
-    finally:
-        bar.close()
+        bars.done()
     backend = feed.backend
     backend_seconds = time.perf_counter() - tic
     events_read = feed.events_read
