@@ -679,15 +679,18 @@ def default_backend_process(camera: Camera) -> bool:
 
 
 def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig(), *,
-             progress_total: float | None = None, backend_process: bool = False, on_packet=None) -> SlamResult:
+             progress_total: float | None = None, backend_process: bool = False, observer=None) -> SlamResult:
     """CMax-SLAM on an ``Events`` object, an iterable of time-ordered chunks, or a dataset (``iter_events``).
 
     The trajectory starts at the identity at the first event (the world frame is the first camera frame).
     ``backend_process``: run the back-end in a worker process at the same time as the front-end (OnlineSlam).
-    ``on_packet``: OnlineSlam's observer of each front-end packet (e.g. ti_cmax.viewer).
+    ``observer``: OnlineSlam's ``on_packet`` and ``on_window``, and ``attach(online)`` (ti_cmax.viewer.RerunViewer).
     """
     with stage("start-up and compile"):
-        online = OnlineSlam(camera, config, backend_process=backend_process, on_packet=on_packet)
+        online = OnlineSlam(camera, config, backend_process=backend_process,
+                            on_packet=getattr(observer, "on_packet", None), on_window=getattr(observer, "on_window", None))
+        if observer is not None:
+            observer.attach(online)
     with StageBars(progress_total, ("reading", "front-end", "back-end")) as bars:
         for chunk in as_chunks(events_or_chunks):
             if len(chunk):

@@ -26,6 +26,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replay the file in sensor time, degrading on purpose to bound the lag (report.json "
                              "\"realtime\"; --set realtime_target_lag=0.3, realtime_speed=1, ...)")
     add_map_arguments(parser)
+    parser.add_argument("--viewer", action="store_true",
+                        help="watch the run live in rerun: each packet's image of warped events, the growing map, "
+                             "angular velocity and orientation (needs pip install -e \".[viewer]\")")
+    parser.add_argument("--save-recording", default=None, metavar="FILE.rrd",
+                        help="write the same live view to a rerun recording (open it later: rerun FILE.rrd)")
 
 
 def spline_override(args) -> list[str]:
@@ -120,6 +125,10 @@ def run(args) -> int:
     camera = dataset.camera
     parallel = default_backend_process(camera) if args.parallel is None else args.parallel
     t0, t1 = dataset.time_range()
+    if args.realtime and (args.viewer or args.save_recording):
+        from ..errors import InputError
+
+        raise InputError("--viewer and --save-recording are not available with --realtime")
     if args.realtime:
         import sys
 
@@ -129,8 +138,15 @@ def run(args) -> int:
         result = run_realtime(dataset.iter_events(min(cfg.dataset.chunk_size, READ_EVENTS)), camera, cfg,
                               backend_process=parallel, progress_total=t1 - t0, log=log)
     else:
+        viewer = None
+        if args.viewer or args.save_recording:
+            from ..viewer import RerunViewer
+
+            viewer = RerunViewer(camera, cfg, spawn=args.viewer, save=args.save_recording)
         result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
-                          backend_process=parallel)
+                          backend_process=parallel, observer=viewer)
+        if viewer is not None:
+            viewer.finish(result)
     with OutputDir(args.out) as out:
         write_result(out, result, cfg, camera, full_sphere=args.full_sphere, groundtruth=dataset.groundtruth,
                      title=f"CMax-SLAM: {Path(args.dataset).name}")
