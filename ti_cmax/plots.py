@@ -240,13 +240,15 @@ def plot_run(path: str | os.PathLike, trajectory: Trajectory, *, omega: tuple | 
     ax.legend(loc="upper left", fontsize="small", ncol=4)
 
     ax = axes["angular velocity"]
-    t_w, w = omega if omega is not None else angular_velocity_from_trajectory(trajectory)
+    # from poses: differences over at least 1/300 of the run (a tracker's 14 kHz poses differenced are mostly noise)
+    spacing = (trajectory.t_end - trajectory.t_start) / 300 if len(trajectory) > 300 else None
+    t_w, w = omega if omega is not None else angular_velocity_from_trajectory(trajectory, spacing)
     w = np.asarray(w, dtype=float).reshape(-1, 3)
     for i in range(3):
         ax.plot(t_w, w[:, i], color=_AXIS_COLORS[i], linewidth=1.0, marker="." if len(t_w) < 30 else None,
                 label=f"omega_{'xyz'[i]}")
     if groundtruth is not None:
-        gt_t, gt_w = angular_velocity_from_trajectory(groundtruth)
+        gt_t, gt_w = angular_velocity_from_trajectory(groundtruth, spacing)
         for i in range(3):
             ax.plot(gt_t, gt_w[:, i], color=_AXIS_COLORS[i], linestyle="--", linewidth=0.8)
     ax.set_ylabel("angular velocity\n[rad/s, camera]")
@@ -268,7 +270,8 @@ def plot_run(path: str | os.PathLike, trajectory: Trajectory, *, omega: tuple | 
         ax.legend(loc="upper left", fontsize="small", ncol=3)
     if "event rate" in axes:
         ax = axes["event rate"]
-        ax.plot(event_rate[0], np.asarray(event_rate[1]) / 1e6, color="k", linewidth=1.0)
+        ax.plot(event_rate[0], np.asarray(event_rate[1]) / 1e6, color="k", linewidth=1.0,
+                marker="." if len(event_rate[0]) < 30 else None)
         ax.set_ylabel("event rate\n[M events/s]")
         ax.set_ylim(bottom=0)
     if errors is not None:
