@@ -363,13 +363,14 @@ class OnlineSlam:
         if self.frontend_keep > 1 and (self.packets_seen - 1) % self.frontend_keep:
             self.packets_skipped += 1  # real-time thinning: no omega here, the next packet integrates across
             return
-        omega = self.runner.process(packet)
+        row = self.runner.process(packet)
+        omega = row.omega
         if self._t_prev is not None:
             self._r_src = self._r_src @ so3.exp(0.5 * (self._w_prev + omega) * (packet.t_ref - self._t_prev))
         self._t_prev, self._w_prev = packet.t_ref, omega
         if self.on_packet is not None:
             self.on_packet(packet, omega)
-        sample = (packet.t_ref, self._r_src, [self.runner.last_moving])
+        sample = (packet.t_ref, self._r_src, [not row.motion.still])
         if self._first is None:  # held until a second packet (sent as before) or the close (a one-packet stream)
             t_first = float(packet.events.t[0]) if len(packet.events) else packet.t_ref
             self._first = [(t_first, so3.exp(-omega * (packet.t_ref - t_first)), sample[2]), sample]
@@ -688,7 +689,8 @@ def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig()
     """
     with stage("start-up and compile"):
         online = OnlineSlam(camera, config, backend_process=backend_process,
-                            on_packet=getattr(observer, "on_packet", None), on_window=getattr(observer, "on_window", None))
+                            on_packet=getattr(observer, "on_packet", None),
+                            on_window=getattr(observer, "on_window", None))
         if observer is not None:
             observer.attach(online)
     with StageBars(progress_total, ("reading", "front-end", "back-end")) as bars:

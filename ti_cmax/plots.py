@@ -372,6 +372,6 @@ def plot_maps(path: str | os.PathLike, maps: Mapping[str, np.ndarray] | Sequence
     _save(fig, path)
 
 
-__all__ = ["plot_run", "angular_velocity_from_trajectory", "plot_angular_velocity", "plot_trajectories", "plot_errors_over_time",
-           "plot_error_distributions", "plot_maps", "map_display",
-           "observed_window"]
+__all__ = ["plot_run", "angular_velocity_from_trajectory", "plot_angular_velocity", "plot_trajectories",
+           "plot_errors_over_time", "plot_error_distributions", "plot_maps", "map_display", "observed_window",
+           "METRICS_CAPTION"]

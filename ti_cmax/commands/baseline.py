@@ -1,7 +1,7 @@
 """``ti-cmax baseline NAME DATASET --out DIR``: run a baseline tracker (RTPT, CMax-GAE, IMU dead reckoning, ...).
 
-Writes trajectory.txt (TUM), the method's map (map.png, map.npy), run.png, report.json (status "ok" or "lost" with lost_at)
-and config.yaml; with ``--refine`` also the offline BA of that trajectory in DIR/refined/ (same files).
+Writes trajectory.txt (TUM), the method's map (map.png, map.npy), run.png, report.json (status "ok" or "lost" with
+lost_at) and config.yaml; with ``--refine`` also the offline BA of that trajectory in DIR/refined/ (same files).
 """
 from __future__ import annotations
 

@@ -2,8 +2,9 @@
 
 Writes, into ``--out DIR``: trajectories.png (orientation per axis, each estimate aligned to the ground truth at
 t0) and angular_velocity.png (differences of each trajectory); with ``--groundtruth`` also errors_over_time.png
-(absolute and relative error against time), errors.png (violins of both) and errors.json (RMSE per estimate). Labels are the file names (their folder's name when names repeat) or
-``--labels``. Evaluation parameters as in ``ti-cmax evaluate`` (EvaluationConfig: ``--config``/``--set``).
+(absolute and relative error against time), errors.png (violins of both) and errors.json (RMSE per estimate).
+Labels are the file names (their folder's name when names repeat) or ``--labels``. Evaluation parameters as in
+``ti-cmax evaluate`` (EvaluationConfig: ``--config``/``--set``).
 """
 from __future__ import annotations
 

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from . import add_map_arguments
@@ -47,7 +46,7 @@ def write_result(out: Path, result, cfg, camera=None, full_sphere: bool = False,
 
     from ..config import SlamConfig, save_config
     from ..io import write_angular_velocity, write_tum
-    from ..outputs import json_ready, peak_rss_mb
+    from ..outputs import peak_rss_mb, write_report
     from ..pipelines.panorama import PanoramaResult, map_image
     from ..pipelines.sensor_defaults import resolve_config
 
@@ -69,7 +68,7 @@ def write_result(out: Path, result, cfg, camera=None, full_sphere: bool = False,
     # of the whole process so far; with a back-end worker (--parallel) plus the worker's own peak: the sum of the two
     # peaks, an upper bound of their total at any moment (the main process alone was half of it on a VGA run)
     report["peak_rss_mb"] = peak_rss_mb() + report.get("backend_process", {}).get("peak_rss_mb", 0.0)
-    (out / "report.json").write_text(json.dumps(json_ready(report), indent=2, default=float))
+    write_report(out, report)
     write_run_figure(out / "run.png", result.trajectory, result.frontend, getattr(result, "windows", None),
                      groundtruth, title=title or report.get("method"))
     if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
