@@ -114,7 +114,7 @@ def print_derived(report: dict) -> None:
 
 
 def run(args) -> int:
-    from ..config import SlamConfig, load_config
+    from ..config import SlamConfig, check_workload, load_config
     from ..io import open_dataset_from_config
     from ..outputs import OutputDir
     from ..pipelines.slam import default_backend_process, run_slam
@@ -128,6 +128,7 @@ def run(args) -> int:
         from ..errors import InputError
 
         raise InputError("--viewer and --save-recording are not available with --realtime")
+    check_workload(cfg, t0, t1, realtime=args.realtime)
     if args.realtime:
         import sys
 
