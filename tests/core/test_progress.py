@@ -1,4 +1,4 @@
-"""Progress bars (issue 18, point 6): rounded totals and readable units, a total for the baselines' bars, and
+"""Progress bars: rounded totals and readable units, a total for the baselines' bars, and
 --quiet also silences Taichi's start-up line."""
 import os
 import subprocess
