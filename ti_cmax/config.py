@@ -223,21 +223,21 @@ class FrontendConfig(Params):
     frontend_flat_lookback: float = param(0.64, "a flat packet's past is tested for motion over the events of the "
                                                 "last 4x, 16x ... its span, up to this (0: off)", unit="s", ge=0)
     # the scheduled checks (a cost-only evaluation: vote and blur, ~0.6 of a full one) feed the status, a majority
-    # over them: 10 per second of data (100 Hz packets) are plenty for that (1 of 4 until session 14)
+    # over them: 10 per second of data (100 Hz packets) are plenty for that
     frontend_gain_check_every: int = param(10, "the contrast at omega = 0 (suspect check) is evaluated on 1 of this "
                                               "many moving packets", ge=1)
     # warm start of packet j: "previous" (omega_{j-1}) or "linear" (2 omega_{j-1} - omega_{j-2}, when both exist)
     frontend_warm_start: str = param("linear", "initial omega: previous packet's, or linear extrapolation",
                                      choices=WARM_STARTS)
     # "bfgs" (default): BFGS whose inverse Hessian carries over from packet to packet, so each packet starts with a
-    # quasi-Newton step: 3.0-3.2 evaluations per packet instead of CG's 4.2-4.7, same accuracy (8 simulated
-    # sequences, 2026-12-01); "cg": the reference's Fletcher-Reeves CG. The frontend_cg_* tolerances (iterations,
+    # quasi-Newton step: about 3 evaluations per packet instead of CG's 4-5, for the same accuracy; "cg": the
+    # reference's Fletcher-Reeves CG. The frontend_cg_* tolerances (iterations,
     # gradient, relative cost, evaluations per line search, first step) apply to both
     frontend_optimizer: str = param("bfgs", "contrast maximiser per packet", choices=OPTIMIZERS)
     frontend_bfgs_max_step: float = param(2.0, "BFGS steps are capped at this displacement of the packet's "
                                                 "farthest event", unit="px", gt=0)
     # 0.05 px (1/20 of the blur sigma): an evaluation that cannot move the farthest event by more does not change
-    # omega measurably; 2.9 -> 2.2 evaluations per packet, CMax-SLAM as accurate (6 simulated sequences, 2026-12-02)
+    # omega measurably, so those evaluations are saved
     frontend_bfgs_step_tol: float = param(0.05, "BFGS stops when its next step would move the packet's farthest "
                                                 "event by less than this", unit="px", ge=0)
     # Fletcher-Reeves CG
@@ -291,15 +291,13 @@ class BackendConfig(Params):
     backend_max_correction: float = param(0.1, "a window's larger correction is a false maximum (kept as initialized)",
                                           unit="rad", gt=0)
     # "bfgs" (default): BFGS whose inverse Hessian carries over from window to window (shifted by the knots the
-    # window drops; new control poses start with the mean curvature): 4.9-8.5 evaluations per window instead of
-    # CG's 6.2-16.4, and better converged (8 simulated sequences, 2 s: abs 0.078 vs 0.087 deg, rel 0.100 vs 0.116
-    # deg/s; 2026-12-01). "cg": the reference's Fletcher-Reeves CG. The backend_cg_* tolerances apply to both
+    # window drops; new control poses start with the mean curvature): fewer evaluations per window than CG, and
+    # better converged. "cg": the reference's Fletcher-Reeves CG. The backend_cg_* tolerances apply to both
     backend_optimizer: str = param("bfgs", "window optimiser", choices=OPTIMIZERS)
     backend_bfgs_max_step: float = param(0.05, "BFGS steps (norm over the free control poses) are capped at this",
                                          unit="rad", gt=0)
     # the step that would only confirm convergence (predicted cost change under half backend_cg_rel_cost_tol) is
-    # taken without its evaluation (pipelines/optim.bfgs): 11-15 % fewer BA evaluations at 1-2 M ev/s, accuracy
-    # unchanged on the paper suite (2026-12-03: abs / rel geometric-mean ratio 0.996 / 1.003 over 12 runs)
+    # taken without its evaluation (pipelines/optim.bfgs): fewer BA evaluations at the same accuracy
     backend_bfgs_last_step_unevaluated: bool = param(True, "BFGS takes a last step predicted to change the cost by "
                                                      "under half backend_cg_rel_cost_tol without evaluating it")
     # Fletcher-Reeves CG
@@ -334,9 +332,8 @@ class LoopClosureConfig(Params):
     regions last observed long ago; an accepted correction is spread over the trajectory since that visit and
     the global map is rebuilt from stored event subsamples."""
 
-    # on by default (issue 15: on where it never hurts): without a revisit the output is bitwise that of false (no
-    # candidate, or none applied; 4 pans and 2 random sequences measured), on the pans it closed loops it cut the abs
-    # error, and it costs 2-6 % of a run at the defaults (sessions 9-10); false turns it off, bitwise today's back-end
+    # on by default: without a revisit the output is bitwise that of false (no candidate, or none applied), on
+    # revisits it cuts the error the first visit's map carries, and it costs a few % of a run; false turns it off
     loop_closure: bool = param(True, "loop closure on revisits (false: the back-end's output is bitwise that without "
                                      "the loop closer)")
     loop_min_age: float = param(3.0, "time since a map region was last observed for it to count as old", unit="s",
@@ -401,6 +398,9 @@ class DatasetConfig(Params):
     allow_default_calibration: bool = param(False, "no intrinsics found: use an ideal 60 deg camera instead of failing")
     topic: str = param("", "ROS bag event topic (empty: the only dvs_msgs/EventArray topic)")
     chunk_size: int = param(1_000_000, "events per streamed chunk", unit="events", ge=1)
+    time_unit: str = param("auto", "unit of the event times of text and HDF5 files (auto: the file's: seconds in "
+                                   "text; in HDF5 its units attribute, else seconds for floats, microseconds for "
+                                   "integers)", choices=("auto", "s", "ms", "us", "ns"))
 
     def _relations(self) -> None:
         if (self.width == 0) != (self.height == 0):
@@ -462,6 +462,71 @@ class SlamConfig(Params):
     loop: LoopClosureConfig = param(help="loop closure on revisits", factory=LoopClosureConfig)
     realtime: RealtimeConfig = param(help="real-time replay and degradation (slam --realtime)", factory=RealtimeConfig)
     output: OutputConfig = param(help="outputs", factory=OutputConfig)
+
+
+# ------------------------------------------------------------------------------------------
+# work a config implies over a recording
+# ------------------------------------------------------------------------------------------
+
+# packets, control poses, windows, trajectory samples or real-time hand-overs a run may need at most: 1e7 packets are
+# a day of data at the default 100 Hz; more means a parameter far off its scale (dt_ang_vel=1e-9: 3e8 packets, hours)
+MAX_WORK_ITEMS = 10_000_000
+
+
+def check_workload(cfg, t_start: float, t_end: float, *, realtime: bool = False) -> None:
+    """Refuse, before any work, a config whose spacings imply more than MAX_WORK_ITEMS packets (dt_ang_vel), control
+    poses (dt_knots), windows (backend_sliding_window_stride) or, with
+    ``realtime``, hand-overs (realtime_chunk) over the recording's time range [t_start, t_end] (s): one InputError
+    with the estimate. ``cfg``: a SlamConfig or any config holding some of these sections."""
+    duration = max(float(t_end) - float(t_start), 0.0)
+    fe, be, rt = (getattr(cfg, k, None) for k in ("frontend", "backend", "realtime"))
+    items = []  # (key, value, unit, count, what)
+    if fe is not None:
+        items.append(("dt_ang_vel", fe.dt_ang_vel, "s", duration / fe.dt_ang_vel, "front-end packets"))
+    if be is not None:
+        items.append(("dt_knots", be.dt_knots, "s", duration / be.dt_knots, "control poses"))
+        items.append(("backend_sliding_window_stride", be.backend_sliding_window_stride, "s",
+                      duration / be.backend_sliding_window_stride, "back-end windows"))
+    if realtime and rt is not None:
+        items.append(("realtime_chunk", rt.realtime_chunk, "s", duration / rt.realtime_chunk, "real-time hand-overs"))
+    for key, value, unit, count, what in items:
+        if count > MAX_WORK_ITEMS:
+            raise InputError(f"{key}={value:g} {unit} over this recording's {duration:.6g} s (t = {t_start:.6g} to "
+                             f"{t_end:.6g} s) means {count:.3g} {what}, more than {MAX_WORK_ITEMS:.0e}: refused before "
+                             f"any work; set {key} to its scale (default {_default_of(cfg, key):g} {unit})")
+
+
+# The smallest input that gives a trustworthy omega. Measured with the default front-end on simulated city sequences
+# (about 1.3 rad/s; 1.6 M events/s on a DAVIS240C, 0.5 M on a DVS128), K events drawn from 40 ms (the minimum packet
+# span) at 12 places each: K = 20-100 gave omega off by 110-120 % of the rotation (median; up to 7.9 rad/s) and was
+# never called flat (status ok); K = 200-1000 was called flat (omega = 0: off by 100 %); K = 2000 was off by 24-25 %
+# (median), K = 5000 by 17-24 %. K consecutive events (1.3 ms at 1.6 M events/s) were flat up to 2000, 28 % off at 5000.
+MIN_OMEGA_EVENTS = 2000  # events per packet, on a sensor of up to OMEGA_REFERENCE_PIXELS; scaled with pixels above
+OMEGA_REFERENCE_PIXELS = 240 * 180
+
+
+def min_events_for_omega(width: int, height: int) -> int:
+    """The fewest events a packet (or a whole input) needs for a trustworthy omega on a width x height sensor:
+    MIN_OMEGA_EVENTS, times the pixel count over OMEGA_REFERENCE_PIXELS on larger sensors (as the packet size N)."""
+    return int(math.ceil(MIN_OMEGA_EVENTS * max(1.0, width * height / OMEGA_REFERENCE_PIXELS)))
+
+
+def too_few_events_for_omega(num_events: int, width: int, height: int) -> str | None:
+    """One line saying why ``num_events`` events (a packet's or an input's) give no trustworthy omega on a width x
+    height sensor, or None when they are enough (:func:`min_events_for_omega`)."""
+    need = min_events_for_omega(width, height)
+    if num_events >= need:
+        return None
+    return (f"{num_events} events are too few for a trustworthy angular velocity on a {width}x{height} sensor (at "
+            f"least {need}: with fewer, omega was off by 100 % of the rotation or more)")
+
+
+def _default_of(cfg, key: str):
+    """The default of the leaf field ``key`` of a (nested) config."""
+    for _, f, _ in iter_params(type(cfg)):
+        if f.name == key:
+            return field_default(f)
+    raise KeyError(key)
 
 
 # ------------------------------------------------------------------------------------------
@@ -637,4 +702,5 @@ __all__ = [
     "CONTRAST_MEASURES", "OPTIMIZERS", "SLICING_RULES", "WARM_STARTS", "STEP_GUESSES", "DatasetConfig", "FrontendConfig",
     "BackendConfig", "LoopClosureConfig", "RealtimeConfig", "OutputConfig", "SlamConfig",
     "load_config", "update_config", "build_config", "save_config", "config_to_dict", "parse_overrides", "replace",
+    "check_workload", "MAX_WORK_ITEMS", "MIN_OMEGA_EVENTS", "min_events_for_omega", "too_few_events_for_omega",
 ]

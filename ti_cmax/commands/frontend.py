@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-HELP = "estimate angular velocity by contrast maximisation; write angular_velocity.txt and trajectory.txt"
+HELP = "estimate angular velocity by contrast maximisation; write angular_velocity.txt, trajectory.txt, run.png"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -14,23 +15,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     import time
 
-    from ..config import SlamConfig, config_to_dict, load_config, save_config
+    from ..config import SlamConfig, check_workload, config_to_dict, load_config, save_config
     from ..io import open_dataset_from_config, write_angular_velocity, write_tum
     from ..outputs import OutputDir, write_report
     from ..pipelines.frontend import estimate_angular_velocity
     from ..pipelines.sensor_defaults import derived_summary, describe, resolve_config
+    from .slam import write_run_figure
 
     tic = time.perf_counter()
     cfg = load_config(SlamConfig, args.config, args.overrides)
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     camera = dataset.camera
     t0, t1 = dataset.time_range()
+    check_workload(cfg, t0, t1)
     derived = derived_summary(cfg, camera)
     cfg = resolve_config(cfg, camera)
     result = estimate_angular_velocity(dataset.iter_events(), camera, cfg.frontend, progress_total=t1 - t0)
     with OutputDir(args.out) as out:
         write_angular_velocity(out / "angular_velocity.txt", result.t, result.omega)
-        write_tum(out / "trajectory.txt", result.trajectory())
+        trajectory = result.trajectory()
+        write_tum(out / "trajectory.txt", trajectory)
+        write_run_figure(out / "run.png", trajectory, result, groundtruth=dataset.groundtruth,
+                         title=f"CMax-omega front-end: {Path(args.dataset).name}")
         save_config(cfg, out / "config.yaml")
         timing = result.timing
         report = {
