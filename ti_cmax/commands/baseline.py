@@ -37,15 +37,15 @@ def run(args) -> int:
         from ..pipelines.baselines.smt import smt_contrast
 
         extra = {"groundtruth": dataset.groundtruth, "contrast_threshold": smt_contrast(cfg.smt, args.dataset)}
-    result = run_baseline(args.name, dataset.stream(cfg.dataset.chunk_size), camera, cfg, imu=imu, **extra)
-    refined = None
-    if args.refine:
-        from ..pipelines.slam import refine
+    with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
+        result = run_baseline(args.name, dataset.stream(cfg.dataset.chunk_size), camera, cfg, imu=imu, **extra)
+        refined = None
+        if args.refine:
+            from ..pipelines.slam import refine
 
-        t0, t1 = result.trajectory.t_start, result.trajectory.t_end
-        refined = refine(dataset.iter_events(cfg.dataset.chunk_size), camera, result.trajectory, cfg.slam_config(),
-                         progress_total=t1 - t0)
-    with OutputDir(args.out) as out:
+            t0, t1 = result.trajectory.t_start, result.trajectory.t_end
+            refined = refine(dataset.iter_events(cfg.dataset.chunk_size), camera, result.trajectory,
+                             cfg.slam_config(), progress_total=t1 - t0)
         write_result(out, result, cfg, camera)
         if refined is not None:
             (out / "refined").mkdir()

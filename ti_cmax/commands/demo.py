@@ -16,8 +16,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    import shutil
     import time
+    from pathlib import Path
 
     from ..config import SlamConfig, load_config
     from ..io import open_dataset
@@ -34,9 +34,8 @@ def run(args) -> int:
     cfg = load_config(SlamConfig, args.config, list(args.overrides) + spline_override(args))
     with OutputDir(args.out) as out:
         seq_dir = out / "sequence"
-        if seq_dir.exists():
-            shutil.rmtree(seq_dir)
-        print(f"[1/3] simulating {args.duration:.1f} s of a {DEMO_SEQUENCE['sensor']} sequence -> {seq_dir}")
+        shown = Path(args.out)  # where the outputs end up (``out`` is where they are built)
+        print(f"[1/3] simulating {args.duration:.1f} s of a {DEMO_SEQUENCE['sensor']} sequence -> {shown / 'sequence'}")
         info = simulate_to_folder(SimulatorConfig(**{**DEMO_SEQUENCE, "duration": args.duration}), seq_dir,
                                   show_progress=not args.quiet)
         dataset = open_dataset(seq_dir)
@@ -66,7 +65,7 @@ def run(args) -> int:
         us = result.report["us_per_event"]
         lines = [
             "ti_cmax demo summary",
-            f"sequence      : {seq_dir} ({DEMO_SEQUENCE['sensor']}, scene {DEMO_SEQUENCE['scene']}, "
+            f"sequence      : {shown / 'sequence'} ({DEMO_SEQUENCE['sensor']}, scene {DEMO_SEQUENCE['scene']}, "
             f"{t1 - t0:.2f} s, {result.report['events_processed']} events)",
             f"spline        : {'cubic' if cfg.backend.spline_degree == 3 else 'linear'}, "
             f"map {width}x{height}",
@@ -76,7 +75,8 @@ def run(args) -> int:
         lines += [
             f"speed         : front-end {us['frontend']:.2f} us/event, back-end {us['backend']:.2f} us/event "
             f"(compile {result.report['compile_seconds']:.1f} s apart)",
-            f"results       : {slam_dir}/trajectory.txt, map.png; plots: {out}/trajectories.png, errors.png, maps.png",
+            f"results       : {shown / 'slam'}/trajectory.txt, map.png; plots: {shown}/trajectories.png, errors.png, "
+            "maps.png",
             f"total time    : {time.perf_counter() - tic:.1f} s",
         ]
         (out / "summary.txt").write_text("\n".join(lines) + "\n")

@@ -28,8 +28,8 @@ def run(args) -> int:
     t0, t1 = dataset.time_range()
     derived = derived_summary(cfg, camera)
     cfg = resolve_config(cfg, camera)
-    result = estimate_angular_velocity(dataset.iter_events(), camera, cfg.frontend, progress_total=t1 - t0)
-    with OutputDir(args.out) as out:
+    with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
+        result = estimate_angular_velocity(dataset.iter_events(), camera, cfg.frontend, progress_total=t1 - t0)
         write_angular_velocity(out / "angular_velocity.txt", result.t, result.omega)
         write_tum(out / "trajectory.txt", result.trajectory())
         save_config(cfg, out / "config.yaml")
@@ -55,5 +55,5 @@ def run(args) -> int:
     flat = int(result.flat.sum()) if result.flat is not None else 0
     print(f"{len(result)} angular velocities ({int(result.still.sum())} still, {flat} flat), "
           f"{timing['events_processed']} input events, {timing['us_per_event']:.3f} us per input event "
-          f"({timing['packet_events']} packet events, {timing['us_per_packet_event']:.3f} us each) -> {out}")
+          f"({timing['packet_events']} packet events, {timing['us_per_packet_event']:.3f} us each) -> {args.out}")
     return 0

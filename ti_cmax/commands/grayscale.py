@@ -44,7 +44,7 @@ def run(args) -> int:
     from ..config import config_to_dict, load_config, parse_map_size, parse_map_sizes
     from ..errors import InputError
     from ..io import open_dataset_from_config, read_tum
-    from ..outputs import atomic_path
+    from ..outputs import atomic_files, reject_folder
     from ti_cmax.pipelines.workflows.grayscale import reconstruct_panoramas, resolve_contrast
 
     wall = time.perf_counter()
@@ -60,6 +60,7 @@ def run(args) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise InputError("--out must name a .png file", source=str(out))
+    reject_folder(out)
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     trajectory = read_tum(args.trajectory)
     contrast = args.contrast if args.contrast is not None else resolve_contrast(gcfg, args.dataset)
@@ -79,12 +80,6 @@ def run(args) -> int:
         entry["seconds"]["total"] = float(sum(v for k, v in res.timings.items() if k != "compile"))
         entry["png"] = str(stem.with_suffix(".png"))
         entries.append(entry)
-    for stem, img, log_i in files:
-        with atomic_path(stem.with_suffix(".png")) as tmp:
-            iio.imwrite(tmp, img, extension=".png")
-        with atomic_path(stem.with_suffix(".npy")) as tmp:
-            with open(tmp, "wb") as fh:
-                np.save(fh, log_i)
     report = {
         "maps": entries,
         "contrast_threshold": contrast,
@@ -93,8 +88,13 @@ def run(args) -> int:
         "wall_seconds": time.perf_counter() - wall,
         "parameters": config_to_dict(cfg),
     }
-    with atomic_path(out.with_suffix(".json")) as tmp:
-        tmp.write_text(json.dumps(report, indent=2))
+    targets = [stem.with_suffix(ext) for stem, _, _ in files for ext in (".png", ".npy")] + [out.with_suffix(".json")]
+    with atomic_files(*targets) as tmps:  # every map and the report, or none of them
+        for (_, img, log_i), png, npy in zip(files, tmps[0::2], tmps[1::2]):
+            iio.imwrite(png, img, extension=".png")
+            with open(npy, "wb") as fh:
+                np.save(fh, log_i)
+        tmps[-1].write_text(json.dumps(report, indent=2))
     for e in entries:
         s = e["seconds"]
         print(f"grayscale {e['width']}x{e['height']}: visited {100 * e['visited_fraction']:.2f} %, "

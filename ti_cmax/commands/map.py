@@ -25,10 +25,11 @@ def run(args) -> int:
 
     from ..config import SlamConfig, load_config, parse_map_size
     from ..io import open_dataset_from_config, read_tum
-    from ..outputs import atomic_path
+    from ..outputs import atomic_files, reject_folder
     from ..pipelines.panorama import map_to_uint8, render_panorama
     from ..pipelines.sensor_defaults import pano_size
 
+    reject_folder(args.out)
     cfg = load_config(SlamConfig, args.config, args.overrides)
     gamma = cfg.output.gamma if args.gamma is None else args.gamma
     size = parse_map_size(args.size) if args.size else None
@@ -46,10 +47,9 @@ def run(args) -> int:
                          source=args.trajectory)
     figures = result.figures(cfg.backend.lambda0)
     out = Path(args.out)
-    with atomic_path(out) as tmp:
-        iio.imwrite(tmp, map_to_uint8(result.image, gamma), extension=".png")
-    with atomic_path(out.with_suffix(".json")) as tmp:
-        tmp.write_text(json.dumps(figures, indent=2))
+    with atomic_files(out, out.with_suffix(".json")) as (png, js):  # both or neither
+        iio.imwrite(png, map_to_uint8(result.image, gamma), extension=".png")
+        js.write_text(json.dumps(figures, indent=2))
     print(f"map {width}x{height}: {figures['events']} events, EA {figures['event_area_percent']:.3f} %, "
           f"GM {figures['gradient_magnitude']:.4f}, variance {figures['variance']:.5f}")
     print(json.dumps(figures))

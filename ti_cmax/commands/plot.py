@@ -61,5 +61,5 @@ def run(args) -> int:
         rel = "n/a (overlap shorter than delta)" if e["rel_rmse_deg_per_s"] is None else \
             f"{e['rel_rmse_deg_per_s']:.3f} deg/s"
         print(f"{label:<{width}}  abs RMSE {e['abs_rmse_deg']:.3f} deg  rel RMSE {rel}")
-    print(f"wrote {out}/trajectories.png, errors_over_time.png, errors.png, errors.json")
+    print(f"wrote {args.out}/trajectories.png, errors_over_time.png, errors.png, errors.json")
     return 0

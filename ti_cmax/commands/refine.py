@@ -29,11 +29,11 @@ def run(args) -> int:
     camera = dataset.camera
     initial = read_tum(args.trajectory)
     t0, t1 = dataset.time_range()
-    result = refine(dataset.iter_events(cfg.dataset.chunk_size, t_start=initial.t_start, t_end=initial.t_end),
-                    camera, initial, cfg, progress_total=min(t1, initial.t_end) - max(t0, initial.t_start))
-    with OutputDir(args.out) as out:
+    with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
+        result = refine(dataset.iter_events(cfg.dataset.chunk_size, t_start=initial.t_start, t_end=initial.t_end),
+                        camera, initial, cfg, progress_total=min(t1, initial.t_end) - max(t0, initial.t_start))
         write_result(out, result, cfg, camera)
     print_derived(result.report)
     print(f"refined {len(result.trajectory)} poses over {result.trajectory.t_end - result.trajectory.t_start:.3f} s, "
-          f"back-end {result.report['us_per_event']['backend']:.3f} us/event -> {out}")
+          f"back-end {result.report['us_per_event']['backend']:.3f} us/event -> {args.out}")
     return 0

@@ -93,25 +93,25 @@ def run(args) -> int:
     camera = dataset.camera
     parallel = default_backend_process(camera) if args.parallel is None else args.parallel
     t0, t1 = dataset.time_range()
-    if args.realtime:
-        import sys
+    with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
+        if args.realtime:
+            import sys
 
-        from ..pipelines.realtime import READ_EVENTS, run_realtime
+            from ..pipelines.realtime import READ_EVENTS, run_realtime
 
-        log = None if args.quiet else (lambda msg: print(f"ti-cmax slam: {msg}", file=sys.stderr, flush=True))
-        result = run_realtime(dataset.iter_events(min(cfg.dataset.chunk_size, READ_EVENTS)), camera, cfg,
-                              backend_process=parallel, progress_total=t1 - t0, log=log)
-    else:
-        result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
-                          backend_process=parallel)
-    with OutputDir(args.out) as out:
+            log = None if args.quiet else (lambda msg: print(f"ti-cmax slam: {msg}", file=sys.stderr, flush=True))
+            result = run_realtime(dataset.iter_events(min(cfg.dataset.chunk_size, READ_EVENTS)), camera, cfg,
+                                  backend_process=parallel, progress_total=t1 - t0, log=log)
+        else:
+            result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
+                              backend_process=parallel)
         write_result(out, result, cfg, camera)
     us = result.report["us_per_event"]
     print_derived(result.report)
     print(f"CMax-SLAM: {result.report['events_processed']} events, {len(result.trajectory)} poses, "
           f"front-end {us['frontend']:.3f} us/event, back-end {us['backend']:.3f} us/event "
           f"(compile {result.report['compile_seconds']:.1f} s apart"
-          f"{'; back-end in a worker process' if parallel else ''}) -> {out}")
+          f"{'; back-end in a worker process' if parallel else ''}) -> {args.out}")
     if "realtime" in result.report:
         from ..pipelines.realtime import describe
 

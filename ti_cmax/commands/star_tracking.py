@@ -87,13 +87,13 @@ def run(args) -> int:
     dataset = open_star_or_dataset(args.dataset, cfg.dataset)
     gt = read_tum(args.groundtruth) if args.groundtruth else dataset.groundtruth
     t0, t1 = dataset.time_range()
-    res = run_star_tracking(dataset, dataset.camera, cfg, groundtruth=gt, window=args.window,
-                            progress_total=t1 - t0)
-    report = dict(res.report)
-    report["dataset"] = {"path": str(args.dataset), "format": getattr(dataset, "format", ""),
-                         "calibration": getattr(dataset, "calibration_source", None),
-                         "groundtruth": gt is not None}
-    with OutputDir(args.out) as out:
+    with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
+        res = run_star_tracking(dataset, dataset.camera, cfg, groundtruth=gt, window=args.window,
+                                progress_total=t1 - t0)
+        report = dict(res.report)
+        report["dataset"] = {"path": str(args.dataset), "format": getattr(dataset, "format", ""),
+                             "calibration": getattr(dataset, "calibration_source", None),
+                             "groundtruth": gt is not None}
         write_result(out, dataclasses.replace(res.ba, frontend=res.frontend, report=report), cfg, dataset.camera)
         iio.imwrite(out / "star_map.png", map_to_uint8(visited_crop(res.map), cfg.output.gamma), extension=".png")
         est = {"front-end": (res.frontend.t, res.frontend.omega),
@@ -112,6 +112,6 @@ def run(args) -> int:
         e = res.errors
         line += (f"; {args.window * 1000:.0f} ms relative rotation RMSE {e['ba']['rmse_deg']:.3f} deg "
                  f"(std {e['ba']['std_deg']:.3f}), front-end alone {e['frontend']['rmse_deg']:.3f} deg")
-    print(f"{line} -> {out}")
+    print(f"{line} -> {args.out}")
     print(json.dumps(json_ready({k: report.get(k) for k in ("rmse_deg", "std_deg")} if res.errors else {})))
     return 0

@@ -89,5 +89,5 @@ def run(args) -> int:
         (out / "report.json").write_text(json.dumps(json_ready(report), indent=2, default=float))
         save_config(cfg, out / "config.yaml")
     print(table)
-    print(f"-> {out}")
+    print(f"-> {args.out}")
     return 0
