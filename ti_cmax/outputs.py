@@ -57,6 +57,17 @@ def _signals_held():
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
+def make_folders(folder: Path) -> list[Path]:
+    """Create ``folder`` and its missing parents; returns those created, innermost first. A parent that exists and
+    is not a folder is the OSError "Not a directory" naming it (mkdir said "File exists")."""
+    created = [d for d in (folder, *folder.parents) if not os.path.lexists(d)]
+    existing = created[-1].parent if created else folder
+    if not existing.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(existing))
+    folder.mkdir(parents=True, exist_ok=True)
+    return created
+
+
 def reject_folder(path) -> None:
     """An existing folder where a file is to be written: one line (checked before any work, and again at writing)."""
     path = Path(path)
@@ -80,8 +91,7 @@ def atomic_files(*paths: str | os.PathLike):
         try:
             for path in targets:
                 reject_folder(path)
-                created += [d for d in path.parents if not d.exists() and d not in created]
-                path.parent.mkdir(parents=True, exist_ok=True)
+                created += make_folders(path.parent)
                 fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
                 os.close(fd)
                 tmps.append(Path(tmp))
@@ -99,7 +109,7 @@ def atomic_files(*paths: str | os.PathLike):
         for tmp in tmps:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
-        for d in sorted(created, key=lambda p: len(p.parts), reverse=True):  # only while empty
+        for d in created:  # innermost first, only while empty
             with contextlib.suppress(OSError):
                 d.rmdir()
         raise
@@ -137,8 +147,7 @@ class OutputLock:
         if path.exists() and not path.is_dir():
             raise OutputError("output path exists and is not a folder", source=str(path))
         try:
-            self.created = [d for d in (path, *path.parents) if not d.exists()]
-            path.mkdir(parents=True, exist_ok=True)
+            self.created = make_folders(path)
             self._fd = os.open(path, os.O_RDONLY)
         except OSError as exc:
             self.release()
