@@ -550,6 +550,9 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
     shared memory (-1: None; set by OnlineSlam.degrade), read before each step. With ``loop_slice_seconds`` a loop
     verification runs in slices (LoopCloser.slice_seconds): also one slice at a time while no message waits (idle
     time)."""
+    from ti_cmax.workers import die_with_parent
+
+    die_with_parent()  # killed with the main process, also on SIGKILL
     try:
         from ti_cmax import progress
         from ti_cmax.kernels import runtime
