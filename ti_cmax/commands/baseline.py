@@ -24,6 +24,7 @@ def run(args) -> int:
     from ..io import open_dataset_from_config
     from ..outputs import OutputDir
     from ..pipelines.baselines import BASELINES, BaselineConfig, run_baseline
+    from ..status import status_text
     from .slam import write_result
 
     if args.name not in BASELINES:  # fail before reading any data
@@ -46,12 +47,12 @@ def run(args) -> int:
             t0, t1 = result.trajectory.t_start, result.trajectory.t_end
             refined = refine(dataset.iter_events(cfg.dataset.chunk_size), camera, result.trajectory,
                              cfg.slam_config(), progress_total=t1 - t0)
-        write_result(out, result, cfg, camera)
+        span = dataset.time_range()
+        rep = write_result(out, result, cfg, camera, events_range=span)
         if refined is not None:
             (out / "refined").mkdir()
-            write_result(out / "refined", refined, cfg.slam_config(), camera)
-    rep = result.report
+            write_result(out / "refined", refined, cfg.slam_config(), camera, events_range=span)
     lost = f", lost at {rep['lost_at']:.3f} s" if rep["status"] == "lost" else ""
     print(f"{args.name}: {rep['status']}{lost}, {rep['events_processed']} events, {len(result.trajectory)} poses, "
-          f"{rep['us_per_event']['frontend']:.3f} us/event -> {args.out}")
+          f"{rep['us_per_event']['frontend']:.3f} us/event -> {args.out}{status_text(rep)}")
     return 0

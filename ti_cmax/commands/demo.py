@@ -46,7 +46,7 @@ def run(args) -> int:
                           backend_process=default_backend_process(dataset.camera))  # as `ti-cmax slam` runs by default
         slam_dir = out / "slam"
         slam_dir.mkdir(exist_ok=True)
-        write_result(slam_dir, result, cfg, dataset.camera)
+        write_result(slam_dir, result, cfg, dataset.camera, events_range=(t0, t1))
 
         print("[3/3] evaluating against ground truth")
         gt = dataset.groundtruth

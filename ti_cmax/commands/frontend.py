@@ -20,6 +20,7 @@ def run(args) -> int:
     from ..outputs import OutputDir, json_ready
     from ..pipelines.frontend import estimate_angular_velocity
     from ..pipelines.sensor_defaults import derived_summary, describe, resolve_config
+    from ..status import apply_status, status_text
 
     tic = time.perf_counter()
     cfg = load_config(SlamConfig, args.config, args.overrides)
@@ -49,11 +50,12 @@ def run(args) -> int:
             "derived_parameters": {k: v for k, v in derived.items() if hasattr(cfg.frontend, k)},
             "camera": camera.to_dict(),
         }
+        apply_status(report)
         (out / "report.json").write_text(json.dumps(json_ready(report), indent=2))
     if derived:
         print(f"derived from the sensor: {describe({k: v for k, v in derived.items() if hasattr(cfg.frontend, k)})}")
     flat = int(result.flat.sum()) if result.flat is not None else 0
     print(f"{len(result)} angular velocities ({int(result.still.sum())} still, {flat} flat), "
           f"{timing['events_processed']} input events, {timing['us_per_event']:.3f} us per input event "
-          f"({timing['packet_events']} packet events, {timing['us_per_packet_event']:.3f} us each) -> {args.out}")
+          f"({timing['packet_events']} packet events, {timing['us_per_packet_event']:.3f} us each) -> {args.out}{status_text(report)}")
     return 0

@@ -46,6 +46,8 @@ def run(args) -> int:
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import atomic_files, reject_folder
     from ti_cmax.pipelines.workflows.grayscale import reconstruct_panoramas, resolve_contrast
+    from ..status import apply_status, status_text
+    from .map import events_range
 
     wall = time.perf_counter()
     cfg = load_config(GrayscaleCommandConfig, args.config, args.overrides)
@@ -88,6 +90,8 @@ def run(args) -> int:
         "wall_seconds": time.perf_counter() - wall,
         "parameters": config_to_dict(cfg),
     }
+    apply_status(report, events_range=events_range(dataset, args),
+                 trajectory_range=(trajectory.t_start, trajectory.t_end))
     targets = [stem.with_suffix(ext) for stem, _, _ in files for ext in (".png", ".npy")] + [out.with_suffix(".json")]
     with atomic_files(*targets) as tmps:  # every map and the report, or none of them
         for (_, img, log_i), png, npy in zip(files, tmps[0::2], tmps[1::2]):
@@ -99,6 +103,8 @@ def run(args) -> int:
         s = e["seconds"]
         print(f"grayscale {e['width']}x{e['height']}: visited {100 * e['visited_fraction']:.2f} %, "
               f"EKF {s['ekf']:.3f} s, Poisson {s['poisson']:.3f} s, total {s['total']:.3f} s -> {e['png']}")
+    if report["reasons"]:
+        print(f"grayscale{status_text(report)}")
     print(json.dumps({"maps": [{k: e[k] for k in ("width", "height", "visited_fraction", "seconds")} for e in entries],
                       "events": report["events"]}))
     return 0

@@ -20,6 +20,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--t-end", type=float, default=None, help="last event time to use (s)")
 
 
+def events_range(dataset, args) -> tuple[float, float]:
+    """The time range of the events asked for: the dataset's, cut to --t-start/--t-end."""
+    t0, t1 = dataset.time_range()
+    return (t0 if args.t_start is None else max(t0, args.t_start), t1 if args.t_end is None else min(t1, args.t_end))
+
+
 def run(args) -> int:
     import imageio.v3 as iio
 
@@ -28,6 +34,7 @@ def run(args) -> int:
     from ..outputs import atomic_files, reject_folder
     from ..pipelines.panorama import map_to_uint8, render_panorama
     from ..pipelines.sensor_defaults import pano_size
+    from ..status import apply_status, status_text
 
     reject_folder(args.out)
     cfg = load_config(SlamConfig, args.config, args.overrides)
@@ -45,12 +52,13 @@ def run(args) -> int:
                          f"{trajectory.t_end:.6f}] s" + (" and --t-start/--t-end" if args.t_start is not None
                                                          or args.t_end is not None else "") + ": nothing to render",
                          source=args.trajectory)
-    figures = result.figures(cfg.backend.lambda0)
+    figures = apply_status(result.figures(cfg.backend.lambda0), events_range=events_range(dataset, args),
+                           trajectory_range=(trajectory.t_start, trajectory.t_end))
     out = Path(args.out)
     with atomic_files(out, out.with_suffix(".json")) as (png, js):  # both or neither
         iio.imwrite(png, map_to_uint8(result.image, gamma), extension=".png")
         js.write_text(json.dumps(figures, indent=2))
     print(f"map {width}x{height}: {figures['events']} events, EA {figures['event_area_percent']:.3f} %, "
-          f"GM {figures['gradient_magnitude']:.4f}, variance {figures['variance']:.5f}")
+          f"GM {figures['gradient_magnitude']:.4f}, variance {figures['variance']:.5f}{status_text(figures)}")
     print(json.dumps(figures))
     return 0

@@ -21,6 +21,7 @@ def run(args) -> int:
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import OutputDir
     from ..pipelines.slam import refine
+    from ..status import status_text
     from .slam import print_derived, spline_override, write_result
 
     cfg = load_config(SlamConfig, args.config, list(args.overrides) + spline_override(args)
@@ -32,8 +33,8 @@ def run(args) -> int:
     with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
         result = refine(dataset.iter_events(cfg.dataset.chunk_size, t_start=initial.t_start, t_end=initial.t_end),
                         camera, initial, cfg, progress_total=min(t1, initial.t_end) - max(t0, initial.t_start))
-        write_result(out, result, cfg, camera)
+        report = write_result(out, result, cfg, camera, events_range=(t0, t1))
     print_derived(result.report)
     print(f"refined {len(result.trajectory)} poses over {result.trajectory.t_end - result.trajectory.t_start:.3f} s, "
-          f"back-end {result.report['us_per_event']['backend']:.3f} us/event -> {args.out}")
+          f"back-end {result.report['us_per_event']['backend']:.3f} us/event -> {args.out}{status_text(report)}")
     return 0

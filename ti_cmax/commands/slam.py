@@ -29,8 +29,10 @@ def spline_override(args) -> list[str]:
     return [] if args.spline is None else [f"spline_degree={1 if args.spline == 'linear' else 3}"]
 
 
-def write_result(out: Path, result, cfg, camera=None) -> None:
-    """Files common to slam and refine: trajectory (TUM), map (PNG, gamma; and raw .npy), report, config."""
+def write_result(out: Path, result, cfg, camera=None, events_range=None) -> dict:
+    """Files common to slam and refine: trajectory (TUM), map (PNG, gamma; and raw .npy), report, config. The
+    report gets the run's status and reasons (ti_cmax.status; ``events_range``: the input's time range, which the
+    trajectory should cover) and is returned."""
     import imageio.v3 as iio
     import numpy as np
 
@@ -39,6 +41,7 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
     from ..outputs import json_ready, peak_rss_mb
     from ..pipelines.panorama import PanoramaResult, map_to_uint8
     from ..pipelines.sensor_defaults import resolve_config
+    from ..status import apply_status
 
     if isinstance(cfg, SlamConfig) and camera is not None:
         cfg = resolve_config(cfg, camera)  # derived values are written as numbers: a rerun with it is exact
@@ -55,10 +58,14 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
     # of the whole process so far; with a back-end worker (--parallel) plus the worker's own peak: the sum of the two
     # peaks, an upper bound of their total at any moment (the main process alone was half of it on a VGA run)
     report["peak_rss_mb"] = peak_rss_mb() + report.get("backend_process", {}).get("peak_rss_mb", 0.0)
+    traj = result.trajectory
+    apply_status(report, events_range=events_range,
+                 trajectory_range=(traj.t_start, traj.t_end) if len(traj) else None)
     (out / "report.json").write_text(json.dumps(json_ready(report), indent=2, default=float))
     if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
         write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
     save_config(cfg, out / "config.yaml")
+    return report
 
 
 def write_realtime_trace(path: Path, rows: list) -> None:
@@ -87,6 +94,7 @@ def run(args) -> int:
     from ..io import open_dataset_from_config
     from ..outputs import OutputDir
     from ..pipelines.slam import default_backend_process, run_slam
+    from ..status import status_text
 
     cfg = load_config(SlamConfig, args.config, list(args.overrides) + spline_override(args))
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
@@ -105,13 +113,13 @@ def run(args) -> int:
         else:
             result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
                               backend_process=parallel)
-        write_result(out, result, cfg, camera)
+        report = write_result(out, result, cfg, camera, events_range=(t0, t1))
     us = result.report["us_per_event"]
     print_derived(result.report)
     print(f"CMax-SLAM: {result.report['events_processed']} events, {len(result.trajectory)} poses, "
           f"front-end {us['frontend']:.3f} us/event, back-end {us['backend']:.3f} us/event "
           f"(compile {result.report['compile_seconds']:.1f} s apart"
-          f"{'; back-end in a worker process' if parallel else ''}) -> {args.out}")
+          f"{'; back-end in a worker process' if parallel else ''}) -> {args.out}{status_text(report)}")
     if "realtime" in result.report:
         from ..pipelines.realtime import describe
 

@@ -81,6 +81,7 @@ def run(args) -> int:
     from ..pipelines.panorama import map_to_uint8
     from ti_cmax.pipelines.workflows.star_tracking import open_star_or_dataset, run_star_tracking, star_tracking_config
     from ..plots import plot_trajectories
+    from ..status import status_text
     from .slam import spline_override, write_result
 
     cfg = star_tracking_config(args.config, list(args.overrides) + spline_override(args))
@@ -94,7 +95,8 @@ def run(args) -> int:
         report["dataset"] = {"path": str(args.dataset), "format": getattr(dataset, "format", ""),
                              "calibration": getattr(dataset, "calibration_source", None),
                              "groundtruth": gt is not None}
-        write_result(out, dataclasses.replace(res.ba, frontend=res.frontend, report=report), cfg, dataset.camera)
+        report = write_result(out, dataclasses.replace(res.ba, frontend=res.frontend, report=report), cfg,
+                              dataset.camera, events_range=(t0, t1))
         iio.imwrite(out / "star_map.png", map_to_uint8(visited_crop(res.map), cfg.output.gamma), extension=".png")
         est = {"front-end": (res.frontend.t, res.frontend.omega),
                "BA": angular_velocity_from_trajectory(res.trajectory, cfg.backend.dt_knots)}
@@ -112,6 +114,6 @@ def run(args) -> int:
         e = res.errors
         line += (f"; {args.window * 1000:.0f} ms relative rotation RMSE {e['ba']['rmse_deg']:.3f} deg "
                  f"(std {e['ba']['std_deg']:.3f}), front-end alone {e['frontend']['rmse_deg']:.3f} deg")
-    print(f"{line} -> {args.out}")
+    print(f"{line} -> {args.out}{status_text(report)}")
     print(json.dumps(json_ready({k: report.get(k) for k in ("rmse_deg", "std_deg")} if res.errors else {})))
     return 0

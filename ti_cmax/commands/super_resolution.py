@@ -44,6 +44,7 @@ def run(args) -> int:
     from ..config import SlamConfig, load_config, save_config
     from ..io import write_tum
     from ..outputs import OutputDir, json_ready
+    from ..status import apply_status
     from ..pipelines.panorama import map_to_uint8
     from ti_cmax.pipelines.workflows.star_tracking import open_star_or_dataset
     from ti_cmax.pipelines.workflows.super_resolution import (iter_super_resolution, parse_sizes, quality_availability,
@@ -86,7 +87,7 @@ def run(args) -> int:
             "image_quality": quality_availability(),
             "camera": camera.to_dict(),
         }
-        (out / "report.json").write_text(json.dumps(json_ready(report), indent=2, default=float))
+        (out / "report.json").write_text(json.dumps(json_ready(apply_status(report)), indent=2, default=float))
         save_config(cfg, out / "config.yaml")
     print(table)
     print(f"-> {args.out}")
