@@ -224,3 +224,18 @@ def test_simulate_killed_leaves_the_previous_sequence_whole(tmp_path):
     with OutputDir(out) as d:  # the next run removes the killed one's partial folder
         (d / "x").write_text("")
     assert sorted(os.listdir(out)) == ["events.h5", "x"]
+
+
+def test_commands_refuse_an_output_folder_another_run_is_writing(tmp_path, capsys):
+    """Two runs into one --out both succeeded and interleaved their files."""
+    from ti_cmax.outputs import OutputLock
+
+    seq = _small_sequence(tmp_path / "seq")
+    out = tmp_path / "out"
+    with OutputLock(out):
+        for args in (["slam", seq, "--out", out, "--sequential"], ["frontend", seq, "--out", out],
+                     ["benchmark", "--out", out, "--quick"], ["sweep", "--out", out]):
+            assert main([str(a) for a in args] + ["--quiet"]) == 2, args
+            _one_error_line(capsys.readouterr().err, f"ti-cmax {args[0]}: error:", str(out),
+                            "another ti-cmax run is writing to this folder")
+        assert os.listdir(out) == []
