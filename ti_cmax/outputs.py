@@ -29,16 +29,27 @@ def current_umask() -> int:
     return mask
 
 
-def output_error(exc: OSError, path, tmp=None):
-    """An OSError while writing ``path`` as one OutputError line naming the path (the target, not a temporary file
-    under ``tmp``) and the cause."""
+def output_error(exc: OSError, path, tmp=None, name=None):
+    """An OSError while writing ``path`` as one OutputError line naming the path (``name``, else the file the error
+    names, as its final path rather than its temporary one under ``tmp``) and the cause."""
     from .errors import OutputError
 
-    name = exc.filename if exc.filename is not None else path
-    if tmp is not None and name is not None and str(name).startswith(str(tmp)):
+    name = name if name is not None else exc.filename if exc.filename is not None else path
+    if tmp is not None and str(name).startswith(str(tmp)):
         name = Path(path) / os.path.relpath(name, tmp)  # the file's final path, not its temporary one
-    cause = exc.strerror or (os.strerror(exc.errno) if exc.errno else str(exc))
-    return OutputError(f"cannot write: {cause}", source=str(name))
+    return OutputError(f"cannot write: {_cause(exc, Path(name))}", source=str(name))
+
+
+def _cause(exc: OSError, where: Path) -> str:
+    """The cause of an OSError in words; a short write without an errno (numpy's tofile) on a full disk says so."""
+    if exc.errno:
+        return os.strerror(exc.errno)  # not exc.strerror: HDF5 puts a page of its own there
+    text = str(exc) or type(exc).__name__
+    folder = next((d for d in (where, *where.parents) if d.is_dir()), None)
+    with contextlib.suppress(OSError, AttributeError):
+        if folder is not None and os.statvfs(folder).f_bavail == 0:
+            return f"{os.strerror(errno.ENOSPC)} ({text})"
+    return text
 
 
 @contextlib.contextmanager
@@ -68,13 +79,27 @@ def make_folders(folder: Path) -> list[Path]:
     return created
 
 
-def reject_folder(path) -> None:
-    """An existing folder where a file is to be written: one line (checked before any work, and again at writing)."""
+def check_output_file(path) -> None:
+    """Before any work: a file output that could not be written ends the run at once, in one line: an existing
+    folder of that name, a file among its parents, or a parent folder not writable (read-only, permission)."""
+    from .errors import OutputError
+
     path = Path(path)
     if path.is_dir():
-        from .errors import OutputError
-
         raise OutputError("is a folder; expected a file name", source=str(path))
+    existing = next((d for d in path.parents if os.path.lexists(d)), Path("."))
+    if not existing.is_dir():
+        raise OutputError(f"cannot write: {os.strerror(errno.ENOTDIR)}", source=str(existing))
+    if not os.access(existing, os.W_OK | os.X_OK):
+        code = errno.EROFS if _read_only(existing) else errno.EACCES
+        raise OutputError(f"cannot write: {os.strerror(code)}", source=str(existing))
+
+
+def _read_only(folder: Path) -> bool:
+    try:
+        return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):
+        return False
 
 
 @contextlib.contextmanager
@@ -90,14 +115,17 @@ def atomic_files(*paths: str | os.PathLike):
     try:
         try:
             for path in targets:
-                reject_folder(path)
+                if path.is_dir():
+                    check_output_file(path)
                 created += make_folders(path.parent)
                 fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
                 os.close(fd)
                 tmps.append(Path(tmp))
                 os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp makes 0600; the output gets open()'s mode
-        except OSError as exc:
-            raise output_error(exc, exc.filename or targets[len(tmps)]) from None
+        except OSError as exc:  # a file among the parents, a read-only folder: name the target, not mkstemp's file
+            target = targets[len(tmps)]
+            raise output_error(exc, target, name=exc.filename if exc.filename not in (None, "") and
+                               not Path(exc.filename).name.startswith(f".{target.name}.") else target) from None
         try:
             yield tmps
             with _signals_held():
@@ -116,10 +144,10 @@ def atomic_files(*paths: str | os.PathLike):
 
 
 def _map_tmp_error(exc: OSError, tmps: list[Path], targets: list[Path]):
-    """An OSError naming a temporary file, as the error of its target."""
+    """An OSError naming a temporary file (or none), as the error of its target."""
     for tmp, path in zip(tmps, targets):
         if exc.filename is None or str(exc.filename) == str(tmp):
-            return output_error(OSError(exc.errno, exc.strerror, str(path)), path)
+            return output_error(exc, path, name=path)
     return output_error(exc, targets[0])
 
 

@@ -239,3 +239,48 @@ def test_commands_refuse_an_output_folder_another_run_is_writing(tmp_path, capsy
             _one_error_line(capsys.readouterr().err, f"ti-cmax {args[0]}: error:", str(out),
                             "another ti-cmax run is writing to this folder")
         assert os.listdir(out) == []
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_rerun_interrupted_leaves_the_previous_outputs_whole(tmp_path, sig, code):
+    """A rerun into an existing --out stopped by SIGTERM left its new trajectory and a truncated map.npy beside the
+    previous config.yaml and report.json."""
+    seq = _small_sequence(tmp_path / "seq", n=200_000)
+    out = tmp_path / "out"
+    out.mkdir()
+    previous = {"config.yaml": "previous config", "report.json": "{}", "trajectory.txt": "previous"}
+    for name, text in previous.items():
+        (out / name).write_text(text)
+    proc = subprocess.Popen([sys.executable, "-m", "ti_cmax.cli", "frontend", str(seq), "--out", str(out), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "TI_CMAX_NO_PROGRESS": "1"})
+    try:
+        deadline = time.monotonic() + 60
+        while not any(out.glob(PARTIAL_PREFIX + "*")) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == code, err
+    assert _listing(out) == previous
+
+
+def test_a_rerun_failing_while_it_writes_leaves_the_previous_outputs_whole(tmp_path, monkeypatch, capsys):
+    """Interrupted between two of its files, a rerun had replaced the first ones: the folder mixed two runs."""
+    from ti_cmax import config
+
+    seq = _small_sequence(tmp_path / "seq")
+    out = tmp_path / "out"
+    out.mkdir()
+    previous = {"config.yaml": "previous config", "angular_velocity.txt": "previous", "trajectory.txt": "previous"}
+    for name, text in previous.items():
+        (out / name).write_text(text)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(config, "save_config", interrupted)  # after angular_velocity.txt and trajectory.txt
+    assert main(["frontend", str(seq), "--out", str(out), "--quiet"]) == 130
+    assert _listing(out) == previous

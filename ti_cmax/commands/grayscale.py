@@ -44,7 +44,7 @@ def run(args) -> int:
     from ..config import config_to_dict, load_config, parse_map_size, parse_map_sizes
     from ..errors import InputError
     from ..io import open_dataset_from_config, read_tum
-    from ..outputs import atomic_files, reject_folder
+    from ..outputs import atomic_files, check_output_file
     from ti_cmax.pipelines.workflows.grayscale import reconstruct_panoramas, resolve_contrast
     from ..status import apply_status, status_text
     from .map import events_range
@@ -62,7 +62,7 @@ def run(args) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise InputError("--out must name a .png file", source=str(out))
-    reject_folder(out)
+    check_output_file(out)
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     trajectory = read_tum(args.trajectory)
     contrast = args.contrast if args.contrast is not None else resolve_contrast(gcfg, args.dataset)

@@ -31,12 +31,12 @@ def run(args) -> int:
 
     from ..config import SlamConfig, load_config, parse_map_size
     from ..io import open_dataset_from_config, read_tum
-    from ..outputs import atomic_files, reject_folder
+    from ..outputs import atomic_files, check_output_file
     from ..pipelines.panorama import map_to_uint8, render_panorama
     from ..pipelines.sensor_defaults import pano_size
     from ..status import apply_status, status_text
 
-    reject_folder(args.out)
+    check_output_file(args.out)
     cfg = load_config(SlamConfig, args.config, args.overrides)
     gamma = cfg.output.gamma if args.gamma is None else args.gamma
     size = parse_map_size(args.size) if args.size else None
