@@ -20,6 +20,7 @@ import tempfile
 from pathlib import Path
 
 PARTIAL_PREFIX = ".ti-cmax-partial-"  # the folder inside DIR where a run builds its outputs
+NEARLY_FULL = 1 << 20  # bytes free under which a short write is put down to a full disk
 
 
 def current_umask() -> int:
@@ -46,9 +47,12 @@ def _cause(exc: OSError, where: Path) -> str:
         return os.strerror(exc.errno)  # not exc.strerror: HDF5 puts a page of its own there
     text = str(exc) or type(exc).__name__
     folder = next((d for d in (where, *where.parents) if d.is_dir()), None)
-    with contextlib.suppress(OSError, AttributeError):
-        if folder is not None and os.statvfs(folder).f_bavail == 0:
+    with contextlib.suppress(OSError, AttributeError, ValueError):
+        st = os.statvfs(folder)
+        if st.f_bavail * st.f_frsize < NEARLY_FULL:
             return f"{os.strerror(errno.ENOSPC)} ({text})"
+        if resource.getrlimit(resource.RLIMIT_FSIZE)[0] != resource.RLIM_INFINITY:
+            return f"{os.strerror(errno.EFBIG)} ({text})"
     return text
 
 
@@ -245,6 +249,8 @@ class OutputDir:
         return self._tmp
 
     def __exit__(self, exc_type, exc, tb):
+        from .errors import OutputError
+
         tmp, raised = self._tmp, exc
         try:
             if exc_type is None:
@@ -256,6 +262,8 @@ class OutputDir:
         self._lock.release(remove=raised is not None)
         if isinstance(raised, OSError):
             raise output_error(raised, self.path, tmp) from None
+        if isinstance(raised, OutputError) and str(tmp) in str(raised):  # of an atomic file inside: its final path
+            raise OutputError(str(raised).replace(str(tmp), str(self.path))) from None
         if raised is not None and raised is not exc:
             raise raised
         return False

@@ -284,3 +284,15 @@ def test_a_rerun_failing_while_it_writes_leaves_the_previous_outputs_whole(tmp_p
     monkeypatch.setattr(config, "save_config", interrupted)  # after angular_velocity.txt and trajectory.txt
     assert main(["frontend", str(seq), "--out", str(out), "--quiet"]) == 130
     assert _listing(out) == previous
+
+
+def test_frontend_on_a_full_disk_is_one_line_and_keeps_the_previous_outputs(tmp_path):
+    """slam, frontend and text outputs on a full disk ended in a traceback."""
+    seq = _small_sequence(tmp_path / "seq")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "trajectory.txt").write_text("previous")
+    res = _run_with_file_size_limit(["frontend", seq, "--out", out, "--quiet"], 2000)
+    assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
+    _one_error_line(res.stderr, "ti-cmax frontend: error:", str(out), "File too large")
+    assert _listing(out) == {"trajectory.txt": "previous"}
