@@ -57,13 +57,15 @@ def test_a_lost_method_stays_lost_and_the_summary_line_says_why():
 def test_frontend_result_status_flags_flat_packets_at_a_high_rate():
     from ti_cmax.config import FrontendConfig
     from ti_cmax.pipelines.frontend import FrontendResult
+    from ti_cmax.pipelines.motion import Motion
 
     m = 20
     flat = np.arange(m) >= 5  # 15 of 20 packets flat, all at 8 M ev/s
+    motion = np.array([Motion.FLAT if f else Motion.MOVING for f in flat], dtype=object)
     res = FrontendResult(t=np.arange(m) * 0.01, omega=np.where(flat[:, None], 0.0, 3.0) * np.ones((m, 3)),
-                         num_events=np.full(m, 80_000), span=np.full(m, 0.01), iterations=np.ones(m, int),
-                         evaluations=np.ones(m, int), still=np.zeros(m, bool), cost=np.ones(m),
-                         gain=np.full(m, 1.5), suspect=np.zeros(m, bool), flat=flat, lookback=np.zeros(m),
+                         motion=motion, num_events=np.full(m, 80_000), span=np.full(m, 0.01),
+                         iterations=np.ones(m, int), evaluations=np.ones(m, int), cost=np.ones(m),
+                         gain=np.full(m, 1.5), suspect=np.zeros(m, bool), lookback=np.zeros(m),
                          config=FrontendConfig(frontend_min_event_rate=1e4))
     assert res.status == "suspect"
     summary = res.summary()

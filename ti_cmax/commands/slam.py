@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 HELP = "run CMax-SLAM: trajectory.txt, angular_velocity.txt, map.png, map.npy, report.json"
@@ -38,7 +37,7 @@ def write_result(out: Path, result, cfg, camera=None, events_range=None) -> dict
 
     from ..config import SlamConfig, save_config
     from ..io import write_angular_velocity, write_tum
-    from ..outputs import json_ready, peak_rss_mb
+    from ..outputs import peak_rss_mb, write_report
     from ..pipelines.panorama import PanoramaResult, map_to_uint8
     from ..pipelines.sensor_defaults import resolve_config
     from ..status import apply_status
@@ -61,7 +60,7 @@ def write_result(out: Path, result, cfg, camera=None, events_range=None) -> dict
     traj = result.trajectory
     apply_status(report, events_range=events_range,
                  trajectory_range=(traj.t_start, traj.t_end) if len(traj) else None)
-    (out / "report.json").write_text(json.dumps(json_ready(report), indent=2, default=float))
+    write_report(out, report)
     if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
         write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
     save_config(cfg, out / "config.yaml")
