@@ -47,7 +47,7 @@ def _cause(exc: OSError, where: Path) -> str:
         return os.strerror(exc.errno)  # not exc.strerror: HDF5 puts a page of its own there
     text = str(exc) or type(exc).__name__
     folder = next((d for d in (where, *where.parents) if d.is_dir()), None)
-    with contextlib.suppress(OSError, AttributeError, ValueError):
+    with contextlib.suppress(OSError, AttributeError, ValueError, TypeError):  # TypeError: no folder exists
         st = os.statvfs(folder)
         if st.f_bavail * st.f_frsize < NEARLY_FULL:
             return f"{os.strerror(errno.ENOSPC)} ({text})"
