@@ -258,12 +258,15 @@ class OutputDir:
                     self._commit(tmp)
         except BaseException as err:  # noqa: B036 - the cleanup below runs, then it is raised again
             raised = err
+        mapped = None
+        if isinstance(raised, OSError):  # before the clean-up: a full disk is still full when the cause is read
+            mapped = output_error(raised, self.path, tmp)
+        elif isinstance(raised, OutputError) and str(tmp) in str(raised):  # of an atomic file inside: its final path
+            mapped = OutputError(str(raised).replace(str(tmp), str(self.path)))
         shutil.rmtree(tmp, ignore_errors=True)
         self._lock.release(remove=raised is not None)
-        if isinstance(raised, OSError):
-            raise output_error(raised, self.path, tmp) from None
-        if isinstance(raised, OutputError) and str(tmp) in str(raised):  # of an atomic file inside: its final path
-            raise OutputError(str(raised).replace(str(tmp), str(self.path))) from None
+        if mapped is not None:
+            raise mapped from None
         if raised is not None and raised is not exc:
             raise raised
         return False

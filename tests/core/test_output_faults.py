@@ -245,7 +245,7 @@ def test_commands_refuse_an_output_folder_another_run_is_writing(tmp_path, capsy
 def test_a_rerun_interrupted_leaves_the_previous_outputs_whole(tmp_path, sig, code):
     """A rerun into an existing --out stopped by SIGTERM left its new trajectory and a truncated map.npy beside the
     previous config.yaml and report.json."""
-    seq = _small_sequence(tmp_path / "seq", n=200_000)
+    seq = _small_sequence(tmp_path / "seq", n=2_000_000)  # seconds of work: the signal lands before the end
     out = tmp_path / "out"
     out.mkdir()
     previous = {"config.yaml": "previous config", "report.json": "{}", "trajectory.txt": "previous"}
