@@ -296,3 +296,15 @@ def test_frontend_on_a_full_disk_is_one_line_and_keeps_the_previous_outputs(tmp_
     assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
     _one_error_line(res.stderr, "ti-cmax frontend: error:", str(out), "File too large")
     assert _listing(out) == {"trajectory.txt": "previous"}
+
+
+def test_any_os_error_of_a_command_is_one_line(monkeypatch, capsys):
+    """A file that vanishes while a command reads it (or any other OS failure) ended in a traceback."""
+    from ti_cmax.commands import info
+
+    def vanished(args):
+        raise FileNotFoundError(2, "No such file or directory", "seq/events.h5")
+
+    monkeypatch.setattr(info, "run", vanished)
+    assert main(["info", "seq"]) == 2
+    _one_error_line(capsys.readouterr().err, "ti-cmax info: error: seq/events.h5: No such file or directory")
