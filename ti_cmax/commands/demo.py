@@ -46,7 +46,7 @@ def run(args) -> int:
                           backend_process=default_backend_process(dataset.camera))  # as `ti-cmax slam` runs by default
         slam_dir = out / "slam"
         slam_dir.mkdir(exist_ok=True)
-        write_result(slam_dir, result, cfg, dataset.camera, events_range=(t0, t1))
+        report = write_result(slam_dir, result, cfg, dataset.camera, events_range=(t0, t1))
 
         print("[3/3] evaluating against ground truth")
         gt = dataset.groundtruth
@@ -77,6 +77,7 @@ def run(args) -> int:
             f"(compile {result.report['compile_seconds']:.1f} s apart)",
             f"results       : {shown / 'slam'}/trajectory.txt, map.png; plots: {shown}/trajectories.png, errors.png, "
             "maps.png",
+            f"status        : {report['status']}" + "".join(f"; {r}" for r in report["reasons"]),
             f"total time    : {time.perf_counter() - tic:.1f} s",
         ]
         (out / "summary.txt").write_text("\n".join(lines) + "\n")
