@@ -28,6 +28,13 @@ import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
+
+from ti_cmax.kernels.baselines import gae as G
+from ti_cmax.kernels.baselines.rtpt import footprint_bbox, view_border_rays
+from ti_cmax.kernels.pano import vote_map
+
+from ti_cmax.pipelines.frontend import time_intervals
+from .result import AngularVelocity, BaselineResult, CountedChunks
 from scipy.ndimage import gaussian_filter
 
 from ti_cmax import so3
@@ -62,8 +69,6 @@ class SphereMap:
         self.events = 0
 
     def add(self, bearings: np.ndarray, rotations: np.ndarray) -> None:
-        from ti_cmax.kernels.pano import vote_map
-
         if len(bearings):
             vote_map(bearings, rotations, self.width, self.height, out=self.hist)
             self.events += len(bearings)
@@ -98,8 +103,6 @@ def rmsprop_maximize(fun, x0, iterations, step, decay, mask=None, eps=1e-12):
 
 
 def _compile(camera) -> float:
-    from ti_cmax.kernels.baselines import gae as G
-
     tic = time.perf_counter()
     kv = G.view_K(camera.K, 4, 4)
     obj = G.GAEObjective(kv, 8, 8)
@@ -113,13 +116,7 @@ def _compile(camera) -> float:
 def run_cmax_gae(events_or_chunks, camera, config=None, imu=None):
     """CMax-GAE on events (Events, chunks or a dataset, streamed) -> BaselineResult (40 Hz trajectory, sphere
     histogram)."""
-    from ti_cmax.kernels.baselines import gae as G
-    from ti_cmax.kernels.baselines.rtpt import footprint_bbox, view_border_rays
-    from ti_cmax.pipelines.frontend import time_intervals
-
-    from . import AngularVelocity, BaselineConfig, BaselineResult, CountedChunks
-
-    cfg = (config or BaselineConfig()).gae
+    cfg = config.gae if config is not None else GAEConfig()
     wall0 = time.perf_counter()
     chunks = CountedChunks(events_or_chunks)
     T = float(cfg.gae_interval)

@@ -35,6 +35,10 @@ from ti_cmax.config import Params, param
 from ti_cmax.errors import InputError
 from ti_cmax.progress import progress
 from ti_cmax.trajectory import Trajectory
+from ti_cmax.kernels.baselines import rtpt as K
+
+from ti_cmax.pipelines.frontend import downsampled, fixed_count_packets
+from .result import BaselineResult, CountedChunks
 
 
 @dataclass(frozen=True)
@@ -57,8 +61,6 @@ class RTPTConfig(Params):
 
 
 def _compile(camera, dtype=np.float32) -> float:
-    from ti_cmax.kernels.baselines import rtpt as K
-
     tic = time.perf_counter()
     b = np.array([[0.0, 0.0, 1.0]] * 4, dtype)
     O = np.zeros((8, 16), dtype)
@@ -71,12 +73,7 @@ def _compile(camera, dtype=np.float32) -> float:
 def run_rtpt(events_or_chunks, camera, config=None, imu=None):
     """RTPT on events (Events, chunks or a dataset, streamed) -> BaselineResult (trajectory at packet mid-times,
     edge map). Reading stops where tracking is lost."""
-    from ti_cmax.kernels.baselines import rtpt as K
-    from ti_cmax.pipelines.frontend import downsampled, fixed_count_packets
-
-    from . import BaselineConfig, BaselineResult, CountedChunks
-
-    cfg = (config or BaselineConfig()).rtpt
+    cfg = config.rtpt if config is not None else RTPTConfig()
     wall0 = time.perf_counter()
     chunks = CountedChunks(events_or_chunks)
     packets = fixed_count_packets(downsampled(chunks, cfg.rtpt_event_sample_rate), cfg.rtpt_packet_size)

@@ -205,9 +205,11 @@ from ti_cmax.kernels.baselines import smt as ks
 from ti_cmax.kernels.pano import batch_mid_times
 from ti_cmax.trajectory import Trajectory
 
-from ti_cmax.pipelines.baselines.imu import dead_reckoning
+from ti_cmax.pipelines.frontend import as_chunks
 from ti_cmax.pipelines.workflows.grayscale import GrayscaleConfig, GrayscaleMapper, GrayscaleResult, resolve_contrast
 from .consistency import MotionConsistencyCheck
+from .imu import dead_reckoning
+from .result import BaselineResult
 
 TRACKERS = ("ekf", "pf")
 MOTION_MODELS = ("constant_acceleration", "constant_velocity", "random_walk")
@@ -647,8 +649,6 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
     dead reckoning). ``contrast_threshold``: C (default: :func:`smt_contrast` without a dataset path, i.e.
     mapping.contrast_threshold or 0.22). Never raises on tracking failure: see ``report['status']``.
     """
-    from ..frontend import as_chunks
-
     cfg = config or SmtConfig()
     if tracker is not None:
         cfg = dataclasses.replace(cfg, tracker=tracker)
@@ -884,8 +884,6 @@ def _as_baseline(tracker: str, events_or_chunks, camera, config=None, imu=None, 
     """Registry adapter: (events, camera, BaselineConfig, imu) -> BaselineResult (map: the 8-bit grayscale
     panorama; report['us_per_event'] = {'frontend': ...} like the other baselines, the SMT figures kept apart).
     The SMT parameters come from ``config.smt`` when the BaselineConfig has that section, else the defaults."""
-    from . import BaselineResult
-
     cfg = getattr(config, "smt", None) or SmtConfig()
     res = run_smt(events_or_chunks, camera, cfg, tracker=tracker, imu=imu,
                   groundtruth=groundtruth, contrast_threshold=contrast_threshold)
