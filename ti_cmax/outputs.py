@@ -14,6 +14,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from .errors import InputError, raise_if_interrupted
+
 
 def current_umask() -> int:
     """The process umask (read by setting and restoring it)."""
@@ -25,8 +27,6 @@ def current_umask() -> int:
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None):
     """Yield a temp file path in the target's folder; on success move it onto ``path``."""
-    from .errors import raise_if_interrupted
-
     raise_if_interrupted()  # a Ctrl-C the command line received and third-party code swallowed: write nothing
     path = Path(path)
     created = [d for d in path.parents if not d.exists()]  # folders made for it, removed again on failure
@@ -55,12 +55,8 @@ class OutputDir:
         self._before: set[str] = set()
 
     def __enter__(self) -> Path:
-        from .errors import raise_if_interrupted
-
         raise_if_interrupted()  # a Ctrl-C the command line received and third-party code swallowed: write nothing
         if self.path.exists() and not self.path.is_dir():
-            from .errors import InputError
-
             raise InputError("output path exists and is not a folder", source=str(self.path))
         if not self.path.exists():
             self.path.mkdir(parents=True)
