@@ -113,6 +113,32 @@ def _compile(camera) -> float:
     return time.perf_counter() - tic
 
 
+def _gae_result(cfg: GAEConfig, chunks: CountedChunks, times: list, rots: list, omegas: list, used: int, obj,
+                sphere: SphereMap, wall0: float, tic: float, compile_s: float):
+    """BaselineResult of a run: the poses and angular velocities at the interval mid-times, the sphere histogram
+    and the report (wall0 / tic: start of the run / of the tracking)."""
+    if len(times) < 2:
+        raise InputError(f"CMax-GAE needs at least 2 intervals with {cfg.gae_min_events} sampled events")
+    seconds = time.perf_counter() - tic
+    n_read = chunks.count
+    report = {
+        "status": "ok",
+        "method": "cmax-gae",
+        "events_processed": int(n_read),
+        "events_used": int(used),
+        "intervals": int(len(times)),
+        "evaluations": int(obj.evaluations),
+        "sphere_bytes": sphere.nbytes,
+        "wall_seconds": time.perf_counter() - wall0,
+        "compile_seconds": compile_s,
+        "us_per_event": {"frontend": seconds * 1e6 / max(n_read, 1)},
+        "parameters": asdict(cfg),
+    }
+    times = np.asarray(times)
+    return BaselineResult(Trajectory(times, np.asarray(rots)), sphere.hist, report,
+                          AngularVelocity(times, np.asarray(omegas)))
+
+
 def run_cmax_gae(events_or_chunks, camera, config=None, imu=None):
     """CMax-GAE on events (Events, chunks or a dataset, streamed) -> BaselineResult (40 Hz trajectory, sphere
     histogram)."""
@@ -176,23 +202,4 @@ def run_cmax_gae(events_or_chunks, camera, config=None, imu=None):
             t_prev = t_ref
     finally:
         bar.close()
-    if len(times) < 2:
-        raise InputError(f"CMax-GAE needs at least 2 intervals with {cfg.gae_min_events} sampled events")
-    seconds = time.perf_counter() - tic
-    n_read = chunks.count
-    report = {
-        "status": "ok",
-        "method": "cmax-gae",
-        "events_processed": int(n_read),
-        "events_used": int(used),
-        "intervals": int(len(times)),
-        "evaluations": int(obj.evaluations),
-        "sphere_bytes": sphere.nbytes,
-        "wall_seconds": time.perf_counter() - wall0,
-        "compile_seconds": compile_s,
-        "us_per_event": {"frontend": seconds * 1e6 / max(n_read, 1)},
-        "parameters": asdict(cfg),
-    }
-    times = np.asarray(times)
-    return BaselineResult(Trajectory(times, np.asarray(rots)), sphere.hist, report,
-                          AngularVelocity(times, np.asarray(omegas)))
+    return _gae_result(cfg, chunks, times, rots, omegas, used, obj, sphere, wall0, tic, compile_s)

@@ -249,6 +249,42 @@ def _chunks(events):
     return events() if callable(events) else events
 
 
+def _guarded(key, label, kind, fn, **kw) -> MethodRun:
+    """``fn()``'s MethodRun, or an "error" row with the exception: one failing method must not sink the
+    benchmark; wall_s measured here when the method does not report it."""
+    tic = time.perf_counter()
+    try:
+        run = fn()
+    except Exception as exc:  # noqa: BLE001 - reported as the method's row
+        run = MethodRun(key, label, kind, "error", note=f"{type(exc).__name__}: {exc}"[:300], **kw)
+    if run.wall_s is None:
+        run.wall_s = time.perf_counter() - tic
+    return run
+
+
+def _frontend_run(key, events, camera, cfg, imu, contrast_threshold) -> MethodRun:
+    """One front-end (a FRONTENDS key) on the sequence, as in :func:`run_sequence_methods`."""
+    if key == "cmax-omega":  # the front-end of CMax-SLAM alone (the same packets as in its SLAM runs)
+        def omega_run():
+            res = estimate_angular_velocity(_chunks(events), camera, slam_config(cfg).frontend)
+            t = res.timing
+            return MethodRun("cmax-omega", LABELS["cmax-omega"], "front-end", "ok", trajectory=res.trajectory(),
+                             frontend_us=t["us_per_event"], compile_s=t.get("compile_seconds"),
+                             wall_s=t.get("wall_seconds"), extra={"packets": len(res)})
+        return _guarded(key, LABELS[key], "front-end", omega_run)
+    if key == "imu":
+        def imu_run():
+            if imu is None:
+                raise InputError("the sequence has no IMU data")
+            tic = time.perf_counter()
+            traj = dead_reckoning(imu.t, imu.gyro)
+            return MethodRun("imu", LABELS["imu"], "front-end", "ok", trajectory=traj,
+                             wall_s=time.perf_counter() - tic)
+        return _guarded("imu", LABELS["imu"], "front-end", imu_run)
+    return _guarded(key, LABELS[key], "front-end",
+                   lambda: _run_baseline(key, _chunks(events), camera, cfg, imu, contrast_threshold))
+
+
 def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[str], on_row=None,
                          contrast_threshold=None) -> list[MethodRun]:
     """Run every selected method (and the BA of each front-end that kept track) on one sequence; "gt" in
@@ -263,16 +299,6 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
         if on_row:
             on_row(run)
 
-    def guarded(key, label, kind, fn, **kw) -> MethodRun:
-        tic = time.perf_counter()
-        try:
-            run = fn()
-        except Exception as exc:  # noqa: BLE001 - one failing method must not sink the benchmark
-            run = MethodRun(key, label, kind, "error", note=f"{type(exc).__name__}: {exc}"[:300], **kw)
-        if run.wall_s is None:
-            run.wall_s = time.perf_counter() - tic
-        return run
-
     if "gt" in methods:
         add(MethodRun("gt", LABELS["gt"], "reference", "ok" if groundtruth is not None else "skipped",
                       trajectory=groundtruth, note="" if groundtruth is not None else "no ground truth"))
@@ -280,27 +306,7 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
     for key in FRONTENDS:
         if key not in methods:
             continue
-        if key == "cmax-omega":  # the front-end of CMax-SLAM alone (the same packets as in its SLAM runs)
-            def omega_run():
-                res = estimate_angular_velocity(_chunks(events), camera, slam_config(cfg).frontend)
-                t = res.timing
-                return MethodRun("cmax-omega", LABELS["cmax-omega"], "front-end", "ok", trajectory=res.trajectory(),
-                                 frontend_us=t["us_per_event"], compile_s=t.get("compile_seconds"),
-                                 wall_s=t.get("wall_seconds"), extra={"packets": len(res)})
-            run = guarded(key, LABELS[key], "front-end", omega_run)
-        elif key == "imu":
-            def imu_run():
-                if imu is None:
-                    raise InputError("the sequence has no IMU data")
-                tic = time.perf_counter()
-                traj = dead_reckoning(imu.t, imu.gyro)
-                return MethodRun("imu", LABELS["imu"], "front-end", "ok", trajectory=traj,
-                                 wall_s=time.perf_counter() - tic)
-            run = guarded("imu", LABELS["imu"], "front-end", imu_run)
-        else:
-            run = guarded(key, LABELS[key], "front-end",
-                          lambda k=key: _run_baseline(k, _chunks(events), camera, cfg, imu,
-                                                        contrast_threshold))
+        run = _frontend_run(key, events, camera, cfg, imu, contrast_threshold)
         frontends.append(run)
         add(run)
     for fe_run in frontends:
@@ -320,7 +326,7 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
                 return MethodRun(key, name, "ba", "ok", trajectory=res.trajectory, source=src, spline_degree=d,
                                  backend_us=_us(rep, "backend"), compile_s=rep["compile_seconds"],
                                  wall_s=rep["wall_seconds"], extra=_slam_extra(rep))
-            add(guarded(key, name, "ba", ba_run, source=fe_run.key, spline_degree=d))
+            add(_guarded(key, name, "ba", ba_run, source=fe_run.key, spline_degree=d))
     if "cmax-slam" in methods:
         for d in settings.degrees("slam_degrees"):
             def slam_run(d=d):
@@ -330,7 +336,7 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
                                  trajectory=res.trajectory, spline_degree=d, frontend_us=_us(rep, "frontend"),
                                  backend_us=_us(rep, "backend"), compile_s=rep["compile_seconds"],
                                  wall_s=rep["wall_seconds"], extra=_slam_extra(rep))
-            add(guarded(f"cmax-slam{d}", f"CMax-SLAM ({DEGREE_NAMES[d]})", "slam", slam_run, spline_degree=d))
+            add(_guarded(f"cmax-slam{d}", f"CMax-SLAM ({DEGREE_NAMES[d]})", "slam", slam_run, spline_degree=d))
     return runs
 
 

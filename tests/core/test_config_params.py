@@ -140,6 +140,7 @@ def test_version(capsys):
     assert exc.value.code == 0 and capsys.readouterr().out.startswith(f"ti-cmax {__version__}")
 
 
+@pytest.mark.slow
 def test_closed_output_pipe_ends_quietly():
     proc = subprocess.Popen([sys.executable, "-m", "ti_cmax.cli", "params", "smt"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)

@@ -23,6 +23,7 @@ def _realtime(report_dir):
     return json.loads((report_dir / "report.json").read_text())["realtime"]
 
 
+@pytest.mark.slow
 def test_realtime_cli_writes_sane_lag_fields(short_dataset, tmp_path, capsys):
     from ti_cmax.cli import main
 
@@ -201,6 +202,7 @@ def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path, sig):
     assert not out.exists() or not any(out.iterdir())
 
 
+@pytest.mark.slow
 def test_slow_consumers_lose_no_events(short_sequence):
     """A slow on_window callback (sequential) and a worker bounded to a short backlog (push waits for it): every
     event reaches the map, the result is the unthrottled one; map() mid-stream comes from the worker."""

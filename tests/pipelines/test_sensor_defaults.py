@@ -75,6 +75,7 @@ def _packet(camera, omega, n, seed):
     return Events(t[idx], pix[idx, 0].astype(np.float32), pix[idx, 1].astype(np.float32), np.ones(n))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("camera", [VGA, HD], ids=["VGA", "HD"])
 def test_large_sensor_packet_recovers_omega_with_derived_size(ti_runtime, camera):
     omega = np.array([0.9, -1.3, 0.5])
