@@ -5,6 +5,7 @@ import graph's scan of the ti_cmax folder does not see: the checks run in a subp
 from symbolic links (ti_cmax/, with kernels/ and pipelines/ linked inside), so that they read this checkout's
 source files, imports inside functions included.
 """
+import ast
 import subprocess
 import sys
 import textwrap
@@ -62,3 +63,22 @@ def test_no_import_cycle_among_the_project_modules(assembled):
     lines = proc.stdout.splitlines()
     assert int(lines[0]) > 80  # the scan saw the kernels and pipelines, not only ti_cmax/
     assert lines[1:] == []
+
+
+MAX_FUNCTION_LINES = 80
+# where the limit holds; the Taichi kernels (one launch per step) are exempt
+SHORT_FUNCTIONS = ("ti_cmax", "pipelines/baselines", "pipelines/workflows", "pipelines/evaluation")
+
+
+def test_functions_read_in_one_screen():
+    """No function (nested ones counted inside their parent) over MAX_FUNCTION_LINES lines: a long one is split
+    into named steps."""
+    long = []
+    for folder in SHORT_FUNCTIONS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    lines = node.end_lineno - node.lineno + 1
+                    if lines > MAX_FUNCTION_LINES:
+                        long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({lines} lines)")
+    assert long == []

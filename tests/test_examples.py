@@ -44,6 +44,7 @@ def test_ecd_folder_example(sim_folder, tmp_path, monkeypatch, capsys):
     assert _printed_rmse(out, "CMax-SLAM") < 1.0  # scored from t0 = start + 1 s, as real data is
 
 
+@pytest.mark.slow
 def test_hdf5_example(sim_folder, tmp_path, monkeypatch, capsys):
     folder, seq = sim_folder
     out = _run_example("hdf5_file.py", [folder / "events.h5", "--out", tmp_path / "h5"], monkeypatch, capsys)

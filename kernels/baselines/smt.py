@@ -611,198 +611,12 @@ def _normal_equations(dtype):
 
 
 @functools.cache
-def _filter_steps():
-    """The filter's steps that do not read events (float64): prediction, consistency statistic, re-orthonormalization."""
-    ff = _filter_funcs()
-    ws_matmul, so3d = ff.ws_matmul, ff.so3d
-    f64 = ti.f64
-    vec3d = ti.types.vector(3, f64)
-
-    @ti.func
-    def predict(work: ti.template(), R0, w, a, state_P: ti.template(), dt, q_rate, q_min, q_acc, q_jerk,
-                ns: ti.template()):
-        """Prediction R <- R exp(w dt + a dt^2 / 2), w <- w + a dt (camera frame); work[0] <- F P F^T + Q, F mapping
-        the error state (d world-frame pose, dw, da) through it; work[4] <- the same (the posterior when nothing is
-        measured). Returns (R_pred, w_pred)."""
-        phi = w * dt
-        if ti.static(ns == 9):
-            phi += 0.5 * dt * dt * a
-        R_pred = R0 @ so3d.exp(phi)
-        for i, j in ti.ndrange(ns, ns):
-            work[0, i, j] = state_P[0, i, j]
-            work[1, i, j] = ti.cast(1.0 if i == j else 0.0, f64)
-        for i, j in ti.static(ti.ndrange(3, 3)):
-            work[1, i, j + 3] = R_pred[i, j] * dt
-            if ti.static(ns == 9):
-                work[1, i, j + 6] = 0.5 * dt * dt * R_pred[i, j]
-        if ti.static(ns == 9):
-            for i in ti.static(range(3)):
-                work[1, i + 3, i + 6] = dt
-            w += a * dt
-        ws_matmul(work, 1, 0, 2, ns, False)
-        ws_matmul(work, 2, 1, 0, ns, True)
-        q = ti.max(q_rate * dt, q_min)
-        for i in ti.static(range(3)):
-            work[0, i, i] += q * q
-            work[0, i + 3, i + 3] += q_acc * q_acc * dt
-            if ti.static(ns == 9):
-                work[0, i + 6, i + 6] += q_jerk * q_jerk * dt
-        for i, j in ti.ndrange(ns, ns):
-            work[4, i, j] = work[0, i, j]
-        return R_pred, w
-
-    @ti.func
-    def consistency(work: ti.template(), hb, ns: ti.template()):
-        """Innovation consistency (module doc): y = H^T W r at the prediction has E[y y^T] = Lam P Lam + kappa Lam;
-        with G = the posterior (work[4]), kappa ~ (y^T G y - tr(G Lam P Lam)) / tr(G Lam); Lam in work[6], P in
-        work[0]. Returns the numerator and the denominator."""
-        ws_matmul(work, 6, 0, 7, ns, False)  # Lam P
-        ws_matmul(work, 7, 6, 2, ns, False)  # Lam P Lam
-        ygy = ti.cast(0.0, f64)
-        for i in ti.static(range(ns)):
-            for j in ti.static(range(ns)):
-                ygy += hb[i] * work[4, i, j] * hb[j]
-        t1 = ti.cast(0.0, f64)
-        t2 = ti.cast(0.0, f64)
-        for i, j in ti.ndrange(ns, ns):
-            t1 += work[4, i, j] * work[2, j, i]
-            t2 += work[4, i, j] * work[6, j, i]
-        return ygy - t1, t2
-
-    @ti.func
-    def orthonormalized(R):
-        """Gram-Schmidt on the columns."""
-        c0 = vec3d(R[0, 0], R[1, 0], R[2, 0]).normalized()
-        c1 = vec3d(R[0, 1], R[1, 1], R[2, 1])
-        c1 = (c1 - c0.dot(c1) * c0).normalized()
-        c2 = c0.cross(c1)
-        return ti.Matrix.cols([c0, c1, c2])
-
-    return types.SimpleNamespace(predict=predict, consistency=consistency, orthonormalized=orthonormalized)
-
-
-@functools.cache
-def _update_funcs(dtype):
-    """The iterated batched update with state references (ns-d) or pose references (3-d measurements)."""
+def _track_kernel(dtype):
+    """k_ekf_track in the map dtype ``dtype``; the filter's state and algebra are float64."""
+    select_event = _selection_funcs(dtype).select_event
     normal_equations = _normal_equations(dtype)
     ff = _filter_funcs()
-    ws_inv_spd, so3d = ff.ws_inv_spd, ff.so3d
-    consistency = _filter_steps().consistency
-    f64 = ti.f64
-    mat3d = ti.types.matrix(3, 3, f64)
-    vec3d = ti.types.vector(3, f64)
-
-    @ti.func
-    def update_state_references(work: ti.template(), R_pred, w_pred, a0, iterations, b, e0, e_end,
-                                mids: ti.template(), bearings: ti.template(), ref_uv: ti.template(),
-                                ref_n: ti.template(), ref_src: ti.template(), pol: ti.template(), grad: ti.template(),
-                                cov: ti.template(), updates: ti.template(), width, height, su, sv, contrast, sigma2,
-                                pos2, q2, q5, huber, ns: ti.template()):
-        """State-referenced measurements: Gauss-Newton on prior + batch in the ns-d error state,
-        (P^-1 + Lam) x = b + Lam x_j; the posterior covariance (P^-1 + Lam)^-1 goes to work[4]. Returns
-        (R, w, a, counts, kappa numerator, kappa denominator)."""
-        R = R_pred
-        w = w_pred
-        a = a0
-        cnt = ti.Vector.zero(f64, 4)
-        kap_num = ti.cast(0.0, f64)
-        kap_den = ti.cast(0.0, f64)
-        ws_inv_spd(work, 0, 3, 5, ns)
-        x = ti.Vector.zero(f64, ns)
-        for it in range(iterations):
-            lam, hb, cnt_it = normal_equations(ns, ti.cast(R, dtype), ti.cast(w, dtype), ti.cast(a, dtype), b,
-                                               e0, e_end, mids, bearings, ref_uv, ref_n, ref_src, pol, grad,
-                                               cov, updates, width, height, su, sv, contrast, sigma2, pos2, q2, q5,
-                                               huber)
-            cnt = cnt_it
-            if it == 0:  # the batch's information, kept for the consistency statistic
-                for i in ti.static(range(ns)):
-                    for j in ti.static(range(ns)):
-                        work[6, i, j] = lam[i, j]
-            if cnt[0] > 0:
-                for i in ti.static(range(ns)):  # (nested: a static loop of ns^2 would warn)
-                    for j in ti.static(range(ns)):
-                        work[1, i, j] = work[3, i, j] + lam[i, j]
-                ws_inv_spd(work, 1, 4, 5, ns)
-                if it == 0:
-                    kap_num, kap_den = consistency(work, hb, ns)
-            if cnt[0] > 0:
-                rhs = hb + lam @ x
-                for i in ti.static(range(ns)):
-                    s = ti.cast(0.0, f64)
-                    for j in ti.static(range(ns)):
-                        s += work[4, i, j] * rhs[j]
-                    x[i] = s
-                R = so3d.exp(vec3d(x[0], x[1], x[2])) @ R_pred
-                w = w_pred + vec3d(x[3], x[4], x[5])
-                if ti.static(ns == 9):
-                    a = a0 + vec3d(x[6], x[7], x[8])
-        return R, w, a, cnt, kap_num, kap_den
-
-    @ti.func
-    def update_pose_references(work: ti.template(), R_pred, w_pred, a0, iterations, b, e0, e_end,
-                               mids: ti.template(), bearings: ti.template(), ref_uv: ti.template(),
-                               ref_n: ti.template(), ref_src: ti.template(), pol: ti.template(), grad: ti.template(),
-                               cov: ti.template(), updates: ti.template(), width, height, su, sv, contrast, sigma2,
-                               pos2, q2, q5, huber, ns: ti.template()):
-        """Measurements of the pose only (fixed references): x = P[:, d] (I + Lam P_dd)^-1 (b + Lam d), posterior
-        P - P[:, d] (I + Lam P_dd)^-1 Lam P[d, :] in work[4]. Returns (R, w, counts)."""
-        eye = ti.Matrix.identity(f64, 3)
-        R = R_pred
-        w = w_pred
-        cnt = ti.Vector.zero(f64, 4)
-        pdd = mat3d(0)
-        for i, j in ti.static(ti.ndrange(3, 3)):
-            pdd[i, j] = work[0, i, j]
-        d = vec3d(0, 0, 0)
-        for it in range(iterations):
-            lam, hb, cnt_it = normal_equations(3, ti.cast(R, dtype), ti.cast(w, dtype), ti.cast(a0, dtype), b,
-                                               e0, e_end, mids, bearings, ref_uv, ref_n, ref_src, pol, grad,
-                                               cov, updates, width, height, su, sv, contrast, sigma2, pos2, q2, q5,
-                                               huber)
-            cnt = cnt_it
-            if cnt[0] > 0:
-                m = (eye + lam @ pdd).inverse()
-                v = m @ (hb + lam @ d)
-                ml = m @ lam
-                for i in range(ns):  # x = P[:, d] v; work[5] = P[:, d] (I + Lam P_dd)^-1 Lam
-                    xi = ti.cast(0.0, f64)
-                    for k in ti.static(range(3)):
-                        xi += work[0, i, k] * v[k]
-                    if i < 3:
-                        d[i] = xi
-                    elif i < 6:
-                        w[i - 3] = w_pred[i - 3] + xi
-                    for j in ti.static(range(3)):
-                        s = ti.cast(0.0, f64)
-                        for k in ti.static(range(3)):
-                            s += work[0, i, k] * ml[k, j]
-                        work[5, i, j] = s
-                R = so3d.exp(d) @ R_pred
-                for i, j in ti.ndrange(ns, ns):
-                    s = ti.cast(0.0, f64)
-                    for k in range(3):
-                        s += work[5, i, k] * work[0, k, j]
-                    work[4, i, j] = work[0, i, j] - s
-        for i, j in ti.ndrange(ns, ns):
-            if i < j:
-                s = 0.5 * (work[4, i, j] + work[4, j, i])
-                work[4, i, j] = s
-                work[4, j, i] = s
-        return R, w, cnt
-
-    return types.SimpleNamespace(state_references=update_state_references, pose_references=update_pose_references)
-
-
-@functools.cache
-def _track_kernel(dtype):
-    """k_ekf_track in the map dtype ``dtype``; the filter's state and algebra are float64. Template arguments:
-    ``ns`` (6: constant velocity, 9: constant acceleration) and ``state_refs`` (state or pose references), so
-    a launch compiles only the update it runs."""
-    select_event = _event_funcs(dtype).select_event
-    steps, upd = _filter_steps(), _update_funcs(dtype)
-    predict, orthonormalized = steps.predict, steps.orthonormalized
-    update_state_references, update_pose_references = upd.state_references, upd.pose_references
+    ws_matmul, ws_inv_spd, so3d = ff.ws_matmul, ff.ws_inv_spd, ff.so3d
     vec3, mat3, i32 = _event_types(dtype)
     f64 = ti.f64
     mat3d = ti.types.matrix(3, 3, f64)
@@ -820,21 +634,51 @@ def _track_kernel(dtype):
                     cov: ti.types.ndarray(dtype=dtype, ndim=3), updates: ti.types.ndarray(dtype=ti.i32, ndim=2),
                     width: ti.i32, height: ti.i32, su: dtype, sv: dtype, contrast: dtype, sigma2: dtype, pos2: dtype,
                     outlier2: dtype, min2: dtype, v_band: dtype, max_n: ti.i32, huber: dtype, q_rate: f64, q_min: f64,
-                    q_acc: f64, q_jerk: f64, iterations: ti.i32,
+                    q_acc: f64, q_jerk: f64, iterations: ti.i32, cv_meas: ti.i32,
                     state_R: ti.types.ndarray(dtype=mat3d, ndim=1), state_w: ti.types.ndarray(dtype=vec3d, ndim=1),
                     state_a: ti.types.ndarray(dtype=vec3d, ndim=1), state_P: ti.types.ndarray(dtype=f64, ndim=3),
                     work: ti.types.ndarray(dtype=f64, ndim=3), diag: ti.types.ndarray(dtype=f64, ndim=2),
-                    ns: ti.template(), state_refs: ti.template()):
-        """EKF-SMT over batches b0..b1-1 in one launch (serial): per batch the prediction, the references selected
-        under it, the iterated batched update, the pose written to hist/hist64 (read back as the previous poses of
-        later events). work[0]: P, [1]: F, then the matrix to invert, [2]: F P, [3]: P^-1, [4]: posterior,
+                    ns: ti.template()):
+        """EKF-SMT over batches b0..b1-1 in one launch (serial): constant-velocity (ns = 6) or constant-acceleration
+        (ns = 9) prediction, iterated batched update, poses written to hist/hist64 (read back as the previous poses
+        of later events). work[0]: P, [1]: F, then the matrix to invert, [2]: F P, [3]: P^-1, [4]: posterior,
         [5], [6]: scratch."""
         n = bearings.shape[0]
+        eye = ti.Matrix.identity(f64, 3)
         ti.loop_config(serialize=True)
         for b in range(b0, b1):
+            dt = mids[b] - mids[b - 1]
+            # prediction: R <- R exp(w dt + a dt^2 / 2), w <- w + a dt (camera frame); F maps the error state
+            # (d world-frame pose, dw, da) through it
+            w = state_w[0]
             a = state_a[0]
-            R_pred, w_pred = predict(work, state_R[0], state_w[0], a, state_P, mids[b] - mids[b - 1], q_rate, q_min,
-                                     q_acc, q_jerk, ns)
+            phi = w * dt
+            if ti.static(ns == 9):
+                phi += 0.5 * dt * dt * a
+            R_pred = state_R[0] @ so3d.exp(phi)
+            for i, j in ti.ndrange(ns, ns):
+                work[0, i, j] = state_P[0, i, j]
+                work[1, i, j] = ti.cast(1.0 if i == j else 0.0, f64)
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                work[1, i, j + 3] = R_pred[i, j] * dt
+                if ti.static(ns == 9):
+                    work[1, i, j + 6] = 0.5 * dt * dt * R_pred[i, j]
+            if ti.static(ns == 9):
+                for i in ti.static(range(3)):
+                    work[1, i + 3, i + 6] = dt
+                w += a * dt
+            ws_matmul(work, 1, 0, 2, ns, False)
+            ws_matmul(work, 2, 1, 0, ns, True)
+            q = ti.max(q_rate * dt, q_min)
+            for i in ti.static(range(3)):
+                work[0, i, i] += q * q
+                work[0, i + 3, i + 3] += q_acc * q_acc * dt
+                if ti.static(ns == 9):
+                    work[0, i + 6, i + 6] += q_jerk * q_jerk * dt
+            for i, j in ti.ndrange(ns, ns):
+                work[4, i, j] = work[0, i, j]  # the posterior when nothing is measured
+            w_pred = w
+            R = R_pred
             e0 = b * batch_size
             e_end = ti.min((b + 1) * batch_size, n)
             rp = ti.cast(R_pred, dtype)
@@ -845,20 +689,104 @@ def _track_kernel(dtype):
             # from w's random walk, (q_jerk^2 / 20) dt_ref^5 from a's (constant acceleration)
             q2 = ti.cast(q_acc * q_acc / 3.0, dtype)
             q5 = ti.cast(q_jerk * q_jerk / 20.0, dtype)
-            R = R_pred
-            w = w_pred
             cnt = ti.Vector.zero(f64, 4)
             kap_num = ti.cast(0.0, f64)
             kap_den = ti.cast(0.0, f64)
-            if ti.static(state_refs):
-                R, w, a, cnt, kap_num, kap_den = update_state_references(
-                    work, R_pred, w_pred, a, iterations, b, e0, e_end, mids, bearings, ref_uv, ref_n, ref_src, pol,
-                    grad, cov, updates, width, height, su, sv, contrast, sigma2, pos2, q2, q5, huber, ns)
+            if cv_meas:
+                # state-referenced measurements: Gauss-Newton on prior + batch in the ns-d error state,
+                # (P^-1 + Lam) x = b + Lam x_j; the posterior covariance is (P^-1 + Lam)^-1
+                ws_inv_spd(work, 0, 3, 5, ns)
+                x = ti.Vector.zero(f64, ns)
+                for it in range(iterations):
+                    lam, hb, cnt_it = normal_equations(ns, ti.cast(R, dtype), ti.cast(w, dtype), ti.cast(a, dtype), b,
+                                                       e0, e_end, mids, bearings, ref_uv, ref_n, ref_src, pol, grad,
+                                                       cov, updates, width, height, su, sv, contrast, sigma2, pos2, q2, q5,
+                                                       huber)
+                    cnt = cnt_it
+                    if it == 0:  # the batch's information, kept for the consistency statistic
+                        for i in ti.static(range(ns)):
+                            for j in ti.static(range(ns)):
+                                work[6, i, j] = lam[i, j]
+                    if cnt[0] > 0:
+                        for i in ti.static(range(ns)):  # (nested: a static loop of ns^2 would warn)
+                            for j in ti.static(range(ns)):
+                                work[1, i, j] = work[3, i, j] + lam[i, j]
+                        ws_inv_spd(work, 1, 4, 5, ns)
+                        if it == 0:
+                            # innovation consistency (module doc): y = H^T W r at the prediction has E[y y^T] =
+                            # Lam P Lam + kappa Lam; with G = the posterior, kappa ~ (y^T G y - tr(G Lam P Lam)) /
+                            # tr(G Lam)
+                            ws_matmul(work, 6, 0, 7, ns, False)  # Lam P
+                            ws_matmul(work, 7, 6, 2, ns, False)  # Lam P Lam
+                            ygy = ti.cast(0.0, f64)
+                            for i in ti.static(range(ns)):
+                                for j in ti.static(range(ns)):
+                                    ygy += hb[i] * work[4, i, j] * hb[j]
+                            t1 = ti.cast(0.0, f64)
+                            t2 = ti.cast(0.0, f64)
+                            for i, j in ti.ndrange(ns, ns):
+                                t1 += work[4, i, j] * work[2, j, i]
+                                t2 += work[4, i, j] * work[6, j, i]
+                            kap_num = ygy - t1
+                            kap_den = t2
+                    if cnt[0] > 0:
+                        rhs = hb + lam @ x
+                        for i in ti.static(range(ns)):
+                            s = ti.cast(0.0, f64)
+                            for j in ti.static(range(ns)):
+                                s += work[4, i, j] * rhs[j]
+                            x[i] = s
+                        R = so3d.exp(vec3d(x[0], x[1], x[2])) @ R_pred
+                        w = w_pred + vec3d(x[3], x[4], x[5])
+                        if ti.static(ns == 9):
+                            a = state_a[0] + vec3d(x[6], x[7], x[8])
             else:
-                R, w, cnt = update_pose_references(
-                    work, R_pred, w_pred, a, iterations, b, e0, e_end, mids, bearings, ref_uv, ref_n, ref_src, pol,
-                    grad, cov, updates, width, height, su, sv, contrast, sigma2, pos2, q2, q5, huber, ns)
-            R = orthonormalized(R)
+                # measurements of the pose only (fixed references): x = P[:, d] (I + Lam P_dd)^-1 (b + Lam d),
+                # posterior P - P[:, d] (I + Lam P_dd)^-1 Lam P[d, :]
+                pdd = mat3d(0)
+                for i, j in ti.static(ti.ndrange(3, 3)):
+                    pdd[i, j] = work[0, i, j]
+                d = vec3d(0, 0, 0)
+                for it in range(iterations):
+                    lam, hb, cnt_it = normal_equations(3, ti.cast(R, dtype), ti.cast(w, dtype), ti.cast(a, dtype), b,
+                                                       e0, e_end, mids, bearings, ref_uv, ref_n, ref_src, pol, grad,
+                                                       cov, updates, width, height, su, sv, contrast, sigma2, pos2, q2, q5,
+                                                       huber)
+                    cnt = cnt_it
+                    if cnt[0] > 0:
+                        m = (eye + lam @ pdd).inverse()
+                        v = m @ (hb + lam @ d)
+                        ml = m @ lam
+                        for i in range(ns):  # x = P[:, d] v; work[5] = P[:, d] (I + Lam P_dd)^-1 Lam
+                            xi = ti.cast(0.0, f64)
+                            for k in ti.static(range(3)):
+                                xi += work[0, i, k] * v[k]
+                            if i < 3:
+                                d[i] = xi
+                            elif i < 6:
+                                w[i - 3] = w_pred[i - 3] + xi
+                            for j in ti.static(range(3)):
+                                s = ti.cast(0.0, f64)
+                                for k in ti.static(range(3)):
+                                    s += work[0, i, k] * ml[k, j]
+                                work[5, i, j] = s
+                        R = so3d.exp(d) @ R_pred
+                        for i, j in ti.ndrange(ns, ns):
+                            s = ti.cast(0.0, f64)
+                            for k in range(3):
+                                s += work[5, i, k] * work[0, k, j]
+                            work[4, i, j] = work[0, i, j] - s
+                for i, j in ti.ndrange(ns, ns):
+                    if i < j:
+                        s = 0.5 * (work[4, i, j] + work[4, j, i])
+                        work[4, i, j] = s
+                        work[4, j, i] = s
+            # re-orthonormalize (Gram-Schmidt on the columns)
+            c0 = vec3d(R[0, 0], R[1, 0], R[2, 0]).normalized()
+            c1 = vec3d(R[0, 1], R[1, 1], R[2, 1])
+            c1 = (c1 - c0.dot(c1) * c0).normalized()
+            c2 = c0.cross(c1)
+            R = ti.Matrix.cols([c0, c1, c2])
             for i, j in ti.ndrange(ns, ns):
                 state_P[0, i, j] = work[4, i, j]
             state_R[0] = R
@@ -985,8 +913,8 @@ def ekf_track(hist, hist64, mids, b0: int, b1: int, batch_size: int, bearings, p
           float(w / (2 * np.pi)), float(h / np.pi), float(contrast), float(sigma) ** 2, float(position_var),
           float(outlier_px) ** 2,
           float(min_disp_px) ** 2, _v_band(h, max_lat_deg), int(max_events), float(huber), float(q_rate),
-          float(q_min), float(q_acc), float(q_jerk), int(iterations), state_R, state_w, state_a, state_P,
-          np.zeros((8, 9, 9)), diag, ns, bool(velocity_reference))
+          float(q_min), float(q_acc), float(q_jerk), int(iterations), int(bool(velocity_reference)), state_R, state_w,
+          state_a, state_P, np.zeros((8, 9, 9)), diag, ns)
     return diag
 
 

@@ -26,6 +26,7 @@ def test_plot_trajectories(tmp_path):
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
 
 
+@pytest.mark.slow
 def test_plot_error_distributions(tmp_path):
     rng = np.random.default_rng(0)
     abs_err = {"a": rng.gamma(2.0, 0.5, 200), "b": rng.gamma(2.0, 1.0, 200), "one sample": np.array([1.0]),

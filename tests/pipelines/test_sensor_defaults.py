@@ -86,6 +86,7 @@ def test_large_sensor_packet_recovers_omega_with_derived_size(ti_runtime, camera
     assert not est.last_suspect and est.last_gain > 1.5
 
 
+@pytest.mark.slow
 def test_noise_packet_far_from_the_warm_start_is_suspect(ti_runtime):
     """A packet whose IWE does not constrain omega (uniform noise, as an HD IWE of far too few events looks): the
     solution stays pixels away from omega = 0 without sharpening anything, and is flagged; its run is

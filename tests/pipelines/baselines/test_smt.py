@@ -257,6 +257,7 @@ def test_ekf_acceleration_steps_are_per_batch_not_per_second(monkeypatch):
     assert seen == [SmtConfig().angular_jerk_std] and trk.jerk_used == []
 
 
+@pytest.mark.slow
 def test_segments_longer_than_two_map_pixels_are_not_measurements(city, monkeypatch):
     """EKF-SMT: segments longer than max_segment_px (2 map px by default) restart without a measurement, in the
     bootstrap's selection (gain calibration) and in the EKF's (module doc: their increments are over-predicted, and
