@@ -24,7 +24,7 @@ def main():
         ds = ti_cmax.open_dataset(root / "ecd_slices" / name)
         ev = ds.read_events()
         est = AngularVelocityEstimator(ds.camera, FrontendConfig(num_events_per_packet=len(ev)))
-        omega, _, _ = est.estimate(ev, 0.5 * (ev.t[0] + ev.t[-1]))
+        omega = est.estimate(ev, 0.5 * (ev.t[0] + ev.t[-1])).omega
         ref_file = root / "ecd_slices" / "stppp_output" / f"{name}_output.txt"
         ref, diff = "", ""
         if ref_file.exists():

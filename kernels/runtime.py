@@ -1,35 +1,50 @@
-"""The one place that imports Taichi.
+"""The one place that imports the kernel engine: Taichi, or quadrants, its maintained fork (kernels/engine.py says
+which: ``TI_CMAX_ENGINE=taichi|quadrants``, else taichi where installed). Both run the same kernel source (``ti``
+here is the engine's module); where their internals differ (BoundLaunch), the difference stays in this module.
 
 Every kernel module does ``from ti_cmax.kernels.runtime import ti`` and every public
 kernel wrapper calls :func:`ensure_init` before launching. This keeps stdout clean
-(Taichi prints a banner on import and the arch line on ``ti.init``), pins the CPU
+(the engine prints a banner on import and the arch line on ``ti.init``), pins the CPU
 backend with the offline cache, and makes a later switch of fork or arch a one-file
 change.
 
 Threads: ``TI_CMAX_THREADS`` (env) or :func:`set_num_threads` before the first kernel (the CLI's ``--threads`` and
 ``--set num_threads``). Float atomics (the bilinear votes) add in thread-schedule order, so results depend on the
 thread count; ``cpu_max_num_threads=1`` is bit-exact run to run (tests/pipelines/test_threads.py).
-Profiling: ``TI_CMAX_KERNEL_PROFILER=1`` turns on Taichi's kernel profiler (see examples/profile_cpu.py).
+Fast math (LLVM's reassociation and contraction; the engines' default) is on unless ``TI_CMAX_FAST_MATH=0``: the
+two engines build on different LLVM releases, which round differently under fast math (kernel results ~1 ulp
+apart, amplified by the optimizers along a run), and agree bit for bit without it at one thread
+(tests/pipelines/test_engines.py).
+Profiling: ``TI_CMAX_KERNEL_PROFILER=1`` turns on the engine's kernel profiler (see examples/profile_cpu.py).
 Start-up: Taichi's per-node source-position messages are shortened (``TI_CMAX_FULL_TAICHI_ERRORS=1`` keeps them).
 """
 from __future__ import annotations
 
 import contextlib
 import functools
+import importlib
 import os
 import sys
 
 import numpy as np
 
-os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
-os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+from .engine import engine_name
 
-REQUIRED_TAICHI_VERSION = (1, 7, 4)
+ENGINE = engine_name()
+# quiet imports: no version check over the network, no banner, no pip import (quadrants' glibc/pip advice)
+for _name in ("TI_SKIP_VERSION_CHECK", "QD_MANYLINUX2014_OK"):
+    os.environ.setdefault(_name, "ON")
+for _name in ("ENABLE_TAICHI_HEADER_PRINT", "ENABLE_QUADRANTS_HEADER_PRINT"):
+    os.environ.setdefault(_name, "0")
+
+# BoundLaunch uses the engine's internals: the exact Taichi release, quadrants 1.x from the release tested on
+# (as pyproject.toml requires; from, up to but not including)
+REQUIRED_VERSION = {"taichi": ((1, 7, 4), (1, 7, 5)), "quadrants": ((1, 3, 3), (2, 0, 0))}[ENGINE]
 
 
 @contextlib.contextmanager
 def _stdout_to_stderr(discard: bool = False):
-    """Route file descriptor 1 to 2, or to /dev/null when ``discard`` (Taichi's C++ logger writes to fd 1
+    """Route file descriptor 1 to 2, or to /dev/null when ``discard`` (the engine's C++ logger writes to fd 1
     directly, and ``ti.init`` prints its arch line with print())."""
     sys.stdout.flush()
     saved = os.dup(1)
@@ -46,12 +61,19 @@ def _stdout_to_stderr(discard: bool = False):
 
 
 with _stdout_to_stderr():
-    import taichi as ti  # noqa: E402
+    try:
+        ti = importlib.import_module(ENGINE)
+    except ImportError as exc:
+        if exc.name != ENGINE:
+            raise
+        from ti_cmax.errors import InputError
 
-if tuple(ti.__version__) != REQUIRED_TAICHI_VERSION:  # pragma: no cover - install-time problem
-    raise ImportError(
-        f"ti_cmax needs taichi=={'.'.join(map(str, REQUIRED_TAICHI_VERSION))}, found {ti.__version__}"
-    )
+        extra = " (pip install 'ti-cmax[quadrants]')" if ENGINE == "quadrants" else ""
+        raise InputError(f"kernel engine {ENGINE} is not installed{extra}") from None
+
+if not REQUIRED_VERSION[0] <= tuple(ti.__version__) < REQUIRED_VERSION[1]:  # pragma: no cover - install problem
+    low, high = (".".join(map(str, v)) for v in REQUIRED_VERSION)
+    raise ImportError(f"ti_cmax needs {ENGINE}>={low},<{high}, found {'.'.join(map(str, ti.__version__))}")
 
 
 def _short_pos_info(ctx, node) -> str:
@@ -63,11 +85,6 @@ def _short_pos_info(ctx, node) -> str:
     Compilation errors still name the file and line."""
     return f'File "{ctx.file}", line {node.lineno + ctx.lineno_offset}, in {ctx.func.func.__name__}:\n'
 
-
-if os.environ.get("TI_CMAX_FULL_TAICHI_ERRORS", "") in ("", "0"):
-    from taichi.lang.ast import ast_transformer_utils as _ast_utils
-
-    _ast_utils.ASTTransformerContext.get_pos_info = _short_pos_info
 
 def _cache_kernel_sources() -> None:
     """Taichi 1.7 reads a function's source again (inspect.getsourcelines: tokenises the whole file) at every
@@ -89,7 +106,12 @@ def _cache_kernel_sources() -> None:
     kernel_impl.getsourcelines = getsourcelines
 
 
-_cache_kernel_sources()
+if ENGINE == "taichi":  # quadrants neither draws the caret per node nor reads sources again per call site
+    if os.environ.get("TI_CMAX_FULL_TAICHI_ERRORS", "") in ("", "0"):
+        from taichi.lang.ast import ast_transformer_utils as _ast_utils
+
+        _ast_utils.ASTTransformerContext.get_pos_info = _short_pos_info
+    _cache_kernel_sources()
 
 _state = {"initialized": False, "threads": None, "chosen": False}
 
@@ -147,6 +169,7 @@ def ensure_init() -> None:
             log_level=ti.WARN,
             debug=False,
             kernel_profiler=os.environ.get("TI_CMAX_KERNEL_PROFILER", "") not in ("", "0"),
+            fast_math=os.environ.get("TI_CMAX_FAST_MATH", "1") != "0",
         )
     _state["initialized"] = True
     _state["threads"] = threads
@@ -171,47 +194,69 @@ def limit_blas_threads() -> None:
     threadpool_limits(1, user_api="blas")  # the BLAS libraries already loaded (numpy's)
 
 
+# BoundLaunch's view of the engine's internals: the same steps under other names (taichi: a tuple slot per argument,
+# the compiled kernels by index; quadrants: an int slot, the materialized kernels by key, a CompileResult)
+if ENGINE == "taichi":
+    _PARAMETERS, _CXX_KERNELS = "arguments", "compiled_kernels"
+
+    def _slot(i: int):
+        return (i,)
+
+    def _prepare(kernel, impl) -> None:
+        pass
+else:
+    _PARAMETERS, _CXX_KERNELS = "arg_metas", "materialized_kernels"
+
+    def _slot(i: int):
+        return i
+
+    def _prepare(kernel, impl) -> None:
+        """What quadrants' Kernel.__call__ sets before ensure_compiled."""
+        kernel.raise_on_templated_floats = impl.current_cfg().raise_on_templated_floats
+
+
 class BoundLaunch:
     """A kernel bound once to its arguments (C-contiguous numpy arrays of the annotated dtype, ints, floats); each
     call launches the compiled kernel on them again.
 
     Why: Taichi 1.7.4's kernel call spends ~60 us of Python per launch with three numpy arguments (per argument:
     type checks, pointer and shape extraction; then the compiled kernel's lookup by argument features and a new
-    launch context), a bound launch ~2 us (measured on these machines). The front-end launches two kernels per
-    evaluation, ~1 ms each on a DAVIS240C packet. The arrays are read and written in place, so the caller keeps
-    them alive and unreallocated while bound, and rebinds to change one (``set_array``: a new packet). Binding
-    compiles the kernel when a call would (same compiled kernel, offline cache). Uses Taichi internals
-    (``Kernel.ensure_compiled``, ``make_launch_context``, ``Program.launch_kernel``): hence the exact Taichi
-    version pinned above."""
+    launch context), quadrants' ~30 us, a bound launch ~2 us (measured on these machines). The front-end launches
+    two kernels per evaluation, ~1 ms each on a DAVIS240C packet. The arrays are read and written in place, so the
+    caller keeps them alive and unreallocated while bound, and rebinds to change one (``set_array``: a new packet).
+    Binding compiles the kernel when a call would (same compiled kernel, offline cache). Uses the engine's internals
+    (``Kernel.ensure_compiled``, ``make_launch_context``, ``Program.launch_kernel``): hence the engine versions
+    pinned above."""
 
     def __init__(self, kernel, *args):
         self._kernel = kernel._primal  # the Kernel behind the @ti.kernel function
         self.bind(*args)
 
     def bind(self, *args) -> None:
-        from taichi.lang import impl
-
+        impl = importlib.import_module(f"{ENGINE}.lang.impl")
         kernel = self._kernel
-        if len(args) != len(kernel.arguments):
-            raise TypeError(f"{kernel.func.__name__} takes {len(kernel.arguments)} arguments, got {len(args)}")
-        t_kernel = kernel.compiled_kernels[kernel.ensure_compiled(*args)]
+        parameters = getattr(kernel, _PARAMETERS)
+        if len(args) != len(parameters):
+            raise TypeError(f"{kernel.func.__name__} takes {len(parameters)} arguments, got {len(args)}")
+        _prepare(kernel, impl)
+        t_kernel = getattr(kernel, _CXX_KERNELS)[kernel.ensure_compiled(*args)]
         prog = impl.get_runtime().prog
         ctx = t_kernel.make_launch_context()
-        for i, (value, argument) in enumerate(zip(args, kernel.arguments)):
+        for i, (value, parameter) in enumerate(zip(args, parameters)):
             if isinstance(value, np.ndarray):
-                needed = argument.annotation
-                element = getattr(needed, "dtype", None)
+                element = getattr(parameter.annotation, "dtype", None)
                 if not value.flags.c_contiguous or getattr(element, "ndim", 0):  # vector elements: not handled
                     raise TypeError(f"argument {i} of {kernel.func.__name__}: a C-contiguous array of scalars")
-                ctx.set_arg_external_array_with_shape((i,), int(value.ctypes.data), value.nbytes,
+                ctx.set_arg_external_array_with_shape(_slot(i), int(value.ctypes.data), value.nbytes,
                                                       list(value.shape), 0)
             elif isinstance(value, (bool, int, np.integer)):
-                ctx.set_arg_int((i,), int(value))
+                ctx.set_arg_int(_slot(i), int(value))
             elif isinstance(value, (float, np.floating)):
-                ctx.set_arg_float((i,), float(value))
+                ctx.set_arg_float(_slot(i), float(value))
             else:
                 raise TypeError(f"argument {i} of {kernel.func.__name__}: {type(value).__name__} cannot be bound")
-        self._compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
+        compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
+        self._compiled = getattr(compiled, "compiled_kernel_data", compiled)  # quadrants: inside a CompileResult
         self._prog, self._ctx, self._args = prog, ctx, args  # the arguments stay referenced while bound
 
     def set_array(self, index: int, value: np.ndarray) -> None:
@@ -221,7 +266,7 @@ class BoundLaunch:
         if (not isinstance(value, np.ndarray) or value.dtype != old.dtype or value.ndim != old.ndim
                 or not value.flags.c_contiguous):
             raise TypeError(f"argument {index}: a C-contiguous {old.dtype} array of {old.ndim} dimensions")
-        self._ctx.set_arg_external_array_with_shape((index,), int(value.ctypes.data), value.nbytes,
+        self._ctx.set_arg_external_array_with_shape(_slot(index), int(value.ctypes.data), value.nbytes,
                                                     list(value.shape), 0)
         self._args = self._args[:index] + (value,) + self._args[index + 1:]
 

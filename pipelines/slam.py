@@ -354,12 +354,13 @@ class OnlineSlam:
         if self.frontend_keep > 1 and (self.packets_seen - 1) % self.frontend_keep:
             self.packets_skipped += 1  # real-time thinning: no omega here, the next packet integrates across
             return
-        omega = self.runner.process(packet)
+        row = self.runner.process(packet)
+        omega = row.omega
         if self._t_prev is not None:
             self._r_src = self._r_src @ so3.exp(0.5 * (self._w_prev + omega) * (packet.t_ref - self._t_prev))
         self._t_prev, self._w_prev = packet.t_ref, omega
         backend = self._feed.backend
-        moving = [self.runner.last_moving]
+        moving = [not row.motion.still]
         backend.push_source_poses([packet.t_ref], self._r_src[None], moving)
         if self._worker is not None:
             self._send_events()  # every event pushed so far goes before the pose, as in the sequential run

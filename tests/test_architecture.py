@@ -82,3 +82,17 @@ def test_functions_read_in_one_screen():
                     if lines > MAX_FUNCTION_LINES:
                         long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({lines} lines)")
     assert long == []
+
+
+def test_the_contracts_name_every_core_module():
+    """Each module of the CMax-SLAM core (pipelines/*.py) is in the core layer and each CMax kernel module in the
+    kernels' contract, so a new module does not escape the layering unseen."""
+    tomllib = pytest.importorskip("tomllib")
+    contracts = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    layers = next(c for c in contracts if c["type"] == "layers")["layers"]
+    core = {m.strip() for layer in layers if ":" in layer for m in layer.split(":")}
+    kernels = set(next(c for c in contracts
+                       if c.get("forbidden_modules") == ["ti_cmax.kernels.baselines"])["source_modules"])
+    for folder, named in (("pipelines", core), ("kernels", kernels)):
+        modules = {f"ti_cmax.{folder}.{p.stem}" for p in (ROOT / folder).glob("*.py") if p.stem != "__init__"}
+        assert modules == named, (folder, sorted(modules ^ named))

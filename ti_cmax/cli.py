@@ -49,15 +49,12 @@ def _available_commands():
 
 
 def version_text() -> str:
-    from importlib import metadata
+    """``ti-cmax X (ENGINE Y)``: the kernel engine this process would run, from its installed metadata (no import)."""
+    from ti_cmax.kernels.engine import engine_text
 
     from . import __version__
 
-    try:
-        taichi = metadata.version("taichi")
-    except metadata.PackageNotFoundError:  # pragma: no cover - taichi is a dependency
-        taichi = "not installed"
-    return f"ti-cmax {__version__} (taichi {taichi})"
+    return f"ti-cmax {__version__} ({engine_text()})"
 
 
 class _VersionAction(argparse.Action):
@@ -68,7 +65,11 @@ class _VersionAction(argparse.Action):
                          help=help or "show the program's version number and exit")
 
     def __call__(self, parser, namespace, values, option_string=None):
-        print(version_text())  # on stdout, as argparse's own version action
+        try:
+            text = version_text()
+        except InputError as exc:  # a bad TI_CMAX_ENGINE
+            parser.exit(2, f"ti-cmax: error: {exc}\n")
+        print(text)  # on stdout, as argparse's own version action
         parser.exit()
 
 
@@ -175,13 +176,13 @@ def _run_command(args) -> int:
 
     if args.quiet:
         progress.set_quiet(True)
-    threads = args.threads or configured_threads(args)
-    # with --jobs N > 1 or --scheduler dask, --threads is for the worker processes
-    if threads and getattr(args, "jobs", 1) == 1 and getattr(args, "scheduler", "local") == "local":
-        from .kernels import runtime
-
-        runtime.set_num_threads(threads)
     try:
+        threads = args.threads or configured_threads(args)
+        # with --jobs N > 1 or --scheduler dask, --threads is for the worker processes
+        if threads and getattr(args, "jobs", 1) == 1 and getattr(args, "scheduler", "local") == "local":
+            from .kernels import runtime  # imports the engine: a bad TI_CMAX_ENGINE is an InputError
+
+            runtime.set_num_threads(threads)
         code = int(args._run(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
         raise_if_interrupted()  # a Ctrl-C that third-party code swallowed (see errors.raise_if_interrupted)

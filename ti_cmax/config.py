@@ -212,11 +212,11 @@ class FrontendConfig(Params):
     # a packet whose optimum moves its farthest event by under 1 px (or 1 px or more away from its warm start) is
     # tested for whether its events measure any motion at all: the score test of omega = 0 (the gradient at omega = 0
     # against the spread of its per-event terms, chi-square with 3 degrees of freedom); under this score the
-    # packet is flat: omega = 0, since its optimum is noise (pipelines/frontend.AngularVelocityEstimator.estimate)
+    # packet is flat: omega = 0, since its optimum is noise (pipelines/frontend_policies.needs_score_test)
     frontend_flat_is_still: bool = param(True, "a packet whose motion is not significant (score test) takes omega = 0")
     frontend_min_motion_score: float = param(16.3, "score of omega = 0 a tested packet needs to keep its motion "
                                                    "(chi-square 3 dof; 16.3: 0.1 % false motion)", ge=0)
-    # a flat packet's recent past is score-tested too (pipelines/frontend.FrontendRunner._look_back): the events of the
+    # a flat packet's recent past is score-tested too (pipelines/frontend_policies.LookbackTest): the events of the
     # last 4x its span, then 16x, ..., up to this many seconds (0: off); motions far under a pixel per packet (starts,
     # stops, slow pans) add up to pixels over a longer span. The packet keeps omega = 0; a window of flat packets none
     # of whose lookbacks measured a motion gets no BA (backend_skip_still_windows)

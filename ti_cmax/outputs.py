@@ -82,6 +82,16 @@ def peak_rss_mb() -> float:
     return r / (1024.0 * 1024.0) if sys.platform == "darwin" else r / 1024.0
 
 
+def write_report(directory: str | os.PathLike, report: dict) -> None:
+    """``directory/report.json``: ``report`` as strict JSON, with the kernel engine of the run (name, version)."""
+    import json
+
+    from ti_cmax.kernels.engine import engine_info
+
+    doc = json_ready({**report, "engine": engine_info()})
+    (Path(directory) / "report.json").write_text(json.dumps(doc, indent=2, default=float))
+
+
 def json_ready(obj):
     """NaN/inf -> None, numpy scalars and arrays -> Python: every JSON file we write is strict JSON (a NaN, e.g. an
     error over a sequence shorter than its window, made report.json unreadable by strict parsers)."""

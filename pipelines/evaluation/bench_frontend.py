@@ -43,7 +43,7 @@ def run_one(scene: str, duration: float, rule: str, overrides: dict, seed: int =
     rmse = _omega_rmse(res, seq)
     return {
         "scene": scene, "sensor": sensor, "rule": rule, "duration_s": duration, "events": int(len(seq.events)),
-        "simulate_seconds": sim_s, "packets": int(len(res)), "still": int(res.still.sum()),
+        "simulate_seconds": sim_s, "packets": int(len(res)), "still": int(res.sparse.sum()),
         "events_processed": res.timing["events_processed"], "compile_seconds": res.timing["compile_seconds"],
         "wall_seconds": res.timing["wall_seconds"], "us_per_event": res.timing["us_per_event"],  # per input event
         "us_per_packet_event": res.timing["us_per_packet_event"],

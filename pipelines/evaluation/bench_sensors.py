@@ -1,6 +1,7 @@
 """Sensor suite: CMax-SLAM with the default (sensor-derived) settings from a DVS128 to an HD sensor.
 
-    python -m ti_cmax.pipelines.evaluation.bench_sensors --out DIR [--sensors DVS128,DAVIS240C,...] [--duration S]
+    python -m ti_cmax.pipelines.evaluation.bench_sensors --out DIR [--sensors DVS128,DAVIS240C,...]
+        [--engines taichi,quadrants]
 
 The cases are ``pipelines.benchmark.SUITES["sensors"]`` (``ti-cmax benchmark --suite sensors`` runs the same
 sequences through the task model; this script adds per-case peak memory, the derived parameters and the cost per
@@ -8,8 +9,9 @@ second of data). Each case is a simulated sequence (streamed to DIR/sequences/NA
 by ``ti-cmax slam`` in a child process (so each case's peak memory is its own; in the command's default process
 layout: a back-end worker up to 0.5 M pixels on 2+ cores, pipelines/slam.default_backend_process), then evaluated
 against ground truth: the front-end alone (integrated omega) and CMax-SLAM, abs / rel RMSE, the parameters the
-sensor rules derived, us per input event, wall time per second of data and peak RSS. Prints a markdown table (and writes
-DIR/sensors.md, DIR/sensors.json). This is a benchmark, not a test: it takes minutes (HD: 30 M events/s).
+sensor rules derived, us per input event, wall time per second of data and peak RSS; one row per kernel engine
+(``--engines``, default: each one installed; the same sequence, DIR/runs/NAME/ENGINE). Prints a markdown table (and
+writes DIR/sensors.md, DIR/sensors.json). This is a benchmark, not a test: it takes minutes (HD: 30 M events/s).
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ti_cmax.io import read_angular_velocity, read_tum
+from ti_cmax.kernels.engine import ENGINES, installed_engines
 from ti_cmax.kernels.iwe import IWEWorkspace
 from ti_cmax.metrics import evaluate_rotations
 from ti_cmax.pipelines.evaluation.suites import SUITES
@@ -49,30 +52,33 @@ def _simulate(case, folder: Path) -> dict:
     return simulate_to_folder(config, folder, show_progress=False)
 
 
-def _run_slam(dataset: Path, out: Path, threads: int | None, overrides: list[str], flags: tuple = ()) -> float:
-    """``ti-cmax slam`` (with ``flags``, e.g. --realtime) in a child process; returns its wall time (report.json
-    holds the rest)."""
+def _run_slam(dataset: Path, out: Path, threads: int | None, overrides: list[str], flags: tuple = (),
+              engine: str | None = None) -> float:
+    """``ti-cmax slam`` (with ``flags``, e.g. --realtime) in a child process, on kernel ``engine`` (default: the
+    chosen one, kernels/engine.py); returns its wall time (report.json holds the rest)."""
     cmd = [sys.executable, "-m", "ti_cmax.cli", "slam", str(dataset), "--out", str(out), "--quiet", *flags]
     if threads:
         cmd += ["--threads", str(threads)]
     for item in overrides:
         cmd += ["--set", item]
     tic = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    env = {**os.environ, "TI_CMAX_ENGINE": engine} if engine else None
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
         raise RuntimeError(f"slam failed on {dataset}: {proc.stderr.strip().splitlines()[-1:]}")
     return time.perf_counter() - tic
 
 
-def evaluate_case(case, root: Path, threads: int | None = None, overrides: list[str] = ()) -> dict:
+def evaluate_case(case, root: Path, threads: int | None = None, overrides: list[str] = (),
+                  engine: str | None = None) -> dict:
     seq = root / "sequences" / case.name
     info = _simulate(case, seq)
-    out = root / "runs" / case.name
+    out = root / "runs" / case.name / (engine or "")
     if out.exists():
         import shutil
 
         shutil.rmtree(out)
-    wall = _run_slam(seq, out, threads, list(overrides))
+    wall = _run_slam(seq, out, threads, list(overrides), engine=engine)
     report = json.loads((out / "report.json").read_text())
     gt = read_tum(seq / "groundtruth.txt")
     t, omega = read_angular_velocity(out / "angular_velocity.txt")
@@ -81,7 +87,8 @@ def evaluate_case(case, root: Path, threads: int | None = None, overrides: list[
     us = report["us_per_event"]
     return {
         "case": asdict(case), "events": int(info["num_events"]), "event_rate_mev_s": info["event_rate"] / 1e6,
-        "camera": info["camera"], "status": report["status"],
+        "camera": info["camera"], "engine": f"{report['engine']['name']} {report['engine']['version']}",
+        "status": report["status"],
         "frontend_abs_deg": front.abs_rmse_deg, "frontend_rel_deg_s": front.rel_rmse_deg_per_s,
         "slam_abs_deg": slam.abs_rmse_deg, "slam_rel_deg_s": slam.rel_rmse_deg_per_s,
         "frontend_us_per_event": us["frontend"], "backend_us_per_event": us["backend"],
@@ -129,15 +136,17 @@ def _f(v, digits=2) -> str:
 
 def format_table(rows: list[dict]) -> str:
     lines = [
-        "| sensor (case) | events (Mev/s) | front-end abs / rel | CMax-SLAM abs / rel | status | FE + BE us/ev "
-        "| s per s of data (steady) | compile s | peak RSS MB | map | packet / cap | BA events used | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| sensor (case) | engine | events (Mev/s) | front-end abs / rel | CMax-SLAM abs / rel | status "
+        "| FE + BE us/ev | s per s of data (steady) | compile s | peak RSS MB | map | packet / cap | BA events used "
+        "| load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         d = r["derived"]
         size = f"{2 * d['pano_height']}x{d['pano_height']}" if "pano_height" in d else "user"
         lines.append(" | ".join([
-            f"| {r['case']['sensor']} ({r['case']['name']})", f"{r['events'] / 1e6:.1f} M ({r['event_rate_mev_s']:.1f})",
+            f"| {r['case']['sensor']} ({r['case']['name']})", r["engine"],
+            f"{r['events'] / 1e6:.1f} M ({r['event_rate_mev_s']:.1f})",
             f"{_f(r['frontend_abs_deg'])} / {_f(r['frontend_rel_deg_s'])}",
             f"{_f(r['slam_abs_deg'], 3)} / {_f(r['slam_rel_deg_s'], 3)}", r["status"],
             f"{_f(r['frontend_us_per_event'])} + {_f(r['backend_us_per_event'])}",
@@ -159,7 +168,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="slam override for every case")
+    ap.add_argument("--engines", default="", help="comma-separated kernel engines, a row each (default: every "
+                    "installed one: taichi, quadrants)")
     args = ap.parse_args(argv)
+
+    engines = [e.strip().lower() for e in args.engines.split(",") if e.strip()] or installed_engines()
+    if set(engines) - set(ENGINES):
+        ap.error(f"--engines: expected some of {', '.join(ENGINES)}, got {args.engines}")
 
     wanted = {s.strip().lower() for s in args.sensors.split(",") if s.strip()}
     cases = [c for c in SUITES["sensors"].values() if not wanted or c.name in wanted or c.sensor.lower() in wanted]
@@ -167,9 +182,11 @@ def main(argv: list[str] | None = None) -> int:
     root.mkdir(parents=True, exist_ok=True)
     rows = []
     for case in cases:
-        rows.append(evaluate_case(case, root, args.threads, args.overrides))
-        print(f"{case.name}: {rows[-1]['events']} events, CMax-SLAM abs {rows[-1]['slam_abs_deg']:.3f} deg", flush=True)
-        (root / "sensors.json").write_text(json.dumps(rows, indent=2, default=float))
+        for engine in engines:
+            rows.append(evaluate_case(case, root, args.threads, args.overrides, engine))
+            print(f"{case.name} ({rows[-1]['engine']}): {rows[-1]['events']} events, CMax-SLAM abs "
+                  f"{rows[-1]['slam_abs_deg']:.3f} deg", flush=True)
+            (root / "sensors.json").write_text(json.dumps(rows, indent=2, default=float))
     table = format_table(rows)
     (root / "sensors.md").write_text(table + "\n")
     print(table)

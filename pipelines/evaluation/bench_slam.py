@@ -106,7 +106,7 @@ def bench_sequence(sensor: str, scene: str, duration: float, overrides: dict | N
     pano = render(fe.trajectory())
     rows.append(_row(METHODS[0], gt, fe.trajectory(), pano.image, pano.events_used, lam,
                      fe_us=res_lin.report["us_per_event"]["frontend"], compile_s=fe.timing["compile_seconds"],
-                     wall_s=fe.timing["wall_seconds"], extra={"packets": len(fe), "still": int(fe.still.sum())}))
+                     wall_s=fe.timing["wall_seconds"], extra={"packets": len(fe), "still": int(fe.sparse.sum())}))
     for name, res in ((METHODS[1], res_lin), (METHODS[2], res_cub)):
         rep = res.report
         rows.append(_row(name, gt, res.trajectory, res.map, rep["backend"]["events_settled"], lam,

@@ -1,5 +1,5 @@
-"""Config validation at load time (issue 18, point 1) and discoverability (point 4): one declaration per field
-drives the check, ``ti-cmax params``, the README table and the example config."""
+"""Config validation at load time and discoverability: one declaration per field
+drives the check, ``ti-cmax params``, the configuration page and the example config."""
 import dataclasses
 import re
 import subprocess
@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from ti_cmax.cli import main
-from ti_cmax.commands.params import CONFIGS, config_class, rows
+from ti_cmax.commands.params import CONFIGS, config_class
 from ti_cmax.config import BackendConfig, FrontendConfig, SlamConfig, iter_params, load_config
 from ti_cmax.errors import InputError
 
@@ -118,18 +118,13 @@ def test_example_config_loads_and_names_real_keys():
             assert getattr(getattr(cfg, section), key) == value
 
 
-def test_readme_parameter_table_matches_the_dataclasses():
-    table = {r[0].split(".")[-1]: r for r in rows(SlamConfig())}
-    readme = (ROOT / "README.md").read_text()
-    found = re.findall(r"^\| `(\w+)` \| ([^|]*) \|", readme, flags=re.M)
-    found = [(k, v.strip()) for k, v in found if k in table]
-    assert len(found) >= 12
-    for key, shown in found:
-        value = table[key][1]
-        if isinstance(value, (bool, str)):
-            assert shown == str(value).lower(), key
-        else:
-            assert float(shown) == pytest.approx(value), key
+def test_configuration_page_is_the_generated_reference():
+    """docs/configuration.md is ``ti-cmax params --markdown``'s output: regenerate it when a config changes."""
+    from ti_cmax.commands.params import reference_page
+
+    page = (ROOT / "docs" / "configuration.md").read_text()
+    assert page == reference_page(), "stale: run `ti-cmax params --markdown > docs/configuration.md`"
+    assert "| `num_events_per_packet` |" in page and "## `benchmark`" in page
 
 
 def test_version(capsys):
@@ -181,7 +176,7 @@ def test_a_command_builds_only_its_own_arguments():
     one's --help still works."""
     code = ("import sys; from ti_cmax.cli import build_parser; p = build_parser('slam'); "
             "heavy = [m for m in ('ti_cmax.pipelines.evaluation.benchmark', 'ti_cmax.simulate', 'ti_cmax.pipelines.workflows.grayscale', "
-            "'scipy.ndimage', 'taichi', 'importlib.metadata') if m in sys.modules]; print(heavy)")
+            "'scipy.ndimage', 'taichi', 'quadrants', 'importlib.metadata') if m in sys.modules]; print(heavy)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
     for command in ("benchmark", "simulate", "grayscale", "slam"):

@@ -18,3 +18,12 @@ def short_dataset(short_sequence, tmp_path_factory):
     out = tmp_path_factory.mktemp("seq") / "short"
     write_sequence(short_sequence, out)
     return out
+
+
+@pytest.fixture(scope="session")
+def engine_dataset(ti_runtime, tmp_path_factory):
+    """0.6 s DAVIS240C (about 1 M events) for the runs that compare or check the kernel engines."""
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence, write_sequence
+
+    seq = simulate_sequence(SimulatorConfig(scene="bay", duration=0.6, max_angular_velocity=3.0, seed=3))
+    return write_sequence(seq, tmp_path_factory.mktemp("engine") / "seq", events_format="h5")

@@ -1,4 +1,5 @@
 """CMax-omega front-end: synthetic recovery, real ECD slices, slicing rules, streaming, CLI."""
+import dataclasses
 import json
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 from ti_cmax import Camera, Events, FrontendConfig, so3
 from ti_cmax.config import replace
 from ti_cmax.pipelines.frontend import AngularVelocityEstimator, PacketSlicer, estimate_angular_velocity
+from ti_cmax.pipelines.motion import Motion
 from ti_cmax.pipelines.sensor_defaults import resolve_frontend
 
 CAM = Camera(240, 180, 200.0, 200.0, 119.5, 89.5)
@@ -50,10 +52,11 @@ def test_bfgs_and_cg_agree_and_the_carried_hessian_saves_evaluations(ti_runtime)
         est = AngularVelocityEstimator(CAM, FrontendConfig(frontend_optimizer=opt))
         counts, costs = [], []
         for (omega, t), ev in zip(packets, events):
-            w, res, cost = est.estimate(ev, t + 0.005)
-            assert np.linalg.norm(w - omega) < 0.05 * np.linalg.norm(omega), (opt, w, omega)
-            counts.append(res.evaluations)
-            costs.append(cost)
+            e = est.estimate(ev, t + 0.005)
+            assert np.linalg.norm(e.omega - omega) < 0.05 * np.linalg.norm(omega), (opt, e.omega, omega)
+            assert e.motion is Motion.MOVING and e.cost == e.optimum.fun
+            counts.append(e.evaluations)
+            costs.append(e.cost)
         evaluations[opt], contrast[opt] = np.mean(counts[2:]), np.array(costs)
     assert np.all(contrast["bfgs"] >= contrast["cg"] * (1 - 1e-4)), contrast
     assert evaluations["bfgs"] < evaluations["cg"], evaluations
@@ -63,8 +66,8 @@ def test_synthetic_packet_recovers_omega(ti_runtime):
     omega = np.array([1.2, -2.0, 0.7])
     ev = _synthetic_events(omega, 0.0, 0.01, 10000, seed=1)
     est = AngularVelocityEstimator(CAM, FrontendConfig())
-    w, res, cost = est.estimate(ev, 0.005)
-    assert np.linalg.norm(w - omega) < 0.02 * np.linalg.norm(omega), (w, res)
+    w = est.estimate(ev, 0.005).omega
+    assert np.linalg.norm(w - omega) < 0.02 * np.linalg.norm(omega), w
     # sharper than without motion compensation
     est.ws.set_packet(CAM.bearings(ev.x, ev.y), ev.t - 0.005)
     assert est.ws.evaluate(w, CAM.K)[0] > 1.1 * est.ws.evaluate(np.zeros(3), CAM.K)[0]
@@ -84,7 +87,7 @@ def test_real_slices(real_data, ti_runtime, name):
     cfg = FrontendConfig(num_events_per_packet=30000)
     est = AngularVelocityEstimator(cam, cfg)
     t_ref = 0.5 * (events.t[0] + events.t[-1])
-    w, res, cost = est.estimate(events, t_ref)
+    w = est.estimate(events, t_ref).omega
     est.ws.set_packet(cam.bearings(events.x, events.y), events.t - t_ref)
     assert est.ws.evaluate(w, cam.K)[0] > 1.2 * est.ws.evaluate(np.zeros(3), cam.K)[0]
     ref_file = real_data / "ecd_slices" / "stppp_output" / f"{name}_output.txt"
@@ -113,9 +116,9 @@ def test_slicing_rules_on_a_rate_swing():
     bounded = list(PacketSlicer(cfg)([ev]))
     assert len(paper) == len(bounded) == 80
     slow = [p for p in bounded if p.t_ref > 0.45]
-    assert not any(p.still for p in slow)  # bounded: still estimated from a 0.1 s window
+    assert not any(p.sparse for p in slow)  # bounded: still estimated from a 0.1 s window
     assert all(p.span <= 0.1 and len(p.events) >= 1000 for p in slow)
-    assert all(p.still for p in paper if p.t_ref > 0.45)  # the reference rule gives omega = 0
+    assert all(p.sparse for p in paper if p.t_ref > 0.45)  # the reference rule gives omega = 0
     fast = [p for p in bounded if 0.1 < p.t_ref < 0.2]
     assert all(len(p.events) == 10000 and abs(np.median(p.events.t) - p.t_ref) < 2e-3 for p in fast)
 
@@ -126,7 +129,7 @@ def test_still_camera_too_few_events_and_empty_stream():
     ev = _stream(lambda t: 5e3, 0.5, seed=3)
     for rule in ("bounded", "paper"):
         packets = list(PacketSlicer(replace(cfg, frontend_slicing=rule))([ev]))
-        assert packets and all(p.still and len(p.events) == 0 for p in packets)
+        assert packets and all(p.sparse and len(p.events) == 0 for p in packets)
     # 60 events over 13 ms: the packet timestamps stop at the last event; 20 events over 3.4 ms, shorter than the
     # first packet's centre (dt / 2): one packet at the last event; one event or none: no packets
     few = ev[:60]
@@ -139,7 +142,8 @@ def test_still_camera_too_few_events_and_empty_stream():
     assert list(PacketSlicer(cfg)([ev[:1]])) == []
     assert list(PacketSlicer(cfg)([Events.empty()])) == []
     res = estimate_angular_velocity(ev, CAM, cfg)
-    assert res.still.all() and not res.omega.any() and res.timing["packet_events"] == 0
+    assert res.sparse.all() and res.still.all() and not res.omega.any() and res.timing["packet_events"] == 0
+    assert set(res.motion) == {Motion.SPARSE} and res.summary()["still_packets"] == len(res)
     assert res.timing["events_processed"] == len(ev)  # input events, still or not
 
 
@@ -151,8 +155,8 @@ def test_streaming_chunks_downsampling_and_trajectory(ti_runtime):
     chunks = [ev[i:i + 7001] for i in range(0, len(ev), 7001)]
     streamed = estimate_angular_velocity(iter(chunks), CAM, cfg)
     np.testing.assert_allclose(streamed.omega, whole.omega, atol=1e-6)
-    assert np.all(whole.num_events[~whole.still] <= 2000 * 2)
-    assert len(whole) == 6 and not whole.still.any()
+    assert np.all(whole.num_events[~whole.sparse] <= 2000 * 2)
+    assert len(whole) == 6 and not whole.still.any() and set(whole.motion) == {Motion.MOVING}
     np.testing.assert_allclose(whole.omega, np.tile(omega, (len(whole), 1)), atol=0.1 * 1.5)  # 2000-event packets
     traj = whole.trajectory()
     np.testing.assert_allclose(traj.R[0], np.eye(3))
@@ -217,11 +221,21 @@ def test_thinning_keeps_the_span_and_the_accuracy(ti_runtime):
                                                       frontend_bfgs_step_tol=0.0))
     thin = est.thin(ev)
     assert len(thin) <= 5000 and len(thin) >= 4000 and thin.duration > 0.99 * ev.duration
-    w, res, _ = est.estimate(ev, 0.005)
+    w = est.estimate(ev, 0.005).omega
     assert est.events_evaluated == len(thin)
-    assert np.linalg.norm(w - omega) < 0.02 * np.linalg.norm(omega), (w, res)
+    assert np.linalg.norm(w - omega) < 0.02 * np.linalg.norm(omega), w
     off = AngularVelocityEstimator(CAM, FrontendConfig(frontend_max_packet_events=-1))
     assert off.thin(ev) is ev
+
+
+def test_one_notion_of_still_with_its_reason():
+    """Every outcome but MOVING gives omega = 0; the camera counts as still (no BA) only where no motion was measured:
+    a SLOW packet (flat, its lookback measured a motion) is flat but not still, a SPARSE one still but not flat."""
+    still = {m for m in Motion if m.still}
+    flat = {m for m in Motion if m.flat}
+    assert still == {Motion.FLAT, Motion.UNCONFIRMED, Motion.SPARSE}
+    assert flat == {Motion.SLOW, Motion.FLAT, Motion.UNCONFIRMED}
+    assert Motion.MOVING not in still | flat
 
 
 def test_linear_warm_start_and_reset():
@@ -290,7 +304,7 @@ def test_slicer_packets_do_not_depend_on_chunk_size_and_join_lazily(min_span, mo
     cfg = resolve_frontend(FrontendConfig(frontend_min_packet_span=min_span), CAM)
 
     def packets(chunks):
-        return [(p.t_ref, p.still, p.events.t.tobytes()) for p in PacketSlicer(cfg)(chunks)]
+        return [(p.t_ref, p.sparse, p.events.t.tobytes()) for p in PacketSlicer(cfg)(chunks)]
 
     whole = packets([ev])
     joins = []
@@ -322,7 +336,7 @@ def test_pixel_dither_removes_the_grid_bias_of_slow_motion(ti_runtime):
     errors = {}
     for dither in (0.0, 0.5):
         est = AngularVelocityEstimator(CAM, FrontendConfig(frontend_pixel_dither=dither))
-        w, _, _ = est.estimate(events, 0.05)
+        w = est.estimate(events, 0.05).omega
         errors[dither] = np.linalg.norm(w - omega)
     assert errors[0.5] < 0.015 and errors[0.0] > 0.05, errors
 
@@ -343,7 +357,7 @@ def test_pixel_dither_is_uniform_over_the_pixel_and_deterministic(ti_runtime):
     assert abs(np.corrcoef(a[:, 0], a[:, 1])[0, 1]) < 0.02
     # float pixel coordinates (already off the grid: simulators, undistorted or filtered streams) are not dithered
     events = _synthetic_events(np.array([1.0, -0.5, 0.3]), 0.0, 0.01, 5000, seed=6)
-    runs = [AngularVelocityEstimator(CAM, FrontendConfig(frontend_pixel_dither=d)).estimate(events, 0.005)[0]
+    runs = [AngularVelocityEstimator(CAM, FrontendConfig(frontend_pixel_dither=d)).estimate(events, 0.005).omega
             for d in (0.0, 0.5)]
     assert np.array_equal(*runs)
 
@@ -357,15 +371,17 @@ def test_flat_packets_take_omega_zero_and_moving_ones_do_not(ti_runtime):
     moving, still = (_integer_pixels_with_noise(w, seed=s) for w, s in ((omega, 3), (np.zeros(3), 5)))
     for rule in (True, False):
         est = AngularVelocityEstimator(CAM, FrontendConfig(frontend_flat_is_still=rule))
-        w, _, _ = est.estimate(moving, 0.05)
-        assert not est.last_flat and est.last_gain > 1.5 and np.linalg.norm(w - omega) < 0.03 * np.linalg.norm(omega)
-        w, _, _ = est.estimate(still, 0.05)
-        assert np.isnan(est.last_gain)  # not a scheduled check (1 of frontend_gain_check_every)
+        e = est.estimate(moving, 0.05)
+        assert e.motion is Motion.MOVING and e.gain > 1.5 and not e.suspect
+        assert np.linalg.norm(e.omega - omega) < 0.03 * np.linalg.norm(omega)
+        e = est.estimate(still, 0.05)
+        assert np.isnan(e.gain) and not e.suspect  # not a gain check's packet (1 of frontend_gain_check_every)
         if rule:
-            assert est.last_flat and np.all(w == 0) and np.all(est.warm_start() == 0)
+            assert e.motion is Motion.FLAT and e.motion.still and e.motion.flat
+            assert np.all(e.omega == 0) and np.all(est.warm_start() == 0) and np.linalg.norm(e.optimum.x) > 0
             assert est.flat_packets == 1 and est.checks == 2
-        else:
-            assert not est.last_flat and np.all(w != 0) and est.checks == 1  # the optimiser's point, kept
+        else:  # the optimiser's point, kept
+            assert e.motion is Motion.MOVING and np.all(e.omega != 0) and est.checks == 1
 
 
 def test_the_score_test_keeps_a_measured_slow_motion_and_zeroes_noise(ti_runtime):
@@ -377,28 +393,29 @@ def test_the_score_test_keeps_a_measured_slow_motion_and_zeroes_noise(ti_runtime
     threshold = FrontendConfig().frontend_min_motion_score
     for seed in range(3):
         est = AngularVelocityEstimator(CAM, FrontendConfig())
-        w, res, _ = est.estimate(_integer_pixels_with_noise(slow, seed, n=5000), 0.05)
+        e = est.estimate(_integer_pixels_with_noise(slow, seed, n=5000), 0.05)
         c0, g0, _ = est.ws.evaluate(np.zeros(3), est.K)
-        assert res.fun / (c0 * est._scale) < 1.02  # the gain rule would have called it flat
-        assert est.score_tests == 1 and not est.last_flat and np.linalg.norm(w - slow) < 0.015
+        assert e.cost / (c0 * est._scale) < 1.02  # the gain rule would have called it flat
+        assert est.score_tests == 1 and e.motion is Motion.MOVING and np.linalg.norm(e.omega - slow) < 0.015
         assert est.motion_score(g0) > 5 * threshold
-        w, _, _ = est.estimate(_integer_pixels_with_noise(np.zeros(3), seed), 0.05)
-        assert est.score_tests == 2 and np.linalg.norm(w) < 0.005
-        w, res, _ = est.estimate(_integer_pixels_with_noise(np.zeros(3), seed, n=0), 0.05)
-        assert np.linalg.norm(res.x) > 1.0  # the optimiser's point: pixels of motion that noise does not have
-        assert est.score_tests == 3 and est.last_flat and np.all(w == 0) and np.all(est.warm_start() == 0)
+        e = est.estimate(_integer_pixels_with_noise(np.zeros(3), seed), 0.05)
+        assert est.score_tests == 2 and np.linalg.norm(e.omega) < 0.005
+        e = est.estimate(_integer_pixels_with_noise(np.zeros(3), seed, n=0), 0.05)
+        assert np.linalg.norm(e.optimum.x) > 1.0  # the optimiser's point: pixels of motion that noise does not have
+        assert est.score_tests == 3 and e.motion is Motion.FLAT and np.all(e.omega == 0)
+        assert np.all(est.warm_start() == 0)
 
 
 def test_a_collapsed_carried_curvature_does_not_hold_the_estimate(ti_runtime):
     """BFGS corrects its carried inverse Hessian only along the steps it takes: with one direction collapsed (a
     noisy packet's update) every later step along it is ~1e-4 px and the step tolerance stops there, the warm start's
-    error kept. Such an H (condition number above frontend.BFGS_MAX_CONDITION) is dropped: a cold start."""
+    error kept. Such an H (condition number above frontend_policies.BFGS_MAX_CONDITION) is dropped: a cold start."""
     omega = np.array([1.0, -1.5, 0.6])
     events = _synthetic_events(omega, 0.0, 0.02, 10000, seed=4)
     est = AngularVelocityEstimator(CAM, FrontendConfig())
     est.omega = omega + np.array([0.3, 0.0, 0.0])  # the warm start, 0.3 rad/s off about x (~3 px at +-10 ms)
     est.inv_hessian = np.diag([1e-4, 1.0, 1.0])
-    w, _, _ = est.estimate(events, 0.01)
+    w = est.estimate(events, 0.01).omega
     assert np.linalg.norm(w - omega) < 0.03 * np.linalg.norm(omega)
 
 
@@ -419,7 +436,7 @@ def _slow_stream(omega, duration, seed, scene_rate=40000, noise_rate=20000):
 def test_a_lookback_finds_a_motion_too_slow_for_one_packet_and_none_in_a_still_scene(ti_runtime):
     """0.005 rad/s moves a 0.1 s packet's events by +-0.05 px: every packet is flat (omega = 0). Over the last 0.4 s
     the same motion is +-0.2 px, which 20 000 events measure: the flat packets' lookbacks find it once 0.4 s of
-    events are there, and those packets count as moving for the back-end (``last_moving``) while keeping omega = 0.
+    events are there: those packets are SLOW, moving for the back-end (not ``Motion.still``) while keeping omega = 0.
     The same scene seen by a still camera: no lookback finds a motion. Off (frontend_flat_lookback=0): no lookback."""
     from ti_cmax.pipelines.frontend import FrontendRunner, as_chunks
 
@@ -427,8 +444,7 @@ def test_a_lookback_finds_a_motion_too_slow_for_one_packet_and_none_in_a_still_s
         runner = FrontendRunner(CAM, FrontendConfig(**kw))
         moving = []
         for packet in runner.slicer(as_chunks(events)):
-            runner.process(packet)
-            moving.append(runner.last_moving)
+            moving.append(not runner.process(packet).motion.still)
         return runner.result(), np.array(moving)
 
     slow = np.array([0.003, -0.004, 0.0])
@@ -436,9 +452,10 @@ def test_a_lookback_finds_a_motion_too_slow_for_one_packet_and_none_in_a_still_s
     assert fr.flat.mean() > 0.9 and np.all(fr.omega[fr.flat] == 0)  # (a few packets measure the motion themselves)
     late = fr.t > 0.5
     assert np.all(fr.lookback[late & fr.flat] > 0.3) and moving[late].all()
+    assert set(fr.motion[late & fr.flat]) == {Motion.SLOW} and not fr.still[late].any()
     assert not np.any(fr.lookback[fr.t < 0.15]) and not moving[fr.t < 0.15].any()  # too little past to measure it
     fr, moving = run(_slow_stream(np.zeros(3), 0.8, seed=7))
-    assert fr.flat.all() and not np.any(fr.lookback) and not moving.any()
+    assert fr.flat.all() and not np.any(fr.lookback) and not moving.any() and fr.still.all()
     assert fr.summary()["lookback_packets"] == 0
     fr, moving = run(_slow_stream(slow, 0.8, seed=7), frontend_flat_lookback=0.0)
     assert not np.any(fr.lookback) and not moving[fr.flat].any()
@@ -459,17 +476,18 @@ def test_a_motion_right_after_flat_packets_must_show_over_a_lookback(ti_runtime)
     def estimate(events, t_ref, omega0=None):
         out = real_estimate(events, t_ref, omega0)
         if est.packets_estimated == 40:  # pretend the score test passed: a motion of 0.3 rad/s
-            est.flat_packets -= est.last_flat
-            est.last_flat, est.omega = False, np.array([0.0, 0.0, 0.3])
+            est.flat_packets -= out.motion is Motion.FLAT
+            est.omega = np.array([0.0, 0.0, 0.3])
             forced.append(t_ref)
-            return est.omega.copy(), out[1], out[2]
+            return dataclasses.replace(out, omega=est.omega.copy(), motion=Motion.MOVING)
         return out
 
     est.estimate = estimate
-    omegas = {p.t_ref: runner.process(p) for p in runner.slicer(as_chunks(_slow_stream(np.zeros(3), 0.6, seed=8)))}
+    rows = {p.t_ref: runner.process(p) for p in runner.slicer(as_chunks(_slow_stream(np.zeros(3), 0.6, seed=8)))}
     fr = runner.result()
     assert forced and fr.flat.all() and np.all(fr.omega == 0) and not np.any(fr.lookback)
-    assert all(not np.any(w) for w in omegas.values())
+    assert all(not np.any(row.omega) for row in rows.values()) and rows[forced[0]].motion is Motion.UNCONFIRMED
+    assert rows[forced[0]].estimate.omega[2] == 0.3 and est.flat_packets == len(fr)
 
     still = _slow_stream(np.zeros(3), 0.3, seed=9)
     turning = _synthetic_events(np.array([0.6, -0.8, 0.0]), 0.3, 0.6, 18000, seed=9, t_mid=0.45)
@@ -480,12 +498,13 @@ def test_a_motion_right_after_flat_packets_must_show_over_a_lookback(ti_runtime)
     start = np.flatnonzero(~fr.flat)[0]  # the first moving packet: its lookback measured the motion too
     assert 0.3 < fr.t[start] < 0.4 and fr.lookback[start] > 0
     assert not fr.flat[start:].any() and np.allclose(fr.omega[start:], [0.6, -0.8, 0.0], atol=0.02)
+    assert set(fr.motion[start:]) == {Motion.MOVING} and not fr.still[start:].any()
 
 
 def test_the_lookback_holds_its_span_at_a_bounded_density():
     """The lookback keeps the last ``span`` seconds, each packet's new events thinned to the density cap, whatever
     the event rate and however often it is read (reading joins its parts)."""
-    from ti_cmax.pipelines.frontend import Lookback
+    from ti_cmax.pipelines.frontend_policies import Lookback
 
     look = Lookback(span=0.5, density=10000.0)
     rng = np.random.default_rng(0)
@@ -527,7 +546,7 @@ def test_a_fast_pan_is_not_declared_flat(ti_runtime, monkeypatch):
     at omega = 0, where the IWE is blurred flat over the whole motion, declared most packets flat (the front-end alone
     105 deg off on such a 0.5 s pan); a jump from the warm start is tested only when it is also a fraction
     (JUMP_FRACTION) of the packet's own motion."""
-    from ti_cmax.pipelines import frontend
+    from ti_cmax.pipelines import frontend_policies
     from ti_cmax.simulate import SimulatorConfig, simulate_sequence
 
     seq = simulate_sequence(SimulatorConfig(scene="city", duration=0.25, trajectory="pan", turns=2.5 / (2 * np.pi)))
@@ -536,9 +555,9 @@ def test_a_fast_pan_is_not_declared_flat(ti_runtime, monkeypatch):
     assert not np.any(res.flat) and np.max(np.linalg.norm(truth, axis=1)) > 18
     fast = np.linalg.norm(truth, axis=1) > 12  # (slower: 40 ms packets average omega over a 250 rad/s^2 ramp)
     assert np.all(np.linalg.norm(res.omega - truth, axis=1)[fast] < 0.1 * np.linalg.norm(truth, axis=1)[fast])
-    monkeypatch.setattr(frontend, "JUMP_FRACTION", 0.0)  # every jump of 1 px tested: still kept by the sub-span test
+    monkeypatch.setattr(frontend_policies, "JUMP_FRACTION", 0.0)  # every 1 px jump tested: the sub-span test keeps them
     assert not np.any(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat)
-    monkeypatch.setattr(frontend, "FAST_PX", np.inf)  # and without it (as before session 19): most packets flat
+    monkeypatch.setattr(frontend_policies, "FAST_PX", np.inf)  # and without it: most packets flat
     assert np.count_nonzero(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat) > 5
 
 
@@ -547,7 +566,7 @@ def test_a_stream_that_starts_at_full_speed_is_not_declared_flat(ti_runtime, mon
     """A stream starting in a pan that reaches 40 rad/s within 60 ms: no warm start, so every packet's optimum is far
     from it and score-tested at omega = 0, where a 40 ms packet's IWE is blurred flat; the test is repeated over the
     sub-span in which the optimum moves events by SUB_PX (without it: 11 of 12 packets flat, omega 0)."""
-    from ti_cmax.pipelines import frontend
+    from ti_cmax.pipelines import frontend_policies
     from ti_cmax.simulate import SimulatorConfig, simulate_sequence
 
     seq = simulate_sequence(SimulatorConfig(scene="city", duration=0.12, trajectory="pan", turns=2.4 / (2 * np.pi)))
@@ -557,5 +576,5 @@ def test_a_stream_that_starts_at_full_speed_is_not_declared_flat(ti_runtime, mon
     assert not np.any(res.flat) and np.count_nonzero(fast) >= 3
     # (40 ms packets average omega over a 700 rad/s^2 ramp: within 15 % at the peak)
     assert np.all(np.linalg.norm(res.omega - truth, axis=1)[fast] < 0.15 * np.linalg.norm(truth, axis=1)[fast])
-    monkeypatch.setattr(frontend, "FAST_PX", np.inf)
+    monkeypatch.setattr(frontend_policies, "FAST_PX", np.inf)
     assert np.count_nonzero(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat) > 5

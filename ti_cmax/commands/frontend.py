@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 HELP = "estimate angular velocity by contrast maximisation; write angular_velocity.txt and trajectory.txt"
 
@@ -17,7 +16,7 @@ def run(args) -> int:
 
     from ..config import SlamConfig, config_to_dict, load_config, save_config
     from ..io import open_dataset_from_config, write_angular_velocity, write_tum
-    from ..outputs import OutputDir, json_ready
+    from ..outputs import OutputDir, write_report
     from ..pipelines.frontend import estimate_angular_velocity
     from ..pipelines.sensor_defaults import derived_summary, describe, resolve_config
 
@@ -49,11 +48,10 @@ def run(args) -> int:
             "derived_parameters": {k: v for k, v in derived.items() if hasattr(cfg.frontend, k)},
             "camera": camera.to_dict(),
         }
-        (out / "report.json").write_text(json.dumps(json_ready(report), indent=2))
+        write_report(out, report)
     if derived:
         print(f"derived from the sensor: {describe({k: v for k, v in derived.items() if hasattr(cfg.frontend, k)})}")
-    flat = int(result.flat.sum()) if result.flat is not None else 0
-    print(f"{len(result)} angular velocities ({int(result.still.sum())} still, {flat} flat), "
+    print(f"{len(result)} angular velocities ({int(result.sparse.sum())} still, {int(result.flat.sum())} flat), "
           f"{timing['events_processed']} input events, {timing['us_per_event']:.3f} us per input event "
           f"({timing['packet_events']} packet events, {timing['us_per_packet_event']:.3f} us each) -> {out}")
     return 0

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 HELP = "integrate the gyro of a dataset (IMU dead reckoning) into trajectory.txt"
 
@@ -20,7 +19,7 @@ def run(args) -> int:
     from ..config import SlamConfig, load_config, save_config
     from ..errors import InputError
     from ..io import open_dataset_from_config, write_tum
-    from ..outputs import OutputDir, json_ready
+    from ..outputs import OutputDir, write_report
     from ti_cmax.pipelines.baselines.imu import dead_reckoning
 
     tic = time.perf_counter()
@@ -38,6 +37,6 @@ def run(args) -> int:
         save_config(cfg, out / "config.yaml")
         report = {"status": "ok", "method": "imu", "samples": len(imu.t), "t_start": float(imu.t[0]),
                   "t_end": float(imu.t[-1]), "wall_seconds": time.perf_counter() - tic}
-        (out / "report.json").write_text(json.dumps(json_ready(report), indent=2))
+        write_report(out, report)
     print(f"integrated {len(imu.t)} gyro samples over {imu.t[-1] - imu.t[0]:.3f} s -> {out / 'trajectory.txt'}")
     return 0

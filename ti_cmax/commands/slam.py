@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 HELP = "run CMax-SLAM: trajectory.txt, angular_velocity.txt, map.png, map.npy, report.json"
@@ -36,7 +35,7 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
 
     from ..config import SlamConfig, save_config
     from ..io import write_angular_velocity, write_tum
-    from ..outputs import json_ready, peak_rss_mb
+    from ..outputs import peak_rss_mb, write_report
     from ..pipelines.panorama import PanoramaResult, map_to_uint8
     from ..pipelines.sensor_defaults import resolve_config
 
@@ -55,7 +54,7 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
     # of the whole process so far; with a back-end worker (--parallel) plus the worker's own peak: the sum of the two
     # peaks, an upper bound of their total at any moment (the main process alone was half of it on a VGA run)
     report["peak_rss_mb"] = peak_rss_mb() + report.get("backend_process", {}).get("peak_rss_mb", 0.0)
-    (out / "report.json").write_text(json.dumps(json_ready(report), indent=2, default=float))
+    write_report(out, report)
     if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
         write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
     save_config(cfg, out / "config.yaml")

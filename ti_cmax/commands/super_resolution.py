@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 HELP = ("CMax-SLAM at several panoramic map sizes: map_WxH.png per size, runtime per event per size "
         "(runtime.txt, runtime.png) and map quality in report.json")
@@ -43,7 +42,7 @@ def run(args) -> int:
 
     from ..config import SlamConfig, load_config, save_config
     from ..io import write_tum
-    from ..outputs import OutputDir, json_ready
+    from ..outputs import OutputDir, write_report
     from ..pipelines.panorama import map_to_uint8
     from ti_cmax.pipelines.workflows.star_tracking import open_star_or_dataset
     from ti_cmax.pipelines.workflows.super_resolution import (iter_super_resolution, parse_sizes, quality_availability,
@@ -86,7 +85,7 @@ def run(args) -> int:
             "image_quality": quality_availability(),
             "camera": camera.to_dict(),
         }
-        (out / "report.json").write_text(json.dumps(json_ready(report), indent=2, default=float))
+        write_report(out, report)
         save_config(cfg, out / "config.yaml")
     print(table)
     print(f"-> {out}")
