@@ -96,3 +96,12 @@ def test_the_contracts_name_every_core_module():
     for folder, named in (("pipelines", core), ("kernels", kernels)):
         modules = {f"ti_cmax.{folder}.{p.stem}" for p in (ROOT / folder).glob("*.py") if p.stem != "__init__"}
         assert modules == named, (folder, sorted(modules ^ named))
+
+
+def test_the_command_line_is_built_without_the_kernel_engine():
+    """Every command's arguments (what ``ti-cmax --version`` and ``--help`` build) come from light modules: the
+    benchmark's choices from its suites, not from the benchmark and the kernels it runs."""
+    code = ("import sys; from ti_cmax.cli import build_parser; build_parser(); "
+            "print(sorted(m for m in ('taichi', 'quadrants', 'ti_cmax.kernels.runtime') if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == "[]", proc.stdout + proc.stderr
