@@ -34,10 +34,11 @@ from ti_cmax.kernels.pano import (
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
+from . import backend_policies as policy
+from .backend_policies import FULL_BUDGET, TIME_EPS, Window, WindowBudget
 from .optim import bfgs, fletcher_reeves
 
-_TIME_EPS = 1e-9
-_EMPTY_WINDOWS_PER_FIT = 10  # windows without events fitted at once (SlidingWindowBackend.step)
+_TIME_EPS = TIME_EPS
 
 
 @dataclass
@@ -59,12 +60,21 @@ class WindowReport:
     max_correction: float = 0.0  # largest change of the trajectory at the window's events (rad)
     rejected: bool = False  # the correction exceeded backend_max_correction and was not applied
     seconds: float = 0.0
-    skipped: bool = False  # BA skipped by the real-time controller (ba_cap = 0): front-end poses kept
-    still: bool = False  # the source measured no motion over the window: no BA (SlidingWindowBackend._moving_from)
+    no_ba: str | None = None  # why the window got no BA (backend_policies.why_no_ba); None: it got one
     cut_short: bool = False  # BA stopped at the real-time controller's time budget (ba_budget): its best point kept
     done_at: float = 0.0  # time.monotonic() when the window completed (the same clock in every process)
     ba_seconds: float = 0.0  # wall time of the BA (part of ``seconds``)
     busy_seconds: float | None = None  # worker process: wall time it worked since the previous window (not waiting)
+
+    @property
+    def still(self) -> bool:
+        """No motion was measured over the window (no BA: its events hold nothing to refine)."""
+        return self.no_ba == policy.STILL
+
+    @property
+    def skipped(self) -> bool:
+        """The real-time budget skipped the window's BA (its initialisation kept)."""
+        return self.no_ba == policy.SKIPPED
 
 
 class StageClock:
@@ -75,7 +85,10 @@ class StageClock:
         self.wall: dict[str, float] = {}
 
     @contextmanager
-    def __call__(self, name: str):
+    def __call__(self, name: str | None):
+        if name is None:  # an untimed stage (a no-op observer's)
+            yield
+            return
         wall, cpu = time.perf_counter(), time.process_time()
         try:
             yield
@@ -90,9 +103,8 @@ class StageClock:
 class _Buffer:
     """Growing column buffer (times + bearings) that drops its settled head cheaply: the columns live in arrays with
     spare room at the end, a push copies only its own events in (amortized doubling), and dropping the head moves a
-    start index; the live part is moved to the front only when the spare room runs out. (Joining a list of pushed
-    chunks onto the buffer on every read copied the whole buffer, ~2 windows of events, each time: 1.5 ms per read
-    at 2 M ev/s, 3 reads per window.)"""
+    start index; the live part is moved to the front only when the spare room runs out. Reads are views, so a
+    window's read costs nothing in proportion to the buffer."""
 
     def __init__(self):
         self._tt, self._bb = np.zeros(0), np.zeros((0, 3), np.float32)
@@ -217,8 +229,8 @@ class GlobalMap:
             self.raw[sel] = new_raw
         self.n_events += float(votes.sum(dtype=np.float64))
         # event area: sum of exp(-old / lambda0) - exp(-new / lambda0) over the region (exactly 0 where no vote
-        # landed), the exponentials in float32 (SIMD: ~7x cheaper than gathering the voted pixels for float64 ones;
-        # the sum in float64)
+        # landed), the exponentials in float32 (vectorised: far cheaper than gathering the voted pixels for float64
+        # ones; the sum in float64)
         scale = np.float32(-1.0 / self.lambda0)
         self.area += float(np.sum(np.exp(old_raw * scale) - np.exp(new_raw * scale), dtype=np.float64))
         old_sums = _sum_and_squares(blur_region(self.raw, self.blurred, rows, cols, self.sigma))
@@ -274,6 +286,55 @@ def perturbation_objective(cost_and_grad, base: np.ndarray, first_free: int, gau
     return step, objective
 
 
+class WindowObserver:
+    """Notified by the back-end around every window; this default does nothing. Loop closure
+    (pipelines/loop_closure.LoopCloser) is one: it reads the back-end and changes it only through
+    ``SlidingWindowBackend.correct_poses`` and ``drop_map`` (the back-end then asks it for ``rebuilt_map``)."""
+
+    stage: str | None = None  # the StageClock stage its calls are timed under (None: untimed)
+    loops: list | None = None  # what it reports (report.json "loops"), if anything
+
+    def before_window(self, t0: float, t1: float, final: bool = False) -> None:
+        """The window [t0, t1] has its control poses initialised; its BA comes next."""
+
+    def settled(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
+        """The events of the stride starting at t0 went into the global map."""
+
+    def after_window(self, t_now: float) -> None:
+        """The window slid: the events before t_now are settled."""
+
+    def rebuilt_map(self) -> GlobalMap:
+        """The global map after ``drop_map`` (never called unless the observer dropped it)."""
+        raise RuntimeError("the back-end's map was dropped by an observer that cannot rebuild it")
+
+    def pending(self) -> bool:
+        """Work in flight that ``idle_slice`` would advance."""
+        return False
+
+    def idle_slice(self) -> None:
+        """Advance work in flight while the caller has nothing else to do."""
+
+    def drain(self) -> None:
+        """The stream ends: finish work in flight now."""
+
+    def summary(self) -> dict | None:
+        """The report's block on this observer (None: none)."""
+        return None
+
+
+@dataclass
+class WindowUpdate:
+    """A completed window as a worker process sends it: its report and the control poses from ``first`` on (those
+    before did not change), for a mirror back-end that answers pose queries (``SlidingWindowBackend.follow``)."""
+
+    report: WindowReport
+    first: int
+    tail: np.ndarray
+    anchor: tuple
+    window_start: float
+    shape: tuple  # (degree, t0, dt) of the spline
+
+
 class SlidingWindowBackend:
     """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""
 
@@ -285,8 +346,9 @@ class SlidingWindowBackend:
         self.width, self.height = config.pano_size
         self.t_start = float(t_start)
         self.r_start = np.eye(3) if r_start is None else np.asarray(r_start, dtype=float)
-        self._map = GlobalMap(self.width, self.height, config.backend_blur_sigma, config.lambda0,
-                              config.max_update_time if config.freeze_pixels else None)
+        # the global map I_G; None while an observer rebuilds it (drop_map, refresh_map)
+        self.map: GlobalMap | None = GlobalMap(self.width, self.height, config.backend_blur_sigma, config.lambda0,
+                                               config.max_update_time if config.freeze_pixels else None)
         self.spline: SO3Spline | None = None
         self.window_start = self.t_start
         self.events = _Buffer()
@@ -298,37 +360,39 @@ class SlidingWindowBackend:
         self.windows: list[WindowReport] = []
         self.events_settled = 0
         self.events_optimized = 0  # event-window pairs that went through BA
-        self._last_correction: float | None = None  # |x| of the last window's CG solution
+        self._last_correction: float | None = None  # |x| of the last window's BA solution
         self._inv_hessian = None  # BFGS: (first free control pose, inverse Hessian) of the last window
-        self.fitted_from: int | None = None  # the first control pose a fit changed since the owner reset it to None
+        self.fitted_from: int | None = None  # the first control pose a fit changed since the last update (updates)
         self._fitted_after: tuple | None = None  # the anchor the last _initialize_until continued from
-        self.loop = None  # loop closure hook (pipelines/loop_closure.LoopCloser), attached by its owner
-        self.clock = StageClock()  # per-stage CPU and wall seconds (fit, ba, settle, loop)
-        # real-time degradation (pipelines/realtime.py): BA events per window at most instead of
-        # backend_max_window_events (None: the config's); 0 skips the BA (the window keeps its initialization)
-        self.ba_cap: int | None = None
-        self.ba_every = 1  # real-time degradation: the BA runs on 1 of ba_every windows (the others: as ba_cap = 0)
-        self.ba_budget: float | None = None  # real-time degradation: a BA starts no iteration after this many seconds
+        self.corrections = 0  # observers' corrections of the control poses (correct_poses)
+        self._corrections_sent = 0  # corrections the last update covered (updates)
+        self.observer = WindowObserver()
+        self.clock = StageClock()  # per-stage CPU and wall seconds (fit, ba, settle, and the observer's)
 
-    @property
-    def map(self) -> GlobalMap:
-        """The global map. After a loop correction the loop closer rebuilds it only when it is read (the next BA,
-        the output): while the BA is skipped (the real-time controller's level 4) several loops cost one rebuild,
-        and the strides settled meanwhile are not voted into a map about to be replaced (LoopCloser.map_stale)."""
-        if self.loop is not None and self.loop.map_stale:
-            self.loop.refresh_map()
-        return self._map
+    def attach(self, observer: WindowObserver) -> None:
+        """Notify ``observer`` around every window from now on (one observer)."""
+        self.observer = observer
 
-    @map.setter
-    def map(self, value: GlobalMap | None) -> None:
-        self._map = value
+    # ---- what observers may change ----------------------------------------------------------------------------
+    def correct_poses(self, correct) -> None:
+        """An observer's correction of the control poses (loop closure): ``correct(spline)`` edits them in place;
+        the anchor follows, and a rejected BA's refit no longer restarts from the uncorrected anchor."""
+        correct(self.spline)
+        self._anchor_at(self._anchor[0])
+        self._fitted_after = None
+        self.corrections += 1
 
-    def _refresh_stale_map(self) -> None:
-        """Rebuild the global map now if a loop correction left it stale, timed as the loop closer's work (a read of
-        ``map`` would rebuild it too, untimed)."""
-        if self.loop is not None and self.loop.map_stale:
-            with self.clock("loop"):
-                self.loop.refresh_map()
+    def drop_map(self) -> None:
+        """An observer replaces the global map: strides settle no votes until ``refresh_map`` asks it for the new one
+        (several replacements between two reads cost one rebuild)."""
+        self.map = None
+
+    def refresh_map(self) -> GlobalMap:
+        """The global map, rebuilt by the observer first if it dropped it (timed as the observer's stage)."""
+        if self.map is None:
+            with self.clock(self.observer.stage):
+                self.map = self.observer.rebuilt_map()
+        return self.map
 
     # ---- input streams -------------------------------------------------------------------------------------------
     def push_events(self, t: np.ndarray, bearings: np.ndarray, complete_until: float | None = None) -> None:
@@ -344,8 +408,8 @@ class SlidingWindowBackend:
 
     def push_source_poses(self, times: np.ndarray, rotations: np.ndarray, moving=None) -> None:
         """Append samples of the initializing trajectory (only relative rotations are used). ``moving`` (one bool
-        per sample): whether the source measured a motion there (the front-end: a packet neither still nor flat, or
-        whose lookback measured one); None (a given trajectory, IMU): moving throughout, every window gets its BA."""
+        per sample): whether the source measured a motion there (the front-end: a packet that is not still); None
+        (a given trajectory, IMU): moving throughout, every window gets its BA."""
         times = np.asarray(times, dtype=float).reshape(-1)
         rotations = np.asarray(rotations, dtype=float).reshape(-1, 3, 3)
         keep = times > (self._src_t[-1] if len(self._src_t) else -np.inf)
@@ -367,70 +431,67 @@ class SlidingWindowBackend:
         src_end = self._src_t[-1] if len(self._src_t) else -np.inf
         return src_end >= self.window_end - _TIME_EPS and self.events_until >= self.window_end
 
-    def step(self, final: bool = False) -> WindowReport:
-        """Initialize, refine and settle one window. ``final`` settles every remaining event."""
-        tic = time.perf_counter()
-        cfg, clock = self.cfg, self.clock
-        t0, t1 = self.window_start, self.window_end
-        stride = cfg.backend_sliding_window_stride
-        if final:
-            last = max(self.events.t[-1] if len(self.events.t) else t0, self._src_t[-1] if len(self._src_t) else t0)
-            t1 = max(t0 + 1e-6, min(t1, last))
-        ev_t, ev_b = self.events.range(t0, t1, include_end=True)
-        n = len(ev_t)
-        rate = n / max(t1 - t0, 1e-9)
-        report = WindowReport(t0, t1, n, optimized=False, alpha=0.0)
-        moving_from = self._moving_from(t0, t1, final) if cfg.backend_skip_still_windows else t0
-        enough = n >= 2 * cfg.event_batch_size and rate >= cfg.backend_min_ev_rate
-        if enough:
-            report.still = moving_from is None
-            report.skipped = not report.still and (self.ba_cap == 0 or len(self.windows) % max(1, self.ba_every) > 0)
-        if n or final or self.spline is None or t1 > self._anchor[0] + _EMPTY_WINDOWS_PER_FIT * stride:
-            # a window without events (a pause of the stream) is fitted with a later one: one fit per
-            # _EMPTY_WINDOWS_PER_FIT strides of a pause instead of one per window (~10 ms each: real time paid 0.3 s
-            # after a 3 s pause); the source poses kept from the anchor on stay bounded
-            with clock("fit"):
-                self._initialize_until(t1, refit_past=not enough or report.still or report.skipped)
-        if self.loop is not None:  # loop closure: a revisit is closed before this window's BA
-            with clock("loop"):
-                self.loop.before_window(t0, t1, final)
-        if enough:
-            if not (report.still or report.skipped):
-                self._refresh_stale_map()  # the map the BA reads, after a loop correction
-                ba0 = time.perf_counter()
-                with clock("ba"):
-                    self._refine(ev_t, ev_b, t0, report, moving_from)
-                    if t0 <= self.t_start + _TIME_EPS:
-                        self._fix_gauge()
-                if report.rejected and self._fitted_after is not None:
-                    # the window keeps its initialization, as a window without a BA: fitted as one (refit_past),
-                    # else runs of rejected windows overshoot in turn and grow (x2 per 0.5 s on a cubic pan)
-                    with clock("fit"):
-                        self._anchor = self._fitted_after
-                        self._initialize_until(t1, refit_past=True)
-                report.ba_seconds = time.perf_counter() - ba0
-        settle_end = t1 + 1.0 if final else t0 + stride
-        with clock("settle"):
-            self._settle(t0, settle_end, still=not report.optimized)
-        self.window_start = t0 + stride
-        if self.loop is not None:  # loop closure: may correct the spline and rebuild the map
-            with clock("loop"):
-                self.loop.after_window(self.window_start)
+    def step(self, budget: WindowBudget = FULL_BUDGET, final: bool = False) -> WindowReport:
+        """One window (paper Sec. IV): slide the window, initialise the control poses it adds from the source,
+        maximise the panoramic IWE's variance over its free control poses, and settle its first stride into the
+        global map. ``budget``: what the real-time controller grants the BA; ``final`` settles every event left."""
+        tic, stride = time.perf_counter(), self.cfg.backend_sliding_window_stride
+        window = self._slide(final)  # 1. slide the window
+        ev_t, ev_b = self.events.range(window.t0, window.t1, include_end=True)
+        report = WindowReport(window.t0, window.t1, len(ev_t), optimized=False, alpha=0.0)
+        moving_from = policy.motion_start(self._src_moves, self._src_t, window) \
+            if self.cfg.backend_skip_still_windows else window.t0
+        report.no_ba = policy.why_no_ba(len(ev_t), window, moving_from, budget, len(self.windows), self.cfg)
+        if policy.fit_due(len(ev_t), window, self.fitted_until, stride):  # 2. initialise the new control poses
+            with self.clock("fit"):
+                self._initialize_until(window.t1, refit_past=report.no_ba is not None)
+        with self.clock(self.observer.stage):
+            self.observer.before_window(window.t0, window.t1, window.final)
+        if report.no_ba is None:  # 3. maximise the contrast over the window's free control poses
+            self._adjust(ev_t, ev_b, window, report, moving_from, budget)
+        with self.clock("settle"):  # 4. update the map with the first stride's events
+            self._settle(window.t0, window.settle_end(stride), moving=report.optimized)
+        self.window_start = window.t0 + stride
+        with self.clock(self.observer.stage):
+            self.observer.after_window(self.window_start)
         self._drop_source_before_anchor()
-        report.seconds = time.perf_counter() - tic
-        report.done_at = time.monotonic()
+        report.seconds, report.done_at = time.perf_counter() - tic, time.monotonic()
         self.windows.append(report)
         return report
 
-    def finish(self) -> None:
-        """Process the windows left once both streams have ended."""
+    def finish(self, budget: WindowBudget = FULL_BUDGET) -> None:
+        """Process the windows left once both streams have ended (the observer's work in flight first)."""
+        self.observer.drain()
         end = max(self.events.t[-1] if len(self.events.t) else self.window_start,
                   self._src_t[-1] if len(self._src_t) else self.window_start)
         while self.window_end < end - _TIME_EPS:
-            self.step()
+            self.step(budget)
         if self.window_start <= end:
-            self.step(final=True)
-        self._refresh_stale_map()  # the output map, rebuilt after the last loops
+            self.step(budget, final=True)
+        self.refresh_map()  # the output map, rebuilt after the observer's last correction
+
+    def _slide(self, final: bool) -> Window:
+        """The window at window_start; the final one ends at the stream's end (policy.partial_window_end)."""
+        t0, t1 = self.window_start, self.window_end
+        if final:
+            t1 = policy.partial_window_end(t0, t1, self.events.t[-1] if len(self.events.t) else t0,
+                                           self._src_t[-1] if len(self._src_t) else t0)
+        return Window(t0, t1, final)
+
+    def _adjust(self, ev_t, ev_b, window: Window, report: WindowReport, moving_from: float, budget) -> None:
+        """The window's BA: maximise the contrast over its free control poses, fix the gauge after the first one,
+        and refit a rejected window as one without a BA (else runs of rejected windows overshoot in turn)."""
+        self.refresh_map()  # the map the BA reads, after an observer's correction
+        ba0 = time.perf_counter()
+        with self.clock("ba"):
+            self._refine(ev_t, ev_b, window.t0, report, moving_from, budget)
+            if window.t0 <= self.t_start + _TIME_EPS:
+                self._fix_gauge()
+        if report.rejected and self._fitted_after is not None:
+            with self.clock("fit"):
+                self._anchor = self._fitted_after
+                self._initialize_until(window.t1, refit_past=True)
+        report.ba_seconds = time.perf_counter() - ba0
 
     # ---- results ---------------------------------------------------------------------------------------------------
     def trajectory(self, rate: float) -> Trajectory:
@@ -458,26 +519,45 @@ class SlidingWindowBackend:
             out[i] = self._extrapolate(t) if t > self._src_t[-1] else r_spl_a @ r_src_a.T @ self._source_at(t)
         return out
 
-    # ---- internals -------------------------------------------------------------------------------------------------
-    def _moving_from(self, t0: float, t1: float, final: bool = False) -> float | None:
-        """The first time in [t0, t1] from which the source measured a motion (``push_source_poses``' moving flags);
-        None: none over the whole window. Where the source measured none the events hold nothing the BA could refine
-        (a still camera: noise, flicker) and a BA fits the poses to them: 0.9-1.4 deg at the start of a simulated
-        DVS128 pan starting from rest with 1 Hz/px noise, an offset that run kept. So a window without motion gets no
-        BA, and a window that starts still keeps the control poses of its still part (``_refine``). Forgets the spans
-        before t0 (windows advance in time). Until the source reaches t1 the window counts as moving (its flags are
-        still to come), except for the ``final`` window: the source has ended, its flags are all there is."""
-        while self._src_moves and self._src_moves[0][1] < t0:
-            self._src_moves.popleft()
-        if not len(self._src_t) or (self._src_t[-1] < t1 and not final):
-            return t0
-        starts = [a for a, b in self._src_moves if a < t1 and b > t0]
-        return max(t0, min(starts)) if starts else None
+    @property
+    def fitted_until(self) -> float | None:
+        """The spline's control poses are fitted (to the source, then refined) up to this time (the anchor)."""
+        return None if self._anchor is None else self._anchor[0]
 
+    @property
+    def refined_until(self) -> float:
+        """Windows are done (events settled into the map) up to this time."""
+        return self.window_start if self.windows else self.t_start
+
+    def updates(self, since: int) -> list[WindowUpdate]:
+        """The windows completed from ``since`` on as updates for a mirror (``follow``): the control poses from one
+        before each window's first free one (those a fit changed, if earlier), all of them after a correction."""
+        spline, out = self.spline, []
+        for report in self.windows[since:]:
+            fitted = self.fitted_from if self.fitted_from is not None else len(spline.control_R)
+            first = 0 if self.corrections > self._corrections_sent else \
+                max(0, min(int(np.floor((report.t_start - spline.t0) / spline.dt)) - 1, fitted))
+            self._corrections_sent, self.fitted_from = self.corrections, None
+            out.append(WindowUpdate(report, first, spline.control_R[first:].copy(), self._anchor, self.window_start,
+                                    (spline.degree, spline.t0, spline.dt)))
+        return out
+
+    def follow(self, update: WindowUpdate) -> None:
+        """Mirror a window computed elsewhere (a worker process's back-end): its control poses, anchor and report.
+        A mirror only answers ``pose_at`` and ``refined_until``; it never refines."""
+        if self.spline is None:
+            self.spline = SO3Spline(*update.shape, update.tail)
+        else:
+            self.spline.control_R = np.concatenate([self.spline.control_R[:update.first], update.tail])
+        self._anchor, self.window_start = update.anchor, update.window_start
+        self._drop_source_before_anchor()
+        self.windows.append(update.report)
+
+    # ---- internals -------------------------------------------------------------------------------------------------
     def _source_segment(self, t_from: float, t_to: float) -> tuple[np.ndarray, np.ndarray]:
-        """Source poses in (t_from, t_to] plus the first one beyond t_to + _TIME_EPS, re-anchored to the spline at
+        """Source poses in (t_from, t_to] plus the first one beyond t_to + TIME_EPS, re-anchored to the spline at
         the anchor. A sample that only coincides with t_to (to rounding) does not count as beyond: it would leave
-        the control poses of the window's end unconstrained (measured: 82 deg off, then every window rejected)."""
+        the control poses of the window's end unconstrained."""
         i0 = int(np.searchsorted(self._src_t, t_from, side="right"))
         i1 = min(int(np.searchsorted(self._src_t, t_to + _TIME_EPS, side="right")) + 1, len(self._src_t))
         times, rots = self._src_t[i0:i1], self._src_R[i0:i1]
@@ -497,35 +577,39 @@ class SlidingWindowBackend:
     def _source_at(self, t: float) -> np.ndarray:
         return Trajectory(self._src_t, self._src_R).at(t)[0] if len(self._src_t) > 1 else self._src_R[0]
 
+    def _initialize_first(self, t_end: float) -> None:
+        """The first window's control poses: fitted to the source from r_start at t_start."""
+        cfg = self.cfg
+        r_src0 = self._source_at(self.t_start)
+        self._anchor = (self.t_start, r_src0, self.r_start)
+        times, rots = self._source_segment(self.t_start, t_end)
+        times = np.concatenate([[self.t_start], times])
+        rots = np.concatenate([self.r_start[None], rots])
+        if len(times) < 2:
+            times, rots = np.array([self.t_start, t_end]), np.stack([self.r_start, self.r_start])
+        elif times[-1] < t_end:  # the source ends before the events do (a stream shorter than one window)
+            times, rots = np.append(times, t_end), np.concatenate([rots, self._extrapolate(t_end)[None]])
+        lead = (cfg.spline_degree - 1) // 2
+        self.spline = SO3Spline(cfg.spline_degree, self.t_start - lead * cfg.dt_knots, cfg.dt_knots,
+                                np.broadcast_to(self.r_start, (cfg.spline_degree + 1, 3, 3)).copy())
+        self.spline.fit_new_segment(times, rots, first_free=0, refine_iters=1)
+        self._anchor_at(float(times[-1]))
+        self.fitted_from = 0
+        self._fitted_after = None
+
     def _initialize_until(self, t_end: float, refit_past: bool = False) -> None:
-        """Fit control poses for (anchor, t_end] to the re-anchored source (lift-solve-retract).
+        """Fit control poses for (anchor, t_end] to the re-anchored source (lift-solve-retract; paper Sec. III-C2,
+        Initialization: each new segment starts from the last optimised pose).
 
         ``refit_past`` (a window that gets no BA): the control poses that shape R(t) just after the anchor but were
         fixed before it are refitted too, to the spline's own samples over the preceding knot intervals plus the new
-        ones. Without it the new poses alone must continue whatever slope the last BA left at the window's end
-        (poses its events barely reached): fitted one window after another with the earlier ones fixed, cubic poses
-        overshoot in turn, and over windows without a BA to damp it the oscillation grew window by window (refining
-        the ground truth of a pan that slows to 0.7 deg/s: +-2 to 4.8 deg at the knot spacing over its last 0.5 s).
-        A window with a BA keeps the plain fit (its BA refines those poses anyway; outputs bitwise as before)."""
-        cfg = self.cfg
+        ones. The new poses alone would continue whatever slope the last BA left at the window's end, and over
+        windows without a BA to damp it cubic poses overshoot in turn, window by window. A window with a BA keeps
+        the plain fit (its BA refines those poses anyway)."""
         if self.spline is None:
-            r_src0 = self._source_at(self.t_start)
-            self._anchor = (self.t_start, r_src0, self.r_start)
-            times, rots = self._source_segment(self.t_start, t_end)
-            times = np.concatenate([[self.t_start], times])
-            rots = np.concatenate([self.r_start[None], rots])
-            if len(times) < 2:
-                times, rots = np.array([self.t_start, t_end]), np.stack([self.r_start, self.r_start])
-            elif times[-1] < t_end:  # the source ends before the events do (a stream shorter than one window)
-                times, rots = np.append(times, t_end), np.concatenate([rots, self._extrapolate(t_end)[None]])
-            lead = (cfg.spline_degree - 1) // 2
-            self.spline = SO3Spline(cfg.spline_degree, self.t_start - lead * cfg.dt_knots, cfg.dt_knots,
-                                    np.broadcast_to(self.r_start, (cfg.spline_degree + 1, 3, 3)).copy())
-            self.spline.fit_new_segment(times, rots, first_free=0, refine_iters=1)
-            self._anchor_at(float(times[-1]))
-            self.fitted_from = 0
-            self._fitted_after = None
+            self._initialize_first(t_end)
             return
+        cfg = self.cfg
         t_a = self._anchor[0]
         if t_end <= t_a + _TIME_EPS and self.spline.valid_time_range()[1] >= t_end - _TIME_EPS:
             self._fitted_after = None
@@ -555,16 +639,11 @@ class SlidingWindowBackend:
         self.fitted_from = first_free if self.fitted_from is None else min(self.fitted_from, first_free)
 
     def _fix_gauge(self) -> None:
-        """After the first window's BA: R(t_start) = r_start exactly (the world frame is the camera's at the first
-        event). The BA holds only the first control pose, but a cubic R(t_start) also depends on the next two, and
-        with no global map yet nothing else holds the window's orientation: on a 20 ms stream (5 000 events) the BA
-        turned it 1.2 deg (0.01-0.05 deg on long streams). The contrast of the window's events does not change when
-        the whole trajectory turns (up to the map's sampling), so the BA's optimum is kept, in the right frame."""
-        r_at_start = self.spline.evaluate(self.t_start)[0]
-        if np.array_equal(r_at_start, self.r_start):  # a linear spline: its first control pose is R(t_start)
-            return
-        self.spline.control_R[:] = (self.r_start @ r_at_start.T) @ self.spline.control_R
-        self._anchor_at(self._anchor[0])
+        """After the first window's BA: R(t_start) = r_start exactly (policy.gauge_fix)."""
+        turn = policy.gauge_fix(self.spline, self.t_start, self.r_start)
+        if turn is not None:
+            self.spline.control_R[:] = turn @ self.spline.control_R
+            self._anchor_at(self._anchor[0])
 
     def _extrapolate(self, t: float) -> np.ndarray:
         """Re-anchored source pose at t beyond its last sample, at the last sampled angular velocity."""
@@ -579,38 +658,16 @@ class SlidingWindowBackend:
     def _anchor_at(self, t: float) -> None:
         self._anchor = (t, self._source_at(t), self.spline.evaluate(t)[0])
 
-    def _sample(self, ev_t, ev_b):
-        """At most backend_max_window_events events, every (n / cap)-th: even in time, and over the image in
-        proportion to where the events are."""
-        cap = self.cfg.backend_max_window_events if self.ba_cap is None else self.ba_cap
-        n = len(ev_t)
-        if cap < 0 or n <= cap:
-            return ev_t, ev_b
-        idx = ((np.arange(cap) + 0.5) * (n / cap)).astype(np.int64)
-        return ev_t[idx], np.take(ev_b, idx, axis=0)  # take: 4x faster than ev_b[idx] on (n, 3) rows
-
-    def _refine(self, ev_t, ev_b, t0, report: WindowReport, moving_from: float | None = None) -> None:
-        cfg = self.cfg
-        spline = self.spline
-        ev_t, ev_b = self._sample(ev_t, ev_b)
+    def _refine(self, ev_t, ev_b, t0, report: WindowReport, moving_from: float | None = None,
+                budget: WindowBudget = FULL_BUDGET) -> None:
+        """Maximise Var(B(I_L) + alpha B(I_G)) (Eq. 18) over the control poses from the first free one, on left
+        increments, and apply the optimum unless it is a false maximum (policy.false_maximum)."""
+        cfg, spline = self.cfg, self.spline
+        ev_t, ev_b = policy.even_sample(ev_t, ev_b, cfg.backend_max_window_events if budget.ba_cap is None
+                                        else budget.ba_cap)
         report.events_used = len(ev_t)
-        knots = spline.knot_times()
-        first_free = int(np.searchsorted(knots, t0 - _TIME_EPS, side="left"))
-        first_free = max(first_free, 1)  # the very first pose anchors the gauge (world frame)
-        if moving_from is not None and moving_from > t0:  # the window starts still: its poses there stay
-            reach = 0.5 * (cfg.spline_degree + 1) * cfg.dt_knots  # a control pose shapes R(t) within this of its knot
-            first_free = max(first_free, int(np.searchsorted(knots, moving_from - reach, side="right")))
-        # In the first window only the first control pose holds the orientation (no global map yet), and it shapes
-        # only the first knot interval: turning all the others together changes the window's contrast only through
-        # the map's sampling, which a sparse scene (stars: point splats) rewards. On a 30 deg/s star field the BA
-        # turned them by 1.6-2.5 deg and bent the start (0.13-0.2 deg between R(t_start) and R a knot later, which
-        # _fix_gauge keeps). So there that common rotation is projected out of the step; on dense scenes this is
-        # neutral (24 random 1.2 s DAVIS240C / DVS128 sequences: abs RMSE x1.001 cubic, x1.023 linear, geometric
-        # means; freeing the first pose too, the frame then set by _fix_gauge alone: x0.988 / x1.016, but 0.166 ->
-        # 0.186 deg on the cubic DVS128 playroom). Poses held still (a window starting still) hold the orientation.
-        gauge_free = t0 <= self.t_start + _TIME_EPS and first_free == 1
-        mids = batch_mid_times(ev_t, cfg.event_batch_size)
-        s, u = spline.support(mids)
+        first_free = policy.first_free_pose(spline.knot_times(), t0, moving_from, cfg)
+        s, u = spline.support(batch_mid_times(ev_t, cfg.event_batch_size))
         # alpha from the event densities of the initial local map and the global map (Eq. 16-17): PanoIWE takes
         # rho(I_L) from its first evaluation, the optimiser's start at the initialization
         rho_g = self.map.density
@@ -622,11 +679,34 @@ class SlidingWindowBackend:
         n_free = len(base) - first_free
         if n_free <= 0:
             return
+        step, perturbed = perturbation_objective(problem.cost_and_grad, base, first_free,
+                                                 policy.gauge_free(t0, self.t_start, first_free))
+        result, var0, scale = self._maximise(problem, perturbed, base, first_free, n_free, budget)
+        report.alpha = problem.alpha  # set by the first evaluation
+        # the correction: how far the optimum moves the trajectory where the window's events are (not how far it
+        # moves control poses, which the events may barely reach)
+        s_c, u_c = policy.correction_samples(s, u)
+        before = spline.evaluate_at(s_c, u_c)
+        spline.control_R[first_free:] = so3.exp(step(result.x)) @ base[first_free:]
+        report.max_correction = float(np.max(so3.geodesic_angle(before, spline.evaluate_at(s_c, u_c))))
+        if policy.false_maximum(report.max_correction, cfg):
+            spline.control_R[:] = base  # the window keeps its initialization
+            report.rejected = True
+            self._inv_hessian = None  # the curvature of a false maximum
+            return
+        self._last_correction = float(np.linalg.norm(result.x))
+        report.variance_before, report.variance_after = var0, result.fun / scale
+        report.optimized, report.iterations, report.evaluations = True, result.iterations, result.evaluations
+        report.cut_short = result.message == "time budget reached"
+        self.events_optimized += len(ev_t)
+        self._anchor_at(self._anchor[0])
 
-        # tolerances act on the relative variance (scale-free): the cost is divided by var0, the variance at the
-        # initialization, which the optimiser's first evaluation (x = 0) gives
+    def _maximise(self, problem, perturbed, base, first_free: int, n_free: int, budget: WindowBudget):
+        """Run the configured optimiser (BFGS warm-started from the last window's inverse Hessian, or Fletcher-Reeves
+        CG) on the relative variance: the cost divided by var0, its value at the initialization (which the first
+        evaluation, x = 0, gives), so the tolerances are scale-free. Returns (result, var0, 1 / var0)."""
+        cfg = self.cfg
         var0 = scale = None
-        step, perturbed = perturbation_objective(problem.cost_and_grad, base, first_free, gauge_free)
 
         def objective(x: np.ndarray):
             nonlocal var0, scale
@@ -636,7 +716,7 @@ class SlidingWindowBackend:
                 scale = 1.0 / var0 if var0 > 0 else 1.0
             return var * scale, g * scale
 
-        deadline = None if self.ba_budget is None else time.monotonic() + self.ba_budget
+        deadline = None if budget.ba_budget is None else time.monotonic() + budget.ba_budget
         if cfg.backend_optimizer == "bfgs":
             warm = self._carried_inv_hessian(first_free, n_free)
             result, h = bfgs(
@@ -653,39 +733,14 @@ class SlidingWindowBackend:
                 grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
                 max_line_evals=cfg.backend_cg_max_line_evals, step_guess=cfg.backend_cg_step_guess,
             )
-        report.alpha = problem.alpha  # set by the first evaluation
-        # the correction is how far the optimum moves the trajectory where the window's events are, not how far
-        # it moves control poses: with sparse knots (10 Hz) a pose that the events barely reach moves by degrees
-        # while the trajectory it shapes does not. Taken at 256-511 of the batches' times, evenly (the difference of
-        # two splines is smooth within a knot interval; at every batch it cost 5 ms per window at 2 M ev/s)
-        every = max(1, len(s) // 256)
-        s_c, u_c = np.append(s[::every], s[-1]), np.append(u[::every], u[-1])
-        before = spline.evaluate_at(s_c, u_c)
-        spline.control_R[first_free:] = so3.exp(step(result.x)) @ base[first_free:]
-        report.max_correction = float(np.max(so3.geodesic_angle(before, spline.evaluate_at(s_c, u_c))))
-        if report.max_correction > cfg.backend_max_correction:
-            # a false maximum (e.g. a map too coarse for the sensor): keep the initialization for this window
-            spline.control_R[:] = base
-            report.rejected = True
-            self._inv_hessian = None  # the curvature of a false maximum
-            return
-        self._last_correction = float(np.linalg.norm(result.x))
-        report.variance_before = var0
-        report.variance_after = result.fun / scale
-        report.optimized = True
-        report.iterations = result.iterations
-        report.evaluations = result.evaluations
-        report.cut_short = result.message == "time budget reached"
-        self.events_optimized += len(ev_t)
-        self._anchor_at(self._anchor[0])
+        return result, var0, scale
 
     def _carried_inv_hessian(self, first_free: int, n_free: int) -> np.ndarray | None:
         """The last window's BFGS inverse Hessian re-indexed to this window's free control poses: the poses both
         windows optimise keep their blocks (windows overlap, the cost changes little there), poses new to this
-        window start uncoupled with the mean diagonal. When no pose is shared (windows without a BA in between, as
-        the real-time controller skips them) the last one is the template pose by pose from the first free one:
-        windows of one length and knot spacing have similar curvature, and a cold start costs ~25 evaluations
-        instead of 2-6 (21 parameters to learn). None before any BA (a cold start)."""
+        window start uncoupled with the mean diagonal. When no pose is shared (windows without a BA in between) the
+        last one is the template pose by pose from the first free one: windows of one length and knot spacing have
+        similar curvature, and a cold start costs many more evaluations. None before any BA (a cold start)."""
         if self._inv_hessian is None:
             return None
         prev_first, h_prev = self._inv_hessian
@@ -700,30 +755,31 @@ class SlidingWindowBackend:
         return h
 
     def _init_step(self) -> float:
-        """First CG trial step: the size of the previous window's correction (windows overlap, so corrections
-        are of similar size), capped by backend_cg_init_step. A 0.1 rad first step when the optimum is 1e-3
-        away costs many line-search bisections."""
+        """First trial step: the size of the previous window's correction (windows overlap, so corrections are of
+        similar size), capped by backend_cg_init_step; a first step far larger than the optimum's distance costs
+        many line-search bisections."""
         cap = self.cfg.backend_cg_init_step
         if self._last_correction is None:
             return cap
         return float(np.clip(2.0 * self._last_correction, 1e-2 * cap, cap))
 
-    def _settle(self, t0: float, t1: float, still: bool) -> None:
-        """Vote the events of [t0, t1) into the global map with the refined poses; drop them from the buffer."""
+    def _settle(self, t0: float, t1: float, moving: bool) -> None:
+        """Vote the events of [t0, t1) into the global map with the refined poses (none while an observer rebuilds
+        the map: it holds them); tell the observer; drop them from the buffer. ``moving``: the window's BA ran (the
+        map's pixel freezing counts observation time only then)."""
         cfg = self.cfg
         ev_t, ev_b = self.events.range(t0, t1)
         if len(ev_t):
             start, end = self.spline.valid_time_range()
             mids = np.clip(batch_mid_times(ev_t, cfg.event_batch_size), start, end)
-            if self.loop is None or not self.loop.map_stale:  # (a stale map is rebuilt from the loop closer's store)
-                # the BA's projection and vote (PanoIWE: the spline evaluated per batch in the kernel)
+            if self.map is not None:
+                # the BA's projection and vote (PanoIWE: the spline evaluated per batch in the kernel); its window
+                # holds the votes plus the radius of I_G's blur, the region B(I_G) changes on
                 s, u = self.spline.support(mids)
-                # (its window holds the votes plus the blur radius of I_G's blur: the region B(I_G) changes on)
-                local = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=self._map.sigma,
+                local = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=self.map.sigma,
                                 alpha=0.0, batch_size=cfg.event_batch_size).votes(self.spline.control_R)
                 if local is not None:
-                    self._map.add_votes(*local, t0, moving=not still)
+                    self.map.add_votes(*local, t0, moving=moving)
             self.events_settled += len(ev_t)
-            if self.loop is not None:  # loop closure keeps a subsample of the settled events
-                self.loop.store(ev_t, ev_b, t0, not still)
+            self.observer.settled(ev_t, ev_b, t0, moving)
         self.events.drop_before(t1)

@@ -1,54 +1,51 @@
 """Loop closure on revisits for the sliding-window back-end (beyond the paper, Sec. VI names it as missing).
 
 Without it, drift builds up over a 360-degree pan until the camera sees the first turn's map again; the global map
-then pulls the new windows back, so the trajectory carries the drift and a jump. ``LoopCloser`` hooks into
-``SlidingWindowBackend`` (``backend.loop``), and around every window:
+then pulls the new windows back, so the trajectory carries the drift and a jump. ``LoopCloser`` observes a
+``SlidingWindowBackend`` (``backend.attach``: the back-end notifies it around every window) and changes it only
+through ``correct_poses`` and ``drop_map``:
 
-1. keeps a subsample of the settled events (at most ``loop_stored_event_rate`` per second, each stride 1 of k with
-   weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and, delayed
-   by ``loop_recent_time``, marks them in a coarse map of the time each region was last observed (the cells of
-   1 in 4 events) and, once a verification reads it, votes them into an *old map* (a run without a revisit never
-   casts those votes);
-2. detection, before every window's BA (at most one verification per ``loop_recent_time``, less often while a
-   revisit goes on without a correction to apply: the interval doubles up to ``loop_min_age``, not after a
-   registration that ran off beyond ``loop_max_correction``: little overlap at a revisit's start, which grows as it
-   goes on; after an applied
-   loop, the next check waits until the drift rate that loop measured has moved the map by
-   ``loop_check_drift_px``, within the same bounds; at the stream's last window a check not due yet runs when
-   the last verification was ``loop_recent_time`` or more before it: no later check could close the drift built
-   up since): the recent events
-   (the last ``loop_recent_time`` seconds of settled events plus the window's, at their initialized poses: the
-   BA has not pulled them to the old map yet) at their current poses are a revisit candidate when at least
-   ``loop_min_overlap`` of them fall on *old* regions: observed, and last observed at least ``loop_min_age`` s ago
-   or, at least ``loop_recent_time`` s ago, before the camera turned ``loop_min_travel`` (the rotation travelled
-   along the settled trajectory, summed as it settles: a fast pan comes back to its start sooner than any fixed
-   age; sensor_defaults states the rule) (regions without texture give no events, so they are never observed);
+1. store: keeps a subsample of the settled events (at most ``loop_stored_event_rate`` per second, each stride 1 of
+   k with weight k; all strides thinned by 2 when ``loop_max_stored_events`` is exceeded: bounded memory), and,
+   delayed by ``loop_recent_time``, marks them in a coarse map of the time each region was last observed (the cells
+   of 1 in 4 events) and, once a verification reads it, votes them into an *old map* (a run without a revisit
+   never casts those votes);
+2. detection, before every window's BA: the recent events (the last ``loop_recent_time`` seconds of settled events
+   plus the window's, at their initialized poses: the BA has not pulled them to the old map yet) are a revisit
+   candidate when at least ``loop_min_overlap`` of them fall on *old* regions: observed, and last observed at least
+   ``loop_min_age`` s ago or, at least ``loop_recent_time`` s ago, before the camera turned ``loop_min_travel`` (the
+   rotation travelled along the settled trajectory: a fast pan comes back to its start sooner than any fixed age).
+   Regions without texture give no events, so they are never observed. Checks come at most once per
+   ``loop_recent_time``; while a revisit goes on without a correction to apply the interval doubles up to
+   ``loop_min_age`` (not after a registration that ran off beyond ``loop_max_correction``: the overlap grows as a
+   revisit goes on); after an applied loop the next check waits until the drift rate that loop measured has moved
+   the map by ``loop_check_drift_px``, within the same bounds; at the stream's last window a check not due yet runs
+   when the last verification was ``loop_recent_time`` or more before it (no later check could close the drift);
 3. verification: one rotation C (left, world frame) registers the recent events against the old map of those
-   regions alone, with the back-end's machinery (``PanoIWE``: Var(B(I_recent) + alpha B(I_old)), BFGS from the
-   last verification's inverse Hessian),
-   coarse to fine. The candidate is accepted when the registered maps correlate (normalized cross-correlation
-   over the old regions >= ``loop_min_confidence``), the optimum is unique (that correlation over its best value
-   4 and 8 map pixels away >= ``loop_min_peak_ratio``) and |C| <= ``loop_max_correction``;
-4. correction (when |C| >= ``loop_min_correction_px`` map pixels and the registration raised the correlation by
-   at least ``loop_min_gain``, i.e. the data support it): C is spread over the control poses between the
-   old visit (the middle of the old regions' last visit, or the last applied loop: each later revisit closes
-   only the drift since, against the corrected map) and the recent events by the chain pose graph ``so3.spread_correction``
-   (weights: rotation travelled between control poses, as drift grows with motion) up to the median time of
-   the recent events on the old regions; later poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples along the corrected
-   spline, so later windows align to one consistent map (the global map at once: the rebuilt old map plus the
-   recent strides' votes, blurred once; stride by stride only with pixel freezing). The global map is rebuilt when
-   it is next read (``refresh_map``: before the next BA, for the output): while the BA is skipped (real-time level 4)
-   several loops cost one rebuild and the strides settled meanwhile are not voted into the stale map.
-
-   The old map and the age map restart from the checkpoint the last rebuild left when the correction left its
-   strides' poses unchanged (every later loop closes only the drift since the last one), so a rebuild votes the
-   strides aged since, not every stride since the start (bitwise the same maps).
+   regions alone, coarse to fine, with the back-end's machinery (``PanoIWE``: Var(B(I_recent) + alpha B(I_old)),
+   BFGS from the last verification's inverse Hessian). The candidate is accepted when the registered maps correlate
+   (normalized cross-correlation over the old regions >= ``loop_min_confidence``), the optimum is unique (that
+   correlation over its best value 4 and 8 map pixels away >= ``loop_min_peak_ratio``) and |C| <=
+   ``loop_max_correction``;
+4. correction (when |C| >= ``loop_min_correction_px`` map pixels and the registration raised the correlation by at
+   least ``loop_min_gain``: the data support it): C is spread over the control poses between the old visit (the
+   middle of the old regions' last visit, or the last applied loop: each later revisit closes only the drift since)
+   and the recent events by the chain pose graph ``so3.spread_correction`` (weights: rotation travelled between
+   control poses, as drift grows with motion) up to the median time of the recent events on the old regions; later
+   poses get all of C. The global map, the old map and the age map are then rebuilt from the stored subsamples
+   along the corrected spline, so later windows align to one consistent map (the rebuilt old map plus the recent
+   strides' votes, blurred once; stride by stride with pixel freezing). The global map is rebuilt when the back-end
+   next needs it (``SlidingWindowBackend.refresh_map`` asks ``rebuilt_map``: before the next BA, for the output):
+   while the BA is skipped (real-time level 4) several loops cost one rebuild and the strides settled meanwhile are
+   not voted into a map about to be replaced. The old map and the age map restart from the checkpoint the last
+   rebuild left when the correction left its strides' poses unchanged, so a rebuild votes the strides aged since,
+   not every stride since the start (bitwise the same maps);
 5. real time (``slice_seconds``, set by ``ti-cmax slam --realtime``): the verification and the rebuild after it run
    in slices (a helper thread run as a coroutine, strictly alternating with the back-end: one cost evaluation, map
    step or stored stride per slice) for at most ``slice_seconds`` before each window and in the back-end worker's
-   idle time; the result is applied before the window after the verification ends (to the poses then: at level 4,
-   without BA, the same trajectory as at once), with the age map as detected; the old maps serve meanwhile. No
-   new check while one is in flight. Offline (None) all runs at once.
+   idle time; the result is applied before the window after the verification ends (to the poses then), with the age
+   map as detected; the old maps serve meanwhile. No new check while one is in flight. Offline (None) all runs at
+   once.
 
 Every candidate goes into ``loops`` (time, correction, confidence, accepted, applied, reason) for report.json.
 """
@@ -67,12 +64,12 @@ from ti_cmax.kernels.pano import (
     PanoIWE, batch_mid_times, blur_radius, blur_region, equirect_numpy, event_density,
 )
 
-from .backend import GlobalMap
+from .backend import GlobalMap, WindowObserver
 from .optim import bfgs
 
 _CELL = 4  # map pixels per side of an age cell
 _CELL_EVERY = 4  # the cells a stored stride observed: those of 1 in this many of its events
-_VOTES_PER_SLICE = 8  # aged chunks voted into the old map per slice (~1 ms each) in a sliced verification
+_VOTES_PER_SLICE = 8  # aged chunks voted into the old map per slice in a sliced verification
 _RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's shifts from the optimum
 _ITERS = 10  # BFGS iterations per pyramid level: 3 unknowns, started near the optimum by the coarser level
 _STEP_TOL = 0.05  # level pixels: BFGS stops when its next step would move the map less (1/20 of the blur)
@@ -118,8 +115,8 @@ def _cyclic_span(used: np.ndarray, margin: int) -> np.ndarray:
 
 class _RawMap(GlobalMap):
     """The old map: raw votes only. The registration reads nothing else, so the blurred copy, the sums and the
-    event area of ``GlobalMap`` are neither kept nor updated (a third less memory: 2 instead of 3 float32 maps,
-    268 MB instead of 402 MB at 8192 x 4096, and no blur or exp per aged stride). Same votes as GlobalMap.add."""
+    event area of ``GlobalMap`` are neither kept nor updated (2 instead of 3 float32 maps, and no blur or exp per
+    aged stride). Same votes as GlobalMap.add."""
 
     def __init__(self, width: int, height: int, raw: np.ndarray | None = None):
         self.width, self.height = width, height
@@ -181,11 +178,15 @@ class _Slices:
             raise self._error
 
 
-class LoopCloser:
+class LoopCloser(WindowObserver):
     """Loop detection, verification and correction for one ``SlidingWindowBackend`` (module docstring)."""
 
-    def __init__(self, config: LoopClosureConfig, backend):
-        """``config`` must be resolved for the camera (``sensor_defaults.resolve_config``): no derived 0s."""
+    stage = "loop"  # the back-end's StageClock stage of these calls
+
+    def __init__(self, config: LoopClosureConfig, backend, slice_seconds: float | None = None):
+        """``config`` must be resolved for the camera (``sensor_defaults.resolve_config``): no derived 0s.
+        ``slice_seconds``: verify in slices of at most this many wall seconds per window (real time; module
+        docstring, 5.); None verifies at once."""
         if config.loop_registration_events <= 0 or config.loop_min_travel == 0:
             raise ValueError("the loop closer needs a config resolved for the camera (sensor_defaults.resolve_config)")
         self.cfg, self.backend = config, backend
@@ -220,22 +221,22 @@ class LoopCloser:
         # else a verification runs in slices (_Slices, one cost evaluation or map step each) of at most this many
         # wall seconds before each window, and in the back-end worker's idle time (idle_slice), and its result is
         # applied before the window after it ended
-        self.slice_seconds: float | None = None
+        self.slice_seconds = slice_seconds
         self._task: _Slices | None = None  # the verification or map rebuild in flight
         self._pending: dict | None = None  # what its conclusion needs (_conclude_task)
         self._task_spline = None  # a sliced rebuild's corrected copy of the spline (the back-end's gets it at the end)
-        self.corrections = 0  # loop corrections applied to the back-end's control poses so far
-        # the global map is rebuilt when next read (backend.map: the next BA, the output), not at each correction
+        # the global map is rebuilt when the back-end next asks for it (rebuilt_map: the next BA, the output), not at
+        # each correction
         self.map_stale = False
         self._acc = None  # (raw map, n_voted): a sliced rebuild's global map votes so far (_finish_rebuild)
-        self.map_rebuilds = 0  # global maps rebuilt (refresh_map)
+        self.map_rebuilds = 0  # global maps rebuilt (rebuilt_map)
         self.seconds = self.cpu_seconds = 0.0
         self.longest_call = (0.0, 0.0)  # (wall, CPU) seconds of the longest hook call (_spent)
         self._drained = False  # a sliced run's stream has ended (drain)
         self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
 
-    # ---- hooks (called by the back-end) ----------------------------------------------------------------------------
-    def store(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
+    # ---- notifications (from the back-end) ------------------------------------------------------------------------
+    def settled(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
         """Keep a subsample of one settled stride (1 of k, weight k)."""
         tic, cpu = time.perf_counter(), time.process_time()
         n = len(ev_t)
@@ -316,7 +317,7 @@ class LoopCloser:
             return
         tic, cpu = time.perf_counter(), time.process_time()
         ev_t, ev_b = self.backend.events.range(t0, t1, include_end=True)
-        cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * (t1 - t0))), 1)  # as stored (store())
+        cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * (t1 - t0))), 1)  # as stored (settled())
         k = max(int(math.ceil(len(ev_t) / cap)), 1)
         self._check(t1, ev_t[::k], ev_b[::k])
         self._spent(tic, cpu)
@@ -545,7 +546,7 @@ class LoopCloser:
         peak_ratio, accepted, reason and ``_phi`` (the correction's rotation vector, world frame, left).
         """
         # a copy: the poses as they are now, also when the verification runs in slices between later windows
-        cfg, bcfg, spline = self.cfg, self.backend.cfg, self.backend.spline.copy()
+        cfg, spline = self.cfg, self.backend.spline.copy()
         w, h = self.backend.width, self.backend.height
         self._vote_aged(self._n_old if n_aged is None else n_aged)
         mask = np.repeat(np.repeat(old_cells, _CELL, axis=0), _CELL, axis=1)[:h, :w]
@@ -556,11 +557,37 @@ class LoopCloser:
         g_raw = np.zeros((h, w), np.float32)  # the old map on the old regions (zero pages beyond their rows)
         g_rows = slice(int(rows[0]), int(rows[-1]) + 1)
         np.copyto(g_raw[g_rows], self.old.raw[g_rows], where=mask[g_rows])
+        base = spline.control_R.copy()
+        tic, paused0 = time.perf_counter(), self._paused()
+        phi, problem = self._register(t, b, spline, base, g_raw, rows)
+        if np.linalg.norm(phi) > cfg.loop_max_correction:  # a false loop: no need to refine it
+            return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
+                    "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
+                    "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
+        self.profile["register"] += time.perf_counter() - tic - (self._paused() - paused0)
+        self._slice_point()
+        conf, peak, before = self._confidence(problem, phi, base, mask, rows)
+        corr = float(np.linalg.norm(phi))
+        if conf < cfg.loop_min_confidence:
+            ok, reason = False, "confidence below loop_min_confidence"
+        elif peak < cfg.loop_min_peak_ratio:
+            ok, reason = False, "optimum not unique (peak ratio below loop_min_peak_ratio)"
+        elif corr > cfg.loop_max_correction:
+            ok, reason = False, "correction above loop_max_correction"
+        else:
+            ok, reason = True, "accepted"
+        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": before,
+                "peak_ratio": float(peak), "accepted": ok, "applied": False, "reason": reason, "_phi": phi.tolist()}
+
+    def _register(self, t, b, spline, base, g_raw, rows):
+        """One rotation phi (left, world frame) registering the events against the old map ``g_raw`` (zero beyond
+        ``rows``), coarse to fine; stops at a level whose phi exceeds loop_max_correction. Returns (phi, the finest
+        level's PanoIWE problem)."""
+        cfg, bcfg = self.cfg, self.backend.cfg
+        w, h = self.backend.width, self.backend.height
         mids, _ = self._rotations(t)
         s, u = spline.support(mids)
-        base = spline.control_R.copy()
         phi = np.zeros(3)
-        tic, paused0 = time.perf_counter(), self._paused()
         levels = [f for f in (4, 2, 1) if w % f == 0 and h % f == 0 and (w // f >= 256 or f == 1)]
         problem = None
         for f in levels:
@@ -586,7 +613,7 @@ class LoopCloser:
                 return var * scale[0], so3.left_jacobian(x).T @ grad.sum(axis=0) * scale[0]
 
             # BFGS from the inverse Hessian the last verification ended with at this level (the same normalized
-            # cost of one rotation: its first step is already quasi-Newton; 12 evaluations instead of CG's 33)
+            # cost of one rotation: its first step is already quasi-Newton, far fewer evaluations than CG)
             px = f * 2 * np.pi / w
             res, hess = bfgs(objective, phi, maximize=True, inv_hessian=self._inv_hessian.get(f), init_step=2 * px,
                              max_iter=_ITERS, grad_tol=bcfg.backend_cg_grad_tol,
@@ -594,12 +621,15 @@ class LoopCloser:
             if hess is not None:
                 self._inv_hessian[f] = hess
             phi = res.x
-            if np.linalg.norm(phi) > cfg.loop_max_correction:  # a false loop: no need to refine it
-                return {"correction_deg": float(np.degrees(np.linalg.norm(phi))), "confidence": 0.0,
-                        "confidence_before": 0.0, "peak_ratio": 0.0, "accepted": False, "applied": False,
-                        "reason": "correction above loop_max_correction", "_phi": phi.tolist()}
-        self.profile["register"] += time.perf_counter() - tic - (self._paused() - paused0)
-        self._slice_point()
+            if np.linalg.norm(phi) > cfg.loop_max_correction:
+                break
+        return phi, problem
+
+    def _confidence(self, problem, phi, base, mask, rows) -> tuple[float, float, float]:
+        """(confidence, peak ratio, confidence before): the correlation of the registered recent map with the old
+        map over the old regions, its ratio to the best correlation 4 and 8 map pixels away, and the correlation at
+        no correction."""
+        w, h = self.backend.width, self.backend.height
         # correlation of the registered recent map with the old map over the old regions, on local texture: on the
         # box around them (rows, and the cyclic column interval) with a margin for the texture filter and the shifts
         # (the box of the old regions the registered recent map covers: the correlation reads nothing else)
@@ -638,7 +668,7 @@ class LoopCloser:
         def ncc(tex, covered, shift=(0, 0)):
             """Correlation over the old regions of the recent map's texture (shifted by (rows, columns); on the
             pixels its map covers) with the old map's. Sums of products by einsum, not ``@``: a BLAS dot of this
-            length runs threaded, and its idle threads spin (on a busy machine 8 ms of CPU instead of 0.1 ms)."""
+            length runs threaded, and its idle threads spin."""
             if shift != (0, 0):
                 covered = np.roll(covered, shift, axis=(0, 1))
                 tex = np.roll(tex, shift, axis=(0, 1))
@@ -670,19 +700,8 @@ class LoopCloser:
                 ring.append(ncc(*at_opt, shift=(int(round(r * math.sin(a))), int(round(r * math.cos(a))))))
         best_ring = max(ring)
         peak = conf / best_ring if best_ring > 0 else np.inf
-        corr = float(np.linalg.norm(phi))
-        if conf < cfg.loop_min_confidence:
-            ok, reason = False, "confidence below loop_min_confidence"
-        elif peak < cfg.loop_min_peak_ratio:
-            ok, reason = False, "optimum not unique (peak ratio below loop_min_peak_ratio)"
-        elif corr > cfg.loop_max_correction:
-            ok, reason = False, "correction above loop_max_correction"
-        else:
-            ok, reason = True, "accepted"
         self._slice_point()
-        before = ncc(*maps_at(problem.local_box(base)))
-        return {"correction_deg": float(np.degrees(corr)), "confidence": conf, "confidence_before": before,
-                "peak_ratio": float(peak), "accepted": ok, "applied": False, "reason": reason, "_phi": phi.tolist()}
+        return conf, peak, ncc(*maps_at(problem.local_box(base)))
 
     # ---- correction ----------------------------------------------------------------------------------------------
     def _apply(self, t, b, old_cells, phi, t_now, ages=None) -> dict:
@@ -736,13 +755,15 @@ class LoopCloser:
         """Apply a loop's correction (i0, i1, spread rotations of poses i0..i1, rotation of the later poses) to a
         spline's control poses (and, on the back-end's, re-anchor its source poses); returns the spline."""
         i0, i1, spread, corr = correction
-        ctrl = spline.control_R
-        ctrl[i0:i1 + 1] = spread @ ctrl[i0:i1 + 1]
-        ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
+        def rotate(spl):
+            ctrl = spl.control_R
+            ctrl[i0:i1 + 1] = spread @ ctrl[i0:i1 + 1]
+            ctrl[i1 + 1:] = corr @ ctrl[i1 + 1:]
+
         if spline is self.backend.spline:
-            self.backend._anchor_at(self.backend._anchor[0])
-            self.backend._fitted_after = None  # a rejected BA's refit would restart from the uncorrected anchor
-            self.corrections += 1
+            self.backend.correct_poses(rotate)
+        else:
+            rotate(spline)
         return spline
 
     def _rebuild(self) -> None:
@@ -755,7 +776,8 @@ class LoopCloser:
         """
         tic = time.perf_counter()
         n_old = self._n_old
-        self.backend.map = self.old = None  # free the old maps first: peak memory holds one set (+ the checkpoint)
+        self.backend.drop_map()  # free the old maps first: peak memory holds one set (+ the checkpoint)
+        self.old = None
         self._finish_rebuild(self._rebuild_old(n_old), n_old, None, 0, self._thinned)
         self.profile["rebuild"] += time.perf_counter() - tic
 
@@ -807,25 +829,23 @@ class LoopCloser:
         self._rot_cache.clear()
         self._checkpoint = (self._n_old, self.old.raw.copy(), self.age.copy(), self.visit.copy(),
                             backend.spline.control_R.copy(), thinned)
-        backend.map = None  # (offline, already freed by _rebuild): rebuilt when next read (refresh_map)
+        backend.drop_map()  # (offline, already dropped by _rebuild): rebuilt when the back-end asks (rebuilt_map)
         self.map_stale, self._acc = True, (acc, n_voted) if acc is not None else None
 
-    def refresh_map(self) -> None:
-        """Rebuild the global map after the last correction (the back-end reads ``backend.map`` only through this
-        once it is stale): the old map plus the strides stored since, blurred once (GlobalMap.set_raw); with pixel
-        freezing every stored stride in order. The strides the back-end settled meanwhile went into the store only
-        (a stale map is not voted), so several loops between two reads (BA skipped) cost one rebuild. Read right
-        after the correction (a BA follows it), the same votes in the same order as rebuilding at once."""
-        if not self.map_stale:
-            return
+    def rebuilt_map(self) -> GlobalMap:
+        """The global map after the last correction (the back-end asks once it dropped its map): the old map plus
+        the strides stored since, blurred once (GlobalMap.set_raw); with pixel freezing every stored stride in order.
+        The strides the back-end settled meanwhile went into the store only (a dropped map is not voted), so several
+        loops between two reads (BA skipped) cost one rebuild. Asked right after the correction (a BA follows it),
+        the same votes in the same order as rebuilding at once."""
         tic, cpu = time.perf_counter(), time.process_time()
-        backend, bs = self.backend, self.backend.cfg.event_batch_size
+        bs = self.backend.cfg.event_batch_size
         acc, n_voted = self._acc if self._acc is not None else (None, 0)
         self.map_stale, self._acc = False, None
-        backend.map = self._new_map()
+        gmap = self._new_map()
         if self._freeze:  # first-seen times: every stride in time order, as the back-end settled them
             for t, b, weight, t0, moving in self.chunks:
-                backend.map.add(b, self._rotations(t)[1], bs, t0, moving, weight=weight)
+                gmap.add(b, self._rotations(t)[1], bs, t0, moving, weight=weight)
         else:  # the global map is the old map plus the recent strides' votes: one blur at the end (GlobalMap.set_raw)
             if acc is None:
                 if self._task is None:  # (a sliced verification in flight votes the aged chunks itself)
@@ -835,17 +855,18 @@ class LoopCloser:
                 t, b, weight, _t0, _moving = self.chunks[i]
                 rot = self._rot_cache.get(i) if i < self._n_old else None
                 acc.add(b, self._rotations(t)[1] if rot is None else rot, bs, weight=weight)
-            backend.map.set_raw(acc.raw)
+            gmap.set_raw(acc.raw)
         self.map_rebuilds += 1
         self.profile["rebuild"] += time.perf_counter() - tic
         self._spent(tic, cpu)
+        return gmap
 
     def _advance_checkpoint(self) -> None:
         """Before the first stride a later loop may move is aged: the maps now hold the last rebuild's checkpoint
         plus strides whose poses no later loop changes (before the last applied loop's recent block end, less the
         spline's support: a later loop spreads from there on), so they become the checkpoint. The next rebuild
-        then votes only the strides since the loop again, not the whole recent block before it (3 ms of copies
-        against ~2.5 ms per stride voted again)."""
+        then votes only the strides since the loop again, not the whole recent block before it (a few copies of the
+        maps cost less than voting those strides again)."""
         ck = self._checkpoint
         if ck is None or self._task is not None or ck[0] >= self._n_old or ck[5] != self._thinned:
             return

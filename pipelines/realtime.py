@@ -10,98 +10,62 @@ Lag: how far the processing is behind its input. When a window completes (wall t
 due(window end) - dead(window end), where due(t) is the wall time at which sensor time t was handed over in an ideal
 replay and dead(t) the time without events that the result at t had to wait through: a window completes only once
 the front-end has a packet at or after its end, which takes events after it, so a window ending in or just before a
-pause of the stream (a camera seeing a static scene, a stalled driver) completes only once the first event after the
-pause is handed over; the system cannot know earlier that time went on. A pause is a gap between two events longer
-than the front-end's still window W = still_span_factor x dt_ang_vel (0.1 s by default); the replay records each one
-as (a, b): its last event before and first after, and the front-end's last packet time fe before b was handed over.
-dead(t) = sum of (b - max(a, t)) / speed over the pauses with b > t and fe < t (the events before b could not
-complete the result at t). So a system still busy with the events before a pause keeps its lag (a window those
-events completed is not affected, and a backlog handed over late after the pause still counts from due(b)); shorter
-gaps count as before, so a run without a pause has the same lags. The catch-up after a pause is real lag: its
-packets and windows (no events; 10-15 ms per window in the worker, of which the back-end's fit ~1 ms since its empty
-windows are fitted 10 at a time, backend.SlidingWindowBackend.step) are processed once it ends, push() waits for the
-worker meanwhile, and the burst of the pause's windows, each completing a little later than the last, reads as a
-rising lag (measured below before that change). Measured 2026-12-03 (2 s DAVIS240C, 0.5 M ev/s, the events after t =
-1 s shifted by 3 s, --parallel, 2 shared cores; defaults, then target 0.8 s and bound 1.5 s): lag max 3.11 ->
-0.43-0.63 s, mean 1.29 -> 0.25-0.39 s, but the 0.3-0.5 s catch-up still escalated to level 4 with input thinning
-(events used 0.33 -> 0.13-0.31; the same stream without the pause 0.91-1.00); with the looser target lag max 3.05 ->
-0.48 s, events used 0.40 -> 1.00, level 4 3.9 -> 0 s.
+pause of the stream completes only once the first event after the pause is handed over; the system cannot know
+earlier that time went on. A pause is a gap between two events longer than the front-end's still window W =
+still_span_factor x dt_ang_vel; the replay records each one as (a, b): its last event before and first after, and the
+front-end's last packet time fe before b was handed over. dead(t) = sum of (b - max(a, t)) / speed over the pauses
+with b > t and fe < t. So a system still busy with the events before a pause keeps its lag, and the catch-up after a
+pause (its packets and windows, processed once it ends) counts as lag.
 
 The latency from an event to its first refined pose is that window's lag plus the event's age within the window's
-new stride: the events of (previous window end, window end] get their first refined pose when the window completes
-(mean over time: lag + stride / 2; max: lag + stride).
+new stride (mean over time: lag + stride / 2; max: lag + stride).
 
 Controller (one rule, applied after every completed window, with lag L, target T = ``realtime_target_lag`` and
-bound M = ``realtime_max_lag``): degradation level l in 0..4:
+bound M = ``realtime_max_lag``): degradation level l in 0..4, passed to OnlineSlam.degrade (the front-end's packets
+and the back-end's ``WindowBudget``):
 
     l | front-end packets | BA events per window (cap c: backend_max_window_events; floor: realtime_min_window_events)
     0 | all               | c on every window (the offline computation; the BA budget T / 2, below)
-    1 | all               | c on every window, with the BA's time budget (below): only a window whose BA would take
-                          |   longer than a stride (a cold start, a burst) is cut short
+    1 | all               | c on every window, with the BA's time budget (below)
     2 | all               | c / 2 on every window
     3 | 1 of 2            | c / 2 on 1 of 2 windows
     4 | 1 of 4            | BA skipped (the window keeps the integrated front-end's poses; its events still go
                           |   into the map)
 
-At levels 1-4 a window's BA also has a time budget of one stride of sensor time in wall seconds (``ba_budget``): it
-starts no BFGS iteration after it and keeps its best point so far (report: ``ba_windows_cut_short``). A BA that
-needs longer, typically a cold start without carried curvature (~25 evaluations instead of 2-6: 2 s on a VGA window
-at 12 M ev/s), would otherwise add its excess to the lag all at once. At level 0 the budget is half the lag target
-T / 2: a window completes one BA after its end is due, so a BA longer than that puts the lag near or over the target
-by itself. Only the cold first window reaches it at 1-2 M ev/s on a DAVIS240C (0.28-0.31 s with 25 evaluations; the
-others take 0.04-0.10 s): unbudgeted it put the lag at 0.34-0.39 s, which drains by only ~0.03 s per window at 2 M
-ev/s, and the window-to-window jitter then escalated to level 2-3 for 1-3 s (six interleaved pairs at 2 M ev/s: events
-used 0.34-1.00 without, 0.85-1.00 with the budget; lag max 0.32-0.55 -> 0.20-0.33 s). A large target (e.g. 1000 s)
-leaves level 0 the offline computation.
+At levels 1-4 a window's BA has a time budget of one stride of sensor time in wall seconds (``ba_budget``): it starts
+no BFGS iteration after it and keeps its best point so far (report: ``ba_windows_cut_short``); a BA that needs longer
+(a cold start without carried curvature) would otherwise add its excess to the lag at once. At level 0 the budget is
+half the lag target: a window completes one BA after its end is due, so a longer BA puts the lag near the target by
+itself. A large target leaves level 0 the offline computation.
 
-The levels cut the cheapest computation first: the budget touches only slow windows; halving the BA events saved
-~15 % of its cost with the kernels of 2026-12-01 (per-evaluation work dominated, below), and since session 11's cheaper
-per-event kernels 34-41 % at 2 M ev/s (offline, one thread, cap 216k -> 108k: BA CPU 3.64-4.35 -> 2.41-2.57 s per 4 s
-of data, abs 0.0643 -> 0.0644 deg, rel 0.103 -> 0.107 deg/s; 2026-12-02 21:36 UTC); skipping every other BA window 50 %. (Until 2026-12-02
-level 1 halved the events and level 3 kept c / 4 on 1 of 2 windows with 1 of 4 packets: a step that saved little.)
+The levels cut the cheapest computation first: the budget touches only slow windows, then fewer BA events, then fewer
+BA windows (the BA's cost is mostly per evaluation over the window's map region, not per event). A window without its
+BA (level 3: every other one) settles its stride with the poses the previous window refined (that stride was the
+second half of the previous window), so each stride is still refined once.
 
-A window without its BA (level 3: every other one) settles its stride with the poses the previous window
-refined (that stride was the second half of the previous window), so each stride is still refined once. Fewer BA
-windows rather than ever fewer BA events: the BA's cost is mostly per evaluation (the local map over the window's
-region), not per event (1 M ev/s, one thread: 216k / 108k / 54k events per window cost 0.77 / 0.66 / 0.50 CPU s per
-second of data), so c/4 and c/8 on every window saved little.
+- L > T and L would not be back under T within ``DRAIN_WINDOWS`` windows at its current rate of change: l += 1; at
+  l = 4, the same condition hands over only 1 of q events (q doubles, at most ``MAX_INPUT_THINNING``) and the
+  front-end's packets take N / q events (their span kept). A falling lag is given time to drain: a backlog takes
+  windows to clear even once the system is faster than the sensor.
+- L > M: l = 4 at once.
+- Relaxing, on the measured headroom: the cost of a level is the wall time a process works per wall second of sensor
+  data, c = busy / (stride / speed), measured per window for the back-end worker (``WindowReport.busy_seconds``) and
+  for the main process (wall time not sleeping nor waiting for the worker); with one process, the main process's
+  alone. Of the cost, the parts the next lower level changes are measured too: the BA's wall time (scaled by the
+  ratio of BA windows and the square root of the ratio of BA events, an overestimate; from level 4 the median of the
+  last ``RELAX_WINDOWS`` BAs) and the front-end's (scaled by the ratio of packets). When L < T, L would stay under T
+  within ``DRAIN_WINDOWS`` windows, and the predicted cost of l - 1 is below ``RELAX_HEADROOM`` in every process
+  (the rest is left for event-rate bursts and other load): first q halves (while q > 1 only when L < T / 2), then
+  l -= 1 (at least ``RELAX_WINDOWS`` windows after the last change).
 
-- L > T and L would not be back under T within 5 windows at its current rate of change (L - L_prev per window):
-  l += 1; at l = 4, the same condition hands over only 1 of q events (q doubles, at most 16), for when even level 4
-  is slower than the sensor (until 2026-12-02 only above M: the lag passed M before thinning began), and the
-  front-end's packets take N / q events (their span kept). (A falling lag is given time to drain: escalating on
-  every late window overshoots, since a backlog takes windows to clear even once the system is faster than the
-  sensor.)
-- L > M: l = 4 at once;
-- relaxing, on the measured headroom: the cost of a level is the wall time a process works per wall second of
-  sensor data, c = busy / (stride / speed), measured per window for the back-end worker (its wall time not spent
-  waiting for input; ``WindowReport.busy_seconds``) and for the main process (wall time not sleeping until events
-  are due nor waiting for the worker, per sensor second the front-end advanced); with one process, the main
-  process's alone. c < 1 means that process keeps up at this level; the lag drains at rate 1 - c. Of the cost, the
-  parts that the next lower level changes are measured too: the BA's wall time (x the ratio of BA windows, x the
-  square root of the ratio of BA events: measured sub-linear, see above, so an overestimate; from level 4, where no
-  BA runs, the median of the last ``RELAX_WINDOWS`` BAs measured, scaled to the level-3 cap) and the front-end's
-  (x the ratio of packets). The predicted cost of level l - 1 is c(l) minus those parts plus them scaled. Then, with the costs summed over the
-  last windows that cover ``RELAX_WINDOWS`` strides of sensor data: when L < T, L would stay under T within 5
-  windows at its rate of change, and the predicted cost of l - 1 is below ``RELAX_HEADROOM`` (0.8: a fifth left
-  for event-rate bursts and the machine's other load) in every process: first q halves (while q > 1 only when
-  L < T / 2), then l -= 1 (at least ``RELAX_WINDOWS`` windows after the last change). A lag that merely fell
-  under T / 2 no longer relaxes on its own: after the start-up transient a window completes at least one BA after
-  its end, so that threshold was rarely met even with spare time, and was met by a backlog that had drained at a
-  level still too costly.
-The front-end's lag (now - due(t) - dead(t), t the time of its last packet), taken once per stride of its progress
-or of wall time, is a second input to the escalating rules: when the front-end is the bottleneck, windows complete
-too rarely to react in time; an escalation it causes goes on to the next level that changes the front-end's work.
-Costs that do not scale with events (a front-end packet's optimisation, a window's BA) are cut first: levels 1-4 keep
-every event in the map; q (the hard bound) also cuts the per-event costs. Front-end packets are skipped because their
-cost is mostly per evaluation, not per event (thinning a packet's events saves little). report.json's "realtime"
-block says how long each level was in force (in sensor seconds) and what it removed.
-With a back-end worker (``--parallel``) the front-end has a core of its own, so a level's front-end column applies
-only while the front-end itself falls behind (its lag above T, checked once per stride of its progress); it takes
-every packet again once its lag is under T / 2 and the main process is predicted to cost under RELAX_HEADROOM with
-all of them (its measured front-end part scaled up). At 1 M ev/s on a DAVIS240C the worker is the bottleneck and
-the front-end now keeps every packet (the levels, lag and accuracy are chosen by the worker's cost: three
-interleaved runs each, events used 0.24-0.32 vs 0.25-0.30 before, rel error ratio 1.01-1.12 vs 0.94-1.18).
+The front-end's lag (now - due(t) - dead(t), t the time of its last packet), taken once per stride of its progress,
+is a second input to the escalating rules: when the front-end is the bottleneck, windows complete too rarely to react
+in time; an escalation it causes goes on to the next level that changes the front-end's work. Front-end packets are
+skipped rather than thinned because their cost is mostly per evaluation. With a back-end worker the front-end has a
+core of its own, so a level's front-end column applies only while the front-end itself falls behind (its lag above
+T); it takes every packet again once its lag is under T / 2 and the main process is predicted to cost under
+RELAX_HEADROOM with all of them. report.json's "realtime" block says how long each level was in force (in sensor
+seconds) and what it removed.
 """
 from __future__ import annotations
 
@@ -127,8 +91,8 @@ MAX_INPUT_THINNING = 16  # deeper thinning leaves front-end packets too sparse (
 RELAX_WINDOWS = 3  # windows at a level before it may be lowered (and over which its costs are averaged)
 RELAX_HEADROOM = 0.8  # a level is relaxed only when the lower one is predicted to cost below this (per process)
 # a loop verification (loop closure) runs in slices: at most this share of a stride's wall time before each window
-# (the fifth RELAX_HEADROOM leaves), plus the back-end worker's idle time; at once it would stall the back-end for
-# 1-8 s (DAVIS240C to VGA) and break the lag bound
+# (what RELAX_HEADROOM leaves), plus the back-end worker's idle time; at once it would stall the back-end for seconds
+# and break the lag bound
 LOOP_SLICE_SHARE = 1.0 - RELAX_HEADROOM
 # the controller's per-window trace (``ti-cmax slam --realtime`` writes it as realtime_windows.csv): what it read and
 # what it decided, the figures behind every real-time tuning in this module's docstring
@@ -214,7 +178,7 @@ class RealtimeController:
     def ba_budget(self) -> float:
         """Seconds a window's BA may take at the current level (module docstring): half the lag target at level 0,
         else one stride of sensor time in wall seconds (a BA that needs longer, e.g. a cold start without carried
-        curvature: ~25 evaluations, 2 s on a VGA window, would add its excess to the lag; it keeps its best point)."""
+        curvature, would add its excess to the lag; it keeps its best point)."""
         return 0.5 * self.target if self.level == 0 else self.stride / self.speed
 
     def on_window(self, report) -> None:
@@ -297,9 +261,7 @@ class RealtimeController:
         full = self.cap if self.cap > 0 else (self._window_events or self.floor)
         cap_now = full if cap_now is None else cap_now
         cap_lower = full if cap_lower is None else cap_lower
-        # BA cost per window ~ sqrt(events): measured sub-linear (per-evaluation work over the map region dominated;
-        # 1 M ev/s, one thread: 216k / 108k / 54k events 0.77 / 0.66 / 0.50 CPU s per s), an overestimate then; with
-        # the kernels since session 11, at 2 M ev/s 108k -> 216k costs 1.5-1.7x (module docstring), more than sqrt 2
+        # BA cost per window ~ sqrt(events): sub-linear, as per-evaluation work over the map region weighs most
         every_now, every_lower = LEVELS[self.level][2], LEVELS[lower][2]
         if cap_now > 0:
             ba_lower = mean["ba"] * math.sqrt(cap_lower / cap_now) * every_now / every_lower
@@ -319,8 +281,7 @@ class RealtimeController:
         """After every push: the front-end's lag (now - due(its last packet's time)), once per stride of its progress
         or of wall time, whichever comes first, is the rule's second input (a slow front-end delays the windows, so
         they alone would react late; and a front-end several times slower than the sensor takes several strides of
-        wall time per stride of progress: VGA at 12.6 M ev/s gave its first tick 0.6 s after the start, with the lag
-        already 0.58 s). It only escalates: relaxing waits for windows."""
+        wall time per stride of progress). It only escalates: relaxing waits for windows."""
         if t is None or self.wall0 is None:
             return
         if self._fe_tick is not None and t < self._fe_tick[0] + self.stride \
@@ -341,7 +302,7 @@ class RealtimeController:
         elif lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL:
             self.level += 1
             # heard from the front-end's lag: on to the next level that changes the front-end's work (a level that
-            # only degrades the BA cannot help a front-end that is behind; VGA took 4 ticks, ~0.5 s, to level 4)
+            # only degrades the BA cannot help a front-end that is behind)
             while source == "frontend" and self.level < MAX_LEVEL and LEVELS[self.level][0] == LEVELS[old[0]][0]:
                 self.level += 1
         elif self.level == MAX_LEVEL and lag > self.target and prev is not None \
@@ -398,17 +359,16 @@ class RealtimeController:
 def _worker_threads() -> int | None:
     """Taichi threads of the back-end worker in real time: every core unless a thread count was chosen (None: the
     chosen one). The main process sleeps most of the time (it waits for events to be due), so the back-end, the larger
-    cost, can use the other core too (2 M ev/s, four interleaved pairs: events used 0.35 / 0.41 / 0.41 / 0.39 with one
-    worker thread, 0.88 / 0.85 / 0.55 / 0.46 with two, lag max 0.35-0.45 vs 0.33-0.37 s). Offline --parallel keeps
-    half the cores each: there both processes are busy, and oversubscribed Taichi pools wait."""
+    cost, can use the other core too. Offline --parallel keeps half the cores each: there both processes are busy,
+    and oversubscribed Taichi pools wait."""
     return None if runtime.threads_chosen() else runtime.available_cores()
 
 
 def _wake_time(first_pending: float, s_now: float, handed_until: float, slice_s: float, t0: float) -> float | None:
     """Sensor time the replay sleeps until before its next hand-over, or None to hand over now: when nothing is due,
     or less than one slice (``realtime_chunk``) of events is due since the last hand-over, it waits for the next
-    slice boundary (the loop would otherwise hand over whatever its own few microseconds let through: 43 000 pushes
-    of ~90 events for 4 s of 1 M ev/s, each paying a push's fixed cost)."""
+    slice boundary (the loop would otherwise hand over whatever its own few microseconds let through: many tiny
+    pushes, each paying a push's fixed cost)."""
     if first_pending <= s_now and s_now >= handed_until + slice_s:
         return None
     k = math.ceil((first_pending - t0) / slice_s)
@@ -417,8 +377,8 @@ def _wake_time(first_pending: float, s_now: float, handed_until: float, slice_s:
 
 def _take_due(pending: Events, s_now: float) -> tuple[Events, Events, float]:
     """(the due events, the rest, the sensor time handed over). That time is the last due event's, not the clock:
-    behind schedule, a read chunk of 50 000 events is only 4 ms at 12.6 M ev/s, and waiting a slice after each one
-    throttled the replay to ~2/3 of the sensor's rate (VGA's lag grew even at level 4 with 1 of 16 events)."""
+    behind schedule, a read chunk holds only milliseconds of a fast sensor's events, and waiting a slice after each
+    one would throttle the replay below the sensor's rate."""
     i = int(np.searchsorted(pending.t, s_now, side="right"))
     return pending[:i], pending[i:], float(pending.t[i - 1])
 
@@ -436,8 +396,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     ctl = RealtimeController(config, speed, worker=backend_process)
     be = config.backend
     # with a worker, push() waits while the events sent run more than two windows and a stride ahead of the
-    # worker's last window (bounded in sensor time: a chunk of the catch-up phase holds READ_EVENTS events); the
-    # front-end then runs while the worker does a whole window's BA
+    # worker's last window (bounded in sensor time): the front-end then runs while the worker does a window's BA
     worker_threads = _worker_threads() if backend_process else None
     online = OnlineSlam(camera, config, on_window=ctl.on_window, backend_process=backend_process,
                         queue_size=100_000,
@@ -447,12 +406,12 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     ctl.online = online
     ctl.apply()  # level 0's BA budget
     idle = {"sleep": 0.0}
-    ctl.idle_seconds = lambda: idle["sleep"] + (online._worker.blocked_seconds if online._worker is not None else 0.0)
+    ctl.idle_seconds = lambda: idle["sleep"] + online.backend.blocked_seconds
     online.wait_ready()  # the sensor clock starts once both processes can work
     reader = iter(chunks)
     pending = Events.empty()
     eof = False
-    read = handed = dropped = 0
+    counts = {"read": 0, "handed": 0, "dropped": 0}
     cpu_io = sleep_s = 0.0
     handed_until = -math.inf  # sensor time up to which events were handed over
     cpu0 = time.process_time()
@@ -467,7 +426,8 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                 if chunk is None:
                     eof = True
                 else:
-                    pending, read = chunk, read + len(chunk)
+                    pending = chunk
+                    counts["read"] += len(chunk)
                 continue
             if len(pending) == 0:
                 break
@@ -487,28 +447,11 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
                 continue
             last = handed_until
             batch, pending, handed_until = _take_due(pending, s_now)
-            # the event ending a pause goes in a push of its own, recorded with the front-end's progress before it
-            gaps = np.diff(batch.t, prepend=last if last > -math.inf else batch.t[0])
-            cuts = np.flatnonzero(gaps > min_pause)
-            bounds = [0, *cuts[cuts > 0].tolist(), len(batch)]
-            for i0, i1 in zip(bounds[:-1], bounds[1:]):
-                part = batch[i0:i1]
-                if gaps[i0] > min_pause:
-                    ctl.pauses.append((last if i0 == 0 else float(batch.t[i0 - 1]), float(part.t[0]),
-                                       online.frontend_until))
-                q = ctl.thinning
-                if q > 1:
-                    kept = every_qth(part, q, handed + dropped)
-                    dropped += len(part) - len(kept)
-                    part = kept
-                handed += len(part)
-                if len(part):
-                    online.push(part)
-                    ctl.on_frontend(time.monotonic(), online.frontend_until)
-                    if online.frontend_until is not None:
-                        bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
-                        shown = online.frontend_until
-        if read == 0:
+            for _ in _hand_over(online, ctl, batch, last, min_pause, counts):
+                if online.frontend_until is not None:
+                    bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
+                    shown = online.frontend_until
+        if counts["read"] == 0:
             raise InputError("no events to process")
         result = online.close()
     except BaseException:
@@ -516,7 +459,40 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
         raise
     finally:
         bar.close()
-    cpu_total = time.process_time() - cpu0
+    counts.update(cpu_io=cpu_io, sleep_s=sleep_s, cpu_total=time.process_time() - cpu0)
+    result.report["realtime"] = _realtime_block(online, ctl, result, config, counts, backend_process, worker_threads)
+    result.realtime_trace = ctl.trace
+    return result
+
+
+def _hand_over(online, ctl: RealtimeController, batch: Events, last: float, min_pause: float, counts: dict):
+    """Push the due events (1 of the controller's q), yielding after each push. The event ending a pause goes in a
+    push of its own, recorded with the front-end's progress before it."""
+    gaps = np.diff(batch.t, prepend=last if last > -math.inf else batch.t[0])
+    cuts = np.flatnonzero(gaps > min_pause)
+    bounds = [0, *cuts[cuts > 0].tolist(), len(batch)]
+    for i0, i1 in zip(bounds[:-1], bounds[1:]):
+        part = batch[i0:i1]
+        if gaps[i0] > min_pause:
+            ctl.pauses.append((last if i0 == 0 else float(batch.t[i0 - 1]), float(part.t[0]), online.frontend_until))
+        q = ctl.thinning
+        if q > 1:
+            kept = every_qth(part, q, counts["handed"] + counts["dropped"])
+            counts["dropped"] += len(part) - len(kept)
+            part = kept
+        counts["handed"] += len(part)
+        if len(part):
+            online.push(part)
+            ctl.on_frontend(time.monotonic(), online.frontend_until)
+            yield
+
+
+def _realtime_block(online, ctl: RealtimeController, result, config: SlamConfig, counts: dict,
+                    backend_process: bool, worker_threads: int | None) -> dict:
+    """report.json's "realtime" block."""
+    rt, speed = config.realtime, float(config.realtime.realtime_speed)
+    read, handed, dropped = counts["read"], counts["handed"], counts["dropped"]
+    cpu_io, sleep_s, cpu_total = counts["cpu_io"], counts["sleep_s"], counts["cpu_total"]
     summary = ctl.summary()
     fe_cpu, be_cpu = online.runner.cpu_seconds, online.backend_cpu_seconds
     packets = max(online.packets_seen, 1)
@@ -551,9 +527,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
         "threads": {"main_process": runtime.num_threads(),
                     **({"backend_process": worker_threads or runtime.num_threads()} if backend_process else {})},
     }
-    result.report["realtime"] = report
-    result.realtime_trace = ctl.trace
-    return result
+    return report
 
 
 def describe(report: dict) -> str:

@@ -14,6 +14,10 @@ import numpy as np
 from .errors import InputError
 
 
+# fields of view (deg, along each sensor axis) a pinhole calibration may give: beyond them it is not a real lens
+FOV_RANGE_DEG = (1.0, 179.0)
+
+
 @dataclass(frozen=True)
 class Camera:
     width: int
@@ -36,6 +40,23 @@ class Camera:
         if not np.all(np.isfinite([self.fx, self.fy, self.cx, self.cy, *d])):
             raise InputError(f"camera intrinsics must be finite numbers, got fx={self.fx}, fy={self.fy}, "
                              f"cx={self.cx}, cy={self.cy}, distortion={d}")
+        self._check_against_sensor()
+
+    def _check_against_sensor(self) -> None:
+        """Intrinsics that no lens on this sensor has are one error: a field of view outside FOV_RANGE_DEG, or a
+        principal point off the sensor extended by half its size on every side (focal lengths of 1e-9 or 1e12 px
+        gave omega up to 4e11 rad/s with status ok)."""
+        lo, hi = FOV_RANGE_DEG
+        for axis, f, size in (("horizontal", self.fx, self.width), ("vertical", self.fy, self.height)):
+            fov = float(np.degrees(2 * np.arctan(0.5 * size / f)))
+            if not lo <= fov <= hi:
+                key = "fx" if axis == "horizontal" else "fy"
+                raise InputError(f"camera intrinsics do not fit the {self.width}x{self.height} sensor: {key}={f:g} px "
+                                 f"gives a {axis} field of view of {fov:.4g} deg (expected {lo:g} to {hi:g} deg)")
+        for key, c, size in (("cx", self.cx, self.width), ("cy", self.cy, self.height)):
+            if not -0.5 * size <= c <= 1.5 * size:
+                raise InputError(f"camera intrinsics do not fit the {self.width}x{self.height} sensor: principal point "
+                                 f"{key}={c:g} px is far off the sensor (expected {-0.5 * size:g} to {1.5 * size:g})")
 
     @property
     def K(self) -> np.ndarray:

@@ -401,6 +401,9 @@ class DatasetConfig(Params):
     allow_default_calibration: bool = param(False, "no intrinsics found: use an ideal 60 deg camera instead of failing")
     topic: str = param("", "ROS bag event topic (empty: the only dvs_msgs/EventArray topic)")
     chunk_size: int = param(1_000_000, "events per streamed chunk", unit="events", ge=1)
+    time_unit: str = param("auto", "unit of the event times of text and HDF5 files (auto: the file's: seconds in "
+                                   "text; in HDF5 its units attribute, else seconds for floats, microseconds for "
+                                   "integers)", choices=("auto", "s", "ms", "us", "ns"))
 
     def _relations(self) -> None:
         if (self.width == 0) != (self.height == 0):
@@ -462,6 +465,71 @@ class SlamConfig(Params):
     loop: LoopClosureConfig = param(help="loop closure on revisits", factory=LoopClosureConfig)
     realtime: RealtimeConfig = param(help="real-time replay and degradation (slam --realtime)", factory=RealtimeConfig)
     output: OutputConfig = param(help="outputs", factory=OutputConfig)
+
+
+# ------------------------------------------------------------------------------------------
+# work a config implies over a recording
+# ------------------------------------------------------------------------------------------
+
+# packets, control poses, windows, trajectory samples or real-time hand-overs a run may need at most: 1e7 packets are
+# a day of data at the default 100 Hz; more means a parameter far off its scale (dt_ang_vel=1e-9: 3e8 packets, hours)
+MAX_WORK_ITEMS = 10_000_000
+
+
+def check_workload(cfg, t_start: float, t_end: float, *, realtime: bool = False) -> None:
+    """Refuse, before any work, a config whose spacings imply more than MAX_WORK_ITEMS packets (dt_ang_vel), control
+    poses (dt_knots), windows (backend_sliding_window_stride) or, with
+    ``realtime``, hand-overs (realtime_chunk) over the recording's time range [t_start, t_end] (s): one InputError
+    with the estimate. ``cfg``: a SlamConfig or any config holding some of these sections."""
+    duration = max(float(t_end) - float(t_start), 0.0)
+    fe, be, rt = (getattr(cfg, k, None) for k in ("frontend", "backend", "realtime"))
+    items = []  # (key, value, unit, count, what)
+    if fe is not None:
+        items.append(("dt_ang_vel", fe.dt_ang_vel, "s", duration / fe.dt_ang_vel, "front-end packets"))
+    if be is not None:
+        items.append(("dt_knots", be.dt_knots, "s", duration / be.dt_knots, "control poses"))
+        items.append(("backend_sliding_window_stride", be.backend_sliding_window_stride, "s",
+                      duration / be.backend_sliding_window_stride, "back-end windows"))
+    if realtime and rt is not None:
+        items.append(("realtime_chunk", rt.realtime_chunk, "s", duration / rt.realtime_chunk, "real-time hand-overs"))
+    for key, value, unit, count, what in items:
+        if count > MAX_WORK_ITEMS:
+            raise InputError(f"{key}={value:g} {unit} over this recording's {duration:.6g} s (t = {t_start:.6g} to "
+                             f"{t_end:.6g} s) means {count:.3g} {what}, more than {MAX_WORK_ITEMS:.0e}: refused before "
+                             f"any work; set {key} to its scale (default {_default_of(cfg, key):g} {unit})")
+
+
+# The smallest input that gives a trustworthy omega. Measured with the default front-end on simulated city sequences
+# (about 1.3 rad/s; 1.6 M events/s on a DAVIS240C, 0.5 M on a DVS128), K events drawn from 40 ms (the minimum packet
+# span) at 12 places each: K = 20-100 gave omega off by 110-120 % of the rotation (median; up to 7.9 rad/s) and was
+# never called flat (status ok); K = 200-1000 was called flat (omega = 0: off by 100 %); K = 2000 was off by 24-25 %
+# (median), K = 5000 by 17-24 %. K consecutive events (1.3 ms at 1.6 M events/s) were flat up to 2000, 28 % off at 5000.
+MIN_OMEGA_EVENTS = 2000  # events per packet, on a sensor of up to OMEGA_REFERENCE_PIXELS; scaled with pixels above
+OMEGA_REFERENCE_PIXELS = 240 * 180
+
+
+def min_events_for_omega(width: int, height: int) -> int:
+    """The fewest events a packet (or a whole input) needs for a trustworthy omega on a width x height sensor:
+    MIN_OMEGA_EVENTS, times the pixel count over OMEGA_REFERENCE_PIXELS on larger sensors (as the packet size N)."""
+    return int(math.ceil(MIN_OMEGA_EVENTS * max(1.0, width * height / OMEGA_REFERENCE_PIXELS)))
+
+
+def too_few_events_for_omega(num_events: int, width: int, height: int) -> str | None:
+    """One line saying why ``num_events`` events (a packet's or an input's) give no trustworthy omega on a width x
+    height sensor, or None when they are enough (:func:`min_events_for_omega`)."""
+    need = min_events_for_omega(width, height)
+    if num_events >= need:
+        return None
+    return (f"{num_events} events are too few for a trustworthy angular velocity on a {width}x{height} sensor (at "
+            f"least {need}: with fewer, omega was off by 100 % of the rotation or more)")
+
+
+def _default_of(cfg, key: str):
+    """The default of the leaf field ``key`` of a (nested) config."""
+    for _, f, _ in iter_params(type(cfg)):
+        if f.name == key:
+            return field_default(f)
+    raise KeyError(key)
 
 
 # ------------------------------------------------------------------------------------------
@@ -637,4 +705,5 @@ __all__ = [
     "CONTRAST_MEASURES", "OPTIMIZERS", "SLICING_RULES", "WARM_STARTS", "STEP_GUESSES", "DatasetConfig", "FrontendConfig",
     "BackendConfig", "LoopClosureConfig", "RealtimeConfig", "OutputConfig", "SlamConfig",
     "load_config", "update_config", "build_config", "save_config", "config_to_dict", "parse_overrides", "replace",
+    "check_workload", "MAX_WORK_ITEMS", "MIN_OMEGA_EVENTS", "min_events_for_omega", "too_few_events_for_omega",
 ]

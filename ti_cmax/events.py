@@ -23,6 +23,60 @@ def signed_polarity(p: np.ndarray) -> np.ndarray:
     return out * np.int8(2) - np.int8(1)
 
 
+# polarity words of files that store it as text (HDF5 byte strings, CSV-like exports), lower case
+_POSITIVE = frozenset(("1", "+1", "+", "1.0", "+1.0", "on", "true", "pos", "positive", "p"))
+_NEGATIVE = frozenset(("0", "-1", "-", "0.0", "-1.0", "off", "false", "neg", "negative", "n"))
+
+
+def polarity_word(text: str) -> int | None:
+    """+1 or -1 for a polarity written as text (1/0, +1/-1, +/-, on/off, true/false, or a number equal to 1, 0 or
+    -1 such as 1e0), else None."""
+    word = text.strip().lower()
+    if word in _POSITIVE or word in _NEGATIVE:
+        return 1 if word in _POSITIVE else -1
+    try:
+        value = float(word)
+    except ValueError:
+        return None
+    return 1 if value == 1 else -1 if value in (0, -1) else None
+
+
+def polarity_signs(p, what: str = "polarity") -> np.ndarray:
+    """Polarities of any common dtype as int8 {-1, +1}, checked: bool; integers or floats in {-1, 0, 1} (0 and -1
+    are negative); bytes or strings such as 1/0, +1/-1, +/-, on/off, true/false. Anything else (a 7, NaN, 'x', a
+    compound) raises InputError naming ``what`` (the field and where) and the first offending value: p > 0 would
+    have turned it into +1 without a word."""
+    p = np.asarray(p)
+    kind = p.dtype.kind
+    if kind == "b":
+        return signed_polarity(p)
+    if kind in "iuf":
+        if p.size and (kind == "f" or not (int(p.min()) >= -1 and int(p.max()) <= 1)):
+            ok = (p == 0) | (p == 1) | (p == -1)
+            if not ok.all():
+                i = int(np.argmin(ok))
+                raise InputError(f"{what}: value {p[i].item()!r} at position {i} is not a polarity "
+                                 "(expected 0/1, -1/+1 or true/false)")
+        return signed_polarity(p)
+    if kind in "SUO":
+        try:
+            values, inverse = np.unique(p, return_inverse=True)
+        except TypeError:  # an object array of mixed types
+            values, inverse = None, None
+        if values is not None:
+            signs = np.zeros(len(values), np.int8)
+            for k, v in enumerate(values.tolist()):
+                text = v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)
+                signs[k] = polarity_word(text) or 0
+                if signs[k] == 0:
+                    i = int(np.argmax(inverse.reshape(-1) == k))
+                    raise InputError(f"{what}: value {text[:20]!r} at position {i} is not a polarity (expected "
+                                     "1/0, +1/-1, +/-, on/off or true/false)")
+            return signs[inverse.reshape(-1)]
+    raise InputError(f"{what}: polarities of dtype {p.dtype} are not supported (expected bool, integers, floats or "
+                     "strings such as 1/0, +/-)")
+
+
 @dataclass(frozen=True, eq=False)
 class Events:
     t: np.ndarray
@@ -40,7 +94,7 @@ class Events:
         object.__setattr__(self, "y", _as(self.y, xy_dtype))
         p = np.asarray(self.p)
         if p.dtype != np.int8:
-            p = signed_polarity(p)
+            p = polarity_signs(p)
         object.__setattr__(self, "p", _as(p, np.int8))
 
     # construction -------------------------------------------------------------------------

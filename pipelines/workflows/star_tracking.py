@@ -15,6 +15,9 @@ window), so
   10 000 ev/s would skip BA on the sparsest real sequences, 1.4 M events over 45 s = 31 k ev/s, and on any
   fainter field). The map follows the sensor rule (``sensor_defaults``: 2048x1024 on a DAVIS240C); it was fixed
   at that size, which a longer focal length or a larger sensor would have sampled coarser than its pixels.
+
+These settings are for slow rotations: a run whose camera turns faster than STAR_MAX_RATE_DEG (as the front-end or a
+probe of short packets measures it) gets a warning in report.json ("warnings") and on the command line.
 """
 from __future__ import annotations
 
@@ -44,6 +47,75 @@ STAR_DEFAULTS: dict = {
     "backend_sliding_window_stride": 0.2,
     "backend_min_ev_rate": 1000.0,
 }
+
+
+# The motion star tracking is made for: a slow rotation (the half-second packets above hold one omega each). Measured
+# on simulated 3 s DAVIS240C star fields (1000 stars, random motion): the BA's 400 ms error was 0.04-0.12 deg for
+# peaks of 11-57 deg/s, 0.27 deg at 115 deg/s and 61 deg at 286 deg/s, every packet then taken for still; constant
+# rotations track up to 120 deg/s (0.11 deg). Faster motion gets a warning (report.json "warnings"): use slam.
+STAR_MAX_RATE_DEG = 60.0
+# the front-end's omega alone cannot tell: beyond its range it reads omega = 0. A probe runs the global front-end
+# (40 ms packets) on PROBE_SPAN s of events at up to PROBE_COUNT times spread over the recording (~0.1 s of work)
+PROBE_SPAN = 0.05
+PROBE_COUNT = 8
+
+
+class MotionProbe:
+    """Passes event chunks through unchanged and keeps PROBE_SPAN s of events at PROBE_COUNT times spread over
+    [t_start, t_end] (unknown range: every 0.5 s from the first event); :meth:`rates` measures |omega| there."""
+
+    def __init__(self, t_range: tuple[float, float] | None):
+        self.t_range = t_range
+        self.samples: list[Events] = []
+        self._next: float | None = None
+        self._step = 0.5
+
+    def __call__(self, chunks: Iterable[Events]) -> Iterable[Events]:
+        for ev in chunks:
+            if len(ev) and len(self.samples) < PROBE_COUNT:
+                self._keep(ev)
+            yield ev
+
+    def _keep(self, ev: Events) -> None:
+        if self._next is None:
+            t0, t1 = self.t_range if self.t_range is not None else (float(ev.t[0]), None)
+            if t1 is not None:
+                self._step = max((t1 - t0 - PROBE_SPAN) / PROBE_COUNT, PROBE_SPAN)
+            self._next = t0 + 0.5 * self._step
+        while len(self.samples) < PROBE_COUNT and self._next <= ev.t[-1]:
+            part = ev.slice_time(self._next, self._next + PROBE_SPAN)
+            if len(part) > 1:
+                self.samples.append(part)
+            self._next += self._step
+
+    def rates(self, camera: Camera) -> list[float]:
+        """Median |omega| (deg/s) the global front-end measures in each sample."""
+        from ti_cmax.pipelines.sensor_defaults import resolve_config
+
+        cfg = resolve_config(SlamConfig(), camera).frontend
+        out = []
+        for ev in self.samples:
+            fe = estimate_angular_velocity(ev, camera, cfg)
+            if len(fe):
+                out.append(float(np.degrees(np.median(np.linalg.norm(fe.omega, axis=1)))))
+        return out
+
+
+def motion_warning(omega: np.ndarray, probe_rates: list[float], limit_deg: float = STAR_MAX_RATE_DEG):
+    """(figures, warning or None): the camera's rate as the star front-end's ``omega`` (M, 3) rad/s (95th
+    percentile) and the probe (largest) measured it, and a warning when either is beyond ``limit_deg`` (naming the
+    probe's rate when it is beyond)."""
+    rates = np.degrees(np.linalg.norm(np.asarray(omega, dtype=float).reshape(-1, 3), axis=1))
+    fe_rate = float(np.percentile(rates, 95)) if len(rates) else 0.0
+    probe = max(probe_rates, default=0.0)
+    figures = {"frontend_p95_deg_per_s": fe_rate, "probe_max_deg_per_s": probe, "design_max_deg_per_s": limit_deg}
+    if max(fe_rate, probe) <= limit_deg:
+        return figures, None
+    rate = probe if probe > limit_deg else fe_rate  # the probe's short packets measure fast motion; the star
+    # front-end's omega beyond its range is noise (thousands of deg/s on a 270 deg/s field)
+    return figures, (f"the camera turns at up to {rate:.0f} deg/s, beyond the {limit_deg:g} deg/s star tracking is "
+                     "made for (slow rotations: half-second packets with one omega each); its result is not to be "
+                     "trusted: use ti-cmax slam for this motion")
 
 
 def star_tracking_config(config_path=None, overrides=None) -> SlamConfig:
@@ -98,6 +170,15 @@ def _chunks(source, chunk_size: int) -> Iterable[Events]:
                      "(the events are read twice: front-end, then BA)")
 
 
+def _time_range(source) -> tuple[float, float] | None:
+    """The time range of Events or of a dataset (None for a callable source)."""
+    if isinstance(source, Events):
+        return (float(source.t[0]), float(source.t[-1])) if len(source) else None
+    if hasattr(source, "time_range"):
+        return tuple(float(v) for v in source.time_range())
+    return None
+
+
 def relative_errors(groundtruth: Trajectory, estimate: Trajectory, window: float = STAR_WINDOW) -> dict:
     """Tab. VIII figures (deg) of one estimate: RMSE and std of the 400 ms relative-rotation error."""
     e = star_tracking_errors(groundtruth, estimate, window)
@@ -115,10 +196,12 @@ def run_star_tracking(source, camera: Camera, config: SlamConfig | None = None, 
     """
     cfg = config or star_tracking_config()
     wall0 = time.perf_counter()
-    fe = estimate_angular_velocity(_chunks(source, cfg.dataset.chunk_size), camera, cfg.frontend,
+    probe = MotionProbe(_time_range(source))
+    fe = estimate_angular_velocity(probe(_chunks(source, cfg.dataset.chunk_size)), camera, cfg.frontend,
                                    progress_total=progress_total)
     if len(fe) < 2:
         raise InputError("too few events for star tracking: the front-end produced fewer than 2 packets")
+    motion, warning = motion_warning(fe.omega, probe.rates(camera))
     fe_traj = fe.trajectory()
     ba = refine(_chunks(source, cfg.dataset.chunk_size), camera, fe_traj, cfg, progress_total=progress_total)
     errors = None
@@ -135,6 +218,8 @@ def run_star_tracking(source, camera: Camera, config: SlamConfig | None = None, 
         "frontend": fe.summary(),
         "backend": ba.report["backend"],
         "star_defaults": dict(STAR_DEFAULTS),
+        "motion": motion,
+        "warnings": [warning] if warning else [],
         "parameters": config_to_dict(cfg),
     }
     if errors is not None:
@@ -184,5 +269,5 @@ def open_star_or_dataset(path, dataset_config):
     return open_dataset_from_config(path, dataset_config)
 
 
-__all__ = ["STAR_DEFAULTS", "star_tracking_config", "StarTrackingResult", "run_star_tracking", "relative_errors",
+__all__ = ["STAR_DEFAULTS", "STAR_MAX_RATE_DEG", "MotionProbe", "motion_warning", "star_tracking_config", "StarTrackingResult", "run_star_tracking", "relative_errors",
            "star_simulator_config", "simulate_star_sequence", "open_star_or_dataset"]

@@ -1,5 +1,6 @@
 """Metrics of Sec. IV-B on hand-made trajectories with known errors, EA/GM by hand, evo agreement, CLI."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -220,3 +221,31 @@ def test_map_figures_by_row_blocks_equal_the_whole_image(monkeypatch):
     assert fig["gradient_magnitude"] == pytest.approx(whole[1], rel=1e-12)
     assert fig["variance"] == pytest.approx(whole[3], rel=1e-12)
     np.testing.assert_array_equal(map_to_uint8(img, 0.75), whole[2])
+
+
+def test_evaluate_refuses_a_ground_truth_it_cannot_compare(tmp_path, capsys):
+    """A ground truth in microseconds against an estimate in seconds gave 28.8 deg, a 2-pose one 8.8 deg, both with
+    exit 0; now one line each (exit 2), and a comparable pair still scores."""
+    from ti_cmax.cli import main
+    from ti_cmax.io import write_tum
+
+    t = np.arange(0.0, 2.0, 0.001)
+    gt = Trajectory(t, so3.exp(np.outer(np.sin(3 * t), AXIS)))
+    est = Trajectory(t[::5], gt.R[::5] @ so3.exp(np.radians(0.5) * np.array([1.0, 0.0, 0.0]))[None])
+    paths = {}
+    for name, traj in {"gt": gt, "est": est, "gt_us": Trajectory(t * 1e6, gt.R), "gt2": Trajectory(t[[0, 1990]],
+                       gt.R[[0, 1990]]), "late": Trajectory(t + 5.0, gt.R)}.items():
+        paths[name] = write_tum(tmp_path / f"{name}.txt", traj)
+    cases = {
+        "gt_us": r"the time ranges differ in scale: the ground truth's poses are 1e\+03 s apart \(median\), the "
+                 r"estimate's 0.005 s \(2e\+05x\)",
+        "gt2": r"the ground truth has 2 poses in the time range both trajectories cover \[0.000000, 1.990000\] s, at "
+               r"least 3 are needed",
+        "late": r"trajectories do not overlap in time",
+    }
+    for name, message in cases.items():
+        assert main(["evaluate", "--groundtruth", str(paths[name]), "--estimate", str(paths["est"])]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and re.search(message, err[0]), err
+    assert main(["evaluate", "--groundtruth", str(paths["gt"]), "--estimate", str(paths["est"])]) == 0
+    assert "absolute RMSE: 0.3502 deg" in capsys.readouterr().out

@@ -341,3 +341,16 @@ def test_cli_events_format(tmp_path):
     assert files == {None: {"events.h5"}, "txt": {"events.txt"}, "both": {"events.h5", "events.txt"}}
     n = json.loads((tmp_path / "f_None" / "simulation.json").read_text())["num_events"]
     assert len(open_dataset(tmp_path / "f_txt").read_events()) == len(open_dataset(tmp_path / "f_None").read_events()) == n
+
+
+def test_star_scene_defaults_to_a_slow_constant_rotation():
+    """The stars scene with the random ECD-like motion (5 rad/s peak) is nothing a star tracker sees: by default it
+    now turns at a constant 4 deg/s; an explicit trajectory still wins, and other scenes keep the random motion."""
+
+    assert SimulatorConfig(scene="stars").resolved().trajectory == "constant"
+    assert SimulatorConfig(scene="stars", trajectory="random").resolved().trajectory == "random"
+    assert SimulatorConfig(scene="city").resolved().trajectory == "random"
+    assert SimulatorConfig(scene="stars", image="pano.png").motion_kind == "random"
+    seq = simulate_sequence(SimulatorConfig(scene="stars", num_stars=300, duration=0.2, seed=1))
+    assert seq.info["trajectory"]["kind"] == "constant"
+    assert seq.info["trajectory"]["peak_angular_velocity"] == pytest.approx(np.radians(4.0))

@@ -149,7 +149,8 @@ def test_source_poses_before_the_anchor_are_dropped_and_poses_ahead_unchanged():
     append stay bounded); pose_at beyond the anchor still reads the re-anchored source at every time."""
     from ti_cmax import Camera, so3
     from ti_cmax.config import BackendConfig
-    from ti_cmax.pipelines.backend import _EMPTY_WINDOWS_PER_FIT, SlidingWindowBackend
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+    from ti_cmax.pipelines.backend_policies import EMPTY_WINDOWS_PER_FIT
     from ti_cmax.pipelines.sensor_defaults import resolve_backend
     from ti_cmax.trajectory import Trajectory
 
@@ -164,7 +165,7 @@ def test_source_poses_before_the_anchor_are_dropped_and_poses_ahead_unchanged():
             be.step()
     window = cfg.backend_time_window_size + cfg.backend_sliding_window_stride
     # (windows without events are fitted 10 strides at a time: the source kept spans at most that much more)
-    window += _EMPTY_WINDOWS_PER_FIT * cfg.backend_sliding_window_stride
+    window += EMPTY_WINDOWS_PER_FIT * cfg.backend_sliding_window_stride
     assert len(be.windows) > 30 and len(be._src_t) <= window / 0.01 + 3
     t_a, r_src_a, r_spl_a = be._anchor
     ahead = np.linspace(t_a + 1e-3, src_t[-1], 7)
@@ -273,9 +274,10 @@ def test_windows_without_ba_do_not_oscillate_after_a_kink(why):
         while be.ready():
             be.step()
             if not kinked and be.window_start >= 0.5:  # as a BA would leave them: the last two poses turned 0.57 deg
-                n = len(be.spline.control_R)
-                be.spline.control_R[n - 2:] = so3.exp(np.array([0.0, 0.0, 0.01])) @ be.spline.control_R[n - 2:]
-                be._anchor_at(be._anchor[0])
+                def kink(spline):
+                    spline.control_R[-2:] = so3.exp(np.array([0.0, 0.0, 0.01])) @ spline.control_R[-2:]
+
+                be.correct_poses(kink)
                 kinked = True
     assert kinked and be.window_start > 1.5 and not any(w.optimized for w in be.windows)
     assert not rejected or sum(w.rejected for w in be.windows) >= 10
@@ -349,3 +351,60 @@ def test_ba_objective_gradient_matches_central_differences(gauge_free):
     if gauge_free:  # the common rotation is not a direction of the step
         np.testing.assert_allclose(step(x + 0.3).mean(axis=0), 0.0, atol=1e-12)
         np.testing.assert_allclose(g.reshape(-1, 3).sum(axis=0), 0.0, atol=1e-9 * np.abs(g).max())
+
+
+def test_an_observer_is_notified_around_every_window_and_the_budget_skips_the_ba(ti_runtime):
+    """The back-end notifies its observer (a no-op by default) before each window's BA, when a stride settles and
+    after the window slides, in that order; a WindowBudget with ba_cap 0 gives no window a BA (the windows say
+    why), and reading ``map`` never rebuilds it: only refresh_map asks the observer for a dropped map."""
+    from ti_cmax import Camera, so3
+    from ti_cmax.config import BackendConfig
+    from ti_cmax.pipelines.backend import SlidingWindowBackend, WindowObserver
+    from ti_cmax.pipelines.backend_policies import WindowBudget
+    from ti_cmax.pipelines.sensor_defaults import resolve_backend
+
+    camera = Camera(240, 180, 200.0, 200.0, 119.5, 89.5)
+    cfg = resolve_backend(BackendConfig(), camera)
+    rng = np.random.default_rng(1)
+
+    class Recorder(WindowObserver):
+        stage = "recorder"
+
+        def __init__(self):
+            self.calls = []
+
+        def before_window(self, t0, t1, final=False):
+            self.calls.append(("before", t0))
+
+        def settled(self, ev_t, ev_b, t0, moving):
+            self.calls.append(("settled", t0))
+
+        def after_window(self, t_now):
+            self.calls.append(("after", t_now))
+
+        def rebuilt_map(self):
+            self.calls.append(("rebuilt", None))
+            return kept
+
+    be = SlidingWindowBackend(cfg, 0.0)
+    assert type(be.observer) is WindowObserver  # the no-op default
+    recorder = Recorder()
+    be.attach(recorder)
+    src_t = 0.01 * np.arange(60)
+    be.push_source_poses(src_t, so3.exp(np.outer(src_t, [0.0, 0.5, 0.0])))
+    n = 20_000
+    t = np.sort(rng.uniform(0.0, src_t[-1], n))
+    be.push_events(t, camera.bearings(rng.integers(0, 240, n), rng.integers(0, 180, n)))
+    while be.ready():
+        be.step(WindowBudget(ba_cap=0))
+    assert len(be.windows) >= 3 and all(w.skipped and not w.optimized and not w.still for w in be.windows)
+    stride = cfg.backend_sliding_window_stride
+    for k in range(len(be.windows)):
+        assert recorder.calls[3 * k:3 * k + 3] == [("before", pytest.approx(k * stride)),
+                                                   ("settled", pytest.approx(k * stride)),
+                                                   ("after", pytest.approx((k + 1) * stride))]
+    assert "recorder" in be.clock.summary()["wall_seconds"]
+    kept = be.map
+    be.drop_map()
+    assert be.map is None and ("rebuilt", None) not in recorder.calls
+    assert be.refresh_map() is kept and recorder.calls[-1] == ("rebuilt", None)

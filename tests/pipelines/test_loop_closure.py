@@ -93,16 +93,16 @@ def _run(t_ev, b_ev, trajectory, loop_cfg=LOOP, duration=DURATION, idle_slices=0
     be.spline = _spline(trajectory, duration=duration)
     be.push_source_poses(ts, trajectory(ts))
     be._anchor_at(duration - 0.2)
-    be.loop = LoopCloser(loop_cfg, be)
+    be.attach(LoopCloser(loop_cfg, be))
     be.push_events(t_ev, b_ev)
     stride = cfg.backend_sliding_window_stride
     n = int(round((duration - 0.2) / stride))
     for k in range(n):
-        be.loop.before_window(k * stride, k * stride + cfg.backend_time_window_size, final and k == n - 1)
-        be._settle(k * stride, (k + 1) * stride, still=False)
-        be.loop.after_window((k + 1) * stride)
+        be.observer.before_window(k * stride, k * stride + cfg.backend_time_window_size, final and k == n - 1)
+        be._settle(k * stride, (k + 1) * stride, moving=True)
+        be.observer.after_window((k + 1) * stride)
         for _ in range(idle_slices):
-            be.loop.idle_slice()
+            be.observer.idle_slice()
     return be
 
 
@@ -121,8 +121,8 @@ def _error(be, t, duration=DURATION, turns=TURNS):
 def test_injected_drift_over_a_revisit_is_found_and_removed(ti_runtime):
     t_ev, b_ev = _events()
     be = _run(t_ev, b_ev, _drifted)
-    applied = [e for e in be.loop.loops if e["applied"]]
-    assert applied, be.loop.loops
+    applied = [e for e in be.observer.loops if e["applied"]]
+    assert applied, be.observer.loops
     first = applied[0]
     # the drift between the old visit and the recent events is what the registration finds
     t_ref = first["t_ref"]  # when the recent events on the old map were seen
@@ -139,10 +139,10 @@ def test_injected_drift_over_a_revisit_is_found_and_removed(ti_runtime):
     assert _error(be, np.array([mid]))[0] < 0.6 * np.degrees(DRIFT) * mid / DURATION
     # the global map was rebuilt along the corrected trajectory: sharper than the drifted one
     ref = _run(t_ev, b_ev, _drifted, replace(LOOP, loop_min_confidence=2.0))
-    assert not any(e["applied"] for e in ref.loop.loops)
+    assert not any(e["applied"] for e in ref.observer.loops)
     from ti_cmax.metrics import event_area_percent
 
-    assert event_area_percent(be.map.raw) < event_area_percent(ref.map.raw)
+    assert event_area_percent(be.refresh_map().raw) < event_area_percent(ref.refresh_map().raw)
 
 
 @pytest.mark.slow
@@ -151,8 +151,8 @@ def test_every_revisit_is_closed_once(ti_runtime):
     loop (against the corrected map), and no correction is applied twice."""
     (t_ev, b_ev), drifted, duration = _drifted_turns()
     be = _run(t_ev, b_ev, drifted, duration=duration)
-    applied = [e for e in be.loop.loops if e["applied"]]
-    assert len(applied) >= 3, be.loop.loops  # the first return and the later checks of the revisits
+    applied = [e for e in be.observer.loops if e["applied"]]
+    assert len(applied) >= 3, be.observer.loops  # the first return and the later checks of the revisits
     drift_deg = lambda t: np.degrees(DRIFT) * np.asarray(t) / duration  # noqa: E731
     first, later = applied[0], applied[1:]
     assert first["correction_deg"] > 0.5 * drift_deg(first["t_ref"] - first["t_old"])
@@ -170,11 +170,11 @@ def test_false_revisits_are_rejected(ti_runtime, second_visit):
     t_ev, b_ev = _events(1, second_visit)
     be = _run(t_ev, b_ev, _pan)
     before = _spline(_pan)
-    assert not any(e["accepted"] for e in be.loop.loops), be.loop.loops
+    assert not any(e["accepted"] for e in be.observer.loops), be.observer.loops
     np.testing.assert_array_equal(be.spline.control_R, before.control_R)
     if second_visit == "other":  # the candidate was seen and judged, not missed
-        assert be.loop.loops and all(e["confidence"] < LoopClosureConfig().loop_min_confidence
-                                     for e in be.loop.loops)
+        assert be.observer.loops and all(e["confidence"] < LoopClosureConfig().loop_min_confidence
+                                     for e in be.observer.loops)
 
 
 def test_chain_pose_graph_spread_matches_least_squares():
@@ -220,7 +220,7 @@ def test_loop_closure_false_is_todays_output_and_refine_cli_reports_loops(short_
             for on in ("false", "true")}
     off, on = runs["false"], runs["true"]
     assert "loops" not in off.report and on.report["loops"] == []
-    assert SlamConfig().loop.loop_closure  # on by default (session 10: it never hurt where measured)
+    assert SlamConfig().loop.loop_closure  # on by default
     np.testing.assert_array_equal(off.trajectory.R, on.trajectory.R)
     np.testing.assert_array_equal(off.map, on.map)
     out = tmp_path / "ref"
@@ -330,15 +330,15 @@ def test_checkpointed_rebuild_equals_the_full_one(ti_runtime):
     age and visit maps and the global map equal a rebuild of every stored stride from scratch, bit for bit."""
     (t_ev, b_ev), drifted, duration = _drifted_turns()
     be = _run(t_ev, b_ev, drifted, duration=duration)
-    lc = be.loop
+    lc = be.observer
     assert sum(bool(e["applied"]) for e in lc.loops) >= 3, lc.loops
     assert lc._checkpoint_start() > 0  # the last rebuild left a checkpoint the next one would use
     lc._rebuild()  # from the checkpoint
-    got = (lc.old.raw.copy(), lc.age.copy(), lc.visit.copy(), be.map.raw.copy())
+    got = (lc.old.raw.copy(), lc.age.copy(), lc.visit.copy(), be.refresh_map().raw.copy())
     assert lc._checkpoint[0] == lc._n_old
     lc._checkpoint = None
     lc._rebuild()  # every stride from scratch
-    for a, b in zip(got, (lc.old.raw, lc.age, lc.visit, be.map.raw)):
+    for a, b in zip(got, (lc.old.raw, lc.age, lc.visit, be.refresh_map().raw)):
         np.testing.assert_array_equal(a, b)
     # a correction that moves the checkpoint's poses invalidates it
     be.spline.control_R[2] = so3.exp(np.array([0.0, 1e-3, 0.0])) @ be.spline.control_R[2]
@@ -353,13 +353,13 @@ def test_advanced_checkpoint_gives_the_same_run(ti_runtime, monkeypatch):
 
     (t_ev, b_ev), drifted, duration = _drifted_turns()
     fast = _run(t_ev, b_ev, drifted, duration=duration)
-    assert fast.loop.checkpoints_advanced >= 2 and sum(bool(e["applied"]) for e in fast.loop.loops) >= 3
+    assert fast.observer.checkpoints_advanced >= 2 and sum(bool(e["applied"]) for e in fast.observer.loops) >= 3
     monkeypatch.setattr(LoopCloser, "_advance_checkpoint", lambda self: None)
     ref = _run(t_ev, b_ev, drifted, duration=duration)
-    assert [e["correction_deg"] for e in fast.loop.loops] == [e["correction_deg"] for e in ref.loop.loops]
+    assert [e["correction_deg"] for e in fast.observer.loops] == [e["correction_deg"] for e in ref.observer.loops]
     np.testing.assert_array_equal(fast.spline.control_R, ref.spline.control_R)
-    for a, b in ((fast.loop.old.raw, ref.loop.old.raw), (fast.loop.age, ref.loop.age),
-                 (fast.loop.visit, ref.loop.visit), (fast.map.raw, ref.map.raw)):
+    for a, b in ((fast.observer.old.raw, ref.observer.old.raw), (fast.observer.age, ref.observer.age),
+                 (fast.observer.visit, ref.observer.visit), (fast.refresh_map().raw, ref.refresh_map().raw)):
         np.testing.assert_array_equal(a, b)
 
 
@@ -398,21 +398,21 @@ def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_r
         sliced = _run(t_ev, b_ev, _drifted, cfg, idle_slices=5)
     finally:
         loop_closure._Slices.resume, loop_closure.LoopCloser.__init__ = original, old_init
-    first, ref = sliced.loop.loops[0], at_once.loop.loops[0]
+    first, ref = sliced.observer.loops[0], at_once.observer.loops[0]
     assert first["sliced"] and first["time"] == ref["time"]
     for key in ("correction_deg", "confidence", "confidence_before", "peak_ratio", "accepted"):
         assert first[key] == ref[key], key
     assert len(calls) > 20 and max(calls) < 0.5 * ref["seconds"]  # many slices, each a small part of the whole
-    applied = [e for e in sliced.loop.loops if e["applied"]]
+    applied = [e for e in sliced.observer.loops if e["applied"]]
     assert applied
-    lc = sliced.loop
+    lc = sliced.observer
     lc.drain()  # the end of the stream: a map rebuild still in flight (in slices too) at once
     assert lc._task is None and not lc.pending()
     # the rebuild in slices (the old map meanwhile in use, the strides aged meanwhile caught up) equals one at once
-    got = (lc.old.raw.copy(), lc.age.copy(), lc.visit.copy(), sliced.map.raw.copy())
+    got = (lc.old.raw.copy(), lc.age.copy(), lc.visit.copy(), sliced.refresh_map().raw.copy())
     lc._checkpoint, lc.slice_seconds = None, None
     lc._rebuild()
-    for a, b in zip(got, (lc.old.raw, lc.age, lc.visit, sliced.map.raw)):
+    for a, b in zip(got, (lc.old.raw, lc.age, lc.visit, sliced.refresh_map().raw)):
         np.testing.assert_array_equal(a, b)
     # the drift is removed as well: the error at the end of the run within 25 % of the at-once run's plus 0.1 deg
     t_end = np.array([DURATION - 0.5])
@@ -467,7 +467,7 @@ def test_old_map_votes_wait_for_a_verification(ti_runtime):
     from ti_cmax.pipelines.loop_closure import _RawMap
 
     t_ev, b_ev = _events()
-    lc = _run(t_ev, b_ev, _pan, duration=3.0).loop  # before loop_min_age + loop_recent_time: no check
+    lc = _run(t_ev, b_ev, _pan, duration=3.0).observer  # before loop_min_age + loop_recent_time: no check
     assert not lc.loops and lc._n_old > 10 and lc._n_voted == 0 and not lc.old.raw.any()
     lc._vote_aged(lc._n_old)
     eager = (_RawMap(lc.old.width, lc.old.height), np.full_like(lc.age, -np.inf), np.full_like(lc.visit, -np.inf))
@@ -482,7 +482,7 @@ def test_checks_after_a_loop_wait_for_the_drift_to_build_up(ti_runtime):
     """loop_check_drift_px: after an applied loop the next check waits until the drift rate that loop measured
     has moved the map by that many pixels (at most loop_min_age); 0 checks again after loop_recent_time."""
     (t_ev, b_ev), drifted, duration = _drifted_turns()
-    runs = {px: _run(t_ev, b_ev, drifted, replace(LOOP, loop_check_drift_px=px), duration=duration).loop
+    runs = {px: _run(t_ev, b_ev, drifted, replace(LOOP, loop_check_drift_px=px), duration=duration).observer
             for px in (0.0, 1e4)}
     for px, lc in runs.items():
         applied = [i for i, e in enumerate(lc.loops) if e["applied"]]
@@ -506,15 +506,15 @@ def test_global_map_is_rebuilt_once_when_read(ti_runtime, monkeypatch):
     (t_ev, b_ev), drifted, duration = _drifted_turns()
     be = _run(t_ev, b_ev, drifted, duration=duration)
     assert not costs
-    lc = be.loop
+    lc = be.observer
     assert sum(bool(e["applied"]) for e in lc.loops) >= 3, lc.loops
-    assert lc.map_stale and be._map is None and lc.map_rebuilds == 0
-    lazy = be.map.raw.copy()
-    assert lc.map_rebuilds == 1 and not lc.map_stale and be.map is be._map
+    assert lc.map_stale and be.map is None and lc.map_rebuilds == 0
+    lazy = be.refresh_map().raw.copy()
+    assert lc.map_rebuilds == 1 and not lc.map_stale and be.refresh_map() is be.map
     lc._checkpoint = None
     lc._rebuild()  # every stride from scratch along the corrected spline: stale again
     assert lc.map_stale
-    np.testing.assert_array_equal(be.map.raw, lazy)
+    np.testing.assert_array_equal(be.refresh_map().raw, lazy)
     assert lc.map_rebuilds == 2
 
 
@@ -528,9 +528,9 @@ def test_fast_pan_revisits_count_by_the_rotation_travelled(ti_runtime):
     t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
     be = _run(t_ev, b_ev, drifted, duration=duration)
     age_only = _run(t_ev, b_ev, drifted, replace(LOOP, loop_min_travel=-1.0), duration=duration)
-    applied = [e for e in be.loop.loops if e["applied"]]
-    assert applied and applied[0]["time"] < 3.0, be.loop.loops
-    assert not any(e["applied"] for e in age_only.loop.loops), age_only.loop.loops
+    applied = [e for e in be.observer.loops if e["applied"]]
+    assert applied and applied[0]["time"] < 3.0, be.observer.loops
+    assert not any(e["applied"] for e in age_only.observer.loops), age_only.observer.loops
     # over the span the loops closed (the drift, 1 deg/s, builds up again after the last one)
     ts = np.linspace(applied[0]["t_ref"], applied[-1]["t_ref"], 10)
     err = np.degrees(so3.geodesic_angle(be.spline.evaluate(ts), pan(ts)))
@@ -545,9 +545,9 @@ def test_the_last_window_closes_the_drift_since_the_last_check(ti_runtime):
     scheduled after the end. Before the last window the same run."""
     (t_ev, b_ev), drifted, duration = _drifted_turns()
     cfg = replace(LOOP, loop_check_drift_px=1e4)  # after a loop the next check waits loop_min_age
-    plain = _run(t_ev, b_ev, drifted, cfg, duration=duration).loop
+    plain = _run(t_ev, b_ev, drifted, cfg, duration=duration).observer
     be = _run(t_ev, b_ev, drifted, cfg, duration=duration, final=True)
-    lc = be.loop
+    lc = be.observer
     assert [e["time"] for e in lc.loops[:-1]] == [e["time"] for e in plain.loops], (lc.loops, plain.loops)
     last = lc.loops[-1]
     assert last["applied"] and last["time"] > plain.loops[-1]["time"] + cfg.loop_recent_time, lc.loops

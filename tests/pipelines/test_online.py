@@ -165,7 +165,7 @@ def test_pose_after_a_pause_of_the_stream_follows_the_worker(half_second):
     for i in range(0, len(paused), 20_000):
         online.push(paused[i:i + 20_000])
     online.map()  # waits until the worker has handled every event pushed (its window messages applied)
-    anchor = online._feed.backend._anchor[0]  # the spline is fitted up to here; earlier than 0.2 s before: final
+    anchor = online.backend.mirror.fitted_until  # the spline is fitted up to here; earlier than 0.2 s before: final
     assert anchor - 0.2 > t0 + 0.9  # through the pause (its poses fitted with the first window after it)
     t_check = np.linspace(t0 + 0.05, anchor - 0.2, 25)
     before_close = online.pose(t_check)
@@ -214,3 +214,23 @@ def test_camera_pickles_without_its_bearing_tables():
     copy = pickle.loads(data)
     assert copy == camera and "bearing_lut4" not in vars(copy)
     np.testing.assert_array_equal(copy.bearing_lut4, table)
+
+
+@pytest.mark.parametrize("backend_process", [False, True])
+def test_the_window_budget_reaches_the_backend_wherever_it_runs(half_second, backend_process):
+    """The real-time budget is an argument of every window step: set by degrade() between pushes it applies to the
+    windows that start after it, in this process and in a worker (sent with every pose message)."""
+    seq, ev = half_second
+    windows = []
+    online = OnlineSlam(seq.camera, SlamConfig(), on_window=windows.append, backend_process=backend_process)
+    half = int(np.searchsorted(ev.t, ev.t[0] + 0.25))
+    online.degrade(ba_cap=0)
+    online.push(ev[:half])
+    online.map()  # with a worker: every window of the first half is done before the budget changes
+    online.degrade()
+    online.push(ev[half:])
+    result = online.close()
+    first = [w for w in result.windows if w.t_end <= ev.t[0] + 0.2]
+    assert first and all(w.skipped and not w.optimized for w in first)
+    assert any(w.optimized for w in result.windows)
+    assert [w.t_start for w in windows] == [w.t_start for w in result.windows]

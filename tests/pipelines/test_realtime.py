@@ -354,7 +354,7 @@ def test_degrade_refuses_values_the_worker_would_read_otherwise(short_sequence, 
     with pytest.raises(ValueError, match=next(iter(kwargs))):
         online.degrade(**kwargs)
     online.degrade(ba_cap=np.int64(2000), ba_every=2.0, ba_budget=0.0)  # integral values of any type are fine
-    assert online._ba_cap == 2000 and online._ba_every == 2
+    assert online.budget.ba_cap == 2000 and online.budget.ba_every == 2
 
 
 def test_the_real_time_worker_takes_every_core_unless_threads_were_chosen(monkeypatch):
@@ -437,7 +437,7 @@ def test_the_worker_ends_when_its_parent_died(monkeypatch):
     import multiprocessing
     import queue
 
-    from ti_cmax.pipelines import slam as slam_module
+    from ti_cmax.pipelines import worker as worker_module
 
     class Dead:
         def is_alive(self):
@@ -451,6 +451,6 @@ def test_the_worker_ends_when_its_parent_died(monkeypatch):
         raise SystemExit(code)
 
     monkeypatch.setattr(multiprocessing, "parent_process", lambda: Dead())
-    monkeypatch.setattr(slam_module.os, "_exit", exit_)
+    monkeypatch.setattr(worker_module.os, "_exit", exit_)
     with pytest.raises(SystemExit):
-        slam_module._next_message(Silent(), poll=0.01)
+        worker_module._next_message(Silent(), poll=0.01)

@@ -40,7 +40,7 @@ def test_settled_global_map_stays_consistent_with_a_wider_blur(fast_sequence):
     online = OnlineSlam(seq.camera, cfg)
     online.push(seq.events.slice_time(seq.events.t[0], seq.events.t[0] + 0.8))
     online.close()
-    gm = online._feed.backend.map
+    gm = online.backend.backend.map
     full = blur_map(gm.raw, 2.0)
     assert gm.raw.sum() > 0
     np.testing.assert_allclose(gm.blurred, full, atol=1e-5 * full.max())  # stale margin pixels: 5e-5
@@ -275,8 +275,9 @@ def test_start_up_and_map_figures_do_not_import_scipy_ndimage():
     """scipy.ndimage costs ~0.2 s to import, in each process of every `slam`: the back-end's kernel preparation
     and the map's figures (Sobel gradient magnitude) do without it (OpenCV gives the same to rounding)."""
     code = ("import sys, numpy as np; from ti_cmax.config import SlamConfig; "
-            "from ti_cmax.pipelines.slam import _compile_backend; from ti_cmax.metrics import gradient_magnitude; "
-            "_compile_backend(SlamConfig()); gradient_magnitude(np.random.rand(32, 64)); "
+            "from ti_cmax.pipelines.online_backend import compile_backend; "
+            "from ti_cmax.metrics import gradient_magnitude; "
+            "compile_backend(SlamConfig()); gradient_magnitude(np.random.rand(32, 64)); "
             "print('scipy.ndimage' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.strip().splitlines()[-1] == "False", out.stdout + out.stderr

@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from ..config import load_config
+    from ..config import check_workload, load_config
     from ..errors import InputError
     from ..io import open_dataset_from_config
     from ..outputs import OutputDir
@@ -31,6 +31,7 @@ def run(args) -> int:
     cfg = load_config(BaselineConfig, args.config, args.overrides)
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     camera = dataset.camera
+    check_workload(cfg, *dataset.time_range())
     imu = dataset.imu  # the imu baseline needs it; others may use it (e.g. bootstrapping)
     extra = {}
     if args.name.startswith("smt"):  # SMT bootstraps from IMU, or ground truth where no IMU exists (playroom)

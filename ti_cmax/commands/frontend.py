@@ -14,7 +14,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     import time
 
-    from ..config import SlamConfig, config_to_dict, load_config, save_config
+    from ..config import SlamConfig, check_workload, config_to_dict, load_config, save_config
     from ..io import open_dataset_from_config, write_angular_velocity, write_tum
     from ..outputs import OutputDir, write_report
     from ..pipelines.frontend import estimate_angular_velocity
@@ -25,6 +25,7 @@ def run(args) -> int:
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     camera = dataset.camera
     t0, t1 = dataset.time_range()
+    check_workload(cfg, t0, t1)
     derived = derived_summary(cfg, camera)
     cfg = resolve_config(cfg, camera)
     result = estimate_angular_velocity(dataset.iter_events(), camera, cfg.frontend, progress_total=t1 - t0)

@@ -17,7 +17,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from ..config import SlamConfig, load_config
+    from ..config import SlamConfig, check_workload, load_config
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import OutputDir
     from ..pipelines.slam import refine
@@ -29,6 +29,7 @@ def run(args) -> int:
     camera = dataset.camera
     initial = read_tum(args.trajectory)
     t0, t1 = dataset.time_range()
+    check_workload(cfg, max(t0, initial.t_start), min(t1, initial.t_end))
     result = refine(dataset.iter_events(cfg.dataset.chunk_size, t_start=initial.t_start, t_end=initial.t_end),
                     camera, initial, cfg, progress_total=min(t1, initial.t_end) - max(t0, initial.t_start))
     with OutputDir(args.out) as out:

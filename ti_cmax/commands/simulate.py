@@ -29,7 +29,7 @@ def add_arguments(parser) -> None:
     src.add_argument("--image", metavar="FILE", help="equirectangular image to use as the scene")
     parser.add_argument("--sensor", choices=list(SENSORS), help="sensor model (default DAVIS240C; HD: Prophesee IMX636)")
     parser.add_argument("--duration", type=float, metavar="S", help="seconds (default 2)")
-    parser.add_argument("--trajectory", choices=TRAJECTORIES, help="motion (default random)")
+    parser.add_argument("--trajectory", choices=TRAJECTORIES, help="motion (default: constant for --scene stars, a slow rotation as a star tracker sees; else random)")
     parser.add_argument("--contrast-threshold", type=float, metavar="C", help="log-intensity threshold (default: the sensor's)")
     parser.add_argument("--noise-rate", type=float, metavar="HZ", help="background events per pixel per second")
     parser.add_argument("--refractory-period", type=float, metavar="S", help="per-pixel refractory period")

@@ -82,7 +82,7 @@ def print_derived(report: dict) -> None:
 
 
 def run(args) -> int:
-    from ..config import SlamConfig, load_config
+    from ..config import SlamConfig, check_workload, load_config
     from ..io import open_dataset_from_config
     from ..outputs import OutputDir
     from ..pipelines.slam import default_backend_process, run_slam
@@ -92,6 +92,7 @@ def run(args) -> int:
     camera = dataset.camera
     parallel = default_backend_process(camera) if args.parallel is None else args.parallel
     t0, t1 = dataset.time_range()
+    check_workload(cfg, t0, t1, realtime=args.realtime)
     if args.realtime:
         import sys
 

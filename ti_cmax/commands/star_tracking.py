@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 import numpy as np
 
@@ -76,6 +77,7 @@ def run(args) -> int:
 
     import imageio.v3 as iio
 
+    from ..config import check_workload
     from ..io import read_tum
     from ..outputs import OutputDir, json_ready
     from ..pipelines.panorama import map_to_uint8
@@ -87,6 +89,7 @@ def run(args) -> int:
     dataset = open_star_or_dataset(args.dataset, cfg.dataset)
     gt = read_tum(args.groundtruth) if args.groundtruth else dataset.groundtruth
     t0, t1 = dataset.time_range()
+    check_workload(cfg, t0, t1)
     res = run_star_tracking(dataset, dataset.camera, cfg, groundtruth=gt, window=args.window,
                             progress_total=t1 - t0)
     report = dict(res.report)
@@ -113,5 +116,7 @@ def run(args) -> int:
         line += (f"; {args.window * 1000:.0f} ms relative rotation RMSE {e['ba']['rmse_deg']:.3f} deg "
                  f"(std {e['ba']['std_deg']:.3f}), front-end alone {e['frontend']['rmse_deg']:.3f} deg")
     print(f"{line} -> {out}")
+    for warning in report.get("warnings", []):
+        print(f"ti-cmax star-tracking: warning: {warning}", file=sys.stderr)
     print(json.dumps(json_ready({k: report.get(k) for k in ("rmse_deg", "std_deg")} if res.errors else {})))
     return 0

@@ -90,6 +90,31 @@ class ScannedSource(NoCompanions):
         return self._scan()[0]
 
 
+# times read in an assumed unit are refused when what they imply is beyond any recording: a duration over this
+# (s; microseconds read as seconds: 1 s of data spans 11.6 days) or, over at least MIN_EVENTS_FOR_RATE events, a mean
+# event rate over this (events/s; seconds or milliseconds read as microseconds), more than the readout of any event
+# camera
+MAX_DURATION = 1e5
+MAX_EVENT_RATE = 1e9
+MIN_EVENTS_FOR_RATE = 1000
+
+
+def check_time_span(first: float, last: float, n: int | None, source: str, what: str, fix: str) -> None:
+    """Raise InputError when times ``first``..``last`` (s) of ``n`` events (None: not known cheaply) imply a duration
+    or an event rate no recording has. ``what`` names the times and the unit they were read in; ``fix`` says what to
+    set (an attribute, an option)."""
+    span = last - first
+    if not np.isfinite(span) or span < 0:  # unsorted or NaN: the block validation names the event
+        return
+    if span > MAX_DURATION:
+        raise InputError(f"{what}, the events span {span:.4g} s ({span / 86400:.3g} days): longer than any recording "
+                         f"(at most {MAX_DURATION:g} s); {fix}", source=source)
+    if n is not None and n >= MIN_EVENTS_FOR_RATE and (span == 0 or n / span > MAX_EVENT_RATE):
+        rate = "an infinite rate" if span == 0 else f"{n / span:.3g} events/s"
+        raise InputError(f"{what}, {n} events span {span:.3g} s ({rate}): more than any event camera outputs (at most "
+                         f"{MAX_EVENT_RATE:.0e} events/s); {fix}", source=source)
+
+
 def _where(block: Block, i: int) -> dict:
     if block.lines is not None:
         return {"line": int(block.lines[i])}

@@ -65,6 +65,9 @@ def read_camera_info_yaml(path, width: int | None = None, height: int | None = N
         d = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:
         raise InputError(f"not valid YAML ({str(exc).splitlines()[0]})", source=source) from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}): save the "
+                         "camera_info YAML as UTF-8", source=source) from None
     if not isinstance(d, dict) or "camera_matrix" not in d:
         raise InputError("not a ROS camera_info YAML (missing camera_matrix)", source=source)
     try:

@@ -30,13 +30,14 @@ from ..config import DatasetConfig
 from ..errors import InputError
 from ..events import Events
 from ..trajectory import Trajectory
-from ._common import NoCompanions, infer_sensor_size, validated_chunks
+from ._common import NoCompanions, check_time_span, infer_sensor_size, validated_chunks
 from .calib import read_calib_txt_params, read_calib_txt_size, read_camera_info_yaml
 from .text import ImuData, read_imu_txt, read_tum
 
 def open_dataset_from_config(path, cfg: DatasetConfig) -> "Dataset":
     return open_dataset(path, cfg.width or None, cfg.height or None,
-                        allow_default_calibration=cfg.allow_default_calibration, topic=cfg.topic or None)
+                        allow_default_calibration=cfg.allow_default_calibration, topic=cfg.topic or None,
+                        time_unit=None if cfg.time_unit == "auto" else cfg.time_unit)
 
 
 EVENT_FILE_SUFFIXES = (".txt", ".h5", ".hdf5", ".bag", ".aedat4", ".raw")
@@ -45,25 +46,45 @@ _CALIB_NAMES = ("calib.txt", "camera_info.yaml", "camera_info.yml", "calib.yaml"
 DEFAULT_FOV_DEG = 60.0
 
 
+_TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+
+
 class TxtSource(NoCompanions):
-    """ECD events.txt."""
+    """ECD events.txt (times in seconds, or in ``time_unit``)."""
 
     kind = "ECD text"
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, time_unit: str | None = None):
         from . import events_txt
 
         self.path = path
         self.source = str(path)
         self.sensor_size = None
         self._txt = events_txt
+        self.time_unit = time_unit
+        self._scale = _TIME_UNITS[time_unit] if time_unit else 1.0
 
     def iter_blocks(self, t_start=None):
-        offset, first_line = self._txt.txt_seek(self.path, t_start) if t_start is not None else (0, 1)
-        return self._txt.iter_txt_blocks(self.path, offset=offset, first_line=first_line)
+        offset, first_line = (self._txt.txt_seek(self.path, t_start / self._scale) if t_start is not None
+                              else (0, 1))
+        blocks = self._txt.iter_txt_blocks(self.path, offset=offset, first_line=first_line)
+        return blocks if self._scale == 1.0 else map(self._scaled, blocks)
+
+    def _scaled(self, block):
+        ev = block.events
+        block.events = Events(ev.t * self._scale, ev.x, ev.y, ev.p)
+        return block
 
     def time_range(self):
-        return self._txt.txt_time_range(self.path)
+        first, last = self._txt.txt_time_range(self.path)
+        return first * self._scale, last * self._scale
+
+    def check_time_range(self):
+        """Fail early on an empty or unreadable file, or on times that are not seconds (no recording spans days)."""
+        first, last = self.time_range()
+        if not self.time_unit:
+            check_time_span(first, last, None, self.source, "the times read as seconds (the text format's unit)",
+                            "give their unit with --set time_unit=ms, us or ns")
 
     def num_events(self):
         return self._txt.txt_count_lines(self.path)
@@ -72,12 +93,12 @@ class TxtSource(NoCompanions):
 class H5Source:
     kind = "HDF5"
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, time_unit: str | None = None):
         from .h5 import H5Events
 
         self.path = path
         self.source = str(path)
-        self._h5 = H5Events(path)
+        self._h5 = H5Events(path, time_unit)
         self.sensor_size = self._h5.sensor_size
         if self._h5.compound:
             self.kind = "Metavision HDF5"
@@ -87,6 +108,10 @@ class H5Source:
 
     def time_range(self):
         return self._h5.time_range()
+
+    def check_time_range(self):
+        """Fail early on an empty or unreadable file (H5Events checked the times' unit when it opened)."""
+        self.time_range()
 
     def num_events(self):
         return self._h5.num_events()
@@ -101,12 +126,15 @@ class H5Source:
         return None
 
 
-def _make_source(path: Path, topic: str | None):
+def _make_source(path: Path, topic: str | None, time_unit: str | None = None):
     suffix = path.suffix.lower()
     if suffix == ".txt":
-        return TxtSource(path)
+        return TxtSource(path, time_unit)
     if suffix in (".h5", ".hdf5"):
-        return H5Source(path)
+        return H5Source(path, time_unit)
+    if time_unit:
+        raise InputError(f"time_unit applies to text and HDF5 files; {suffix} files state their own time unit",
+                         source=str(path))
     if suffix == ".bag":
         from .bag import BagSource
 
@@ -150,12 +178,18 @@ def _find_calib(folder: Path) -> Path | None:
     return None
 
 
+class _NoCalibration(InputError):
+    """No intrinsics found (as opposed to intrinsics that are wrong)."""
+
+
 class Dataset:
     """An opened dataset: camera, optional ground truth and IMU, and streamed events."""
 
     def __init__(self, path, width: int | None = None, height: int | None = None, *,
-                 allow_default_calibration: bool = False, topic: str | None = None):
+                 allow_default_calibration: bool = False, topic: str | None = None, time_unit: str | None = None):
         path = Path(path)
+        if time_unit and time_unit not in _TIME_UNITS:
+            raise InputError(f"time_unit must be one of {', '.join(_TIME_UNITS)}, got {time_unit!r}")
         if not path.exists():
             raise InputError("no such file or folder", source=str(path))
         self.path = path
@@ -171,7 +205,7 @@ class Dataset:
         self.groundtruth_path = gt if companions and gt.is_file() else None
         self.imu_path = imu if companions and imu.is_file() else None
         self.allow_default_calibration = allow_default_calibration
-        self._source = _make_source(self.events_path, topic)
+        self._source = _make_source(self.events_path, topic, time_unit)
         self.format = self._source.kind
         self._user_size = (int(width), int(height)) if width and height else None
         if (width is None) != (height is None):
@@ -186,7 +220,7 @@ class Dataset:
                 self._txt_calib = read_calib_txt_params(self.calib_path)
                 self._txt_size = read_calib_txt_size(self.calib_path)
         if isinstance(self._source, (TxtSource, H5Source)):
-            self._source.time_range()  # cheap here: fails early on an empty or unreadable file
+            self._source.check_time_range()  # cheap here
         self.width, self.height = self._sensor_size()
 
     # sensor size and camera ----------------------------------------------------------------------
@@ -222,6 +256,14 @@ class Dataset:
 
     @cached_property
     def _camera_and_source(self) -> tuple[Camera, str]:
+        try:
+            return self._find_camera()
+        except InputError as exc:  # intrinsics that do not fit the sensor: name the file they come from
+            if exc.source is not None or isinstance(exc, _NoCalibration):
+                raise
+            raise InputError(str(exc), source=str(self.calib_path or self.events_path)) from None
+
+    def _find_camera(self) -> tuple[Camera, str]:
         w, h = self.width, self.height
         if self._txt_calib is not None:
             (fx, fy, cx, cy), dist = self._txt_calib
@@ -234,7 +276,7 @@ class Dataset:
             return Camera(w, h, cam.fx, cam.fy, cam.cx, cam.cy, cam.dist), f"{self.format} file"
         if self.allow_default_calibration:
             return Camera.ideal(w, h, DEFAULT_FOV_DEG), f"default (ideal pinhole, {DEFAULT_FOV_DEG:g} deg field of view)"
-        raise InputError("no camera calibration: expected calib.txt or a camera_info YAML beside the events (or "
+        raise _NoCalibration("no camera calibration: expected calib.txt or a camera_info YAML beside the events (or "
                          f"use an ideal {DEFAULT_FOV_DEG:g} deg pinhole: --set allow_default_calibration=true)",
                          source=str(self.path))
 
@@ -244,10 +286,11 @@ class Dataset:
 
     @property
     def calibration_source(self) -> str | None:
-        """Where the intrinsics come from, or None when there are none."""
+        """Where the intrinsics come from, or None when there are none (intrinsics that do not fit the sensor raise
+        their InputError)."""
         try:
             return self._camera_and_source[1]
-        except InputError:
+        except _NoCalibration:
             return None
 
     # companions ------------------------------------------------------------------------------------
@@ -303,6 +346,9 @@ class EventStream:
 
 
 def open_dataset(path, width: int | None = None, height: int | None = None, *,
-                 allow_default_calibration: bool = False, topic: str | None = None) -> Dataset:
-    """Open a dataset folder or events file (see module doc); reads only what is needed for the metadata."""
-    return Dataset(path, width, height, allow_default_calibration=allow_default_calibration, topic=topic)
+                 allow_default_calibration: bool = False, topic: str | None = None,
+                 time_unit: str | None = None) -> Dataset:
+    """Open a dataset folder or events file (see module doc); reads only what is needed for the metadata.
+    ``time_unit`` (s, ms, us, ns): the unit of a text or HDF5 file's times, when not the file's own."""
+    return Dataset(path, width, height, allow_default_calibration=allow_default_calibration, topic=topic,
+                   time_unit=time_unit)

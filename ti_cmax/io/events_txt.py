@@ -22,10 +22,11 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import InputError
-from ..events import Events
+from ..events import Events, polarity_word
 from ._common import Block
 
 BLOCK_BYTES = 8 << 20  # ~350 k events per block
+_XY_MAX = 65535  # pixel coordinates are stored as uint16: a larger one is refused, never wrapped
 _EXPECTED = "expected 't x y p' (time in seconds, pixel x, pixel y, polarity 0/1 or -1/+1)"
 
 
@@ -110,7 +111,7 @@ def _parse_fast(buf: bytes):
     if not ok:
         return None
     y, ok = _uint_swar(words, sp[:, 2], ylen)
-    if not ok:
+    if not ok or int(x.max()) > _XY_MAX or int(y.max()) > _XY_MAX:  # 5 digits reach 99999: the exact tier names it
         return None
     plen = le - sp[:, 2] - 1
     last = a[le - 1]
@@ -191,15 +192,19 @@ def _parse_exact(toks: list, lines: np.ndarray):
             t[i] = float(parts[0])
             xy[i, 0] = float(parts[1])
             xy[i, 1] = float(parts[2])
-            pv = float(parts[3])
         except ValueError:
             raise _LineError(f"{_EXPECTED}, got {text[:80]!r}", line) from None
-        if pv not in (0.0, 1.0, -1.0):
-            raise _LineError(f"polarity must be 0/1 or -1/+1, got {parts[3].decode(errors='replace')!r}", line)
-        p[i] = 1 if pv > 0 else -1
+        sign = polarity_word(parts[3].decode("utf-8", "replace"))
+        if sign is None:
+            raise _LineError(f"polarity must be 0/1 or -1/+1 (or +/-), got {parts[3].decode(errors='replace')!r}", line)
+        p[i] = sign
         if not (np.isfinite(xy[i]).all() and (xy[i] >= 0).all()):
             raise _LineError(f"pixel coordinates must be finite and >= 0, got {text[:80]!r}", line)
-    if n and np.all(xy == np.round(xy)) and xy.max() < 65536:
+        if xy[i].max() > _XY_MAX:
+            k = int(np.argmax(xy[i]))
+            raise _LineError(f"{'xy'[k]}={parts[1 + k].decode(errors='replace')} is beyond any sensor "
+                             f"(pixel coordinates are at most {_XY_MAX})", line)
+    if n and np.all(xy == np.round(xy)):
         return Events(t, xy[:, 0].astype(np.uint16), xy[:, 1].astype(np.uint16), p)
     return Events(t, xy[:, 0].astype(np.float32), xy[:, 1].astype(np.float32), p)
 

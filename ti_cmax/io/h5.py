@@ -3,10 +3,12 @@
 Layouts read (first match wins):
 - ``events/{t,x,y,p}`` (ours; also DSEC / TUM-VIE): t float or integer, with an attribute ``units`` / ``unit``
   in {s, ms, us, ns} (a unit not known is refused); without it float is seconds and integer microseconds
-  (CONVENTIONS.md). Float times without the attribute whose first events are too sparse to be seconds of an event
-  camera (median gap >= 10 ms: microseconds stored as floats read as seconds) are refused, naming the attribute to
-  set. A root dataset or attribute ``t_offset`` (microseconds, DSEC) is added. ``ms_to_idx`` (DSEC) speeds up
-  seeking.
+  (CONVENTIONS.md); ``--set time_unit`` wins over both. Times read in that default unit are refused, naming the
+  attribute to set, when their first events are too sparse for it (median gap >= 10 ms: microseconds stored as
+  floats read as seconds, nanoseconds as microseconds) or their duration or event rate is beyond any recording
+  (``_common.check_time_span``). float16 times, float times coarser than 0.1 ms at their largest value, and uint64
+  times beyond 2^63 are refused. Polarity may be bool, integers, floats or strings (``events.polarity_signs``).
+  A root dataset or attribute ``t_offset`` (microseconds, DSEC) is added. ``ms_to_idx`` (DSEC) speeds up seeking.
 - ``events/{ts,xs,ys,ps}`` (E2VID-era): same time rules; root attribute ``sensor_resolution`` = (height, width).
 - ``t,x,y,p`` at the root.
 - ``CD/events`` (Prophesee Metavision HDF5): one compound dataset (x, y, p, t in microseconds); sensor size from
@@ -28,8 +30,8 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
-from ..events import Events, signed_polarity
-from ._common import Block
+from ..events import Events, polarity_signs
+from ._common import Block, check_time_span
 
 try:  # registers compression filters (Blosc, ZSTD, ...) with HDF5 when installed
     import hdf5plugin  # noqa: F401
@@ -47,6 +49,8 @@ _UNITS = {"s": 1.0, "sec": 1.0, "second": 1.0, "seconds": 1.0, "ms": 1e-3, "msec
 FLOAT_SECONDS_MAX_MEDIAN_GAP = 0.01
 FLOAT_SECONDS_SAMPLE = 4096  # events at the start of the file that test it (at least 100 distinct times)
 _LAYOUTS = (("events", ("t", "x", "y", "p")), ("events", ("ts", "xs", "ys", "ps")), ("", ("t", "x", "y", "p")))
+MAX_TIME_STEP = 1e-4  # float times coarser than this (s) at their largest value are refused (float32 after ~1000 s)
+_INT64_MAX = (1 << 63) - 1
 METAVISION_EVENTS = "CD/events"
 ECF_FILTER = 0x8ECF  # Prophesee's Event Compression Format, as an HDF5 filter id
 
@@ -80,9 +84,10 @@ def _attr(obj, *names):
 class H5Events:
     """Read-only view of an events HDF5 file; opened per operation so no handle stays open."""
 
-    def __init__(self, path):
+    def __init__(self, path, time_unit: str | None = None):
         self.path = Path(path)
         self.source = str(self.path)
+        self.time_unit = time_unit or None  # the user's unit (--set time_unit): wins over the file's attribute
         with _open(self.path) as f:
             try:
                 self._detect(f)
@@ -137,13 +142,18 @@ class H5Events:
         is_float = np.issubdtype(dsets[0].dtype, np.floating)
         if not is_float and not np.issubdtype(dsets[0].dtype, np.integer):
             raise InputError(f"{self._names[0]} has dtype {dsets[0].dtype}, expected numbers", source=self.source)
-        unit = _attr(tds, "units", "unit")
+        if dsets[0].dtype.itemsize < 4 and is_float:  # float16: steps of 0.5 ms at 1 s, 0.25 s at 1000 s
+            raise InputError(f"{self._names[0]} holds {dsets[0].dtype} times, too coarse for event timestamps "
+                             "(11-bit precision): store float64 seconds or integer microseconds", source=self.source)
+        unit = self.time_unit or _attr(tds, "units", "unit")
         if unit is not None and str(unit).strip().lower() not in _UNITS:  # a float one was taken for seconds
             raise InputError(f"unknown time unit {unit!r} on {self._names[0]} (expected one of s, ms, us, ns)",
                              source=self.source)
         self.t_scale = _UNITS[str(unit).strip().lower()] if unit is not None else 1.0 if is_float else 1e-6
-        if is_float and unit is None:
-            self._check_float_seconds(dsets[0])
+        self.unit_text = (f"read as {unit} (from --set time_unit)" if self.time_unit else
+                          f"read as {unit} (its units attribute)" if unit is not None else
+                          "read as seconds (float times without a units attribute)" if is_float else
+                          "read as microseconds (integer times without a units attribute)")
         try:  # attributes written by other tools: one clear error for a malformed one
             off = 0
             if "t_offset" in f and isinstance(f["t_offset"], h5py.Dataset):
@@ -173,25 +183,57 @@ class H5Events:
             raise InputError(f"malformed attribute (t_offset, width / height, sensor_resolution [h, w], geometry, "
                              f"fx fy cx cy dist): {type(exc).__name__}: {exc}", source=self.source) from None
         self.integer_xy = all(np.issubdtype(d.dtype, np.integer) for d in dsets[1:3])
+        self._check_time_range(dsets[0], None if unit is not None else
+                               "float times without a 'units' attribute, read as seconds" if is_float else
+                               "integer times without a 'units' attribute, read as microseconds")
 
-    def _check_float_seconds(self, ds) -> None:
-        """Float times without a unit attribute are seconds (CONVENTIONS.md); refuse them when the file's first
-        events are too sparse for that (FLOAT_SECONDS_MAX_MEDIAN_GAP): microseconds stored as floats were read as
-        seconds, a 1 s recording as 11.6 days at a few events per "second", without a word."""
-        gaps = np.diff(np.asarray(ds[:min(self.n, FLOAT_SECONDS_SAMPLE)], dtype=np.float64))
+    def _fix(self) -> str:
+        """What to set when the time unit is wrong."""
+        return (f"set the attribute units on {self._names[0]} to their unit: 'us', 'ms' or 'ns' (or 's' to read them "
+                "as seconds), or give it with --set time_unit=...")
+
+    def _check_time_range(self, ds, default_unit: str | None) -> None:
+        """Refuse float times too coarse for their range and, when read in a default unit (``default_unit`` says
+        which; None: the file or the user states the unit), times whose first events are too sparse or whose duration
+        or event rate is implausible in that unit."""
+        if self.n == 0:
+            return
+        with self._read_errors():
+            raw = np.concatenate([ds[0:1], ds[self.n - 1:self.n]])
+            first, last = (float(v) for v in self._times(raw))
+            if np.issubdtype(raw.dtype, np.floating):
+                step = float(np.spacing(np.abs(raw).max().astype(raw.dtype))) * self.t_scale
+                if step > MAX_TIME_STEP:
+                    raise InputError(f"{self._names[0]} holds {raw.dtype} times whose resolution at "
+                                     f"t={float(np.abs(raw).max())!r} is {step:.3g} s (coarser than "
+                                     f"{MAX_TIME_STEP:g} s): store float64 seconds or integer microseconds",
+                                     source=self.source)
+            if default_unit is not None:  # a unit the file or the user states is taken as stated
+                self._check_sparse(ds, default_unit)
+                check_time_span(first, last, self.n, self.source, f"{self._names[0]} {self.unit_text}", self._fix())
+
+    def _check_sparse(self, ds, what: str) -> None:
+        """Times without a unit are read in a default one (CONVENTIONS.md); refuse them when the file's first events
+        are too sparse for that (FLOAT_SECONDS_MAX_MEDIAN_GAP): e.g. microseconds stored as floats read as seconds, a 1 s recording as
+        11.6 days at a few events per "second", without a word."""
+        gaps = np.diff(self._times(np.asarray(ds[:min(self.n, FLOAT_SECONDS_SAMPLE)])))
         gaps = gaps[gaps > 0]
         if len(gaps) < 100:  # too few distinct times to tell
             return
         median = float(np.median(gaps))
         if median >= FLOAT_SECONDS_MAX_MEDIAN_GAP:
-            raise InputError(f"{self._names[0]} holds float times without a 'units' attribute, read as seconds, but "
-                             f"its first events are {median:.3g} s apart (median): too sparse for an event camera. "
-                             f"Set the attribute units on {self._names[0]} to their unit: 'us', 'ms' or 'ns' (or "
-                             "'s' to read them as seconds)", source=self.source)
+            raise InputError(f"{self._names[0]} holds {what}, but its first events are {median:.3g} s apart "
+                             f"(median): too sparse for an event camera. {self._fix()[0].upper()}{self._fix()[1:]}",
+                             source=self.source)
 
     # ------------------------------------------------------------------------------------------
-    def _times(self, raw: np.ndarray) -> np.ndarray:
+    def _times(self, raw: np.ndarray, first: int = 0) -> np.ndarray:
+        """Stored times (from event index ``first``) in seconds."""
         if np.issubdtype(raw.dtype, np.integer):
+            if raw.dtype == np.uint64 and raw.size and int(raw.max()) > _INT64_MAX:  # would wrap to negative times
+                i = int(np.argmax(raw > _INT64_MAX))
+                raise InputError(f"{self._names[0]}: event {first + i} has time {int(raw[i])}, beyond any clock "
+                                 f"(at most 2^63 - 1 = {_INT64_MAX})", source=self.source)
             return (raw.astype(np.int64) + self.t_offset_raw) * self.t_scale
         t = raw.astype(np.float64, copy=False)  # a fresh array from the read: the arithmetic may run in place
         if self.t_offset_raw:
@@ -255,17 +297,23 @@ class H5Events:
             i = max(0, i - 1)
             while i < self.n:
                 j = min(i + block, self.n)
-                t = self._times(dt[i:j])
+                t = self._times(dt[i:j], i)
                 x, y = dx[i:j], dy[i:j]
                 if self.integer_xy:
-                    wide = x.dtype.itemsize > 2 or x.dtype.kind == "i" or y.dtype.itemsize > 2 or y.dtype.kind == "i"
-                    if wide and ((x.size and (x.min() < 0 or x.max() > 65535))
-                                 or (y.size and (y.min() < 0 or y.max() > 65535))):
-                        raise InputError(f"events {i}..{j}: pixel coordinates outside 0..65535", source=self.source)
+                    for name, v in zip(self._names[1:3], (x, y)):
+                        wide = v.dtype.itemsize > 2 or v.dtype.kind == "i"
+                        if wide and v.size and (v.min() < 0 or v.max() > 65535):  # uint16 would wrap it
+                            k = int(np.argmax((v < 0) | (v > 65535)))
+                            raise InputError(f"{name}: event {i + k} has {name.rsplit('/', 1)[-1]}={int(v[k])}, "
+                                             "outside the pixel range 0..65535", source=self.source)
                     x, y = x.astype(np.uint16, copy=False), y.astype(np.uint16, copy=False)
                 else:
                     x, y = x.astype(np.float32, copy=False), y.astype(np.float32, copy=False)
-                yield Block(Events(t, x, y, signed_polarity(dp[i:j])), None, i)
+                try:
+                    p = polarity_signs(dp[i:j], f"{self._names[3]} (events {i}..{j - 1})")
+                except InputError as exc:
+                    raise InputError(str(exc), source=self.source) from None
+                yield Block(Events(t, x, y, p), None, i)
                 i = j
 
 

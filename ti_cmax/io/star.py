@@ -173,9 +173,10 @@ def read_calibration_matrix(path) -> np.ndarray:
     return np.asarray(rows, dtype=float)
 
 
-def _parse_exact(buf: bytes, first_line: int, source: str) -> np.ndarray:
-    """Per-line parse (comments, odd spacing) with the offending line named on error; (n, 4) float64."""
-    out = []
+def _parse_exact(buf: bytes, first_line: int, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per-line parse (comments, odd spacing) with the offending line named on error: (n, 4) float64 and the line
+    number of each row."""
+    out, lines = [], []
     for i, raw in enumerate(buf.split(b"\n")):
         raw = raw.split(b"#", 1)[0]
         parts = raw.split()
@@ -188,10 +189,11 @@ def _parse_exact(buf: bytes, first_line: int, source: str) -> np.ndarray:
         except ValueError:
             raise InputError(f"expected numbers 't x y p', got {raw.decode(errors='replace')[:80]!r}",
                              source=source, line=first_line + i) from None
-    return np.asarray(out, dtype=float).reshape(-1, 4)
+        lines.append(first_line + i)
+    return np.asarray(out, dtype=float).reshape(-1, 4), np.asarray(lines, np.int64)
 
 
-def _parse_block(buf: bytes, first_line: int, source: str) -> np.ndarray:
+def _parse_block(buf: bytes, first_line: int, source: str) -> tuple[np.ndarray, np.ndarray]:
     if b"#" not in buf:
         lines = buf.count(b"\n")
         with np.errstate(all="ignore"):
@@ -200,12 +202,40 @@ def _parse_block(buf: bytes, first_line: int, source: str) -> np.ndarray:
             except ValueError:
                 vals = None
         if vals is not None and vals.size == 4 * lines:
-            return vals.reshape(-1, 4)
+            return vals.reshape(-1, 4), first_line + np.arange(lines)
     return _parse_exact(buf, first_line, source)
 
 
-def iter_star_events(path, chunk_bytes: int = _BLOCK_BYTES) -> Iterator[Events]:
-    """Stream ``t x y p`` lines with float coordinates as Events (x/y float32), validating time order."""
+def _check_rows(d: np.ndarray, lines: np.ndarray, prev_t: float, source: str, size: tuple[int, int] | None) -> None:
+    """Finite values, sorted times, polarities 0/1 or -1/+1 and, with a sensor ``size``, coordinates within it
+    extended by half its size on each side (undistorted coordinates may fall a little outside it; far outside,
+    or beyond float32, they are not coordinates): one InputError naming the line and the value."""
+    def fail(bad, message):
+        i = int(np.argmax(bad))
+        raise InputError(message(i), source=source, line=int(lines[i]))
+
+    bad = ~np.isfinite(d).all(axis=1)
+    if bad.any():
+        fail(bad, lambda i: f"values must be finite numbers, got {' '.join(repr(float(v)) for v in d[i])}")
+    t = d[:, 0]
+    dec = np.diff(np.concatenate([[prev_t], t])) < 0
+    if dec.any():
+        fail(dec, lambda i: f"timestamps are not sorted: t={float(t[i])!r} comes after "
+                            f"t={float(t[i - 1] if i else prev_t)!r}")
+    bad = ~np.isin(d[:, 3], (0.0, 1.0, -1.0))
+    if bad.any():
+        fail(bad, lambda i: f"polarity must be 0/1 or -1/+1, got {float(d[i, 3])!r}")
+    if size is not None:
+        for k, name, n in ((1, "x", size[0]), (2, "y", size[1])):
+            bad = (d[:, k] < -0.5 * n) | (d[:, k] > 1.5 * n)
+            if bad.any():
+                fail(bad, lambda i: f"{name}={float(d[i, k])!r} is far outside the {size[0]}x{size[1]} sensor "
+                                    f"(expected {-0.5 * n:g} to {1.5 * n:g})")
+
+
+def iter_star_events(path, chunk_bytes: int = _BLOCK_BYTES, sensor_size: tuple[int, int] | None = None
+                     ) -> Iterator[Events]:
+    """Stream ``t x y p`` lines with float coordinates as Events (x/y float32), validated (:func:`_check_rows`)."""
     path = Path(path)
     source = str(path)
     prev_t = -np.inf
@@ -225,23 +255,13 @@ def iter_star_events(path, chunk_bytes: int = _BLOCK_BYTES) -> Iterator[Events]:
                 buf, rest = buf[:k], buf[k:]
             else:
                 buf, rest = buf + b"\n", b""
-            d = _parse_block(buf, line, source)
+            d, lines = _parse_block(buf, line, source)
             if len(d):
+                _check_rows(d, lines, prev_t, source, sensor_size)
                 t = d[:, 0]
-                bad = ~np.isfinite(d).all(axis=1)
-                if bad.any():
-                    raise InputError(f"event {int(np.argmax(bad))} of this block is not finite "
-                                     f"(block starting at line {line})", source=source)
-                dec = np.diff(np.concatenate([[prev_t], t])) < 0
-                if dec.any():
-                    raise InputError(f"timestamps are not sorted (block starting at line {line}, "
-                                     f"event {int(np.argmax(dec))})", source=source)
-                pv = d[:, 3]
-                if not np.isin(pv, (0.0, 1.0, -1.0)).all():
-                    raise InputError("polarity must be 0/1 or -1/+1", source=source)
                 prev_t = float(t[-1])
                 yield Events(t, d[:, 1].astype(np.float32), d[:, 2].astype(np.float32),
-                             signed_polarity(pv))
+                             signed_polarity(d[:, 3]))
             line += buf.count(b"\n")
 
 
@@ -304,7 +324,8 @@ class StarDataset:
                     t_end: float | None = None) -> Iterator[Events]:
         if chunk_size < 1:
             raise InputError(f"chunk_size must be >= 1, got {chunk_size}")
-        return _rechunk(iter_star_events(self.events_path), int(chunk_size), t_start, t_end)
+        return _rechunk(iter_star_events(self.events_path, sensor_size=(self.width, self.height)), int(chunk_size),
+                        t_start, t_end)
 
     def read_events(self, t_start: float | None = None, t_end: float | None = None) -> Events:
         return Events.concatenate(list(self.iter_events(1 << 22, t_start, t_end)))

@@ -26,8 +26,9 @@ class SimulatorConfig(Params):
     sensor: str = param("DAVIS240C", "sensor model (DAVIS240C is ECD-like, with distortion)", choices=tuple(SENSORS))
     # motion ----------------------------------------------------------------------------------
     duration: float = param(2.0, "length of the sequence", unit="s", gt=0)
-    trajectory: str = param("random", "motion: random (ECD-like ramp), pan (360 deg about vertical), constant",
-                            choices=TRAJECTORIES)
+    trajectory: str = param("auto", "motion: random (ECD-like ramp), pan (360 deg about vertical), constant; auto: "
+                                    "constant for the stars scene (what a star tracker sees), else random",
+                            choices=("auto",) + TRAJECTORIES)
     turns: float = param(1.0, "full turns of trajectory=pan (2-3: the camera revisits the first turn's map)", gt=0)
     pan_wobble: float = param(0.0, "peak of a seeded random wobble added to trajectory=pan (0: a pure pan)",
                               unit="rad/s", ge=0)
@@ -65,11 +66,23 @@ class SimulatorConfig(Params):
         if self.rotation_axis and len(self.rotation_axis) != 3:
             raise InputError(f"rotation_axis needs 3 numbers, got {self.rotation_axis!r}")
 
-    def resolved(self) -> "SimulatorConfig":
-        """This config with the sensor's contrast threshold filled in when it is 0 (done once at the start, so
-        simulation.json and ``SimulatedSequence.config`` hold the number used)."""
-        if self.contrast_threshold > 0:
-            return self
-        from .generate import sensor_contrast_threshold
+    @property
+    def motion_kind(self) -> str:
+        """The trajectory simulated: ``trajectory``, with auto resolved (a star tracker sees a slow constant rotation;
+        the random ECD-like motion reaches 5 rad/s, far beyond star tracking)."""
+        if self.trajectory != "auto":
+            return self.trajectory
+        return "constant" if self.scene == "stars" and not self.image else "random"
 
-        return dataclasses.replace(self, contrast_threshold=sensor_contrast_threshold(self.sensor))
+    def resolved(self) -> "SimulatorConfig":
+        """This config with auto and 0 values filled in: the trajectory (:attr:`motion_kind`) and the sensor's
+        contrast threshold (done once at the start, so simulation.json and ``SimulatedSequence.config`` hold the
+        values used)."""
+        changes = {}
+        if self.trajectory == "auto":
+            changes["trajectory"] = self.motion_kind
+        if self.contrast_threshold <= 0:
+            from .generate import sensor_contrast_threshold
+
+            changes["contrast_threshold"] = sensor_contrast_threshold(self.sensor)
+        return dataclasses.replace(self, **changes) if changes else self

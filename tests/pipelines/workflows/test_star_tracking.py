@@ -125,6 +125,30 @@ def test_star_tracking_workflow_on_short_simulated_sequence(star_sequence, tmp_p
     assert report["dataset"]["calibration"] == "calibration.txt"
     omega = np.loadtxt(out / "angular_velocity.txt")
     assert np.degrees(np.linalg.norm(np.median(omega[:, 1:], axis=0))) == pytest.approx(4.0, rel=0.1)
+    assert report["warnings"] == [] and "warning" not in capsys.readouterr().err  # 4 deg/s: what it is made for
+    assert report["motion"]["frontend_p95_deg_per_s"] == pytest.approx(4.0, rel=0.1)
+
+
+def test_a_star_field_turning_beyond_the_design_range_gets_a_warning(ti_runtime):
+    """A star field under the random ECD-like motion (5 rad/s peak) made the star front-end read omega = 0 for most
+    packets while the camera turned at 100-250 deg/s, and the run reported "ok" (400 ms error 47-61 deg). The star
+    front-end's omega cannot tell (it reads 0); the probe of short packets measures the motion, and the run warns."""
+    from ti_cmax.pipelines.workflows.star_tracking import STAR_MAX_RATE_DEG, MotionProbe, motion_warning
+    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
+
+    seq = simulate_sequence(SimulatorConfig(scene="stars", num_stars=300, trajectory="random", max_angular_velocity=5.0,
+                                            random_ramp_start=1.0, duration=0.5, seed=1))
+    probe = MotionProbe((float(seq.events.t[0]), float(seq.events.t[-1])))
+    assert sum(len(c) for c in probe([seq.events[:100_000], seq.events[100_000:]])) == len(seq.events)
+    rates = probe.rates(seq.camera)
+    true = np.degrees(np.linalg.norm(seq.motion.omega(np.linspace(0.05, 0.45, 9)), axis=1))
+    assert len(rates) >= 6 and max(rates) == pytest.approx(true.max(), rel=0.3) and max(rates) > STAR_MAX_RATE_DEG
+    figures, warning = motion_warning(np.zeros((40, 3)), rates)  # the star front-end read omega = 0 throughout
+    assert warning.startswith(f"the camera turns at up to {max(rates):.0f} deg/s, beyond the 60 deg/s")
+    assert figures["frontend_p95_deg_per_s"] == 0.0
+    assert motion_warning(np.full((40, 3), np.radians(2.0)), [0.0, 3.9])[1] is None
+    assert f"up to {max(rates):.0f} deg/s" in motion_warning(np.full((40, 3), 50.0), rates)[1]  # noise: the probe's
+    assert "beyond" in motion_warning(np.full((40, 3), np.radians(50.0)), [])[1]  # the front-end's omega alone
 
 
 def test_undistorted_star_events_match_camera_bearings():

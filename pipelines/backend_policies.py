@@ -1,0 +1,150 @@
+"""The rules around the back-end's window step (pipelines/backend.py): which windows get a BA, which control poses
+it may move, how the first window fixes the world frame, and what a window at the end of the stream covers.
+
+Each rule is a small function of plain values, so the window step itself reads as the paper's three steps.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+TIME_EPS = 1e-9
+EMPTY_WINDOWS_PER_FIT = 10  # windows without events fitted at once (fit_due)
+# why a window gets no BA (WindowReport.no_ba)
+FEW_EVENTS = "too few events"
+STILL = "no motion measured over the window"  # every packet over it was still: the window is still
+SKIPPED = "skipped by the real-time budget"
+
+
+@dataclass(frozen=True)
+class Window:
+    """One window [t0, t1] of the sliding-window BA; ``final``: the stream's last, which settles every event left."""
+
+    t0: float
+    t1: float
+    final: bool = False
+
+    def settle_end(self, stride: float) -> float:
+        """Partial windows: a window settles its first stride; the final one every event left."""
+        return self.t1 + 1.0 if self.final else self.t0 + stride
+
+
+@dataclass(frozen=True)
+class WindowBudget:
+    """What the real-time controller (pipelines/realtime.py) grants a window's BA; the default is the offline
+    computation. Values out of range raise ValueError."""
+
+    ba_cap: int | None = None  # BA events at most (None: backend_max_window_events); 0 skips the BA
+    ba_every: int = 1  # the BA runs on 1 of ba_every windows; the others keep their initialisation, as ba_cap = 0
+    ba_budget: float | None = None  # wall seconds after which the BA starts no iteration (None: no limit)
+
+    def __post_init__(self):
+        if int(self.ba_every) != self.ba_every or self.ba_every < 1:
+            raise ValueError(f"ba_every must be an integer >= 1, got {self.ba_every!r}")
+        if self.ba_cap is not None and (int(self.ba_cap) != self.ba_cap or self.ba_cap < 0):
+            raise ValueError(f"ba_cap must be None or an integer >= 0, got {self.ba_cap!r}")
+        if self.ba_budget is not None and not self.ba_budget >= 0:
+            raise ValueError(f"ba_budget must be None or >= 0 seconds, got {self.ba_budget!r}")
+        object.__setattr__(self, "ba_cap", None if self.ba_cap is None else int(self.ba_cap))
+        object.__setattr__(self, "ba_every", int(self.ba_every))
+        object.__setattr__(self, "ba_budget", None if self.ba_budget is None else float(self.ba_budget))
+
+
+FULL_BUDGET = WindowBudget()
+
+
+def partial_window_end(t0: float, t1: float, last_event: float, last_source: float) -> float:
+    """Partial windows: the stream's last window ends at its last event or source pose (at most a full window
+    after t0), so the final step covers what is left and no more."""
+    return max(t0 + 1e-6, min(t1, max(last_event, last_source)))
+
+
+def motion_start(moves: deque, source_t: np.ndarray, window: Window) -> float | None:
+    """Still windows: the first time in the window from which the source measured a motion (``moves``: spans
+    (a, b) over which it did); None when it measured none over the whole window. Events without motion hold nothing
+    a BA could refine (noise, flicker) and a BA would fit the poses to them, so such a window gets no BA and a window
+    that starts still keeps its still part's poses. Forgets the spans before the window (windows advance in time).
+    Until the source reaches the window's end the window counts as moving, except the final one."""
+    while moves and moves[0][1] < window.t0:
+        moves.popleft()
+    if not len(source_t) or (source_t[-1] < window.t1 and not window.final):
+        return window.t0
+    starts = [a for a, b in moves if a < window.t1 and b > window.t0]
+    return max(window.t0, min(starts)) if starts else None
+
+
+def why_no_ba(num_events: int, window: Window, moving_from: float | None, budget: WindowBudget,
+              windows_done: int, cfg) -> str | None:
+    """Why the window gets no BA (None: it gets one): too few events for the variance to mean anything (fewer
+    than two batches or below backend_min_ev_rate), no motion measured over it (STILL), or the real-time
+    budget skips it (ba_cap 0, or not 1 of ba_every windows)."""
+    rate = num_events / max(window.t1 - window.t0, 1e-9)
+    if num_events < 2 * cfg.event_batch_size or rate < cfg.backend_min_ev_rate:
+        return FEW_EVENTS
+    if moving_from is None:
+        return STILL
+    if budget.ba_cap == 0 or windows_done % max(1, budget.ba_every) > 0:
+        return SKIPPED
+    return None
+
+
+def fit_due(num_events: int, window: Window, anchor_t: float | None, stride: float) -> bool:
+    """Windows without events (a pause of the stream) are fitted together with a later one: one fit per
+    EMPTY_WINDOWS_PER_FIT strides of a pause instead of one per window, and the source poses kept stay bounded."""
+    return bool(num_events) or window.final or anchor_t is None or \
+        window.t1 > anchor_t + EMPTY_WINDOWS_PER_FIT * stride
+
+
+def first_free_pose(knots: np.ndarray, t0: float, moving_from: float | None, cfg) -> int:
+    """The first control pose the BA may move: the first with knot time >= t0, never the very first (it anchors
+    the world frame), and past the still start of a window (a control pose shapes R(t) within half its support
+    of its knot, and the still part keeps its poses)."""
+    first_free = max(int(np.searchsorted(knots, t0 - TIME_EPS, side="left")), 1)
+    if moving_from is not None and moving_from > t0:
+        reach = 0.5 * (cfg.spline_degree + 1) * cfg.dt_knots
+        first_free = max(first_free, int(np.searchsorted(knots, moving_from - reach, side="right")))
+    return first_free
+
+
+def gauge_free(t0: float, t_start: float, first_free: int) -> bool:
+    """First-window gauge: in the first window only the first control pose holds the orientation (no global map
+    yet), so the BA's common rotation of the free poses is projected out of its step (on sparse scenes the map's
+    sampling would reward turning them all); poses held still hold the orientation themselves."""
+    return t0 <= t_start + TIME_EPS and first_free == 1
+
+
+def gauge_fix(spline, t_start: float, r_start: np.ndarray) -> np.ndarray | None:
+    """First-window gauge: the left rotation that makes R(t_start) = r_start exactly after the first window's BA
+    (the world frame is the camera's at the first event); None when it holds already (a linear spline). A cubic
+    R(t_start) also depends on the next control poses, which the BA moves; the window's contrast does not change
+    when the whole trajectory turns, so the BA's optimum is kept, in the right frame."""
+    r_at_start = spline.evaluate(t_start)[0]
+    if np.array_equal(r_at_start, r_start):
+        return None
+    return r_start @ r_at_start.T
+
+
+def even_sample(ev_t: np.ndarray, ev_b: np.ndarray, cap: int):
+    """At most ``cap`` events (negative: all), every (n / cap)-th: even in time, and over the image in proportion
+    to where the events are."""
+    n = len(ev_t)
+    if cap < 0 or n <= cap:
+        return ev_t, ev_b
+    idx = ((np.arange(cap) + 0.5) * (n / cap)).astype(np.int64)
+    return ev_t[idx], np.take(ev_b, idx, axis=0)  # take: several times faster than ev_b[idx] on (n, 3) rows
+
+
+def false_maximum(max_correction: float, cfg) -> bool:
+    """Rejected windows: a BA that moves the trajectory at the window's events by more than backend_max_correction
+    found a false maximum (e.g. a map too coarse for the sensor); the window keeps its initialisation and is
+    refitted as a window without a BA."""
+    return max_correction > cfg.backend_max_correction
+
+
+def correction_samples(s: np.ndarray, u: np.ndarray, most: int = 256):
+    """Where the BA's correction is measured: the trajectory at 256-511 of the batches' times, evenly, and the last
+    (the difference of two splines is smooth within a knot interval)."""
+    every = max(1, len(s) // most)
+    return np.append(s[::every], s[-1]), np.append(u[::every], u[-1])

@@ -1,0 +1,324 @@
+"""The back-end in a worker process (paper Fig. 3: the front-end and the back-end run at the same time).
+
+``WorkerBackend`` is the ``online_backend.OnlineBackend`` of ``OnlineSlam`` when the back-end runs beside it: it sends
+event chunks and source poses to a spawned process that runs a ``BackendRunner`` on them, in the same order as in one
+process, so the results are the same (bitwise with one Taichi thread per process). Each pose message carries the
+real-time budget in force when it was sent. A mirror back-end follows the worker's refined windows
+(``SlidingWindowBackend.follow``) to answer pose queries at once. A thread would not help: Taichi kernel launches
+hold the GIL.
+"""
+from __future__ import annotations
+
+import os
+import queue
+import time
+from typing import Callable, Iterator
+
+import numpy as np
+
+from ti_cmax.camera import Camera
+from ti_cmax.config import SlamConfig
+from ti_cmax.errors import UNGUARDED_MAIN, UNGUARDED_MAIN_EXIT, WorkerLost, exit_if_spawn_bootstrapping
+from ti_cmax.events import Events
+from ti_cmax.outputs import peak_rss_mb
+
+from .backend import SlidingWindowBackend, StageClock, WindowReport
+from .backend_policies import WindowBudget
+from .online_backend import BackendOutcome, BackendRunner, compile_backend
+
+# sensors up to this many pixels get a back-end worker by default (default_backend_process): VGA-class and below
+WORKER_MAX_SENSOR_PIXELS = 500_000
+
+
+def default_backend_process(camera: Camera) -> bool:
+    """Whether ``ti-cmax slam`` (and the demo) run the back-end in a worker process when neither --parallel nor
+    --sequential is given: when this process may run on 2 or more cores (its CPU affinity), the sensor has at most
+    ``WORKER_MAX_SENSOR_PIXELS`` pixels (on larger sensors the back-end's kernels use the cores well by themselves,
+    and a second process holds more memory) and the platform has working semaphores (multiprocessing's queues need
+    them). A run then costs about the slower of the two processes instead of their sum. The Python API stays in one
+    process unless asked: a worker process needs the caller's main module to be importable (spawn)."""
+    from ti_cmax.kernels import runtime
+
+    if runtime.available_cores() < 2 or camera.width * camera.height > WORKER_MAX_SENSOR_PIXELS:
+        return False
+    try:
+        import multiprocessing.synchronize  # noqa: F401 - raises ImportError without a working sem_open
+    except ImportError:
+        return False
+    return True
+
+
+class WorkerBackend:
+    """``OnlineBackend`` in a worker process. ``queue_size`` bounds the messages in flight (``push`` blocks while
+    the worker is that far behind: nothing dropped, no busy waiting); ``max_backlog`` (sensor seconds) also makes
+    ``poll`` wait while the events sent run that far ahead of the worker's last window; ``threads``: the worker's
+    Taichi threads (default: this process's count)."""
+
+    cpu_seconds = 0.0  # this process spends no CPU in the back-end's windows
+
+    def __init__(self, camera: Camera, config: SlamConfig, queue_size: int = 16, max_backlog: float | None = None,
+                 loop_slice_seconds: float | None = None, threads: int | None = None):
+        from ti_cmax.kernels import runtime
+
+        runtime.share_cores(2)  # the worker runs beside this process: half the cores each (unless chosen)
+        self.config, self.max_backlog = config, max_backlog
+        self._process = _BackendProcess(camera, config, queue_size, loop_slice_seconds, threads)
+        self.mirror: SlidingWindowBackend | None = None  # follows the worker's windows (follow), for pose()
+        self._to_send: list[Events] = []  # chunks not sent yet (see _send_events)
+        self._reports: list[WindowReport] = []  # windows followed, not handed to the caller yet
+        self.seconds = 0.0
+
+    @property
+    def started(self) -> bool:
+        return self.mirror is not None
+
+    @property
+    def blocked_seconds(self) -> float:
+        return self._process.blocked_seconds
+
+    def compile(self) -> float:
+        """The worker compiles its own kernels meanwhile (``wait_ready``)."""
+        return 0.0
+
+    def push_events(self, chunk: Events) -> None:
+        if len(chunk) == 0:
+            return
+        if self.mirror is None:
+            self.mirror = SlidingWindowBackend(self.config.backend, float(chunk.t[0]), np.eye(3))
+        self._to_send.append(chunk)  # sent with the next pose (or before waiting): fewer, larger messages
+
+    def advance(self, t: float, rotation: np.ndarray, moving: bool,
+                budget: Callable[[], WindowBudget]) -> Iterator[WindowReport]:
+        """Send the pose (every event pushed so far goes before it, as in one process); its windows come in later
+        (``poll``)."""
+        self.mirror.push_source_poses([t], rotation[None], [moving])
+        self._send_events()
+        self._process.send(("pose", t, rotation, moving, budget()))
+        return iter(())
+
+    def poll(self, t_last: float | None = None) -> Iterator[WindowReport]:
+        """The windows the worker completed since the last call; while it runs more than ``max_backlog`` behind
+        ``t_last``, wait for its windows."""
+        self._receive()
+        while self.max_backlog is not None and t_last is not None and \
+                t_last - self.refined_until() > self.max_backlog:
+            self._send_events()
+            tic = time.perf_counter()
+            self._receive(until="window")
+            self._process.blocked_seconds += time.perf_counter() - tic
+        reports, self._reports = self._reports, []
+        return iter(reports)
+
+    def pose(self, t) -> np.ndarray:
+        if self.mirror is None:
+            return np.broadcast_to(np.eye(3), (np.size(t), 3, 3)).copy()
+        return self.mirror.pose_at(t)
+
+    def refined_until(self) -> float | None:
+        return None if self.mirror is None else self.mirror.refined_until
+
+    def map(self) -> np.ndarray | None:
+        """A copy of the worker's map once it has handled everything pushed before (this waits for it)."""
+        if self.mirror is None:
+            return None
+        self._send_events()
+        self._process.send(("map",))
+        return self._receive(until="map")
+
+    def finish(self, budget: WindowBudget) -> tuple[list[WindowReport], BackendOutcome]:
+        self._send_events()
+        self._process.send(("finish", budget))
+        done = self._receive(until="done")
+        self._process.stop()
+        reports, self._reports = self._reports, []
+        self.seconds, self.cpu_seconds = done["seconds"], done["step_cpu_seconds"]
+        outcome = done["outcome"]
+        outcome.process = {"compile_seconds": done["compile_seconds"], "cpu_seconds": done["cpu_seconds"],
+                           "push_blocked_seconds": self._process.blocked_seconds, "peak_rss_mb": done["peak_rss_mb"]}
+        return reports, outcome
+
+    def wait_ready(self) -> None:
+        """Wait until the worker has prepared its kernels (a live source starts after this)."""
+        if not self._process.ready:
+            self._receive(until="ready")
+
+    def abort(self) -> None:
+        """Stop the worker at once, without its results (Ctrl-C, or a stream without anything to refine)."""
+        self._process.cancel()
+
+    def _send_events(self) -> None:
+        """Hand the chunks pushed since the last message to the worker as one (each message costs a pickle, a pipe
+        write and a wake-up of the worker; a live source pushes many small chunks)."""
+        if self._to_send:
+            chunks, self._to_send = self._to_send, []
+            self._process.send(("events", Events.concatenate(chunks)))
+
+    def _receive(self, until: str | None = None):
+        """Follow the worker's windows in the mirror (their reports wait for ``poll`` or ``finish``); with ``until``
+        (a message kind) wait for that message and return its content."""
+        for kind, *args in self._process.messages(until):
+            if kind == "window":
+                self.mirror.follow(args[0])
+                self._reports.append(args[0].report)
+            elif kind == until:
+                return args[0]
+        return None
+
+
+class _BackendProcess:
+    """The worker process, spawned (a forked one would hang after ti.init), connected by a bounded queue of inputs
+    (``send`` blocks while it is full: back-pressure, nothing dropped) and a queue of results."""
+
+    def __init__(self, camera: Camera, config: SlamConfig, queue_size: int, loop_slice_seconds: float | None = None,
+                 threads: int | None = None):
+        import multiprocessing as mp
+        import signal
+
+        from ti_cmax.kernels import runtime
+
+        exit_if_spawn_bootstrapping()  # in a worker re-running an unguarded script: one line, a known exit
+        ctx = mp.get_context("spawn")
+        self.inbox, self.outbox = ctx.Queue(max(1, queue_size)), ctx.Queue()
+        self.inbox.cancel_join_thread()  # never hang at exit on a worker that stopped reading (it failed)
+        self.proc = ctx.Process(target=_backend_worker, daemon=True,
+                                args=(camera, config, threads or runtime.num_threads(), self.inbox, self.outbox,
+                                      loop_slice_seconds))
+        # Ctrl-C is this process's to handle (the CLI: one line, exit 130), but a terminal sends it to the whole
+        # process group. Blocked while the worker is spawned, SIGINT stays blocked in it from its first instruction
+        # (the mask survives fork and exec), so it prints no traceback; a Ctrl-C meanwhile reaches this process when
+        # unblocked
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if hasattr(signal, "pthread_sigmask") else None
+        try:
+            self.proc.start()
+        finally:
+            if mask is not None:
+                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        self.blocked_seconds = 0.0
+        self.ready = False  # the worker has prepared its kernels
+
+    def send(self, message) -> None:
+        """Put a message on the inbox, waiting while it is full (1 s timeouts, to notice a worker that ended)."""
+        tic = time.perf_counter()
+        while True:
+            try:
+                self.inbox.put(message, timeout=1.0)
+                break
+            except queue.Full:
+                if not self.proc.is_alive():
+                    for _ in self.messages(None):  # raises the worker's error, if it sent one
+                        pass
+                    raise WorkerLost(self._ended("")) from None
+        self.blocked_seconds += time.perf_counter() - tic
+
+    def _ended(self, what: str) -> str:
+        """Why the worker is gone, in one line."""
+        if self.proc.exitcode == UNGUARDED_MAIN_EXIT:
+            return f"the back-end worker could not start: {UNGUARDED_MAIN}, or pass backend_process=False"
+        return f"the back-end process ended{what} (exit {self.proc.exitcode}: killed or out of memory?)"
+
+    def messages(self, until: str | None):
+        """Messages ready now; with ``until`` (a message kind: "done", "map") block (1 s timeouts, to notice a dead
+        worker) until that message."""
+        while True:
+            try:
+                msg = self.outbox.get(timeout=1.0) if until else self.outbox.get_nowait()
+            except queue.Empty:
+                if not until:
+                    return
+                if not self.proc.is_alive():
+                    raise WorkerLost(self._ended(" without a result"))
+                continue
+            if msg[0] == "ready":
+                self.ready = True
+            if msg[0] == "error":
+                self.proc.terminate()
+                raise RuntimeError(f"back-end process: {msg[1]}")
+            yield msg
+            if msg[0] == until:
+                return
+
+    def stop(self) -> None:
+        self.proc.join(timeout=10)
+        if self.proc.is_alive():
+            self.proc.terminate()
+
+    def cancel(self) -> None:
+        """End a worker that was never told to finish (nothing to wait for)."""
+        if self.proc.is_alive():
+            self.proc.terminate()
+        self.proc.join(timeout=10)
+
+
+def _next_message(inbox, poll: float = 1.0):
+    """The worker's next message; it exits when its parent process has died meanwhile (killed, or out of memory):
+    otherwise it would sleep forever, holding the terminal's pipes open."""
+    import multiprocessing
+
+    while True:
+        try:
+            return inbox.get(timeout=poll)
+        except queue.Empty:
+            parent = multiprocessing.parent_process()
+            if parent is not None and not parent.is_alive():
+                os._exit(1)
+
+
+def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox,
+                    loop_slice_seconds: float | None = None) -> None:
+    """The worker process: a ``BackendRunner`` on messages ("events", chunk), ("pose", t, R, moving, budget),
+    ("map",) (send a copy of the map) and ("finish", budget). While no message waits it advances the loop closer's
+    verification in flight (sliced in real time)."""
+    try:
+        from ti_cmax import progress
+        from ti_cmax.kernels import runtime
+
+        progress.set_quiet(True)  # no bars here, nor Taichi's start-up line (the main process shows its own)
+        runtime.set_num_threads(threads)
+        cpu0 = time.process_time()
+        compile_s = compile_backend(config)
+        outbox.put(("ready", compile_s))
+        _serve(BackendRunner(camera, config, loop_slice_seconds=loop_slice_seconds), inbox, outbox,
+               {"compile_seconds": compile_s, "cpu0": cpu0})
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
+        outbox.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
+def _serve(runner: BackendRunner, inbox, outbox, start: dict) -> None:
+    """The worker's message loop. Per-stage costs beside the back-end's own: receive (waiting for input and
+    unpickling it), events (bearings and the window buffer), send (the window messages)."""
+    clock = StageClock()
+    last_done, waited = time.perf_counter(), 0.0  # busy_seconds of a window: wall since the last one - waited
+    while True:
+        observer = runner.backend.observer if runner.backend is not None else None
+        while observer is not None and observer.pending() and inbox.empty():  # idle: the work in flight
+            with clock("loop_idle"):
+                observer.idle_slice()
+        tic = time.perf_counter()
+        with clock("receive"):
+            kind, *args = _next_message(inbox)
+        waited += time.perf_counter() - tic
+        if kind == "events":
+            with clock("events"):
+                runner.push_events(args[0])
+            continue
+        if kind == "map":  # OnlineSlam.map(): a copy of the map of the events settled so far
+            outbox.put(("map", runner.map()))
+            continue
+        new = len(runner.backend.windows)
+        if kind == "pose":
+            t, rotation, moving, budget = args
+            for _ in runner.advance(t, rotation, moving, lambda: budget):
+                pass
+        else:
+            _, outcome = runner.finish(args[0])
+        for update in runner.backend.updates(new):
+            now = time.perf_counter()
+            update.report.busy_seconds, last_done, waited = max(0.0, now - last_done - waited), now, 0.0
+            with clock("send"):
+                outbox.put(("window", update))
+        if kind == "finish":
+            outcome.report["worker_stages"] = clock.summary()
+            outbox.put(("done", {"outcome": outcome, "seconds": runner.seconds, "step_cpu_seconds": runner.cpu_seconds,
+                                 "compile_seconds": start["compile_seconds"],
+                                 "cpu_seconds": time.process_time() - start["cpu0"], "peak_rss_mb": peak_rss_mb()}))
+            return
