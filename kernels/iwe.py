@@ -261,10 +261,8 @@ class IWEWorkspace:
     Threads: by default (``parts`` None) the event loops run serially on the calling thread, whatever the Taichi
     thread count. A packet's vote and gather are memory-bound scatters and gathers of ~0.2-3 ms: a second thread
     saved at most ~10 % of them, while handing a loop to Taichi's thread pool costs 45-100+ us per launch, more when
-    the pool's thread has gone idle between evaluations (the optimiser's Python runs between them). Front-end alone,
-    1 M ev/s DAVIS240C, 2 threads: parallel 0.43-0.49 us per input event, serial 0.32-0.35 (2026-12-02, 16:00 UTC,
-    three interleaved pairs); 31 M ev/s VGA (packets of ~140 000 events): 0.100-0.110 vs 0.104-0.123 wall, 0.14 vs
-    0.11-0.13 CPU us. ``parts`` = P splits the events into P parts voted in parallel (P copies of I; P a multiple
+    the pool's thread has gone idle between evaluations (the optimiser's Python runs between them), so serial loops
+    are the faster choice for front-end packets. ``parts`` = P splits the events into P parts voted in parallel (P copies of I; P a multiple
     of the thread count or below it, ``runtime.check_parts``).
     """
 

@@ -158,10 +158,9 @@ def ensure_init() -> None:
     """Initialize Taichi once: CPU arch, offline cache, quiet log, chosen thread count."""
     if _state["initialized"]:
         return
-    from ti_cmax.progress import is_quiet
-
     threads = num_threads()
-    with _stdout_to_stderr(discard=is_quiet()):  # --quiet: no "[Taichi] Starting on arch=x64" line either
+    # discarded: the engine's "[Taichi] Starting on arch=x64" line broke into the progress bars (errors still raise)
+    with _stdout_to_stderr(discard=True):
         ti.init(
             arch=ti.cpu,
             offline_cache=True,

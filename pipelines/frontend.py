@@ -741,21 +741,18 @@ def estimate_angular_velocity(events_or_chunks, camera: Camera, config: Frontend
                               *, dtype=np.float32, progress_total: float | None = None) -> FrontendResult:
     """Front-end on an ``Events`` object, an iterable of ``Events`` chunks (time-ordered) or a dataset with
     ``iter_events()``. Memory stays bounded by the rolling buffer. See the module docstring for the rules."""
-    from ti_cmax.progress import progress
+    from ti_cmax.progress import StageBars, stage
 
-    runner = FrontendRunner(camera, config, dtype)
-    runner.compile()
+    with stage("start-up and compile"):
+        runner = FrontendRunner(camera, config, dtype)
+        runner.compile()
     chunks = downsampled(runner.counted(as_chunks(events_or_chunks)), int(config.frontend_event_sample_rate))
-    bar = progress(total=progress_total, desc="front-end", unit="s")
-    t_prev = None
-    try:
+    with StageBars(progress_total, ("front-end",)) as bars:
         for packet in runner.slicer(chunks):
+            bars.start(packet.events.t[0] if len(packet.events) else packet.t_ref)
             runner.process(packet)
-            if t_prev is not None:
-                bar.update(packet.t_ref - t_prev)
-            t_prev = packet.t_ref
-    finally:
-        bar.close()
+            bars.at("front-end", packet.t_ref)
+        bars.done()
     return runner.result()
 
 

@@ -79,15 +79,75 @@ def render_panorama(chunks: Iterable[Events], camera: Camera, trajectory: Trajec
     return PanoramaResult(image, used)
 
 
-def map_to_uint8(image: np.ndarray, gamma: float = 0.75) -> np.ndarray:
-    """Display form of a map as in the paper's figures: gamma-corrected, more events = darker."""
+def map_to_uint8(image: np.ndarray, gamma: float = 0.75, peak: float | None = None) -> np.ndarray:
+    """Display form of a map of warped events as in the paper's figures: gamma-corrected, more events = darker;
+    ``peak`` (default: the maximum) and above is black."""
     from ti_cmax.plots import map_display
 
     from ti_cmax.metrics import row_blocks
 
     image = np.asarray(image)
     out = np.empty(image.shape, np.uint8)
-    peak = float(image.max()) if image.size else 0.0
+    if peak is None:
+        peak = float(image.max()) if image.size else 0.0
     for rows, _ in row_blocks(image.shape):  # bounded float64 temporaries on large maps
         out[rows] = (np.clip(map_display(image[rows], gamma, peak=peak), 0, 1) * 255 + 0.5).astype(np.uint8)
     return out
+
+
+STRETCH_PERCENTILE = 99.0  # of the pixels with events: the black level of a map image (contrast stretch)
+
+
+def map_image(image: np.ndarray, gamma: float = 0.75, *, full_sphere: bool = False,
+              intensity: bool = False) -> tuple[np.ndarray, dict]:
+    """The PNG of a panoramic map and where it lies: (uint8 image, description for the report).
+
+    By default the image is cropped to the observed region (pixels > 0, with a margin; a region across the
+    longitude seam stays in one piece, :func:`ti_cmax.plots.observed_window`), so a small patch of the sphere does
+    not sit faint in a white equirectangular frame; ``full_sphere`` keeps the whole map. A map of warped events
+    (counts) is contrast-stretched (black at the 99th percentile of its event pixels) and drawn dark on white; an
+    ``intensity`` map (8-bit grayscale, e.g. SMT's or ``grayscale``'s panorama: 0 = unobserved, bright = bright
+    scene) keeps its values and polarity. The description gives the crop in map pixels and its extent in degrees
+    (longitude = atan2(X, Z), latitude = atan2(Y, sqrt(X^2 + Z^2)), both of the map frame; latitude grows downwards
+    like the rows): ``{"shown", "width", "height", "crop_px": {"rows", "columns"}, "extent_deg": {"longitude",
+    "latitude"}, "size_deg"}``; columns and longitudes run west to east and may pass the seam (first > last)."""
+    from ti_cmax.plots import observed_window
+
+    image = np.asarray(image)
+    h, w = image.shape[:2]
+    if full_sphere:
+        roll, rows, cols = 0, slice(0, h), slice(0, w)
+    else:
+        roll, rows, cols = observed_window([image])
+        rows = slice(rows.start or 0, h if rows.stop is None else rows.stop)
+        cols = slice(cols.start or 0, w if cols.stop is None else cols.stop)
+    view = np.roll(image, roll, axis=1)[rows, cols] if roll else image[rows, cols]
+    if intensity:
+        shown = np.ascontiguousarray(view, dtype=np.uint8)
+    else:
+        values = view[view > 0]
+        if values.size > 4_000_000:  # the percentile of a large map from a regular subsample
+            values = values[:: values.size // 4_000_000]
+        peak = float(np.percentile(values, STRETCH_PERCENTILE)) if values.size else 0.0
+        shown = map_to_uint8(view, gamma, peak=peak)
+    c0 = (cols.start - roll) % w
+    c1 = (cols.stop - roll - 1) % w + 1  # exclusive
+    lon0 = (c0 - w / 2) * 360.0 / w
+    lon1 = (c1 - w / 2) * 360.0 / w
+    info = {
+        "shown": "full sphere" if full_sphere else "observed region",
+        "width": int(shown.shape[1]),
+        "height": int(shown.shape[0]),
+        "crop_px": {"rows": [int(rows.start), int(rows.stop)], "columns": [int(c0), int(c1)]},
+        "extent_deg": {"longitude": [lon0, lon1],
+                       "latitude": [(rows.start - h / 2) * 180.0 / h, (rows.stop - h / 2) * 180.0 / h]},
+        "size_deg": [(cols.stop - cols.start) * 360.0 / w, (rows.stop - rows.start) * 180.0 / h],
+    }
+    return shown, info
+
+
+def describe_extent(info: dict) -> str:
+    """One line of a map image's extent, for a command's summary."""
+    (lon0, lon1), (lat0, lat1) = info["extent_deg"]["longitude"], info["extent_deg"]["latitude"]
+    return (f"{info['shown']} {info['size_deg'][0]:.0f} x {info['size_deg'][1]:.0f} deg "
+            f"(longitude {lon0:.0f} to {lon1:.0f}, latitude {lat0:.0f} to {lat1:.0f})")

@@ -22,7 +22,7 @@ from ti_cmax.camera import Camera
 from ti_cmax.config import SlamConfig, config_to_dict
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
-from ti_cmax.progress import progress
+from ti_cmax.progress import StageBars, stage
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
@@ -76,13 +76,14 @@ class OnlineSlam:
     of the back-end's windows from then on; by default nothing is degraded.
     """
 
-    def __init__(self, camera: Camera, config: SlamConfig = SlamConfig(), *, on_window=None,
+    def __init__(self, camera: Camera, config: SlamConfig = SlamConfig(), *, on_window=None, on_packet=None,
                  backend_process: bool = False, queue_size: int = 16, max_backlog: float | None = None,
                  loop_slice_seconds: float | None = None, worker_threads: int | None = None):
         self._wall0 = time.perf_counter()
         self.derived = derived_summary(config, camera)
         self.config = config = resolve_config(config, camera)
         self.on_window = on_window
+        self.on_packet = on_packet  # observer of each front-end packet: on_packet(packet, omega) (ti_cmax.viewer)
         self.backend: OnlineBackend = \
             WorkerBackend(camera, config, queue_size, max_backlog, loop_slice_seconds, worker_threads) \
             if backend_process else BackendRunner(camera, config, loop_slice_seconds=loop_slice_seconds)
@@ -98,6 +99,7 @@ class OnlineSlam:
         self._q_front = int(config.frontend.frontend_event_sample_rate)
         self._r_src = np.eye(3)
         self._t_prev: float | None = None
+        self._first: list | None = None  # the first packet's source samples while it is the only one (_packet)
         self._w_prev: np.ndarray | None = None
         self.t_last: float | None = None  # time of the last event pushed
         self.events_read = 0
@@ -142,6 +144,11 @@ class OnlineSlam:
             return self._result
         for packet in self.runner.slicer.flush():
             self._packet(packet)
+        if self._first is not None and len(self._first) == 2:
+            # a stream of one packet: its omega holds from its first event (alone, the source would stand still)
+            first, only = self._first
+            self._push_source([first, only] if first[0] < only[0] else [only])
+            self._first[1:] = []
         if not self.backend.started or self._t_prev is None:  # no events, or no packet: nothing to refine
             self.backend.abort()
             raise InputError("no events to process" if not self.backend.started else NO_MOTION_MEASURABLE)
@@ -222,8 +229,20 @@ class OnlineSlam:
         if self._t_prev is not None:
             self._r_src = self._r_src @ so3.exp(0.5 * (self._w_prev + omega) * (packet.t_ref - self._t_prev))
         self._t_prev, self._w_prev = packet.t_ref, omega
-        moving = not row.motion.still  # a motion measured here: windows over it get a BA
-        self._notify(self.backend.advance(packet.t_ref, self._r_src, moving, lambda: self.budget))
+        if self.on_packet is not None:
+            self.on_packet(packet, omega)
+        sample = (packet.t_ref, self._r_src, not row.motion.still)  # moving: windows over it get a BA
+        if self._first is None:  # held until a second packet (sent as before) or the close (a one-packet stream)
+            t_first = float(packet.events.t[0]) if len(packet.events) else packet.t_ref
+            self._first = [(t_first, so3.exp(-omega * (packet.t_ref - t_first)), sample[2]), sample]
+            return
+        self._push_source([*self._first[1:], sample])
+        self._first[1:] = []
+
+    def _push_source(self, samples) -> None:
+        """Source poses (t, R, moving) to the back-end; then every window that became ready."""
+        for t, rotation, moving in samples:
+            self._notify(self.backend.advance(t, rotation, moving, lambda: self.budget))
 
     def _notify(self, reports) -> None:
         for report in reports:
@@ -256,24 +275,30 @@ class OnlineSlam:
 
 
 def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig(), *,
-             progress_total: float | None = None, backend_process: bool = False) -> SlamResult:
+             progress_total: float | None = None, backend_process: bool = False, observer=None) -> SlamResult:
     """CMax-SLAM on an ``Events`` object, an iterable of time-ordered chunks, or a dataset (``iter_events``).
 
     The trajectory starts at the identity at the first event (the world frame is the first camera frame).
     ``backend_process``: run the back-end in a worker process at the same time as the front-end (OnlineSlam).
+    ``observer``: OnlineSlam's ``on_packet`` and ``on_window``, and ``attach(online)`` (ti_cmax.viewer.RerunViewer).
     """
-    online = OnlineSlam(camera, config, backend_process=backend_process)
-    bar = progress(total=progress_total, desc="slam", unit="s")
-    try:
-        shown = None
+    with stage("start-up and compile"):
+        online = OnlineSlam(camera, config, backend_process=backend_process,
+                            on_packet=getattr(observer, "on_packet", None),
+                            on_window=getattr(observer, "on_window", None))
+        if observer is not None:
+            observer.attach(online)
+    with StageBars(progress_total, ("reading", "front-end", "back-end")) as bars:
         for chunk in as_chunks(events_or_chunks):
+            if len(chunk):
+                bars.start(chunk.t[0])
             online.push(chunk)
-            if online.frontend_until is not None:
-                bar.update(online.frontend_until - (shown if shown is not None else online.frontend_until))
-                shown = online.frontend_until
-        return online.close()
-    finally:
-        bar.close()
+            for name, t in (("reading", online.t_last), ("front-end", online.frontend_until),
+                            ("back-end", online.refined_until)):
+                bars.at(name, t)
+        result = online.close()
+        bars.done()
+        return result
 
 
 def _at_frontend_rate(trajectory: Trajectory, dt: float) -> Trajectory:
@@ -299,27 +324,25 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
     config = resolve_config(config, camera)
     trajectory = _at_frontend_rate(trajectory, config.frontend.dt_ang_vel)
     feed = BackendRunner(camera, config, lambda t0: trajectory.at(t0)[0])
-    compile_s = feed.compile()
+    with stage("start-up and compile"):
+        compile_s = feed.compile()
     inside = (ev.slice_time(trajectory.t_start, np.nextafter(trajectory.t_end, np.inf))
               for ev in as_chunks(events_or_chunks))
     tic = time.perf_counter()
-    bar = progress(total=progress_total, desc="refine", unit="s")
-    last = None
-    try:
+    with StageBars(progress_total, ("reading", "back-end")) as bars:
         for chunk in feed.feed(inside):
-            if last is None:
+            if bars.t0 is None:  # the first chunk: the back-end exists from here
                 feed.backend.push_source_poses(trajectory.t, trajectory.R)
+                bars.start(chunk.t[0])
+            bars.at("reading", float(chunk.t[-1]))
             while feed.backend.ready():
                 feed.backend.step()
-            if last is not None:
-                bar.update(float(chunk.t[-1]) - last)
-            last = float(chunk.t[-1])
+            bars.at("back-end", feed.backend.window_start)
         if feed.backend is None:
             raise InputError("no events within the trajectory's time range "
                              f"[{trajectory.t_start:.6f}, {trajectory.t_end:.6f}] s")
         feed.backend.finish()
-    finally:
-        bar.close()
+        bars.done()
     backend_seconds = time.perf_counter() - tic
     events_read = feed.events_read
     feed.seconds = backend_seconds

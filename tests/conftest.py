@@ -8,7 +8,7 @@ import pytest
 os.environ.setdefault("TI_CMAX_NO_PROGRESS", "1")
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
-REAL_DATA = PROJECT_ROOT.parent / "shared" / "data" / "real"
+REAL_DATA = Path(os.environ.get("TI_CMAX_REAL_DATA", PROJECT_ROOT.parent / "shared" / "data" / "real"))
 
 
 @pytest.fixture(scope="session")

@@ -85,7 +85,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     sub.required = True
     for name, module in _available_commands():
         p = sub.add_parser(name, help=module.HELP, description=module.HELP)
-        if command in COMMANDS and name != command:
+        if name != command:  # --version, --help: no subcommand builds its arguments (kernel imports)
             continue
         module.add_arguments(p)
         p.add_argument("--config", metavar="FILE.yaml", help="YAML file of parameters")

@@ -223,21 +223,21 @@ class FrontendConfig(Params):
     frontend_flat_lookback: float = param(0.64, "a flat packet's past is tested for motion over the events of the "
                                                 "last 4x, 16x ... its span, up to this (0: off)", unit="s", ge=0)
     # the scheduled checks (a cost-only evaluation: vote and blur, ~0.6 of a full one) feed the status, a majority
-    # over them: 10 per second of data (100 Hz packets) are plenty for that (1 of 4 until session 14)
+    # over them: 10 per second of data (100 Hz packets) are plenty for that
     frontend_gain_check_every: int = param(10, "the contrast at omega = 0 (suspect check) is evaluated on 1 of this "
                                               "many moving packets", ge=1)
     # warm start of packet j: "previous" (omega_{j-1}) or "linear" (2 omega_{j-1} - omega_{j-2}, when both exist)
     frontend_warm_start: str = param("linear", "initial omega: previous packet's, or linear extrapolation",
                                      choices=WARM_STARTS)
     # "bfgs" (default): BFGS whose inverse Hessian carries over from packet to packet, so each packet starts with a
-    # quasi-Newton step: 3.0-3.2 evaluations per packet instead of CG's 4.2-4.7, same accuracy (8 simulated
-    # sequences, 2026-12-01); "cg": the reference's Fletcher-Reeves CG. The frontend_cg_* tolerances (iterations,
+    # quasi-Newton step: about 3 evaluations per packet instead of CG's 4-5, for the same accuracy; "cg": the
+    # reference's Fletcher-Reeves CG. The frontend_cg_* tolerances (iterations,
     # gradient, relative cost, evaluations per line search, first step) apply to both
     frontend_optimizer: str = param("bfgs", "contrast maximiser per packet", choices=OPTIMIZERS)
     frontend_bfgs_max_step: float = param(2.0, "BFGS steps are capped at this displacement of the packet's "
                                                 "farthest event", unit="px", gt=0)
     # 0.05 px (1/20 of the blur sigma): an evaluation that cannot move the farthest event by more does not change
-    # omega measurably; 2.9 -> 2.2 evaluations per packet, CMax-SLAM as accurate (6 simulated sequences, 2026-12-02)
+    # omega measurably, so those evaluations are saved
     frontend_bfgs_step_tol: float = param(0.05, "BFGS stops when its next step would move the packet's farthest "
                                                 "event by less than this", unit="px", ge=0)
     # Fletcher-Reeves CG
@@ -291,15 +291,13 @@ class BackendConfig(Params):
     backend_max_correction: float = param(0.1, "a window's larger correction is a false maximum (kept as initialized)",
                                           unit="rad", gt=0)
     # "bfgs" (default): BFGS whose inverse Hessian carries over from window to window (shifted by the knots the
-    # window drops; new control poses start with the mean curvature): 4.9-8.5 evaluations per window instead of
-    # CG's 6.2-16.4, and better converged (8 simulated sequences, 2 s: abs 0.078 vs 0.087 deg, rel 0.100 vs 0.116
-    # deg/s; 2026-12-01). "cg": the reference's Fletcher-Reeves CG. The backend_cg_* tolerances apply to both
+    # window drops; new control poses start with the mean curvature): fewer evaluations per window than CG, and
+    # better converged. "cg": the reference's Fletcher-Reeves CG. The backend_cg_* tolerances apply to both
     backend_optimizer: str = param("bfgs", "window optimiser", choices=OPTIMIZERS)
     backend_bfgs_max_step: float = param(0.05, "BFGS steps (norm over the free control poses) are capped at this",
                                          unit="rad", gt=0)
     # the step that would only confirm convergence (predicted cost change under half backend_cg_rel_cost_tol) is
-    # taken without its evaluation (pipelines/optim.bfgs): 11-15 % fewer BA evaluations at 1-2 M ev/s, accuracy
-    # unchanged on the paper suite (2026-12-03: abs / rel geometric-mean ratio 0.996 / 1.003 over 12 runs)
+    # taken without its evaluation (pipelines/optim.bfgs): fewer BA evaluations at the same accuracy
     backend_bfgs_last_step_unevaluated: bool = param(True, "BFGS takes a last step predicted to change the cost by "
                                                      "under half backend_cg_rel_cost_tol without evaluating it")
     # Fletcher-Reeves CG
@@ -334,9 +332,8 @@ class LoopClosureConfig(Params):
     regions last observed long ago; an accepted correction is spread over the trajectory since that visit and
     the global map is rebuilt from stored event subsamples."""
 
-    # on by default (issue 15: on where it never hurts): without a revisit the output is bitwise that of false (no
-    # candidate, or none applied; 4 pans and 2 random sequences measured), on the pans it closed loops it cut the abs
-    # error, and it costs 2-6 % of a run at the defaults (sessions 9-10); false turns it off, bitwise today's back-end
+    # on by default: without a revisit the output is bitwise that of false (no candidate, or none applied), on
+    # revisits it cuts the error the first visit's map carries, and it costs a few % of a run; false turns it off
     loop_closure: bool = param(True, "loop closure on revisits (false: the back-end's output is bitwise that without "
                                      "the loop closer)")
     loop_min_age: float = param(3.0, "time since a map region was last observed for it to count as old", unit="s",

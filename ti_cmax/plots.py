@@ -19,6 +19,9 @@ if TYPE_CHECKING:
     from .metrics import RotationErrors
 
 _GT_STYLE = dict(color="k", linestyle="--", linewidth=1.2, label="ground truth")
+_AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")  # x, y, z (roll, pitch, yaw)
+METRICS_CAPTION = ("EA = event area (% of map pixels with events, lower = sharper); "
+                   "GM = gradient magnitude of the map (higher = sharper)")
 
 
 def _figure(width: float, height: float):
@@ -141,6 +144,152 @@ def plot_errors_over_time(path: str | os.PathLike, errors: Mapping[str, "Rotatio
     _save(fig, path)
 
 
+def angular_velocity_from_trajectory(traj: Trajectory, spacing: float | None = None
+                                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame angular velocity (rad/s) at sample midpoints: log(R_i^T R_{i+1}) / dt, on samples
+    ``spacing`` s apart when given (a spline's knot spacing: finer differences only show its kinks)."""
+    from scipy.spatial.transform import Rotation
+
+    if spacing:
+        traj = traj.resampled(np.arange(traj.t_start, traj.t_end + 1e-12, spacing))
+    if len(traj) < 2:
+        return np.zeros(0), np.zeros((0, 3))
+    R = traj.R
+    rel = np.einsum("nji,njk->nik", R[:-1], R[1:])
+    dt = np.diff(traj.t)
+    return 0.5 * (traj.t[1:] + traj.t[:-1]), Rotation.from_matrix(rel).as_rotvec() / dt[:, None]
+
+
+def plot_angular_velocity(path, estimates: dict, groundtruth=None, title: str | None = None) -> None:
+    """Three panels (wx, wy, wz in deg/s vs time), estimates solid, ground truth dashed (Fig. 20a)."""
+    fig = _figure(9, 6.5)
+    axes = fig.subplots(3, 1, sharex=True)
+    for name, (t, w) in estimates.items():
+        for i, ax in enumerate(axes):
+            ax.plot(t, np.degrees(w[:, i]), linewidth=1.0, label=name)
+    if groundtruth is not None:
+        t, w = groundtruth
+        for i, ax in enumerate(axes):
+            ax.plot(t, np.degrees(w[:, i]), **_GT_STYLE)
+    for i, ax in enumerate(axes):
+        ax.set_ylabel(f"omega_{'xyz'[i]} [deg/s]")
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time [s]")
+    axes[0].legend(fontsize="small", loc="best")
+    if title:
+        fig.suptitle(title)
+    _save(fig, path)
+
+
+_WINDOW_STATES = (  # (WindowReport flag, label, colour) in order of precedence
+    ("rejected", "rejected (correction too large)", "tab:red"),
+    ("still", "still (no BA)", "tab:gray"),
+    ("skipped", "skipped (real-time)", "tab:orange"),
+    ("cut_short", "cut short (real-time)", "tab:purple"),
+    ("optimized", "optimized", "tab:blue"),
+)
+
+
+def plot_run(path: str | os.PathLike, trajectory: Trajectory, *, omega: tuple | None = None,
+             windows: Sequence | None = None, event_rate: tuple | None = None,
+             groundtruth: Trajectory | None = None, title: str | None = None) -> list[str]:
+    """The figure of one run, with or without ground truth: orientation (roll, pitch, yaw) and angular velocity
+    over time, the back-end's correction per window coloured by its status, events per second, and (with ground
+    truth) the absolute error over time. Returns the panels drawn.
+
+    ``omega``: (t, (N, 3) rad/s) of the front-end (default: differences of the trajectory); ``windows``: the
+    back-end's WindowReports; ``event_rate``: (t, events/s). With ground truth the estimate is aligned to it at the
+    start of the overlap and drawn over it (dashed)."""
+    errors = None
+    if groundtruth is not None and len(groundtruth) > 1 and len(trajectory) > 1:
+        from .errors import InputError
+        from .metrics import evaluate_rotations
+
+        lo, hi = max(groundtruth.t_start, trajectory.t_start), min(groundtruth.t_end, trajectory.t_end)
+        try:
+            errors = evaluate_rotations(groundtruth, trajectory, t0=lo) if hi > lo else None
+        except InputError:  # too short an overlap to evaluate: the run is drawn without ground truth
+            errors = None
+        if errors is not None:
+            trajectory = trajectory.aligned_to(groundtruth, errors.t0)
+            groundtruth = groundtruth.slice_time(lo, hi)
+        else:
+            groundtruth = None
+    else:
+        groundtruth = None
+    panels = ["orientation", "angular velocity"]
+    if windows:
+        panels.append("back-end")
+    if event_rate is not None and len(event_rate[0]):
+        panels.append("event rate")
+    if errors is not None:
+        panels.append("error")
+    fig = _figure(9, 1.9 * len(panels) + 0.8)
+    axes = dict(zip(panels, np.atleast_1d(fig.subplots(len(panels), 1, sharex=True))))
+
+    ax = axes["orientation"]
+    ang, _ = _angles_deg(trajectory, "euler")
+    for i, name in enumerate(("roll (x)", "pitch (y)", "yaw (z)")):
+        ax.plot(trajectory.t, ang[:, i], color=_AXIS_COLORS[i], linewidth=1.2, label=name)
+    if groundtruth is not None:
+        gang, _ = _angles_deg(groundtruth, "euler")
+        for i in range(3):
+            ax.plot(groundtruth.t, gang[:, i], color=_AXIS_COLORS[i], linestyle="--", linewidth=0.9,
+                    label="ground truth" if i == 0 else None)
+    ax.set_ylabel("orientation [deg]\n(Euler xyz)")
+    ax.legend(loc="upper left", fontsize="small", ncol=4)
+
+    ax = axes["angular velocity"]
+    # from poses: differences over at least 1/300 of the run (a tracker's 14 kHz poses differenced are mostly noise)
+    spacing = (trajectory.t_end - trajectory.t_start) / 300 if len(trajectory) > 300 else None
+    t_w, w = omega if omega is not None else angular_velocity_from_trajectory(trajectory, spacing)
+    w = np.asarray(w, dtype=float).reshape(-1, 3)
+    for i in range(3):
+        ax.plot(t_w, w[:, i], color=_AXIS_COLORS[i], linewidth=1.0, marker="." if len(t_w) < 30 else None,
+                label=f"omega_{'xyz'[i]}")
+    if groundtruth is not None:
+        gt_t, gt_w = angular_velocity_from_trajectory(groundtruth, spacing)
+        for i in range(3):
+            ax.plot(gt_t, gt_w[:, i], color=_AXIS_COLORS[i], linestyle="--", linewidth=0.8)
+    ax.set_ylabel("angular velocity\n[rad/s, camera]")
+    ax.legend(loc="upper left", fontsize="small", ncol=3)
+
+    if "back-end" in axes:
+        ax = axes["back-end"]
+        seen = set()
+        for win in windows:
+            flag, label, color = next(((f, lab, c) for f, lab, c in _WINDOW_STATES if getattr(win, f, False)),
+                                      ("none", "no events", "lightgray"))
+            y = np.degrees(win.max_correction)  # windows overlap: a line over each window's span, a dot mid-way
+            ax.hlines(y, win.t_start, win.t_end, color=color, alpha=0.5, linewidth=1.5)
+            ax.plot(0.5 * (win.t_start + win.t_end), y, "o", color=color, markersize=4,
+                    label=None if flag in seen else label)
+            seen.add(flag)
+        ax.set_ylim(bottom=0)
+        ax.set_ylabel("BA correction\nper window [deg]")
+        ax.legend(loc="upper left", fontsize="small", ncol=3)
+    if "event rate" in axes:
+        ax = axes["event rate"]
+        ax.plot(event_rate[0], np.asarray(event_rate[1]) / 1e6, color="k", linewidth=1.0,
+                marker="." if len(event_rate[0]) < 30 else None)
+        ax.set_ylabel("event rate\n[M events/s]")
+        ax.set_ylim(bottom=0)
+    if errors is not None:
+        ax = axes["error"]
+        ax.plot(errors.abs_times, errors.abs_errors_deg, color="tab:red", linewidth=1.0)
+        ax.set_ylabel("absolute error\n[deg]")
+        ax.set_ylim(bottom=0)
+        ax.set_title(f"absolute rotation error (aligned at {errors.t0:.2f} s): RMSE {errors.abs_rmse_deg:.3f} deg",
+                     fontsize="small")
+    for ax in axes.values():
+        ax.grid(True, alpha=0.3)
+    list(axes.values())[-1].set_xlabel("time [s]")
+    if title:
+        fig.suptitle(title)
+    _save(fig, path)
+    return panels
+
+
 def map_display(image: np.ndarray, gamma: float = 0.75, percentile: float | None = None,
                 peak: float | None = None) -> np.ndarray:
     """IWE -> [0, 1] for display: gamma-corrected (I / peak)^gamma clipped at 1, inverted so events are dark on
@@ -218,8 +367,11 @@ def plot_maps(path: str | os.PathLike, maps: Mapping[str, np.ndarray] | Sequence
         ax.set_visible(False)
     if title:
         fig.suptitle(title)
+    if show_metrics:
+        fig.supxlabel(METRICS_CAPTION, fontsize="small")
     _save(fig, path)
 
 
-__all__ = ["plot_trajectories", "plot_errors_over_time", "plot_error_distributions", "plot_maps", "map_display",
-           "observed_window"]
+__all__ = ["plot_run", "angular_velocity_from_trajectory", "plot_angular_velocity", "plot_trajectories",
+           "plot_errors_over_time", "plot_error_distributions", "plot_maps", "map_display", "observed_window",
+           "METRICS_CAPTION"]

@@ -1,5 +1,7 @@
-"""Progress bars on stderr (tqdm), silenced with TI_CMAX_NO_PROGRESS=1 or ``quiet`` (``--quiet``, which also
-silences Taichi's start-up line: see kernels/runtime.py).
+"""Progress bars on stderr (tqdm), silenced with TI_CMAX_NO_PROGRESS=1 or ``quiet`` (``--quiet``).
+
+A run shows one bar per stage (:func:`stage` for start-up and compilation, :class:`StageBars` for reading, the
+front-end and the back-end over seconds of data); each reaches 100 % when its stage ends and stays on screen.
 
 Bars in seconds of data (``unit="s"``) show rounded figures and the speed against real time,
 ``slam: 62%|####  | 3.07/4.95 s of data [00:12<00:07, 0.25x real time]``; bars of counts use SI prefixes
@@ -7,6 +9,7 @@ Bars in seconds of data (``unit="s"``) show rounded figures and the speed agains
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 
@@ -27,7 +30,18 @@ def is_quiet() -> bool:
 
 
 class DataBar(tqdm):
-    """A bar over seconds of data: rounded totals, speed as a multiple of real time."""
+    """A bar over seconds of data: rounded totals, speed as a multiple of real time. ``at(seconds)`` moves it to
+    that many seconds from the start of the data; ``done()`` to its total (the last chunk's work counted)."""
+
+    def at(self, seconds: float) -> None:
+        limit = self.total if self.total else float("inf")
+        step = min(max(float(seconds), 0.0), limit) - self.n
+        if step > 0:
+            self.update(step)
+
+    def done(self) -> None:
+        if self.total:
+            self.at(self.total)
 
     @property
     def format_dict(self):
@@ -39,9 +53,60 @@ class DataBar(tqdm):
 
 def progress(total=None, desc: str = "", unit: str = "it", **kw) -> tqdm:
     """A tqdm bar on stderr; ``bar.update(n)`` as work advances. ``unit="s"``: seconds of data."""
-    common = dict(desc=desc, file=sys.stderr, disable=_QUIET["value"], dynamic_ncols=True, leave=False)
+    common = dict(desc=desc, file=sys.stderr, disable=_QUIET["value"], dynamic_ncols=True,
+                  leave=kw.pop("leave", False))
     if unit == "s":
         total = None if total is None or not 0 < total < float("inf") else float(total)  # NaN/inf: open bar
         return DataBar(total=total, unit="s", bar_format=_DATA_BAR if total else _DATA_OPEN, **common, **kw)
     kw.setdefault("unit_scale", True)
     return tqdm(total=total, unit=unit, **common, **kw)
+
+
+_STAGE_BAR = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}]"
+
+
+@contextlib.contextmanager
+def stage(desc: str = "start-up and compile"):
+    """A bar for one step of unknown length (Taichi's start-up, kernel compilation): 0 % while it runs, 100 % when
+    it is done; it stays on screen."""
+    bar = tqdm(total=1, desc=desc, file=sys.stderr, disable=_QUIET["value"], dynamic_ncols=True, leave=True,
+               bar_format=_STAGE_BAR)
+    try:
+        yield bar
+        bar.update(1)
+    finally:
+        bar.close()
+
+
+class StageBars:
+    """One :class:`DataBar` per stage of a run over seconds of data (e.g. reading, front-end, back-end), stacked;
+    ``at(stage, t)`` moves a stage to data time ``t`` (absolute; the first time given is the start of the data),
+    ``done()`` takes every stage to 100 % once the run has ended."""
+
+    def __init__(self, total, stages: tuple[str, ...], prefix: str = ""):
+        self.t0: float | None = None
+        self.bars = {name: progress(total=total, desc=f"{prefix}{name}", unit="s", leave=True, position=i)
+                     for i, name in enumerate(stages)}
+
+    def start(self, t0: float) -> None:
+        if self.t0 is None:
+            self.t0 = float(t0)
+
+    def at(self, name: str, t: float | None) -> None:
+        if t is not None and self.t0 is not None:
+            self.bars[name].at(t - self.t0)
+
+    def done(self) -> None:
+        for bar in self.bars.values():
+            bar.done()
+
+    def close(self) -> None:
+        for bar in self.bars.values():
+            bar.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False

@@ -200,6 +200,7 @@ def run_cmax_gae(events_or_chunks, camera, config=None, imu=None):
             if t_prev is not None:
                 bar.update(t_ref - t_prev)
             t_prev = t_ref
+        bar.done()  # the stage has ended: its bar at 100 %
     finally:
         bar.close()
     return _gae_result(cfg, chunks, times, rots, omegas, used, obj, sphere, wall0, tic, compile_s)

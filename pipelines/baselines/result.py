@@ -30,6 +30,7 @@ class BaselineResult:
     map: np.ndarray
     report: dict
     frontend: AngularVelocity | None = None  # name kept from SlamResult: the slam writer reads it
+    map_kind: str = "events"  # "events": counts of warped events; "intensity": 8-bit grayscale (SMT)
 
 
 class CountedChunks:

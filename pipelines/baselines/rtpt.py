@@ -163,6 +163,7 @@ def run_rtpt(events_or_chunks, camera, config=None, imu=None):
             if t_prev is not None:
                 bar.update(tm - t_prev)
             t_prev = tm
+        bar.done()  # the stage has ended: its bar at 100 %
     finally:
         bar.close()
     return _rtpt_result(cfg, chunks, times, rots, quality, lost_at, updates, O, N, wall0, tic, compile_s)

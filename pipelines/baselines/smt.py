@@ -961,7 +961,8 @@ def _as_baseline(tracker: str, events_or_chunks, camera, config=None, imu=None, 
     report["us_per_event"] = {"frontend": report["smt_us_per_event"]}
     report["map_image"] = "8-bit grayscale panorama (Poisson-integrated log intensity)"
     return BaselineResult(res.trajectory, res.map.to_uint8(cfg.mapping.display_percentile_low,
-                                                          cfg.mapping.display_percentile_high), report)
+                                                          cfg.mapping.display_percentile_high), report,
+                          map_kind="intensity")  # drawn as is: the event-map renderer inverts (more events = darker)
 
 
 def smt_ekf_baseline(events_or_chunks, camera, config=None, imu=None, **kwargs):

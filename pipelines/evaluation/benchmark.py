@@ -296,6 +296,8 @@ def format_tables(results: list[dict], meta: dict) -> str:
     """tables.md: Tab. II (accuracy), Tab. IV (map sharpness), Tab. VI (runtime) and the runtime of every row."""
     notes = _Notes()
     out = [meta.get("title", "# CMax-SLAM benchmark (simulated suite)"), ""]
+    if meta.get("notice"):
+        out += [meta["notice"], ""]
     out.append("Sequences: " + "; ".join(
         f"{r['sequence']} = {r['sensor']} {r['scene']} {r['duration_s']:g} s, {r['events']} events "
         f"({r['event_rate_mev_s']:.2f} Mev/s)" for r in results))

@@ -135,6 +135,20 @@ def test_version(capsys):
     assert exc.value.code == 0 and capsys.readouterr().out.startswith(f"ti-cmax {__version__}")
 
 
+def test_version_imports_no_kernel_and_is_fast():
+    """--version builds no subcommand's arguments: neither Taichi nor the pipelines load (it took ~2 s)."""
+    import time
+
+    code = ("import sys; from ti_cmax.cli import main\ntry:\n    main(['--version'])\nexcept SystemExit:\n    pass\n"
+            "print([m for m in ('taichi', 'quadrants', 'ti_cmax.kernels.runtime', 'ti_cmax.pipelines') "
+            "if m in sys.modules])")
+    tic = time.perf_counter()
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    elapsed = time.perf_counter() - tic
+    assert out.returncode == 0 and out.stdout.splitlines()[-1] == "[]", out.stdout + out.stderr
+    assert out.stdout.startswith("ti-cmax ") and elapsed < 1.0, elapsed
+
+
 @pytest.mark.slow
 def test_closed_output_pipe_ends_quietly():
     proc = subprocess.Popen([sys.executable, "-m", "ti_cmax.cli", "params", "smt"], stdout=subprocess.PIPE,

@@ -1,4 +1,4 @@
-"""Output files get the mode the umask gives (issue 18, point 3): the atomic temp-file-and-rename writer must not
+"""Output files get the mode the umask gives: the atomic temp-file-and-rename writer must not
 leave mkstemp's 0600 on them."""
 import os
 import stat

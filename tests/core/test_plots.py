@@ -111,3 +111,36 @@ def test_cli_plot(tmp_path, capsys):
     assert main(["plot", "--groundtruth", str(tmp_path / "gt.txt"), "--estimate", *map(str, paths),
                  "--labels", "only-one", "--out", str(tmp_path / "bad")]) == 2
     assert "expected 2 labels" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
+def test_run_figure_without_and_with_ground_truth(tmp_path):
+    """run.png of slam, frontend, refine and the baselines: readable without ground truth; with it also the error."""
+    from types import SimpleNamespace
+
+    from ti_cmax.plots import plot_run
+
+    t = np.linspace(0.0, 2.0, 101)
+    gt = Trajectory(t, so3.exp(np.stack([0.3 * np.sin(t), 0.2 * t, 1.5 * t], axis=1)))
+    est = Trajectory(t[::2], gt.R[::2] @ so3.exp(np.full((51, 3), 0.01)))
+    assert plot_run(tmp_path / "bare.png", est) == ["orientation", "angular velocity"]
+    windows = [SimpleNamespace(t_start=0.2 * k, t_end=0.2 * k + 0.4, max_correction=0.001 * k, optimized=k != 3,
+                               rejected=k == 3, still=False, skipped=False, cut_short=False) for k in range(8)]
+    rate = (t, np.full_like(t, 1.5e6))
+    panels = plot_run(tmp_path / "full.png", est, omega=(t, np.ones((101, 3))), windows=windows, event_rate=rate,
+                      groundtruth=gt, title="run")
+    assert panels == ["orientation", "angular velocity", "back-end", "event rate", "error"]
+    assert _is_png(tmp_path / "bare.png") and _is_png(tmp_path / "full.png")
+    # a ground truth that does not overlap the estimate: drawn without it
+    far = Trajectory(t + 10.0, gt.R)
+    assert "error" not in plot_run(tmp_path / "far.png", est, groundtruth=far)
+
+
+def test_plot_command_without_ground_truth(tmp_path):
+    from ti_cmax.cli import main
+    from ti_cmax.io import write_tum
+
+    t = np.linspace(0.0, 1.0, 51)
+    write_tum(tmp_path / "est.txt", Trajectory(t, so3.exp(np.stack([0.1 * t, 0.5 * t, -t], axis=1))))
+    assert main(["plot", "--estimate", str(tmp_path / "est.txt"), "--out", str(tmp_path / "figs"), "--quiet"]) == 0
+    assert sorted(p.name for p in (tmp_path / "figs").iterdir()) == ["angular_velocity.png", "trajectories.png"]
+    assert _is_png(tmp_path / "figs" / "trajectories.png")

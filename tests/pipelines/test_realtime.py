@@ -382,7 +382,7 @@ def test_summaries_name_a_cut_short_cold_window():
 
 
 def test_benchmark_rounds_say_where_the_target_held():
-    """bench_realtime --rounds: each row is judged against issue 14's target (real time with every event and the
+    """bench_realtime --rounds: each row is judged against the real-time target (real time with every event and the
     offline accuracy up to 2.5 Mev/s, a bounded lag above) and the summary counts the rounds per case."""
     from ti_cmax.pipelines.evaluation.bench_realtime import summarize, target_met
 

@@ -1,4 +1,4 @@
-"""Reproducibility (issue 18, point 9): float atomics make results depend on the thread count, but one thread
+"""Reproducibility: float atomics make results depend on the thread count, but one thread
 (--threads 1, or --set num_threads=1) gives the same bytes run after run. Runs in subprocesses: the thread count
 is fixed when Taichi starts."""
 import ast

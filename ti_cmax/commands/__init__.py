@@ -15,6 +15,13 @@ def positive_float(text: str) -> float:
     return value
 
 
+def add_map_arguments(parser) -> None:
+    """--full-sphere: the map PNG of the whole sphere instead of the observed region (pipelines/panorama.map_image)."""
+    parser.add_argument("--full-sphere", action="store_true",
+                        help="map image of the whole sphere (default: cropped to the observed region and contrast-"
+                             "stretched; its extent in degrees is in the JSON report)")
+
+
 def add_sensor_arguments(parser, topic_help: str = "ROS bag event topic") -> None:
     """--width, --height, --topic: what a dataset's files may not say (info, convert)."""
     parser.add_argument("--width", type=int, default=None, help="sensor width (overrides what the files say)")

@@ -1,13 +1,16 @@
 """``ti-cmax baseline NAME DATASET --out DIR``: run a baseline tracker (RTPT, CMax-GAE, IMU dead reckoning, ...).
 
-Writes trajectory.txt (TUM), the method's map (map.png, map.npy), report.json (status "ok" or "lost" with lost_at)
-and config.yaml; with ``--refine`` also the offline BA of that trajectory in DIR/refined/ (same files).
+Writes trajectory.txt (TUM), the method's map (map.png, map.npy), run.png, report.json (status "ok" or "lost" with
+lost_at) and config.yaml; with ``--refine`` also the offline BA of that trajectory in DIR/refined/ (same files).
 """
 from __future__ import annotations
 
 import argparse
 
-HELP = "run a baseline method (smt-ekf, smt-pf, rtpt, cmax-gae, imu): trajectory.txt, map.png, report.json [--refine]"
+from . import add_map_arguments
+
+HELP = ("run a baseline method (smt-ekf, smt-pf, rtpt, cmax-gae, imu): trajectory.txt, map.png, run.png, report.json "
+        "[--refine]")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -16,6 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--refine", action="store_true",
                         help="also refine the baseline's trajectory by the offline BA into DIR/refined/")
+    add_map_arguments(parser)
 
 
 def run(args) -> int:
@@ -47,10 +51,12 @@ def run(args) -> int:
         refined = refine(dataset.iter_events(cfg.dataset.chunk_size), camera, result.trajectory, cfg.slam_config(),
                          progress_total=t1 - t0)
     with OutputDir(args.out) as out:
-        write_result(out, result, cfg, camera)
+        write_result(out, result, cfg, camera, full_sphere=args.full_sphere, groundtruth=dataset.groundtruth,
+                     title=f"baseline {args.name}")
         if refined is not None:
             (out / "refined").mkdir()
-            write_result(out / "refined", refined, cfg.slam_config(), camera)
+            write_result(out / "refined", refined, cfg.slam_config(), camera, full_sphere=args.full_sphere,
+                         groundtruth=dataset.groundtruth, title=f"baseline {args.name}, refined")
     rep = result.report
     lost = f", lost at {rep['lost_at']:.3f} s" if rep["status"] == "lost" else ""
     print(f"{args.name}: {rep['status']}{lost}, {rep['events_processed']} events, {len(result.trajectory)} poses, "

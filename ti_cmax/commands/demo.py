@@ -13,6 +13,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="demo_out", metavar="DIR", help="output folder (default: demo_out)")
     parser.add_argument("--duration", type=float, default=DEMO_SEQUENCE["duration"], help="sequence length (s)")
     parser.add_argument("--spline", choices=("linear", "cubic"), default=None, help="trajectory model")
+    parser.add_argument("--text", action="store_true",
+                        help="also write the sequence's events as ECD text (events.txt; default: events.h5 only)")
 
 
 def run(args) -> int:
@@ -26,7 +28,7 @@ def run(args) -> int:
     from ..pipelines.panorama import render_panorama
     from ..pipelines.sensor_defaults import pano_size
     from ..pipelines.slam import default_backend_process, run_slam
-    from ..plots import plot_error_distributions, plot_maps, plot_trajectories
+    from ..plots import plot_error_distributions, plot_errors_over_time, plot_maps, plot_trajectories
     from ..simulate import SimulatorConfig, simulate_to_folder
     from .slam import spline_override, write_result
 
@@ -38,7 +40,7 @@ def run(args) -> int:
             shutil.rmtree(seq_dir)
         print(f"[1/3] simulating {args.duration:.1f} s of a {DEMO_SEQUENCE['sensor']} sequence -> {seq_dir}")
         info = simulate_to_folder(SimulatorConfig(**{**DEMO_SEQUENCE, "duration": args.duration}), seq_dir,
-                                  show_progress=not args.quiet)
+                                  show_progress=not args.quiet, events_format="both" if args.text else "h5")
         dataset = open_dataset(seq_dir)
         t0, t1 = dataset.time_range()
         print(f"      {info.get('num_events', dataset.num_events())} events in {t1 - t0:.2f} s")
@@ -47,7 +49,7 @@ def run(args) -> int:
                           backend_process=default_backend_process(dataset.camera))  # as `ti-cmax slam` runs by default
         slam_dir = out / "slam"
         slam_dir.mkdir(exist_ok=True)
-        write_result(slam_dir, result, cfg, dataset.camera)
+        write_result(slam_dir, result, cfg, dataset.camera, groundtruth=dataset.groundtruth, title="demo: CMax-SLAM")
 
         print("[3/3] evaluating against ground truth")
         gt = dataset.groundtruth
@@ -55,6 +57,7 @@ def run(args) -> int:
         errors = {name: evaluate_rotations(gt, est) for name, est in estimates.items()}
         aligned = {name: est.aligned_to(gt, errors[name].t0) for name, est in estimates.items()}
         plot_trajectories(out / "trajectories.png", aligned, gt, title="demo: estimated vs ground truth")
+        plot_errors_over_time(out / "errors_over_time.png", errors, title="demo: rotation error over time")
         plot_error_distributions(out / "errors.png", {k: e.abs_errors_deg for k, e in errors.items()},
                                  {k: e.rel_errors_deg_per_s for k, e in errors.items()})
         width, height = pano_size(cfg.backend, dataset.camera)
@@ -76,7 +79,8 @@ def run(args) -> int:
         lines += [
             f"speed         : front-end {us['frontend']:.2f} us/event, back-end {us['backend']:.2f} us/event "
             f"(compile {result.report['compile_seconds']:.1f} s apart)",
-            f"results       : {slam_dir}/trajectory.txt, map.png; plots: {out}/trajectories.png, errors.png, maps.png",
+            f"results       : {slam_dir}/trajectory.txt, map.png, run.png; plots: {out}/trajectories.png, "
+            f"errors_over_time.png, errors.png, maps.png",
             f"total time    : {time.perf_counter() - tic:.1f} s",
         ]
         (out / "summary.txt").write_text("\n".join(lines) + "\n")

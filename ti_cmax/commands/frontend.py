@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-HELP = "estimate angular velocity by contrast maximisation; write angular_velocity.txt and trajectory.txt"
+HELP = "estimate angular velocity by contrast maximisation; write angular_velocity.txt, trajectory.txt, run.png"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -19,6 +20,7 @@ def run(args) -> int:
     from ..outputs import OutputDir, write_report
     from ..pipelines.frontend import estimate_angular_velocity
     from ..pipelines.sensor_defaults import derived_summary, describe, resolve_config
+    from .slam import write_run_figure
 
     tic = time.perf_counter()
     cfg = load_config(SlamConfig, args.config, args.overrides)
@@ -31,7 +33,10 @@ def run(args) -> int:
     result = estimate_angular_velocity(dataset.iter_events(), camera, cfg.frontend, progress_total=t1 - t0)
     with OutputDir(args.out) as out:
         write_angular_velocity(out / "angular_velocity.txt", result.t, result.omega)
-        write_tum(out / "trajectory.txt", result.trajectory())
+        trajectory = result.trajectory()
+        write_tum(out / "trajectory.txt", trajectory)
+        write_run_figure(out / "run.png", trajectory, result, groundtruth=dataset.groundtruth,
+                         title=f"CMax-omega front-end: {Path(args.dataset).name}")
         save_config(cfg, out / "config.yaml")
         timing = result.timing
         report = {

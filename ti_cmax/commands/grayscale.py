@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="contrast threshold C (default: the simulator's if known, else 0.22)")
     parser.add_argument("--t-start", type=float, default=None, help="first event time to use (s)")
     parser.add_argument("--t-end", type=float, default=None, help="last event time to use (s)")
+    from . import add_map_arguments
+
+    add_map_arguments(parser)
 
 
 def run(args) -> int:
@@ -46,6 +49,7 @@ def run(args) -> int:
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import atomic_path
     from ti_cmax.pipelines.workflows.grayscale import reconstruct_panoramas, resolve_contrast
+    from ..pipelines.panorama import map_image
 
     wall = time.perf_counter()
     cfg = load_config(GrayscaleCommandConfig, args.config, args.overrides)
@@ -71,13 +75,15 @@ def run(args) -> int:
     entries, files = [], []
     for (w, h), res in zip(sizes, results):
         start = time.perf_counter()
-        img = res.to_uint8(gcfg.display_percentile_low, gcfg.display_percentile_high)
+        img, shown = map_image(res.to_uint8(gcfg.display_percentile_low, gcfg.display_percentile_high),
+                               full_sphere=args.full_sphere, intensity=True)
         res.timings["image"] = time.perf_counter() - start
         stem = out.with_name(f"{out.stem}_{w}x{h}") if multi else out.with_suffix("")
         files.append((stem, img, res.log_intensity))
         entry = res.summary()
         entry["seconds"]["total"] = float(sum(v for k, v in res.timings.items() if k != "compile"))
         entry["png"] = str(stem.with_suffix(".png"))
+        entry["png_shows"] = shown
         entries.append(entry)
     for stem, img, log_i in files:
         with atomic_path(stem.with_suffix(".png")) as tmp:

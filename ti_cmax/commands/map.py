@@ -5,7 +5,7 @@ import argparse
 import json
 from pathlib import Path
 
-from . import positive_float
+from . import add_map_arguments, positive_float
 
 HELP = "render the panoramic image of warped events of a trajectory (PNG + JSON with EA, GM, variance)"
 
@@ -18,6 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gamma", type=positive_float, default=None, help="display gamma (default 0.75)")
     parser.add_argument("--t-start", type=float, default=None, help="first event time to use (s)")
     parser.add_argument("--t-end", type=float, default=None, help="last event time to use (s)")
+    add_map_arguments(parser)
 
 
 def run(args) -> int:
@@ -26,7 +27,7 @@ def run(args) -> int:
     from ..config import SlamConfig, load_config, parse_map_size
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import atomic_path
-    from ..pipelines.panorama import map_to_uint8, render_panorama
+    from ..pipelines.panorama import describe_extent, map_image, render_panorama
     from ..pipelines.sensor_defaults import pano_size
 
     cfg = load_config(SlamConfig, args.config, args.overrides)
@@ -45,12 +46,14 @@ def run(args) -> int:
                                                          or args.t_end is not None else "") + ": nothing to render",
                          source=args.trajectory)
     figures = result.figures(cfg.backend.lambda0)
+    png, figures["png"] = map_image(result.image, gamma, full_sphere=args.full_sphere)
     out = Path(args.out)
     with atomic_path(out) as tmp:
-        iio.imwrite(tmp, map_to_uint8(result.image, gamma), extension=".png")
+        iio.imwrite(tmp, png, extension=".png")
     with atomic_path(out.with_suffix(".json")) as tmp:
         tmp.write_text(json.dumps(figures, indent=2))
     print(f"map {width}x{height}: {figures['events']} events, EA {figures['event_area_percent']:.3f} %, "
-          f"GM {figures['gradient_magnitude']:.4f}, variance {figures['variance']:.5f}")
+          f"GM {figures['gradient_magnitude']:.4f}, variance {figures['variance']:.5f}; image: "
+          f"{describe_extent(figures['png'])}")
     print(json.dumps(figures))
     return 0

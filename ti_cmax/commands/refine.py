@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "refine a given trajectory by the sliding-window CMax BA: trajectory.txt, map.png, map.npy, report.json"
+from . import add_map_arguments
+
+HELP = "refine a given trajectory by the sliding-window CMax BA: trajectory.txt, map.png, map.npy, run.png, report.json"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -14,6 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loop-closure", action="store_true",
                         help="close loops on revisits (the default; the same as --set loop_closure=true; "
                              "--set loop_closure=false turns it off; report.json lists the candidates)")
+    add_map_arguments(parser)
 
 
 def run(args) -> int:
@@ -33,7 +36,8 @@ def run(args) -> int:
     result = refine(dataset.iter_events(cfg.dataset.chunk_size, t_start=initial.t_start, t_end=initial.t_end),
                     camera, initial, cfg, progress_total=min(t1, initial.t_end) - max(t0, initial.t_start))
     with OutputDir(args.out) as out:
-        write_result(out, result, cfg, camera)
+        write_result(out, result, cfg, camera, full_sphere=args.full_sphere, groundtruth=dataset.groundtruth,
+                     title=f"refined: {args.trajectory}")
     print_derived(result.report)
     print(f"refined {len(result.trajectory)} poses over {result.trajectory.t_end - result.trajectory.t_start:.3f} s, "
           f"back-end {result.report['us_per_event']['backend']:.3f} us/event -> {out}")

@@ -4,7 +4,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-HELP = "run CMax-SLAM: trajectory.txt, angular_velocity.txt, map.png, map.npy, report.json"
+from . import add_map_arguments
+
+HELP = "run CMax-SLAM: trajectory.txt, angular_velocity.txt, map.png, map.npy, run.png, report.json"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,21 +24,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--realtime", action="store_true",
                         help="replay the file in sensor time, degrading on purpose to bound the lag (report.json "
                              "\"realtime\"; --set realtime_target_lag=0.3, realtime_speed=1, ...)")
+    add_map_arguments(parser)
+    parser.add_argument("--viewer", action="store_true",
+                        help="watch the run live in rerun: each packet's image of warped events, the growing map, "
+                             "angular velocity and orientation (needs pip install -e \".[viewer]\")")
+    parser.add_argument("--save-recording", default=None, metavar="FILE.rrd",
+                        help="write the same live view to a rerun recording (open it later: rerun FILE.rrd)")
 
 
 def spline_override(args) -> list[str]:
     return [] if args.spline is None else [f"spline_degree={1 if args.spline == 'linear' else 3}"]
 
 
-def write_result(out: Path, result, cfg, camera=None) -> None:
-    """Files common to slam and refine: trajectory (TUM), map (PNG, gamma; and raw .npy), report, config."""
+def write_result(out: Path, result, cfg, camera=None, full_sphere: bool = False, groundtruth=None,
+                 title: str | None = None) -> None:
+    """Files common to slam, refine and the baselines: trajectory (TUM), map (PNG, gamma, cropped to the observed
+    region unless ``full_sphere``: pipelines/panorama.map_image; and raw .npy), the run figure (run.png, with the
+    error over time when ``groundtruth`` is given), report, config."""
     import imageio.v3 as iio
     import numpy as np
 
     from ..config import SlamConfig, save_config
     from ..io import write_angular_velocity, write_tum
     from ..outputs import peak_rss_mb, write_report
-    from ..pipelines.panorama import PanoramaResult, map_to_uint8
+    from ..pipelines.panorama import PanoramaResult, map_image
     from ..pipelines.sensor_defaults import resolve_config
 
     if isinstance(cfg, SlamConfig) and camera is not None:
@@ -46,18 +57,39 @@ def write_result(out: Path, result, cfg, camera=None) -> None:
     if result.frontend is not None and len(result.frontend):
         write_angular_velocity(out / "angular_velocity.txt", result.frontend.t, result.frontend.omega)
     np.save(out / "map.npy", result.map)
-    iio.imwrite(out / "map.png", map_to_uint8(result.map, cfg.output.gamma), extension=".png")
+    intensity = getattr(result, "map_kind", "events") == "intensity"
+    png, shown = map_image(result.map, cfg.output.gamma, full_sphere=full_sphere, intensity=intensity)
+    iio.imwrite(out / "map.png", png, extension=".png")
     report = dict(result.report)
     report["map"] = PanoramaResult(result.map, int(round(float(result.map.sum())))).figures(cfg.backend.lambda0)
+    report["map"]["png"] = shown
     if camera is not None:
         report["camera"] = camera.to_dict()
     # of the whole process so far; with a back-end worker (--parallel) plus the worker's own peak: the sum of the two
     # peaks, an upper bound of their total at any moment (the main process alone was half of it on a VGA run)
     report["peak_rss_mb"] = peak_rss_mb() + report.get("backend_process", {}).get("peak_rss_mb", 0.0)
     write_report(out, report)
+    write_run_figure(out / "run.png", result.trajectory, result.frontend, getattr(result, "windows", None),
+                     groundtruth, title=title or report.get("method"))
     if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
         write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
     save_config(cfg, out / "config.yaml")
+
+
+def write_run_figure(path: Path, trajectory, frontend=None, windows=None, groundtruth=None, title=None) -> None:
+    """run.png (plots.plot_run): orientation, angular velocity (the front-end's when there is one), the back-end's
+    windows, events per second of the front-end's packets, and the error over time with ground truth."""
+    import numpy as np
+
+    from ..plots import plot_run
+
+    omega = rate = None
+    if frontend is not None and len(frontend.t):
+        omega = (frontend.t, frontend.omega)
+        if getattr(frontend, "num_events", None) is not None and getattr(frontend, "span", None) is not None:
+            ok = (np.asarray(frontend.span) > 0) & (np.asarray(frontend.num_events) > 0)
+            rate = (frontend.t[ok], np.asarray(frontend.num_events)[ok] / np.asarray(frontend.span)[ok])
+    plot_run(path, trajectory, omega=omega, windows=windows, event_rate=rate, groundtruth=groundtruth, title=title)
 
 
 def write_realtime_trace(path: Path, rows: list) -> None:
@@ -92,6 +124,10 @@ def run(args) -> int:
     camera = dataset.camera
     parallel = default_backend_process(camera) if args.parallel is None else args.parallel
     t0, t1 = dataset.time_range()
+    if args.realtime and (args.viewer or args.save_recording):
+        from ..errors import InputError
+
+        raise InputError("--viewer and --save-recording are not available with --realtime")
     check_workload(cfg, t0, t1, realtime=args.realtime)
     if args.realtime:
         import sys
@@ -102,10 +138,18 @@ def run(args) -> int:
         result = run_realtime(dataset.iter_events(min(cfg.dataset.chunk_size, READ_EVENTS)), camera, cfg,
                               backend_process=parallel, progress_total=t1 - t0, log=log)
     else:
+        viewer = None
+        if args.viewer or args.save_recording:
+            from ..viewer import RerunViewer
+
+            viewer = RerunViewer(camera, cfg, spawn=args.viewer, save=args.save_recording)
         result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
-                          backend_process=parallel)
+                          backend_process=parallel, observer=viewer)
+        if viewer is not None:
+            viewer.finish(result)
     with OutputDir(args.out) as out:
-        write_result(out, result, cfg, camera)
+        write_result(out, result, cfg, camera, full_sphere=args.full_sphere, groundtruth=dataset.groundtruth,
+                     title=f"CMax-SLAM: {Path(args.dataset).name}")
     us = result.report["us_per_event"]
     print_derived(result.report)
     print(f"CMax-SLAM: {result.report['events_processed']} events, {len(result.trajectory)} poses, "

@@ -5,9 +5,8 @@ import argparse
 import json
 import sys
 
-import numpy as np
 
-from . import positive_float
+from . import add_map_arguments, positive_float
 
 HELP = ("star tracking: front-end + offline BA; trajectory.txt, angular_velocity.txt, star_map.png, "
         "angular_velocity.png, report.json (400 ms relative-rotation RMSE/std when ground truth exists)")
@@ -24,52 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="interval of the relative rotations evaluated (default 0.4 s, as Chin et al.)")
     parser.add_argument("--groundtruth", default=None, metavar="GT.txt",
                         help="ground truth (TUM); default: groundtruth.txt of the dataset when present")
-
-
-def angular_velocity_from_trajectory(traj, spacing: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame angular velocity (rad/s) at sample midpoints: log(R_i^T R_{i+1}) / dt, on samples
-    ``spacing`` s apart when given (a spline's knot spacing: finer differences only show its kinks)."""
-    from scipy.spatial.transform import Rotation
-
-    if spacing:
-        traj = traj.resampled(np.arange(traj.t_start, traj.t_end + 1e-12, spacing))
-    R = traj.R
-    rel = np.einsum("nji,njk->nik", R[:-1], R[1:])
-    dt = np.diff(traj.t)
-    return 0.5 * (traj.t[1:] + traj.t[:-1]), Rotation.from_matrix(rel).as_rotvec() / dt[:, None]
-
-
-def plot_angular_velocity(path, estimates: dict, groundtruth=None, title: str | None = None) -> None:
-    """Three panels (wx, wy, wz in deg/s vs time), estimates solid, ground truth dashed (Fig. 20a)."""
-    from ..plots import _GT_STYLE, _figure, _save
-
-    fig = _figure(9, 6.5)
-    axes = fig.subplots(3, 1, sharex=True)
-    for name, (t, w) in estimates.items():
-        for i, ax in enumerate(axes):
-            ax.plot(t, np.degrees(w[:, i]), linewidth=1.0, label=name)
-    if groundtruth is not None:
-        t, w = groundtruth
-        for i, ax in enumerate(axes):
-            ax.plot(t, np.degrees(w[:, i]), **_GT_STYLE)
-    for i, ax in enumerate(axes):
-        ax.set_ylabel(f"omega_{'xyz'[i]} [deg/s]")
-        ax.grid(alpha=0.3)
-    axes[-1].set_xlabel("time [s]")
-    axes[0].legend(fontsize="small", loc="best")
-    if title:
-        fig.suptitle(title)
-    _save(fig, path)
-
-
-def visited_crop(image: np.ndarray, margin: int = 8) -> np.ndarray:
-    """The bounding box of the map pixels that received events (longitude wrap ignored), plus a margin."""
-    ys, xs = np.nonzero(image > 0)
-    if len(ys) == 0:
-        return image
-    h, w = image.shape
-    return image[max(ys.min() - margin, 0):min(ys.max() + margin + 1, h),
-                 max(xs.min() - margin, 0):min(xs.max() + margin + 1, w)]
+    add_map_arguments(parser)
 
 
 def run(args) -> int:
@@ -80,9 +34,9 @@ def run(args) -> int:
     from ..config import check_workload
     from ..io import read_tum
     from ..outputs import OutputDir, json_ready
-    from ..pipelines.panorama import map_to_uint8
+    from ..pipelines.panorama import map_image
     from ti_cmax.pipelines.workflows.star_tracking import open_star_or_dataset, run_star_tracking, star_tracking_config
-    from ..plots import plot_trajectories
+    from ..plots import angular_velocity_from_trajectory, plot_angular_velocity, plot_trajectories
     from .slam import spline_override, write_result
 
     cfg = star_tracking_config(args.config, list(args.overrides) + spline_override(args))
@@ -97,8 +51,10 @@ def run(args) -> int:
                          "calibration": getattr(dataset, "calibration_source", None),
                          "groundtruth": gt is not None}
     with OutputDir(args.out) as out:
-        write_result(out, dataclasses.replace(res.ba, frontend=res.frontend, report=report), cfg, dataset.camera)
-        iio.imwrite(out / "star_map.png", map_to_uint8(visited_crop(res.map), cfg.output.gamma), extension=".png")
+        write_result(out, dataclasses.replace(res.ba, frontend=res.frontend, report=report), cfg, dataset.camera,
+                     full_sphere=args.full_sphere)
+        iio.imwrite(out / "star_map.png", map_image(res.map, cfg.output.gamma, full_sphere=args.full_sphere)[0],
+                    extension=".png")
         est = {"front-end": (res.frontend.t, res.frontend.omega),
                "BA": angular_velocity_from_trajectory(res.trajectory, cfg.backend.dt_knots)}
         gt_w = angular_velocity_from_trajectory(gt.slice_time(t0, t1)) if gt is not None and len(gt) > 2 else None

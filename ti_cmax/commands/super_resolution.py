@@ -16,6 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="trajectory model (default: spline_degree of the config, linear)")
     parser.add_argument("--no-render", action="store_true",
                         help="save the back-end's own global map instead of re-rendering the IWE of the trajectory")
+    from . import add_map_arguments
+
+    add_map_arguments(parser)
 
 
 def plot_runtime(path, rows: list[dict]) -> None:
@@ -43,7 +46,7 @@ def run(args) -> int:
     from ..config import SlamConfig, load_config, save_config
     from ..io import write_tum
     from ..outputs import OutputDir, write_report
-    from ..pipelines.panorama import map_to_uint8
+    from ..pipelines.panorama import map_image
     from ti_cmax.pipelines.workflows.star_tracking import open_star_or_dataset
     from ti_cmax.pipelines.workflows.super_resolution import (iter_super_resolution, parse_sizes, quality_availability,
                                               runtime_table)
@@ -64,10 +67,11 @@ def run(args) -> int:
         for r in iter_super_resolution(source, camera, sizes, cfg, groundtruth=gt, render=not args.no_render,
                                        progress_total=t1 - t0):
             name = f"{r.width}x{r.height}"
-            iio.imwrite(out / f"map_{name}.png", map_to_uint8(r.map, cfg.output.gamma), extension=".png")
+            png, shown = map_image(r.map, cfg.output.gamma, full_sphere=args.full_sphere)
+            iio.imwrite(out / f"map_{name}.png", png, extension=".png")
             write_tum(out / f"trajectory_{name}.txt", r.trajectory)
             r.map = None  # free the map before the next (larger) size
-            rows.append(r.row())
+            rows.append({**r.row(), "map_png": shown})
             if not args.quiet:
                 print(f"{name}: back-end {r.us_per_event_backend:.2f} us/event, peak RSS {r.peak_rss_mb:.0f} MB")
         table = runtime_table(rows)

@@ -31,8 +31,7 @@ from .trajectories import RotationalMotion
 
 # Intrinsics per sensor: DAVIS240C as in the Event Camera Dataset (radial-tangential distortion);
 # the others are plausible lenses (about 60-75 degrees horizontal field of view). DVXplorer: iniVation's
-# 640x480 sensor (9 um pixels) behind a 4.7 mm lens, fx 520 (63 x 50 deg), no distortion, as in issue 13's
-# test camera; "VGA" (fx 440) stays for existing configs. HD: Prophesee IMX636 (EVK4), 4.86 um pixels behind
+# 640x480 sensor (9 um pixels) behind a 4.7 mm lens, fx 520 (63 x 50 deg), no distortion; "VGA" (fx 440) stays for existing configs. HD: Prophesee IMX636 (EVK4), 4.86 um pixels behind
 # a 6 mm C-mount lens: fx = 6 mm / 4.86 um = 1235 px (55 x 33 deg), mild barrel distortion (3.5 % at the
 # corners).
 _INTRINSICS = {

@@ -140,11 +140,13 @@ def test_cli_grayscale_multi_size(short_dataset, tmp_path, capsys):
     assert rc == 0
     import imageio.v3 as iio
 
-    for w, h in ((256, 128), (512, 256)):
-        img = iio.imread(tmp_path / f"pano_{w}x{h}.png")
-        assert img.shape == (h, w) and img.max() > 200 and (img == 0).any()
-        assert np.load(tmp_path / f"pano_{w}x{h}.npy").shape == (h, w)
     report = json.loads((tmp_path / "pano.json").read_text())
+    for (w, h), entry in zip(((256, 128), (512, 256)), report["maps"]):
+        img = iio.imread(tmp_path / f"pano_{w}x{h}.png")  # cropped to the observed region
+        shows = entry["png_shows"]
+        assert shows["shown"] == "observed region" and img.shape == (shows["height"], shows["width"])
+        assert img.shape[0] < h and img.shape[1] < w and img.max() > 200 and (img == 0).any()
+        assert np.load(tmp_path / f"pano_{w}x{h}.npy").shape == (h, w)
     assert [(m["width"], m["height"]) for m in report["maps"]] == [(256, 128), (512, 256)]
     for m in report["maps"]:
         assert m["visited_fraction"] > 0.01 and m["seconds"]["ekf"] > 0 and m["seconds"]["poisson"] > 0
