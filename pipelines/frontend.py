@@ -133,10 +133,11 @@ class FrontendResult:
 
     @property
     def status(self) -> str:
-        """"suspect" when most checked packets are suspect (the IWE does not constrain omega: e.g. packets far too
-        small for the sensor), else "ok"."""
-        checked = int(np.count_nonzero(self.checked))
-        return "suspect" if checked and np.count_nonzero(self.suspect) > 0.5 * checked else "ok"
+        """"suspect" when the front-end's counters say omega cannot be trusted (ti_cmax.status: most checked packets
+        suspect, too few events, most packets zero at a high event rate), else "ok"."""
+        from ti_cmax.status import run_status
+
+        return run_status({"frontend": self.summary()})[0]
 
     @property
     def checked(self) -> np.ndarray:
@@ -148,6 +149,24 @@ class FrontendResult:
         if len(self.t) == 0:
             raise InputError(NO_MOTION_MEASURABLE)
         return Trajectory(self.t, so3.integrate_angular_velocity(self.t, self.omega))
+
+    def _trust_counters(self) -> dict:
+        """What ti_cmax.status reads to say whether omega can be trusted: packets holding fewer events than the still
+        rule's floor (``frontend_min_event_rate`` x W: at the stream's ends, or a tiny input; omega then is noise, 40
+        rad/s off on 100 events), and the median event rate (events / span) of the packets that moved and of those
+        set to omega = 0 by the flat test (a still camera sees noise, far below the rate of a moving one)."""
+        cfg = self.config
+        floor = int(np.ceil(cfg.frontend_min_event_rate * cfg.still_span_factor * cfg.dt_ang_vel))
+        estimated, flat = ~self.sparse, self.flat
+        moving = estimated & ~flat
+        rate = self.num_events / np.maximum(self.span, 1e-9)
+        return {
+            "min_packet_events": floor,
+            "small_packets": int(np.count_nonzero(estimated & (self.num_events < floor))) if floor > 0 else 0,
+            "event_rate": {"moving": float(np.median(rate[moving])) if np.any(moving) else None,
+                           "flat": float(np.median(rate[flat])) if np.any(flat) else None,
+                           "floor": float(cfg.frontend_min_event_rate)},
+        }
 
     def summary(self) -> dict:
         """JSON-friendly summary (for report.json; "still_packets" counts the sparse packets)."""
@@ -163,6 +182,7 @@ class FrontendResult:
             "mean_iterations": float(np.mean(self.iterations)) if len(self.t) else 0.0,
             "mean_evaluations": float(np.mean(self.evaluations)) if len(self.t) else 0.0,
             "mean_packet_events": float(np.mean(self.num_events[estimated])) if np.any(estimated) else 0.0,
+            **self._trust_counters(),
             **{k: (float(v) if isinstance(v, (int, float, np.floating, np.integer)) else v)
                for k, v in self.timing.items()},
         }

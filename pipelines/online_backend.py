@@ -79,6 +79,7 @@ def backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
         "windows_optimized": len(optimized),
         # windows over which the front-end measured no motion (backend_skip_still_windows): no BA
         "windows_still": sum(1 for w in backend.windows if w.still),
+        "windows_rejected": sum(1 for w in backend.windows if w.rejected),  # correction > backend_max_correction
         "mean_iterations": float(np.mean([w.iterations for w in optimized])) if optimized else 0.0,
         "mean_evaluations": float(np.mean([w.evaluations for w in optimized])) if optimized else 0.0,
         "events_settled": int(backend.events_settled),

@@ -268,6 +268,9 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
     """The worker process: a ``BackendRunner`` on messages ("events", chunk), ("pose", t, R, moving, budget),
     ("map",) (send a copy of the map) and ("finish", budget). While no message waits it advances the loop closer's
     verification in flight (sliced in real time)."""
+    from ti_cmax.workers import die_with_parent
+
+    die_with_parent()  # killed with the main process, also on SIGKILL
     try:
         from ti_cmax import progress
         from ti_cmax.kernels import runtime

@@ -2,7 +2,8 @@
 
 Each command module defines ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``.
 Common options (``--config``, ``--set``, ``--threads``, ``--quiet``) are added here. Bad input
-ends with one line on stderr and exit code 2, never a traceback.
+ends with one line on stderr and exit code 2, never a traceback; so does an operating-system failure (a path that
+cannot be read or written, a full disk).
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import importlib
 import os
 import sys
 
-from .errors import (InputError, WorkerLost, clear_interrupt, interrupt_pending, note_interrupt,
+from .errors import (InputError, WorkerLost, clear_interrupt, interrupt_pending, note_interrupt, os_error_line,
                      raise_if_interrupted)
 
 # subcommand name -> module in ti_cmax.commands
@@ -192,11 +193,14 @@ def _run_command(args) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
-    except (InputError, WorkerLost) as exc:
+    except (InputError, WorkerLost, OSError) as exc:
         if interrupt_pending():  # e.g. Ctrl-C also ended the back-end worker: the interruption, not an error
             return _interrupted(args.command, interrupt_pending()())
-        print(f"ti-cmax {args.command}: error: {exc}", file=sys.stderr)
-        return 2 if isinstance(exc, InputError) else 1
+        # OSError: a file that vanished or cannot be read, a path that cannot be written (read-only, permission, disk
+        # full): the path and the cause; the outputs are removed on the way (outputs.OutputDir, atomic_files)
+        text = os_error_line(exc) if isinstance(exc, OSError) else exc
+        print(f"ti-cmax {args.command}: error: {text}", file=sys.stderr)
+        return 1 if isinstance(exc, WorkerLost) else 2
     except KeyboardInterrupt as exc:
         return _interrupted(args.command, exc)
 

@@ -1,4 +1,5 @@
 """User-facing errors: one clear line, caught by the CLI and printed without a traceback."""
+import os
 
 
 class WorkerLost(RuntimeError):
@@ -19,6 +20,23 @@ class InputError(ValueError):
         super().__init__(where + message)
         self.source = source
         self.line = line
+
+
+class OutputError(InputError):
+    """An output that cannot be written (read-only, permission, disk full, not a folder, locked by another run):
+    one line naming the path and the cause, exit 2 as for bad input."""
+
+
+def os_error_line(exc: OSError) -> str:
+    """An operating-system error as one line: the path(s) it names, then the cause."""
+    cause = exc.strerror or (os.strerror(exc.errno) if exc.errno else str(exc) or type(exc).__name__)
+    where = ""
+    if exc.filename is not None:
+        where = f"{exc.filename}"
+        if getattr(exc, "filename2", None) is not None:
+            where += f" -> {exc.filename2}"
+        where += ": "
+    return where + cause
 
 
 def missing_extra(what: str, package: str, extra: str) -> str:

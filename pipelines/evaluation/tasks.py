@@ -354,9 +354,13 @@ class LocalExecutor:
 
 
 def _pool_initializer(threads: int | None) -> None:
-    """Spawned pool worker: ignore Ctrl-C (the parent stops the workers and cleans up), set up Taichi."""
+    """Spawned pool worker: killed with its parent (also on SIGKILL), ignores Ctrl-C (the parent stops the workers
+    and cleans up), sets up Taichi."""
     import signal
 
+    from ti_cmax.workers import die_with_parent
+
+    die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     setup_process(threads)
 

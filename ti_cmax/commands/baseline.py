@@ -28,6 +28,7 @@ def run(args) -> int:
     from ..io import open_dataset_from_config
     from ..outputs import OutputDir
     from ..pipelines.baselines import BASELINES, BaselineConfig, run_baseline
+    from ..status import status_text
     from .slam import write_result
 
     if args.name not in BASELINES:  # fail before reading any data
@@ -42,23 +43,24 @@ def run(args) -> int:
         from ..pipelines.baselines.smt import smt_contrast
 
         extra = {"groundtruth": dataset.groundtruth, "contrast_threshold": smt_contrast(cfg.smt, args.dataset)}
-    result = run_baseline(args.name, dataset.stream(cfg.dataset.chunk_size), camera, cfg, imu=imu, **extra)
-    refined = None
-    if args.refine:
-        from ..pipelines.slam import refine
+    with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
+        result = run_baseline(args.name, dataset.stream(cfg.dataset.chunk_size), camera, cfg, imu=imu, **extra)
+        refined = None
+        if args.refine:
+            from ..pipelines.slam import refine
 
-        t0, t1 = result.trajectory.t_start, result.trajectory.t_end
-        refined = refine(dataset.iter_events(cfg.dataset.chunk_size), camera, result.trajectory, cfg.slam_config(),
-                         progress_total=t1 - t0)
-    with OutputDir(args.out) as out:
-        write_result(out, result, cfg, camera, full_sphere=args.full_sphere, groundtruth=dataset.groundtruth,
-                     title=f"baseline {args.name}")
+            t0, t1 = result.trajectory.t_start, result.trajectory.t_end
+            refined = refine(dataset.iter_events(cfg.dataset.chunk_size), camera, result.trajectory,
+                             cfg.slam_config(), progress_total=t1 - t0)
+        span = dataset.time_range()
+        rep = write_result(out, result, cfg, camera, events_range=span, full_sphere=args.full_sphere,
+                           groundtruth=dataset.groundtruth, title=f"baseline {args.name}")
         if refined is not None:
             (out / "refined").mkdir()
-            write_result(out / "refined", refined, cfg.slam_config(), camera, full_sphere=args.full_sphere,
-                         groundtruth=dataset.groundtruth, title=f"baseline {args.name}, refined")
-    rep = result.report
+            write_result(out / "refined", refined, cfg.slam_config(), camera, events_range=span,
+                         full_sphere=args.full_sphere, groundtruth=dataset.groundtruth,
+                         title=f"baseline {args.name}, refined")
     lost = f", lost at {rep['lost_at']:.3f} s" if rep["status"] == "lost" else ""
     print(f"{args.name}: {rep['status']}{lost}, {rep['events_processed']} events, {len(result.trajectory)} poses, "
-          f"{rep['us_per_event']['frontend']:.3f} us/event -> {args.out}")
+          f"{rep['us_per_event']['frontend']:.3f} us/event -> {args.out}{status_text(rep)}")
     return 0

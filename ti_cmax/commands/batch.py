@@ -206,14 +206,14 @@ def run(args) -> int:
 
     tic = time.perf_counter()
     datasets, methods, configs, base_cfg = load_suite(args.suite, parse_overrides(args.overrides))
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        from ..errors import InputError
+    from ..outputs import OutputLock
 
-        raise InputError("output path exists and is not a folder", source=str(out))
+    out = Path(args.out)
     executor = executor_from_args(args)
+    # finished tasks stay in DIR for a rerun to reuse; the lock keeps a second run from interleaving with this one
     try:
-        return _run(args, tic, datasets, methods, configs, base_cfg, out, executor)
+        with OutputLock(out):
+            return _run(args, tic, datasets, methods, configs, base_cfg, out, executor)
     finally:
         executor.close()
 

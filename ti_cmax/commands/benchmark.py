@@ -60,12 +60,22 @@ def _split(text: str) -> list[str]:
 
 
 def run(args) -> int:
+    """The benchmark with a lock on --out: finished tasks and sequences stay in DIR for a rerun to reuse, and a
+    second run into DIR refuses instead of interleaving with this one."""
+    from pathlib import Path
+
+    from ..outputs import OutputLock
+
+    with OutputLock(Path(args.out)):
+        return _run(args)
+
+
+def _run(args) -> int:
     import os
     import time
     from pathlib import Path
 
     from ..config import load_config, parse_overrides, save_config
-    from ..errors import InputError
     from ..kernels import runtime
     from ..outputs import atomic_path
     from ti_cmax.pipelines.evaluation import benchmark as B
@@ -83,8 +93,6 @@ def run(args) -> int:
     methods = B.resolve_methods(_split(args.methods), args.suite)
     executor = executor_from_args(args)
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", source=str(out))
     tic = time.perf_counter()
 
     def log(msg: str) -> None:

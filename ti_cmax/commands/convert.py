@@ -31,7 +31,7 @@ def run(args) -> int:
     from ..io.dataset import open_dataset_from_config
     from ..io.events_txt import EventsTxtWriter
     from ..io.h5 import EventsH5Writer
-    from ..outputs import atomic_path
+    from ..outputs import atomic_path, check_output_file
     from ..progress import progress
 
     cfg = dataset_config(args)
@@ -39,6 +39,7 @@ def run(args) -> int:
     suffix = out.suffix.lower()
     if suffix not in (".h5", ".hdf5", ".txt"):
         raise InputError("output must end in .h5, .hdf5 or .txt", source=str(out))
+    check_output_file(out)
     ds = open_dataset_from_config(args.input, cfg)
     if out.exists() and out.resolve() == Path(ds.events_path).resolve():
         raise InputError("output would overwrite the input", source=str(out))

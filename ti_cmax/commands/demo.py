@@ -18,8 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    import shutil
     import time
+    from pathlib import Path
 
     from ..config import SlamConfig, load_config
     from ..io import open_dataset
@@ -36,9 +36,8 @@ def run(args) -> int:
     cfg = load_config(SlamConfig, args.config, list(args.overrides) + spline_override(args))
     with OutputDir(args.out) as out:
         seq_dir = out / "sequence"
-        if seq_dir.exists():
-            shutil.rmtree(seq_dir)
-        print(f"[1/3] simulating {args.duration:.1f} s of a {DEMO_SEQUENCE['sensor']} sequence -> {seq_dir}")
+        shown = Path(args.out)  # where the outputs end up (``out`` is where they are built)
+        print(f"[1/3] simulating {args.duration:.1f} s of a {DEMO_SEQUENCE['sensor']} sequence -> {shown / 'sequence'}")
         info = simulate_to_folder(SimulatorConfig(**{**DEMO_SEQUENCE, "duration": args.duration}), seq_dir,
                                   show_progress=not args.quiet, events_format="both" if args.text else "h5")
         dataset = open_dataset(seq_dir)
@@ -49,7 +48,8 @@ def run(args) -> int:
                           backend_process=default_backend_process(dataset.camera))  # as `ti-cmax slam` runs by default
         slam_dir = out / "slam"
         slam_dir.mkdir(exist_ok=True)
-        write_result(slam_dir, result, cfg, dataset.camera, groundtruth=dataset.groundtruth, title="demo: CMax-SLAM")
+        report = write_result(slam_dir, result, cfg, dataset.camera, events_range=(t0, t1),
+                              groundtruth=dataset.groundtruth, title="demo: CMax-SLAM")
 
         print("[3/3] evaluating against ground truth")
         gt = dataset.groundtruth
@@ -69,7 +69,7 @@ def run(args) -> int:
         us = result.report["us_per_event"]
         lines = [
             "ti_cmax demo summary",
-            f"sequence      : {seq_dir} ({DEMO_SEQUENCE['sensor']}, scene {DEMO_SEQUENCE['scene']}, "
+            f"sequence      : {shown / 'sequence'} ({DEMO_SEQUENCE['sensor']}, scene {DEMO_SEQUENCE['scene']}, "
             f"{t1 - t0:.2f} s, {result.report['events_processed']} events)",
             f"spline        : {'cubic' if cfg.backend.spline_degree == 3 else 'linear'}, "
             f"map {width}x{height}",
@@ -79,8 +79,9 @@ def run(args) -> int:
         lines += [
             f"speed         : front-end {us['frontend']:.2f} us/event, back-end {us['backend']:.2f} us/event "
             f"(compile {result.report['compile_seconds']:.1f} s apart)",
-            f"results       : {slam_dir}/trajectory.txt, map.png, run.png; plots: {out}/trajectories.png, "
-            f"errors_over_time.png, errors.png, maps.png",
+            f"results       : {shown / 'slam'}/trajectory.txt, map.png, run.png; plots: {shown}/trajectories.png, "
+            "errors_over_time.png, errors.png, maps.png",
+            f"status        : {report['status']}" + "".join(f"; {r}" for r in report["reasons"]),
             f"total time    : {time.perf_counter() - tic:.1f} s",
         ]
         (out / "summary.txt").write_text("\n".join(lines) + "\n")

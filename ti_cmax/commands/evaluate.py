@@ -34,8 +34,10 @@ def run(args) -> int:
     from ..config import config_to_dict, load_config
     from ..io import read_tum
     from ..metrics import EvaluationConfig, evaluate_with_config
-    from ..outputs import atomic_path
+    from ..outputs import atomic_path, check_output_file
 
+    if args.out:
+        check_output_file(args.out)
     cfg = load_config(EvaluationConfig, args.config, args.overrides)
     changes = {}
     if args.t0_offset is not None:

@@ -21,6 +21,7 @@ def run(args) -> int:
     from ..pipelines.frontend import estimate_angular_velocity
     from ..pipelines.sensor_defaults import derived_summary, describe, resolve_config
     from .slam import write_run_figure
+    from ..status import apply_status, status_text
 
     tic = time.perf_counter()
     cfg = load_config(SlamConfig, args.config, args.overrides)
@@ -30,8 +31,8 @@ def run(args) -> int:
     check_workload(cfg, t0, t1)
     derived = derived_summary(cfg, camera)
     cfg = resolve_config(cfg, camera)
-    result = estimate_angular_velocity(dataset.iter_events(), camera, cfg.frontend, progress_total=t1 - t0)
-    with OutputDir(args.out) as out:
+    with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
+        result = estimate_angular_velocity(dataset.iter_events(), camera, cfg.frontend, progress_total=t1 - t0)
         write_angular_velocity(out / "angular_velocity.txt", result.t, result.omega)
         trajectory = result.trajectory()
         write_tum(out / "trajectory.txt", trajectory)
@@ -54,10 +55,12 @@ def run(args) -> int:
             "derived_parameters": {k: v for k, v in derived.items() if hasattr(cfg.frontend, k)},
             "camera": camera.to_dict(),
         }
+        apply_status(report)
         write_report(out, report)
     if derived:
         print(f"derived from the sensor: {describe({k: v for k, v in derived.items() if hasattr(cfg.frontend, k)})}")
     print(f"{len(result)} angular velocities ({int(result.sparse.sum())} still, {int(result.flat.sum())} flat), "
           f"{timing['events_processed']} input events, {timing['us_per_event']:.3f} us per input event "
-          f"({timing['packet_events']} packet events, {timing['us_per_packet_event']:.3f} us each) -> {out}")
+          f"({timing['packet_events']} packet events, {timing['us_per_packet_event']:.3f} us each) -> {args.out}"
+          f"{status_text(report)}")
     return 0

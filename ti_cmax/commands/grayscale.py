@@ -47,9 +47,11 @@ def run(args) -> int:
     from ..config import config_to_dict, load_config, parse_map_size, parse_map_sizes
     from ..errors import InputError
     from ..io import open_dataset_from_config, read_tum
-    from ..outputs import atomic_path
+    from ..outputs import atomic_files, check_output_file
     from ti_cmax.pipelines.workflows.grayscale import reconstruct_panoramas, resolve_contrast
     from ..pipelines.panorama import map_image
+    from ..status import apply_status, status_text
+    from .map import events_range
 
     wall = time.perf_counter()
     cfg = load_config(GrayscaleCommandConfig, args.config, args.overrides)
@@ -64,6 +66,7 @@ def run(args) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise InputError("--out must name a .png file", source=str(out))
+    check_output_file(out)
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
     trajectory = read_tum(args.trajectory)
     contrast = args.contrast if args.contrast is not None else resolve_contrast(gcfg, args.dataset)
@@ -85,12 +88,6 @@ def run(args) -> int:
         entry["png"] = str(stem.with_suffix(".png"))
         entry["png_shows"] = shown
         entries.append(entry)
-    for stem, img, log_i in files:
-        with atomic_path(stem.with_suffix(".png")) as tmp:
-            iio.imwrite(tmp, img, extension=".png")
-        with atomic_path(stem.with_suffix(".npy")) as tmp:
-            with open(tmp, "wb") as fh:
-                np.save(fh, log_i)
     report = {
         "maps": entries,
         "contrast_threshold": contrast,
@@ -99,12 +96,21 @@ def run(args) -> int:
         "wall_seconds": time.perf_counter() - wall,
         "parameters": config_to_dict(cfg),
     }
-    with atomic_path(out.with_suffix(".json")) as tmp:
-        tmp.write_text(json.dumps(report, indent=2))
+    apply_status(report, events_range=events_range(dataset, args),
+                 trajectory_range=(trajectory.t_start, trajectory.t_end))
+    targets = [stem.with_suffix(ext) for stem, _, _ in files for ext in (".png", ".npy")] + [out.with_suffix(".json")]
+    with atomic_files(*targets) as tmps:  # every map and the report, or none of them
+        for (_, img, log_i), png, npy in zip(files, tmps[0::2], tmps[1::2]):
+            iio.imwrite(png, img, extension=".png")
+            with open(npy, "wb") as fh:
+                np.save(fh, log_i)
+        tmps[-1].write_text(json.dumps(report, indent=2))
     for e in entries:
         s = e["seconds"]
         print(f"grayscale {e['width']}x{e['height']}: visited {100 * e['visited_fraction']:.2f} %, "
               f"EKF {s['ekf']:.3f} s, Poisson {s['poisson']:.3f} s, total {s['total']:.3f} s -> {e['png']}")
+    if report["reasons"]:
+        print(f"grayscale{status_text(report)}")
     print(json.dumps({"maps": [{k: e[k] for k in ("width", "height", "visited_fraction", "seconds")} for e in entries],
                       "events": report["events"]}))
     return 0

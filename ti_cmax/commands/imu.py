@@ -38,5 +38,5 @@ def run(args) -> int:
         report = {"status": "ok", "method": "imu", "samples": len(imu.t), "t_start": float(imu.t[0]),
                   "t_end": float(imu.t[-1]), "wall_seconds": time.perf_counter() - tic}
         write_report(out, report)
-    print(f"integrated {len(imu.t)} gyro samples over {imu.t[-1] - imu.t[0]:.3f} s -> {out / 'trajectory.txt'}")
+    print(f"integrated {len(imu.t)} gyro samples over {imu.t[-1] - imu.t[0]:.3f} s -> {args.out}/trajectory.txt")
     return 0

@@ -55,7 +55,7 @@ def run(args) -> int:
             plot_trajectories(out / "trajectories.png", estimates, representation=args.angles,
                               title="orientation (no ground truth)")
             plot_angular_velocity(out / "angular_velocity.png", rates, title="angular velocity (camera frame)")
-        print(f"wrote {out}/trajectories.png, angular_velocity.png")
+        print(f"wrote {args.out}/trajectories.png, angular_velocity.png")
         return 0
     gt = read_tum(args.groundtruth)
     errors = {label: evaluate_with_config(gt, est, cfg, t0=args.t0) for label, est in estimates.items()}
@@ -76,5 +76,5 @@ def run(args) -> int:
         rel = "n/a (overlap shorter than delta)" if e["rel_rmse_deg_per_s"] is None else \
             f"{e['rel_rmse_deg_per_s']:.3f} deg/s"
         print(f"{label:<{width}}  abs RMSE {e['abs_rmse_deg']:.3f} deg  rel RMSE {rel}")
-    print(f"wrote {out}/trajectories.png, angular_velocity.png, errors_over_time.png, errors.png, errors.json")
+    print(f"wrote {args.out}/trajectories.png, angular_velocity.png, errors_over_time.png, errors.png, errors.json")
     return 0

@@ -24,6 +24,7 @@ def run(args) -> int:
     from ..io import open_dataset_from_config, read_tum
     from ..outputs import OutputDir
     from ..pipelines.slam import refine
+    from ..status import status_text
     from .slam import print_derived, spline_override, write_result
 
     cfg = load_config(SlamConfig, args.config, list(args.overrides) + spline_override(args)
@@ -33,12 +34,12 @@ def run(args) -> int:
     initial = read_tum(args.trajectory)
     t0, t1 = dataset.time_range()
     check_workload(cfg, max(t0, initial.t_start), min(t1, initial.t_end))
-    result = refine(dataset.iter_events(cfg.dataset.chunk_size, t_start=initial.t_start, t_end=initial.t_end),
-                    camera, initial, cfg, progress_total=min(t1, initial.t_end) - max(t0, initial.t_start))
-    with OutputDir(args.out) as out:
-        write_result(out, result, cfg, camera, full_sphere=args.full_sphere, groundtruth=dataset.groundtruth,
-                     title=f"refined: {args.trajectory}")
+    with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
+        result = refine(dataset.iter_events(cfg.dataset.chunk_size, t_start=initial.t_start, t_end=initial.t_end),
+                        camera, initial, cfg, progress_total=min(t1, initial.t_end) - max(t0, initial.t_start))
+        report = write_result(out, result, cfg, camera, events_range=(t0, t1), full_sphere=args.full_sphere,
+                              groundtruth=dataset.groundtruth, title=f"refined: {args.trajectory}")
     print_derived(result.report)
     print(f"refined {len(result.trajectory)} poses over {result.trajectory.t_end - result.trajectory.t_start:.3f} s, "
-          f"back-end {result.report['us_per_event']['backend']:.3f} us/event -> {out}")
+          f"back-end {result.report['us_per_event']['backend']:.3f} us/event -> {args.out}{status_text(report)}")
     return 0

@@ -36,11 +36,12 @@ def spline_override(args) -> list[str]:
     return [] if args.spline is None else [f"spline_degree={1 if args.spline == 'linear' else 3}"]
 
 
-def write_result(out: Path, result, cfg, camera=None, full_sphere: bool = False, groundtruth=None,
-                 title: str | None = None) -> None:
+def write_result(out: Path, result, cfg, camera=None, events_range=None, full_sphere: bool = False,
+                 groundtruth=None, title: str | None = None) -> dict:
     """Files common to slam, refine and the baselines: trajectory (TUM), map (PNG, gamma, cropped to the observed
     region unless ``full_sphere``: pipelines/panorama.map_image; and raw .npy), the run figure (run.png, with the
-    error over time when ``groundtruth`` is given), report, config."""
+    error over time when ``groundtruth`` is given), report, config. The report gets the run's status and reasons
+    (ti_cmax.status; ``events_range``: the input's time range, which the trajectory should cover) and is returned."""
     import imageio.v3 as iio
     import numpy as np
 
@@ -49,6 +50,7 @@ def write_result(out: Path, result, cfg, camera=None, full_sphere: bool = False,
     from ..outputs import peak_rss_mb, write_report
     from ..pipelines.panorama import PanoramaResult, map_image
     from ..pipelines.sensor_defaults import resolve_config
+    from ..status import apply_status
 
     if isinstance(cfg, SlamConfig) and camera is not None:
         cfg = resolve_config(cfg, camera)  # derived values are written as numbers: a rerun with it is exact
@@ -68,12 +70,16 @@ def write_result(out: Path, result, cfg, camera=None, full_sphere: bool = False,
     # of the whole process so far; with a back-end worker (--parallel) plus the worker's own peak: the sum of the two
     # peaks, an upper bound of their total at any moment (the main process alone was half of it on a VGA run)
     report["peak_rss_mb"] = peak_rss_mb() + report.get("backend_process", {}).get("peak_rss_mb", 0.0)
+    traj = result.trajectory
+    apply_status(report, events_range=events_range,
+                 trajectory_range=(traj.t_start, traj.t_end) if len(traj) else None)
     write_report(out, report)
     write_run_figure(out / "run.png", result.trajectory, result.frontend, getattr(result, "windows", None),
                      groundtruth, title=title or report.get("method"))
     if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
         write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
     save_config(cfg, out / "config.yaml")
+    return report
 
 
 def write_run_figure(path: Path, trajectory, frontend=None, windows=None, groundtruth=None, title=None) -> None:
@@ -118,6 +124,7 @@ def run(args) -> int:
     from ..io import open_dataset_from_config
     from ..outputs import OutputDir
     from ..pipelines.slam import default_backend_process, run_slam
+    from ..status import status_text
 
     cfg = load_config(SlamConfig, args.config, list(args.overrides) + spline_override(args))
     dataset = open_dataset_from_config(args.dataset, cfg.dataset)
@@ -129,33 +136,33 @@ def run(args) -> int:
 
         raise InputError("--viewer and --save-recording are not available with --realtime")
     check_workload(cfg, t0, t1, realtime=args.realtime)
-    if args.realtime:
-        import sys
+    with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
+        if args.realtime:
+            import sys
 
-        from ..pipelines.realtime import READ_EVENTS, run_realtime
+            from ..pipelines.realtime import READ_EVENTS, run_realtime
 
-        log = None if args.quiet else (lambda msg: print(f"ti-cmax slam: {msg}", file=sys.stderr, flush=True))
-        result = run_realtime(dataset.iter_events(min(cfg.dataset.chunk_size, READ_EVENTS)), camera, cfg,
-                              backend_process=parallel, progress_total=t1 - t0, log=log)
-    else:
-        viewer = None
-        if args.viewer or args.save_recording:
-            from ..viewer import RerunViewer
+            log = None if args.quiet else (lambda msg: print(f"ti-cmax slam: {msg}", file=sys.stderr, flush=True))
+            result = run_realtime(dataset.iter_events(min(cfg.dataset.chunk_size, READ_EVENTS)), camera, cfg,
+                                  backend_process=parallel, progress_total=t1 - t0, log=log)
+        else:
+            viewer = None
+            if args.viewer or args.save_recording:
+                from ..viewer import RerunViewer
 
-            viewer = RerunViewer(camera, cfg, spawn=args.viewer, save=args.save_recording)
-        result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
-                          backend_process=parallel, observer=viewer)
-        if viewer is not None:
-            viewer.finish(result)
-    with OutputDir(args.out) as out:
-        write_result(out, result, cfg, camera, full_sphere=args.full_sphere, groundtruth=dataset.groundtruth,
-                     title=f"CMax-SLAM: {Path(args.dataset).name}")
+                viewer = RerunViewer(camera, cfg, spawn=args.viewer, save=args.save_recording)
+            result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
+                              backend_process=parallel, observer=viewer)
+            if viewer is not None:
+                viewer.finish(result)
+        report = write_result(out, result, cfg, camera, events_range=(t0, t1), full_sphere=args.full_sphere,
+                              groundtruth=dataset.groundtruth, title=f"CMax-SLAM: {Path(args.dataset).name}")
     us = result.report["us_per_event"]
     print_derived(result.report)
     print(f"CMax-SLAM: {result.report['events_processed']} events, {len(result.trajectory)} poses, "
           f"front-end {us['frontend']:.3f} us/event, back-end {us['backend']:.3f} us/event "
           f"(compile {result.report['compile_seconds']:.1f} s apart"
-          f"{'; back-end in a worker process' if parallel else ''}) -> {out}")
+          f"{'; back-end in a worker process' if parallel else ''}) -> {args.out}{status_text(report)}")
     if "realtime" in result.report:
         from ..pipelines.realtime import describe
 

@@ -37,6 +37,7 @@ def run(args) -> int:
     from ..pipelines.panorama import map_image
     from ti_cmax.pipelines.workflows.star_tracking import open_star_or_dataset, run_star_tracking, star_tracking_config
     from ..plots import angular_velocity_from_trajectory, plot_angular_velocity, plot_trajectories
+    from ..status import status_text
     from .slam import spline_override, write_result
 
     cfg = star_tracking_config(args.config, list(args.overrides) + spline_override(args))
@@ -44,15 +45,15 @@ def run(args) -> int:
     gt = read_tum(args.groundtruth) if args.groundtruth else dataset.groundtruth
     t0, t1 = dataset.time_range()
     check_workload(cfg, t0, t1)
-    res = run_star_tracking(dataset, dataset.camera, cfg, groundtruth=gt, window=args.window,
-                            progress_total=t1 - t0)
-    report = dict(res.report)
-    report["dataset"] = {"path": str(args.dataset), "format": getattr(dataset, "format", ""),
-                         "calibration": getattr(dataset, "calibration_source", None),
-                         "groundtruth": gt is not None}
-    with OutputDir(args.out) as out:
-        write_result(out, dataclasses.replace(res.ba, frontend=res.frontend, report=report), cfg, dataset.camera,
-                     full_sphere=args.full_sphere)
+    with OutputDir(args.out) as out:  # locked from here: a second run into --out refuses
+        res = run_star_tracking(dataset, dataset.camera, cfg, groundtruth=gt, window=args.window,
+                                progress_total=t1 - t0)
+        report = dict(res.report)
+        report["dataset"] = {"path": str(args.dataset), "format": getattr(dataset, "format", ""),
+                             "calibration": getattr(dataset, "calibration_source", None),
+                             "groundtruth": gt is not None}
+        report = write_result(out, dataclasses.replace(res.ba, frontend=res.frontend, report=report), cfg,
+                              dataset.camera, events_range=(t0, t1), full_sphere=args.full_sphere)
         iio.imwrite(out / "star_map.png", map_image(res.map, cfg.output.gamma, full_sphere=args.full_sphere)[0],
                     extension=".png")
         est = {"front-end": (res.frontend.t, res.frontend.omega),
@@ -71,7 +72,7 @@ def run(args) -> int:
         e = res.errors
         line += (f"; {args.window * 1000:.0f} ms relative rotation RMSE {e['ba']['rmse_deg']:.3f} deg "
                  f"(std {e['ba']['std_deg']:.3f}), front-end alone {e['frontend']['rmse_deg']:.3f} deg")
-    print(f"{line} -> {out}")
+    print(f"{line} -> {args.out}{status_text(report)}")
     for warning in report.get("warnings", []):
         print(f"ti-cmax star-tracking: warning: {warning}", file=sys.stderr)
     print(json.dumps(json_ready({k: report.get(k) for k in ("rmse_deg", "std_deg")} if res.errors else {})))

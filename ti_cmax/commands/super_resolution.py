@@ -92,5 +92,5 @@ def run(args) -> int:
         write_report(out, report)
         save_config(cfg, out / "config.yaml")
     print(table)
-    print(f"-> {out}")
+    print(f"-> {args.out}")
     return 0

@@ -43,16 +43,18 @@ def run(args) -> int:
     if unknown:
         raise InputError(f"--parameters: unknown {', '.join(unknown)} (expected some of {', '.join(SWEEPS)})")
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", source=str(out))
     if args.dataset:
         from ..io import open_dataset_from_config
 
         if open_dataset_from_config(args.dataset, cfg.dataset).groundtruth is None:
             raise InputError("the sweep needs ground truth (groundtruth.txt)", source=str(args.dataset))
+    from ..outputs import OutputLock
+
     executor = executor_from_args(args)
+    # finished runs stay in DIR for a rerun to reuse; the lock keeps a second sweep from interleaving with this one
     try:
-        return _run(args, cfg, params, out, executor)
+        with OutputLock(out):
+            return _run(args, cfg, params, out, executor)
     finally:
         executor.close()
 

@@ -23,6 +23,9 @@ Data is always read in slices; ``import hdf5plugin`` is attempted so Blosc/ZSTD-
 from __future__ import annotations
 
 import contextlib
+import errno
+import io
+import os
 from pathlib import Path
 from typing import Iterator
 
@@ -318,6 +321,76 @@ class H5Events:
 
 
 # ------------------------------------------------------------------------------------------------
+class _GuardedFile(io.RawIOBase):
+    """The file HDF5 writes through (h5py's file-object driver). HDF5 does not recover from a failed write: after a
+    full disk (ENOSPC) or a file-size limit (EFBIG) the process crashed at exit (segmentation fault in the library's
+    own clean-up). This file records the first failure and from then on discards writes, so HDF5 completes its
+    close normally; the writer then raises the recorded error and the caller removes the file."""
+
+    def __init__(self, path):
+        self._f = open(path, "w+b", buffering=0)  # unbuffered: a seek never flushes (and fails) behind our back
+        self.error: OSError | None = None
+
+    def readable(self):
+        return True
+
+    def writable(self):
+        return True
+
+    def seekable(self):
+        return True
+
+    def seek(self, pos, whence=0):
+        return self._f.seek(pos, whence)
+
+    def tell(self):
+        return self._f.tell()
+
+    def readinto(self, b):
+        return self._f.readinto(b)
+
+    def write(self, b):
+        view = memoryview(b).cast("B")
+        if self.error is None:
+            try:
+                done = 0
+                while done < len(view):
+                    n = self._f.write(view[done:])
+                    if not n:
+                        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                    done += n
+                return done
+            except OSError as exc:
+                self.error = exc
+        self._f.seek(len(view), os.SEEK_CUR)
+        return len(view)
+
+    def truncate(self, size=None):
+        if self.error is None:
+            try:
+                return self._f.truncate(size)
+            except OSError as exc:
+                self.error = exc
+        return size
+
+    def flush(self):
+        pass  # unbuffered
+
+    def close(self):
+        if not self._f.closed:
+            try:
+                self._f.close()
+            except OSError as exc:
+                self.error = self.error or exc
+        super().close()
+
+    def raise_error(self, path) -> None:
+        """The recorded write failure, naming ``path``."""
+        if self.error is not None:
+            code = self.error.errno or errno.EIO
+            raise OSError(code, os.strerror(code), str(path))
+
+
 class EventsH5Writer:
     """Stream events into ``events/{t,x,y,p}`` (t float64 s, x/y uint16, p uint8 0/1), chunked and resizable.
 
@@ -336,10 +409,12 @@ class EventsH5Writer:
         self.compression = compression
         self.subpixel = subpixel
         self._f = None
+        self._raw: _GuardedFile | None = None
         self.count = 0
 
     def __enter__(self):
-        f = self._f = h5py.File(self.path, "w")
+        self._raw = _GuardedFile(self.path)
+        f = self._f = h5py.File(self._raw, "w")
         if self.width is not None and self.height is not None:
             f.attrs["width"] = int(self.width)
             f.attrs["height"] = int(self.height)
@@ -377,14 +452,20 @@ class EventsH5Writer:
             g[k].resize((j,))
             g[k][i:j] = v
         self.count = j
+        self._raw.raise_error(self.path)  # a full disk ends the run here, not after the last event
 
     def close(self):
+        """Close the file; raises the OSError of a write that failed (the file is then incomplete)."""
         if self._f is not None:
-            if "events" not in self._f:
-                self._create(bool(self.subpixel))
-            self._f.attrs["num_events"] = self.count
-            self._f.close()
-            self._f = None
+            try:
+                if "events" not in self._f:
+                    self._create(bool(self.subpixel))
+                self._f.attrs["num_events"] = self.count
+            finally:
+                self._f.close()
+                self._f = None
+                self._raw.close()
+            self._raw.raise_error(self.path)
 
     def __exit__(self, *exc):
         self.close()
