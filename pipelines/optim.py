@@ -203,6 +203,93 @@ def fletcher_reeves(
     return CGResult(x, sign * f, sign * g, it, fc.count, converged, message)
 
 
+def _carried_inverse_hessian(inv_hessian, max_condition: float) -> np.ndarray | None:
+    """The inverse Hessian a problem starts from: the carried one, unless ``max_condition`` > 0 and its condition
+    number exceeds it (also when it has a non-positive eigenvalue): then None, a cold start. BFGS only corrects H
+    along the steps it takes, so a direction whose inverse curvature collapsed (one update across a noisy,
+    non-quadratic cost) gets steps too short to ever be corrected, and the step tolerance then stops far from the
+    optimum along it, packet after packet."""
+    H = None if inv_hessian is None else np.array(inv_hessian, dtype=float)
+    if H is not None and max_condition > 0:
+        ev = np.linalg.eigvalsh(H)
+        if not ev[0] * max_condition >= ev[-1]:
+            H = None
+    return H
+
+
+def _bfgs_step(fc, x, p, f, d, norm, steepest, max_line_evals, c1, c2, max_step):
+    """Line search along p from x (cost f, slope d, step length norm): backtracking by quadratic interpolation until
+    the Armijo condition (c1) holds, at most ``max_line_evals`` evaluations; a steepest-descent step after which the
+    cost still falls nearly as steeply (weak Wolfe constant c2) is doubled while that lowers the cost, so a cold
+    start far from the optimum does not crawl. Returns (a, accepted, f_new, g_new)."""
+    a, accepted, evals = 1.0, False, 0
+    while evals < max_line_evals:  # backtrack until the Armijo condition holds
+        f_new, g_new = fc(x + a * p)
+        evals += 1
+        if f_new <= f + c1 * a * d:
+            accepted = True
+            break
+        # minimiser of the quadratic through f, d (at 0) and f_new (at a), kept in [0.1 a, 0.5 a]
+        curv = 2.0 * (f_new - f - a * d)
+        a = min(max(-d * a * a / curv if curv > 0 else 0.5 * a, 0.1 * a), 0.5 * a)
+    # a steepest-descent step (no curvature known yet) after which the cost still falls nearly as steeply (weak
+    # Wolfe curvature condition fails): far too short, e.g. a cold start far from the optimum; double it while
+    # that lowers the cost. Quasi-Newton steps are not expanded (a far jump could land on another optimum)
+    while (steepest and accepted and evals < max_line_evals and float(g_new @ p) < c2 * d
+           and 2.0 * a * norm <= max_step * (1.0 + 1e-12)):
+        f_try, g_try = fc(x + 2.0 * a * p)
+        evals += 1
+        if not f_try < f_new:
+            break
+        a, f_new, g_new = 2.0 * a, f_try, g_try
+    return a, accepted, f_new, g_new
+
+
+def _bfgs_update(H, s, y) -> tuple[np.ndarray | None, int]:
+    """BFGS update of the inverse Hessian by the step s and gradient change y (Nocedal & Wright eq. 6.17; the
+    first one scaled by eq. 6.20); skipped when s.y <= 0 (it would lose positive definiteness). Returns (H, 1 if
+    updated else 0)."""
+    sy = float(s @ y)
+    if not sy > 0:
+        return H, 0
+    n = len(s)
+    if H is None:
+        H = np.eye(n) * (sy / float(y @ y))
+    rho = 1.0 / sy
+    v = np.eye(n) - rho * np.outer(s, y)
+    return v @ H @ v.T + rho * np.outer(s, s), 1
+
+
+def _bfgs_direction(H, g, init_step: float, max_step: float):
+    """The quasi-Newton step -H g, or a steepest-descent step of length ``init_step`` when no curvature is known
+    yet or H lost positive definiteness numerically (H is then None), capped at ``max_step``. Returns (H, p,
+    d = g.p, |p|, capped)."""
+    p = None if H is None else -(H @ g)
+    if p is None or not float(g @ p) < 0:
+        H = None
+        p = -g * (init_step / np.linalg.norm(g))
+    d = float(g @ p)
+    norm = float(np.linalg.norm(p))
+    capped = norm > max_step
+    if capped:
+        p *= max_step / norm
+        d *= max_step / norm
+        norm = max_step
+    return H, p, d, norm, capped
+
+
+def _learnt_stop(f, f_old, g, H, learnt: bool, rel_cost_tol: float, step_tol: float) -> str:
+    """Why BFGS stops after a step ("" if it goes on). A small cost change means convergence once H has learnt the
+    curvature (a carried H, or n updates from a cold start): before that, a step may just be short along a
+    direction H underestimates. A next quasi-Newton step -H g shorter than ``step_tol`` (x units) also stops it: the
+    evaluation that step would cost cannot move the solution by more than that."""
+    if learnt and abs(f - f_old) <= rel_cost_tol * max(abs(f_old), 1e-300):
+        return "relative cost tolerance reached"
+    if step_tol > 0 and learnt and H is not None and float(np.linalg.norm(H @ g)) < step_tol:
+        return "step tolerance reached"
+    return ""
+
+
 def bfgs(
     fun: Callable[[np.ndarray], tuple[float, np.ndarray]],
     x0,
@@ -224,48 +311,29 @@ def bfgs(
 ) -> tuple[CGResult, np.ndarray | None]:
     """Minimise (or maximise) fun by BFGS from a given inverse Hessian; returns (result, inverse Hessian).
 
-    Made for a sequence of similar problems (the front-end's packets): the caller passes back the inverse
-    Hessian the last problem ended with, so the first step is already a (quasi-)Newton step and a packet
-    usually converges in 3 evaluations instead of CG's 4-5. ``inv_hessian=None`` starts with a steepest-descent
-    step of length ``init_step`` and scales the first update by (s.y)/(y.y) (Nocedal & Wright eq. 6.20).
-    Steps are capped at ``max_step`` (x units) and backtracked (quadratic interpolation, Armijo constant c1,
-    at most ``max_line_evals`` evaluations per step); a steepest-descent step (no curvature known yet) after which
-    the cost still falls nearly as steeply (weak Wolfe curvature constant c2) is doubled while that lowers the
-    cost, so a cold start far from the optimum does not crawl. Stops as CG does, at ||grad|| < ``grad_tol`` or a
-    cost change below ``rel_cost_tol`` relative to its magnitude, the latter once H is learnt (carried in, or n
-    updates since a cold start). A failed line search returns the best point and None (the next
-    problem starts afresh); an update that would lose positive definiteness (s.y <= 0) is skipped.
-    ``step_tol`` > 0 also stops, once H is learnt, when the next quasi-Newton step -H g would be shorter than it
-    (x units): the evaluation that step would cost cannot move the solution by more than that.
-    ``deadline`` (a ``time.monotonic()`` value): no new iteration starts after it (a real-time budget); the best
-    point so far is returned, message "time budget reached".
-    ``max_condition`` > 0: a carried ``inv_hessian`` whose condition number exceeds it is dropped (a cold start).
-    BFGS only corrects H along the steps it takes, so a direction whose inverse curvature collapsed (one update
-    across a noisy, non-quadratic cost) gets steps too short to ever be corrected, and the step tolerance then
-    stops far from the optimum along it, packet after packet.
-    ``last_step_unevaluated``: once H is learnt, a full quasi-Newton step whose predicted cost change (the quadratic
-    model's, g.H.g / 2) is below half ``rel_cost_tol`` is taken without evaluating it, and BFGS stops there (message
-    "predicted cost change below tolerance"; ``fun`` and ``grad`` are then the last evaluated ones, and H lacks that
-    step's update). Otherwise the same step would be evaluated and, its measured change being under the tolerance
-    unless the model is off by over 2x, stop there: the same point for one evaluation less. (At the full tolerance
-    the back-end saved 25 % of its evaluations but lost 4 % abs accuracy: the model underestimated often enough.)
+    Made for a sequence of similar problems (the front-end's packets): the caller passes back the inverse Hessian
+    the last problem ended with, so the first step is already a quasi-Newton step. ``inv_hessian=None`` starts with
+    a steepest-descent step of length ``init_step`` and scales the first update by (s.y)/(y.y) (Nocedal & Wright
+    eq. 6.20); ``max_condition``: :func:`_carried_inverse_hessian`. Steps are capped at ``max_step`` (x units) and
+    searched by :func:`_bfgs_step`. Stops at ||grad|| < ``grad_tol`` or, once H is learnt, by :func:`_learnt_stop`.
+    A failed line search returns the best point and None (the next problem starts afresh); an update that would
+    lose positive definiteness is skipped. ``deadline`` (a ``time.monotonic()`` value): no new iteration starts
+    after it (a real-time budget), message "time budget reached". ``last_step_unevaluated``: once H is learnt, a
+    full quasi-Newton step whose predicted cost change (g.H.g / 2) is below half ``rel_cost_tol`` is taken without
+    evaluating it and BFGS stops there, where the evaluated step would stop too unless the model is off by over 2x
+    ("predicted cost change below tolerance"; ``fun``, ``grad``: the last evaluated, H lacks that step's update).
     """
     sign = -1.0 if maximize else 1.0
     fc = _Counted(fun, sign)
     x = np.array(x0, dtype=float)
     n = x.size
-    H = None if inv_hessian is None else np.array(inv_hessian, dtype=float)
-    if H is not None and max_condition > 0:
-        ev = np.linalg.eigvalsh(H)
-        if not ev[0] * max_condition >= ev[-1]:  # also drops an H with a non-positive eigenvalue
-            H = None
+    H = _carried_inverse_hessian(inv_hessian, max_condition)
     updates = 0 if H is None else n  # BFGS updates behind H (a carried H counts as learnt)
     f, g = fc(x)
-    it = 0
-    converged, message = False, "maximum number of iterations reached"
-    unevaluated = False  # x is a last step taken without evaluating it (last_step_unevaluated)
     if not np.isfinite(f):
         return CGResult(x, sign * f, sign * g, 0, fc.count, False, "non-finite cost at the starting point"), None
+    it, converged, message = 0, False, "maximum number of iterations reached"
+    unevaluated = False  # x is a last step taken without evaluating it (last_step_unevaluated)
     while it < max_iter:
         if np.linalg.norm(g) < grad_tol:
             converged, message = True, "gradient tolerance reached"
@@ -274,65 +342,29 @@ def bfgs(
             message = "time budget reached"
             break
         it += 1
-        p = None if H is None else -(H @ g)
-        if p is None or not float(g @ p) < 0:  # no curvature yet, or H lost positive definiteness numerically
-            H, updates = None, 0
-            p = -g * (init_step / np.linalg.norm(g))
-        d = float(g @ p)
+        H, p, d, norm, capped = _bfgs_direction(H, g, init_step, max_step)
         steepest = H is None
-        norm = float(np.linalg.norm(p))
-        if norm > max_step:
-            p *= max_step / norm
-            d *= max_step / norm
-            norm = max_step
-        elif (last_step_unevaluated and not steepest and updates >= n
+        if steepest:
+            updates = 0
+        elif (not capped and last_step_unevaluated and updates >= n
               and -0.5 * d <= 0.5 * rel_cost_tol * max(abs(f), 1e-300)):
             x = x + p
             converged, message, unevaluated = True, "predicted cost change below tolerance", True
             break
-        a, accepted, evals = 1.0, False, 0
-        while evals < max_line_evals:  # backtrack until the Armijo condition holds
-            f_new, g_new = fc(x + a * p)
-            evals += 1
-            if f_new <= f + c1 * a * d:
-                accepted = True
-                break
-            # minimiser of the quadratic through f, d (at 0) and f_new (at a), kept in [0.1 a, 0.5 a]
-            curv = 2.0 * (f_new - f - a * d)
-            a = min(max(-d * a * a / curv if curv > 0 else 0.5 * a, 0.1 * a), 0.5 * a)
-        # a steepest-descent step (no curvature known yet) after which the cost still falls nearly as steeply (weak
-        # Wolfe curvature condition fails): far too short, e.g. a cold start far from the optimum; double it while
-        # that lowers the cost. Quasi-Newton steps are not expanded (a far jump could land on another optimum)
-        while (steepest and accepted and evals < max_line_evals and float(g_new @ p) < c2 * d
-               and 2.0 * a * norm <= max_step * (1.0 + 1e-12)):
-            f_try, g_try = fc(x + 2.0 * a * p)
-            evals += 1
-            if not f_try < f_new:
-                break
-            a, f_new, g_new = 2.0 * a, f_try, g_try
+        a, accepted, f_new, g_new = _bfgs_step(fc, x, p, f, d, norm, steepest, max_line_evals, c1, c2, max_step)
         if not accepted:
             message = "line search made no progress"
             converged = np.linalg.norm(g) < 10 * grad_tol
             H = None
             break
         s, y = a * p, g_new - g
-        sy = float(s @ y)
-        if sy > 0:
-            if H is None:
-                H = np.eye(n) * (sy / float(y @ y))
-            rho = 1.0 / sy
-            v = np.eye(n) - rho * np.outer(s, y)
-            H = v @ H @ v.T + rho * np.outer(s, s)
-            updates += 1
+        H, updated = _bfgs_update(H, s, y)
+        updates += updated
         f_old = f
         x, f, g = x + s, f_new, g_new
-        # a small cost change means convergence once H has learnt the curvature (a carried H, or n updates from a
-        # cold start): before that, a step may just be short along a direction H underestimates
-        if updates >= n and abs(f - f_old) <= rel_cost_tol * max(abs(f_old), 1e-300):
-            converged, message = True, "relative cost tolerance reached"
-            break
-        if step_tol > 0 and updates >= n and H is not None and float(np.linalg.norm(H @ g)) < step_tol:
-            converged, message = True, "step tolerance reached"
+        stop = _learnt_stop(f, f_old, g, H, updates >= n, rel_cost_tol, step_tol)
+        if stop:
+            converged, message = True, stop
             break
     best_x, best_f, best_g = fc.best
     if best_f < f and not unevaluated:

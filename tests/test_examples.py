@@ -35,6 +35,7 @@ def _printed_rmse(out, label):
     return float(m.group(1))
 
 
+@pytest.mark.slow
 def test_ecd_folder_example(sim_folder, tmp_path, monkeypatch, capsys):
     folder, _ = sim_folder
     out = _run_example("ecd_folder.py", [folder, "--out", tmp_path / "ecd"], monkeypatch, capsys)
@@ -43,6 +44,7 @@ def test_ecd_folder_example(sim_folder, tmp_path, monkeypatch, capsys):
     assert _printed_rmse(out, "CMax-SLAM") < 1.0  # scored from t0 = start + 1 s, as real data is
 
 
+@pytest.mark.slow
 def test_hdf5_example(sim_folder, tmp_path, monkeypatch, capsys):
     folder, seq = sim_folder
     out = _run_example("hdf5_file.py", [folder / "events.h5", "--out", tmp_path / "h5"], monkeypatch, capsys)
@@ -67,6 +69,7 @@ def test_ros_bag_example(sim_folder, tmp_path, monkeypatch, capsys, write_ros1_b
     assert traj.t[0] >= events.t[0] - 1e-6 and traj.t[-1] > events.t[0] + 0.15
 
 
+@pytest.mark.slow
 def test_simulated_sequence_example(tmp_path, monkeypatch, capsys, ti_runtime):
     out = _run_example("simulated_sequence.py", ["--sensor", "DVS128", "--scene", "bay", "--duration", "1.2",
                                                  "--out", tmp_path / "sim"], monkeypatch, capsys)
@@ -83,6 +86,7 @@ def test_real_ecd_slices_example(real_data, monkeypatch, capsys, ti_runtime):
     assert "windows refined" in out
 
 
+@pytest.mark.slow
 def test_profile_cpu_example(tmp_path):
     proc = subprocess.run([sys.executable, str(EXAMPLES / "profile_cpu.py"), "--duration", "0.4", "--sensor",
                            "DVS128", "--threads", "2"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
@@ -92,6 +96,7 @@ def test_profile_cpu_example(tmp_path):
     assert "Taichi kernels (steady state)" in out and re.search(r"k_\w+|vote|project", out), out[-2000:]
 
 
+@pytest.mark.slow
 def test_live_source_example(tmp_path, monkeypatch, capsys, ti_runtime):
     out = _run_example("live_source.py", ["--duration", "0.6", "--packet-us", "700", "--out", tmp_path / "live"],
                        monkeypatch, capsys)

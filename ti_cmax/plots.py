@@ -190,44 +190,25 @@ _WINDOW_STATES = (  # (WindowReport flag, label, colour) in order of precedence
 )
 
 
-def plot_run(path: str | os.PathLike, trajectory: Trajectory, *, omega: tuple | None = None,
-             windows: Sequence | None = None, event_rate: tuple | None = None,
-             groundtruth: Trajectory | None = None, title: str | None = None) -> list[str]:
-    """The figure of one run, with or without ground truth: orientation (roll, pitch, yaw) and angular velocity
-    over time, the back-end's correction per window coloured by its status, events per second, and (with ground
-    truth) the absolute error over time. Returns the panels drawn.
+def _aligned_run(trajectory: Trajectory, groundtruth: Trajectory | None):
+    """(trajectory aligned to the ground truth at the start of their overlap, the ground truth over that overlap,
+    the errors); (trajectory, None, None) without ground truth or with too short an overlap to evaluate."""
+    if groundtruth is None or len(groundtruth) < 2 or len(trajectory) < 2:
+        return trajectory, None, None
+    from .errors import InputError
+    from .metrics import evaluate_rotations
 
-    ``omega``: (t, (N, 3) rad/s) of the front-end (default: differences of the trajectory); ``windows``: the
-    back-end's WindowReports; ``event_rate``: (t, events/s). With ground truth the estimate is aligned to it at the
-    start of the overlap and drawn over it (dashed)."""
-    errors = None
-    if groundtruth is not None and len(groundtruth) > 1 and len(trajectory) > 1:
-        from .errors import InputError
-        from .metrics import evaluate_rotations
+    lo, hi = max(groundtruth.t_start, trajectory.t_start), min(groundtruth.t_end, trajectory.t_end)
+    try:
+        errors = evaluate_rotations(groundtruth, trajectory, t0=lo) if hi > lo else None
+    except InputError:  # too short an overlap to evaluate: the run is drawn without ground truth
+        errors = None
+    if errors is None:
+        return trajectory, None, None
+    return trajectory.aligned_to(groundtruth, errors.t0), groundtruth.slice_time(lo, hi), errors
 
-        lo, hi = max(groundtruth.t_start, trajectory.t_start), min(groundtruth.t_end, trajectory.t_end)
-        try:
-            errors = evaluate_rotations(groundtruth, trajectory, t0=lo) if hi > lo else None
-        except InputError:  # too short an overlap to evaluate: the run is drawn without ground truth
-            errors = None
-        if errors is not None:
-            trajectory = trajectory.aligned_to(groundtruth, errors.t0)
-            groundtruth = groundtruth.slice_time(lo, hi)
-        else:
-            groundtruth = None
-    else:
-        groundtruth = None
-    panels = ["orientation", "angular velocity"]
-    if windows:
-        panels.append("back-end")
-    if event_rate is not None and len(event_rate[0]):
-        panels.append("event rate")
-    if errors is not None:
-        panels.append("error")
-    fig = _figure(9, 1.9 * len(panels) + 0.8)
-    axes = dict(zip(panels, np.atleast_1d(fig.subplots(len(panels), 1, sharex=True))))
 
-    ax = axes["orientation"]
+def _orientation_panel(ax, trajectory: Trajectory, groundtruth: Trajectory | None) -> None:
     ang, _ = _angles_deg(trajectory, "euler")
     for i, name in enumerate(("roll (x)", "pitch (y)", "yaw (z)")):
         ax.plot(trajectory.t, ang[:, i], color=_AXIS_COLORS[i], linewidth=1.2, label=name)
@@ -239,7 +220,8 @@ def plot_run(path: str | os.PathLike, trajectory: Trajectory, *, omega: tuple | 
     ax.set_ylabel("orientation [deg]\n(Euler xyz)")
     ax.legend(loc="upper left", fontsize="small", ncol=4)
 
-    ax = axes["angular velocity"]
+
+def _angular_velocity_panel(ax, trajectory: Trajectory, groundtruth: Trajectory | None, omega) -> None:
     # from poses: differences over at least 1/300 of the run (a tracker's 14 kHz poses differenced are mostly noise)
     spacing = (trajectory.t_end - trajectory.t_start) / 300 if len(trajectory) > 300 else None
     t_w, w = omega if omega is not None else angular_velocity_from_trajectory(trajectory, spacing)
@@ -254,20 +236,47 @@ def plot_run(path: str | os.PathLike, trajectory: Trajectory, *, omega: tuple | 
     ax.set_ylabel("angular velocity\n[rad/s, camera]")
     ax.legend(loc="upper left", fontsize="small", ncol=3)
 
+
+def _backend_panel(ax, windows: Sequence) -> None:
+    seen = set()
+    for win in windows:
+        flag, label, color = next(((f, lab, c) for f, lab, c in _WINDOW_STATES if getattr(win, f, False)),
+                                  ("none", "no events", "lightgray"))
+        y = np.degrees(win.max_correction)  # windows overlap: a line over each window's span, a dot mid-way
+        ax.hlines(y, win.t_start, win.t_end, color=color, alpha=0.5, linewidth=1.5)
+        ax.plot(0.5 * (win.t_start + win.t_end), y, "o", color=color, markersize=4,
+                label=None if flag in seen else label)
+        seen.add(flag)
+    ax.set_ylim(bottom=0)
+    ax.set_ylabel("BA correction\nper window [deg]")
+    ax.legend(loc="upper left", fontsize="small", ncol=3)
+
+
+def plot_run(path: str | os.PathLike, trajectory: Trajectory, *, omega: tuple | None = None,
+             windows: Sequence | None = None, event_rate: tuple | None = None,
+             groundtruth: Trajectory | None = None, title: str | None = None) -> list[str]:
+    """The figure of one run, with or without ground truth: orientation (roll, pitch, yaw) and angular velocity
+    over time, the back-end's correction per window coloured by its status, events per second, and (with ground
+    truth) the absolute error over time. Returns the panels drawn.
+
+    ``omega``: (t, (N, 3) rad/s) of the front-end (default: differences of the trajectory); ``windows``: the
+    back-end's WindowReports; ``event_rate``: (t, events/s). With ground truth the estimate is aligned to it at the
+    start of the overlap and drawn over it (dashed)."""
+    trajectory, groundtruth, errors = _aligned_run(trajectory, groundtruth)
+    panels = ["orientation", "angular velocity"]
+    if windows:
+        panels.append("back-end")
+    if event_rate is not None and len(event_rate[0]):
+        panels.append("event rate")
+    if errors is not None:
+        panels.append("error")
+    fig = _figure(9, 1.9 * len(panels) + 0.8)
+    axes = dict(zip(panels, np.atleast_1d(fig.subplots(len(panels), 1, sharex=True))))
+
+    _orientation_panel(axes["orientation"], trajectory, groundtruth)
+    _angular_velocity_panel(axes["angular velocity"], trajectory, groundtruth, omega)
     if "back-end" in axes:
-        ax = axes["back-end"]
-        seen = set()
-        for win in windows:
-            flag, label, color = next(((f, lab, c) for f, lab, c in _WINDOW_STATES if getattr(win, f, False)),
-                                      ("none", "no events", "lightgray"))
-            y = np.degrees(win.max_correction)  # windows overlap: a line over each window's span, a dot mid-way
-            ax.hlines(y, win.t_start, win.t_end, color=color, alpha=0.5, linewidth=1.5)
-            ax.plot(0.5 * (win.t_start + win.t_end), y, "o", color=color, markersize=4,
-                    label=None if flag in seen else label)
-            seen.add(flag)
-        ax.set_ylim(bottom=0)
-        ax.set_ylabel("BA correction\nper window [deg]")
-        ax.legend(loc="upper left", fontsize="small", ncol=3)
+        _backend_panel(axes["back-end"], windows)
     if "event rate" in axes:
         ax = axes["event rate"]
         ax.plot(event_rate[0], np.asarray(event_rate[1]) / 1e6, color="k", linewidth=1.0,

@@ -91,6 +91,7 @@ numpy twin (``*_numpy``). f32 uses the polynomial atan2 of kernels/pano.
 """
 
 import functools
+import types
 
 import numpy as np
 
@@ -270,13 +271,15 @@ def pf_loglik_numpy(particles, bearings, ref_uv, ref_n, pol, grad, cov, updates,
 # ----------------------------------------------------------------------------------------------------------------
 # Taichi kernels
 # ----------------------------------------------------------------------------------------------------------------
+def _event_types(dtype):
+    """Taichi types of the event kernels' arguments: bearing, rotation (map dtype) and index."""
+    return ti.types.vector(3, dtype), ti.types.matrix(3, 3, dtype), ti.i32
+
+
 @functools.cache
-def _kernels(dtype):
-    project, project_jacobian = _proj_funcs(dtype)
-    bl = bilinear_funcs(dtype)
-    so3t = _so3_funcs(dtype)
-    vec3 = ti.types.vector(3, dtype)
-    mat3 = ti.types.matrix(3, 3, dtype)
+def _selection_funcs(dtype):
+    """ti.funcs of the reference selection in the map dtype: longitude wrap and one event's reference."""
+    project = _proj_funcs(dtype)[0]
     i32 = ti.i32
 
     @ti.func
@@ -327,6 +330,19 @@ def _kernels(dtype):
                     count[k] += 1
         last_b[k] = b
         last_p[k] = pol[e]
+
+    return types.SimpleNamespace(wrap=wrap, select_event=select_event)
+
+
+@functools.cache
+def _event_funcs(dtype):
+    """ti.funcs of one event in the map dtype: reference selection, the segment's increment model, its Jacobians
+    (fixed or state references) and the Huber weight."""
+    project, project_jacobian = _proj_funcs(dtype)
+    bl = bilinear_funcs(dtype)
+    so3t = _so3_funcs(dtype)
+    sel = _selection_funcs(dtype)
+    wrap, select_event = sel.wrap, sel.select_event
 
     @ti.func
     def weigh(r, S, agree, sup, huber):
@@ -403,6 +419,14 @@ def _kernels(dtype):
         S += (q2 + q5 * dtr * dtr) * dt3 * hr.dot(hr)
         return r, S, Hd, Hw, agree, sup
 
+    return types.SimpleNamespace(select_event=select_event, weigh=weigh, measure=measure, measure_cv=measure_cv)
+
+
+@functools.cache
+def _select_kernel(dtype):
+    select_event = _event_funcs(dtype).select_event
+    vec3, mat3, i32 = _event_types(dtype)
+
     @ti.kernel
     def k_select(hist: ti.types.ndarray(dtype=mat3, ndim=1), sel_R: ti.types.ndarray(dtype=mat3, ndim=1),
                  b0: i32, b1: i32, batch_size: i32, bearings: ti.types.ndarray(dtype=vec3, ndim=1),
@@ -418,6 +442,15 @@ def _kernels(dtype):
             for e in range(b * batch_size, ti.min((b + 1) * batch_size, n)):
                 select_event(e, b, sel_R[b - b0], hist, bearings, pix, pol, ref_b, last_b, last_p, count, width,
                              height, su, sv, outlier2, min2, v_band, max_n, ref_uv, ref_n, ref_src)
+
+    return k_select
+
+
+@functools.cache
+def _batch_kernels(dtype):
+    """k_accumulate (one pose: the EKF's normal equations) and k_loglik (many poses: the PF's likelihoods)."""
+    measure = _event_funcs(dtype).measure
+    vec3, mat3, i32 = _event_types(dtype)
 
     @ti.kernel
     def k_accumulate(R: ti.types.ndarray(dtype=mat3, ndim=1), bearings: ti.types.ndarray(dtype=vec3, ndim=1),
@@ -462,6 +495,7 @@ def _kernels(dtype):
                         if agree > 0:
                             out[11] += 1.0
 
+
     @ti.kernel
     def k_loglik(particles: ti.types.ndarray(dtype=mat3, ndim=1), bearings: ti.types.ndarray(dtype=vec3, ndim=1),
                  ref_uv: ti.types.ndarray(dtype=dtype, ndim=2), ref_n: ti.types.ndarray(dtype=i32, ndim=1),
@@ -481,9 +515,13 @@ def _kernels(dtype):
                     acc += ti.cast(ti.log(dens + floor), ti.f64)
             out[i] = acc
 
+    return k_accumulate, k_loglik
+
+
+@functools.cache
+def _filter_funcs():
+    """The filter's float64 algebra: SO(3) functions and the n x n products and inverse over a scratch array."""
     f64 = ti.f64
-    mat3d = ti.types.matrix(3, 3, f64)
-    vec3d = ti.types.vector(3, f64)
     so3d = _so3_funcs(f64)
 
     # the filter's n x n algebra (n = 6 or 9) runs in loops over a scratch array ``work`` (k, 9, 9): unrolled
@@ -520,6 +558,15 @@ def _kernels(dtype):
                 s = 0.5 * (work[dst, i, j] + work[dst, j, i])
                 work[dst, i, j] = s
                 work[dst, j, i] = s
+
+    return types.SimpleNamespace(so3d=so3d, ws_matmul=ws_matmul, ws_inv_spd=ws_inv_spd)
+
+
+@functools.cache
+def _normal_equations(dtype):
+    ef = _event_funcs(dtype)
+    weigh, measure, measure_cv = ef.weigh, ef.measure, ef.measure_cv
+    f64 = ti.f64
 
     @ti.func
     def normal_equations(m: ti.template(), rd, wd, ad, b, e0, e_end, mids: ti.template(), bearings: ti.template(),
@@ -559,6 +606,21 @@ def _kernels(dtype):
                 hb += wt * ti.cast(r, f64) * h
                 cnt += ti.Vector([1.0, cs, ca, cg], f64)
         return lam, hb, cnt
+
+    return normal_equations
+
+
+@functools.cache
+def _track_kernel(dtype):
+    """k_ekf_track in the map dtype ``dtype``; the filter's state and algebra are float64."""
+    select_event = _selection_funcs(dtype).select_event
+    normal_equations = _normal_equations(dtype)
+    ff = _filter_funcs()
+    ws_matmul, ws_inv_spd, so3d = ff.ws_matmul, ff.ws_inv_spd, ff.so3d
+    vec3, mat3, i32 = _event_types(dtype)
+    f64 = ti.f64
+    mat3d = ti.types.matrix(3, 3, f64)
+    vec3d = ti.types.vector(3, f64)
 
     @ti.kernel
     def k_ekf_track(hist: ti.types.ndarray(dtype=mat3, ndim=1), hist64: ti.types.ndarray(dtype=mat3d, ndim=1),
@@ -740,7 +802,7 @@ def _kernels(dtype):
             diag[b - b0, 6] = kap_den
             diag[b - b0, 4] = cnt[3]
 
-    return k_select, k_accumulate, k_loglik, k_ekf_track
+    return k_ekf_track
 
 
 def _tdt(np_dtype):
@@ -761,7 +823,7 @@ def select_references(hist, sel_R, b0: int, b1: int, batch_size: int, bearings, 
     arrays in the dtype of ``ref_uv`` (f32 or f64), C-contiguous."""
     ensure_init()
     dtype = ref_uv.dtype
-    k = _kernels(_tdt(dtype))[0]
+    k = _select_kernel(_tdt(dtype))
     if ref_src is None:
         ref_src = np.zeros(len(ref_n), np.int32)
     if b1 > b0:
@@ -783,7 +845,7 @@ def ekf_accumulate(R, bearings, ref_uv, ref_n, pol, grad, cov, updates, contrast
     """
     ensure_init()
     dtype = grad.dtype
-    k = _kernels(_tdt(dtype))[1]
+    k = _batch_kernels(_tdt(dtype))[0]
     out = np.zeros(N_ACC, np.float64)
     h, w = updates.shape
     if len(pol):
@@ -799,7 +861,7 @@ def pf_loglik(particles, bearings, ref_uv, ref_n, pol, grad, cov, updates, contr
     """(N,) float64 log-likelihood of a batch for each particle pose (N, 3, 3); dtype of ``grad`` selects f32/f64."""
     ensure_init()
     dtype = grad.dtype
-    k = _kernels(_tdt(dtype))[2]
+    k = _batch_kernels(_tdt(dtype))[1]
     parts = _c(np.asarray(particles).reshape(-1, 3, 3), dtype)
     out = np.zeros(len(parts), np.float64)
     h, w = updates.shape
@@ -833,7 +895,7 @@ def ekf_track(hist, hist64, mids, b0: int, b1: int, batch_size: int, bearings, p
     """
     ensure_init()
     dtype = grad.dtype
-    k = _kernels(_tdt(dtype))[3]
+    k = _track_kernel(_tdt(dtype))
     if ref_src is None:
         ref_src = np.zeros(len(ref_n), np.int32)
     ns = 6 if state_a is None else 9

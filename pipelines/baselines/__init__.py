@@ -9,14 +9,14 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-import numpy as np
-
 from ti_cmax.config import BackendConfig, DatasetConfig, OutputConfig, SlamConfig
 from ti_cmax.errors import InputError
-from ti_cmax.events import Events
-from ti_cmax.trajectory import Trajectory
 
+from ti_cmax.pipelines.panorama import render_panorama
+from ti_cmax.pipelines.sensor_defaults import pano_size
 from .cmax_gae import GAEConfig, run_cmax_gae
+from .imu import dead_reckoning
+from .result import AngularVelocity, BaselineResult, CountedChunks
 from .rtpt import RTPTConfig, run_rtpt
 from .smt import SmtConfig, smt_ekf_baseline, smt_pf_baseline
 
@@ -38,61 +38,8 @@ class BaselineConfig:
         return SlamConfig(dataset=self.dataset, backend=self.backend, output=self.output)
 
 
-@dataclass
-class AngularVelocity:
-    """Angular velocity estimates of a method that has them (written as angular_velocity.txt)."""
-
-    t: np.ndarray  # (M,) s
-    omega: np.ndarray  # (M, 3) rad/s, camera frame
-
-    def __len__(self) -> int:
-        return len(self.t)
-
-
-@dataclass
-class BaselineResult:
-    """A baseline's trajectory, its own map (h, w) and report (status "ok" or "lost" with lost_at)."""
-
-    trajectory: Trajectory
-    map: np.ndarray
-    report: dict
-    frontend: AngularVelocity | None = None  # name kept from SlamResult: the slam writer reads it
-    map_kind: str = "events"  # "events": counts of warped events; "intensity": 8-bit grayscale (SMT)
-
-
-class CountedChunks:
-    """The time-ordered chunks of an Events object, an iterable of chunks or a dataset, counting the events read
-    (``count``), so that a baseline streams its input and still reports how much it consumed."""
-
-    def __init__(self, events_or_chunks):
-        from ti_cmax.pipelines.frontend import as_chunks
-
-        self._chunks = as_chunks(events_or_chunks)
-        self.span = _known_span(events_or_chunks)
-        self.count = 0
-
-    def __iter__(self):
-        for chunk in self._chunks:
-            self.count += len(chunk)
-            yield chunk
-
-
-def _known_span(events_or_chunks) -> float | None:
-    """Duration of the input when it is known before reading (Events, dataset), for progress bars."""
-    if isinstance(events_or_chunks, Events):
-        return float(events_or_chunks.duration) if len(events_or_chunks) else None
-    if hasattr(events_or_chunks, "time_range"):
-        t0, t1 = events_or_chunks.time_range()
-        return float(t1 - t0)
-    return None
-
-
 def run_imu(events_or_chunks, camera, config: BaselineConfig = BaselineConfig(), imu=None) -> BaselineResult:
     """IMU dead reckoning (gyro integration from the identity) and the panoramic IWE of the events along it."""
-    from ti_cmax.pipelines.baselines.imu import dead_reckoning
-    from ti_cmax.pipelines.panorama import render_panorama
-    from ti_cmax.pipelines.sensor_defaults import pano_size
-
     if imu is None:
         raise InputError("the imu baseline needs IMU data (imu.txt in the dataset folder)")
     tic = time.perf_counter()

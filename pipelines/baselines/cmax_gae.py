@@ -28,6 +28,13 @@ import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
+
+from ti_cmax.kernels.baselines import gae as G
+from ti_cmax.kernels.baselines.rtpt import footprint_bbox, view_border_rays
+from ti_cmax.kernels.pano import vote_map
+
+from ti_cmax.pipelines.frontend import time_intervals
+from .result import AngularVelocity, BaselineResult, CountedChunks
 from scipy.ndimage import gaussian_filter
 
 from ti_cmax import so3
@@ -62,8 +69,6 @@ class SphereMap:
         self.events = 0
 
     def add(self, bearings: np.ndarray, rotations: np.ndarray) -> None:
-        from ti_cmax.kernels.pano import vote_map
-
         if len(bearings):
             vote_map(bearings, rotations, self.width, self.height, out=self.hist)
             self.events += len(bearings)
@@ -98,8 +103,6 @@ def rmsprop_maximize(fun, x0, iterations, step, decay, mask=None, eps=1e-12):
 
 
 def _compile(camera) -> float:
-    from ti_cmax.kernels.baselines import gae as G
-
     tic = time.perf_counter()
     kv = G.view_K(camera.K, 4, 4)
     obj = G.GAEObjective(kv, 8, 8)
@@ -110,16 +113,36 @@ def _compile(camera) -> float:
     return time.perf_counter() - tic
 
 
+def _gae_result(cfg: GAEConfig, chunks: CountedChunks, times: list, rots: list, omegas: list, used: int, obj,
+                sphere: SphereMap, wall0: float, tic: float, compile_s: float):
+    """BaselineResult of a run: the poses and angular velocities at the interval mid-times, the sphere histogram
+    and the report (wall0 / tic: start of the run / of the tracking)."""
+    if len(times) < 2:
+        raise InputError(f"CMax-GAE needs at least 2 intervals with {cfg.gae_min_events} sampled events")
+    seconds = time.perf_counter() - tic
+    n_read = chunks.count
+    report = {
+        "status": "ok",
+        "method": "cmax-gae",
+        "events_processed": int(n_read),
+        "events_used": int(used),
+        "intervals": int(len(times)),
+        "evaluations": int(obj.evaluations),
+        "sphere_bytes": sphere.nbytes,
+        "wall_seconds": time.perf_counter() - wall0,
+        "compile_seconds": compile_s,
+        "us_per_event": {"frontend": seconds * 1e6 / max(n_read, 1)},
+        "parameters": asdict(cfg),
+    }
+    times = np.asarray(times)
+    return BaselineResult(Trajectory(times, np.asarray(rots)), sphere.hist, report,
+                          AngularVelocity(times, np.asarray(omegas)))
+
+
 def run_cmax_gae(events_or_chunks, camera, config=None, imu=None):
     """CMax-GAE on events (Events, chunks or a dataset, streamed) -> BaselineResult (40 Hz trajectory, sphere
     histogram)."""
-    from ti_cmax.kernels.baselines import gae as G
-    from ti_cmax.kernels.baselines.rtpt import footprint_bbox, view_border_rays
-    from ti_cmax.pipelines.frontend import time_intervals
-
-    from . import AngularVelocity, BaselineConfig, BaselineResult, CountedChunks
-
-    cfg = (config or BaselineConfig()).gae
+    cfg = config.gae if config is not None else GAEConfig()
     wall0 = time.perf_counter()
     chunks = CountedChunks(events_or_chunks)
     T = float(cfg.gae_interval)
@@ -180,23 +203,4 @@ def run_cmax_gae(events_or_chunks, camera, config=None, imu=None):
         bar.done()  # the stage has ended: its bar at 100 %
     finally:
         bar.close()
-    if len(times) < 2:
-        raise InputError(f"CMax-GAE needs at least 2 intervals with {cfg.gae_min_events} sampled events")
-    seconds = time.perf_counter() - tic
-    n_read = chunks.count
-    report = {
-        "status": "ok",
-        "method": "cmax-gae",
-        "events_processed": int(n_read),
-        "events_used": int(used),
-        "intervals": int(len(times)),
-        "evaluations": int(obj.evaluations),
-        "sphere_bytes": sphere.nbytes,
-        "wall_seconds": time.perf_counter() - wall0,
-        "compile_seconds": compile_s,
-        "us_per_event": {"frontend": seconds * 1e6 / max(n_read, 1)},
-        "parameters": asdict(cfg),
-    }
-    times = np.asarray(times)
-    return BaselineResult(Trajectory(times, np.asarray(rots)), sphere.hist, report,
-                          AngularVelocity(times, np.asarray(omegas)))
+    return _gae_result(cfg, chunks, times, rots, omegas, used, obj, sphere, wall0, tic, compile_s)

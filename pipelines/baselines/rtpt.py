@@ -35,6 +35,10 @@ from ti_cmax.config import Params, param
 from ti_cmax.errors import InputError
 from ti_cmax.progress import progress
 from ti_cmax.trajectory import Trajectory
+from ti_cmax.kernels.baselines import rtpt as K
+
+from ti_cmax.pipelines.frontend import downsampled, fixed_count_packets
+from .result import BaselineResult, CountedChunks
 
 
 @dataclass(frozen=True)
@@ -57,8 +61,6 @@ class RTPTConfig(Params):
 
 
 def _compile(camera, dtype=np.float32) -> float:
-    from ti_cmax.kernels.baselines import rtpt as K
-
     tic = time.perf_counter()
     b = np.array([[0.0, 0.0, 1.0]] * 4, dtype)
     O = np.zeros((8, 16), dtype)
@@ -68,15 +70,42 @@ def _compile(camera, dtype=np.float32) -> float:
     return time.perf_counter() - tic
 
 
+def _rtpt_result(cfg: RTPTConfig, chunks: CountedChunks, times: list, rots: list, quality: list, lost_at,
+                 updates: int, O: np.ndarray, N: np.ndarray, wall0: float, tic: float, compile_s: float):
+    """BaselineResult of a run: the poses before the quality dropped (all of them unless lost), the edge map and
+    the report (wall0 / tic: start of the run / of the tracking)."""
+    if len(quality) < 2:
+        raise InputError(f"RTPT needs at least 2 packets of {cfg.rtpt_packet_size} events (after keeping 1 of "
+                         f"{cfg.rtpt_event_sample_rate}), got {chunks.count} events")
+    seconds = time.perf_counter() - tic
+    times = np.asarray(times)
+    rots = np.asarray(rots)
+    if lost_at is not None:  # keep the poses before the quality dropped
+        keep = times < lost_at
+        keep[:2] = True
+        times, rots = times[keep], rots[keep]
+    n_read = chunks.count
+    report = {
+        "status": "ok" if lost_at is None else "lost",
+        "method": "rtpt",
+        "events_processed": int(n_read),
+        "packets": int(len(quality)),
+        "map_updates": int(updates),
+        "mean_quality": float(np.mean(quality)) if quality else 0.0,
+        "wall_seconds": time.perf_counter() - wall0,
+        "compile_seconds": compile_s,
+        "us_per_event": {"frontend": seconds * 1e6 / max(n_read, 1)},
+        "parameters": asdict(cfg),
+    }
+    if lost_at is not None:
+        report["lost_at"] = float(lost_at)
+    return BaselineResult(Trajectory(times, rots), K.edge_map(O, N), report)
+
+
 def run_rtpt(events_or_chunks, camera, config=None, imu=None):
     """RTPT on events (Events, chunks or a dataset, streamed) -> BaselineResult (trajectory at packet mid-times,
     edge map). Reading stops where tracking is lost."""
-    from ti_cmax.kernels.baselines import rtpt as K
-    from ti_cmax.pipelines.frontend import downsampled, fixed_count_packets
-
-    from . import BaselineConfig, BaselineResult, CountedChunks
-
-    cfg = (config or BaselineConfig()).rtpt
+    cfg = config.rtpt if config is not None else RTPTConfig()
     wall0 = time.perf_counter()
     chunks = CountedChunks(events_or_chunks)
     packets = fixed_count_packets(downsampled(chunks, cfg.rtpt_event_sample_rate), cfg.rtpt_packet_size)
@@ -137,29 +166,4 @@ def run_rtpt(events_or_chunks, camera, config=None, imu=None):
         bar.done()  # the stage has ended: its bar at 100 %
     finally:
         bar.close()
-    if len(quality) < 2:
-        raise InputError(f"RTPT needs at least 2 packets of {cfg.rtpt_packet_size} events (after keeping 1 of "
-                         f"{cfg.rtpt_event_sample_rate}), got {chunks.count} events")
-    seconds = time.perf_counter() - tic
-    times = np.asarray(times)
-    rots = np.asarray(rots)
-    if lost_at is not None:  # keep the poses before the quality dropped
-        keep = times < lost_at
-        keep[:2] = True
-        times, rots = times[keep], rots[keep]
-    n_read = chunks.count
-    report = {
-        "status": "ok" if lost_at is None else "lost",
-        "method": "rtpt",
-        "events_processed": int(n_read),
-        "packets": int(len(quality)),
-        "map_updates": int(updates),
-        "mean_quality": float(np.mean(quality)) if quality else 0.0,
-        "wall_seconds": time.perf_counter() - wall0,
-        "compile_seconds": compile_s,
-        "us_per_event": {"frontend": seconds * 1e6 / max(n_read, 1)},
-        "parameters": asdict(cfg),
-    }
-    if lost_at is not None:
-        report["lost_at"] = float(lost_at)
-    return BaselineResult(Trajectory(times, rots), K.edge_map(O, N), report)
+    return _rtpt_result(cfg, chunks, times, rots, quality, lost_at, updates, O, N, wall0, tic, compile_s)

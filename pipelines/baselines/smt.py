@@ -205,9 +205,11 @@ from ti_cmax.kernels.baselines import smt as ks
 from ti_cmax.kernels.pano import batch_mid_times
 from ti_cmax.trajectory import Trajectory
 
-from ti_cmax.pipelines.baselines.imu import dead_reckoning
+from ti_cmax.pipelines.frontend import as_chunks
 from ti_cmax.pipelines.workflows.grayscale import GrayscaleConfig, GrayscaleMapper, GrayscaleResult, resolve_contrast
 from .consistency import MotionConsistencyCheck
+from .imu import dead_reckoning
+from .result import BaselineResult
 
 TRACKERS = ("ekf", "pf")
 MOTION_MODELS = ("constant_acceleration", "constant_velocity", "random_walk")
@@ -611,7 +613,10 @@ def _loss_reason(cfg: SmtConfig, std_deg: float, R_now, t_now: float, t_track0: 
     return ""
 
 
-def _warm_up(dtype, acceleration: bool) -> float:
+def _warm_up(dtype, cfg: SmtConfig) -> float:
+    """Compile the kernels a run uses before it is timed: the mapping kernels, the reference selection, the gain
+    calibration's sums and the tracker's own (PF: the likelihood; EKF: the filter with its state size and kind of
+    reference). Returns the seconds spent."""
     start = time.perf_counter()
     km.warm_up(dtype)
     grad = np.zeros((2, 4, 2), dtype)
@@ -625,13 +630,230 @@ def _warm_up(dtype, acceleration: bool) -> float:
     ks.select_references(hist, hist[:1], 0, 1, 2, bb, pix, pol, ks.new_reference_state(1), 4, 2, 10.0, 0.0, 90.0, uv,
                          cnt)
     ks.ekf_accumulate(np.eye(3), b, uv[:1], cnt[:1], pol[:1], grad, cov, upd, 0.2, 0.1, 2.0)
-    ks.pf_loglik(np.eye(3)[None], b, uv[:1], cnt[:1], pol[:1], grad, cov, upd, 0.2, 0.1, 0.05)
+    if cfg.tracker == "pf":
+        ks.pf_loglik(np.eye(3)[None], b, uv[:1], cnt[:1], pol[:1], grad, cov, upd, 0.2, 0.1, 0.05)
+        return time.perf_counter() - start
+    acceleration = cfg.motion_model == "constant_acceleration"
+    state_refs = cfg.motion_model != "random_walk" and (acceleration or cfg.reference == "velocity")
     ns = 9 if acceleration else 6
     ks.ekf_track(hist, hist.astype(np.float64), np.array([0.0, 1e-3]), 1, 2, 1, bb, pix, pol,
                  ks.new_reference_state(1), uv, cnt, grad, cov, upd, 0.2, 0.1, 10.0, 0.0, 90.0, 2.0, 1.0, 1e-4, 1.0, 1,
-                 np.eye(3)[None].copy(), np.zeros((1, 3)), np.eye(ns)[None] * 1e-4, True,
+                 np.eye(3)[None].copy(), np.zeros((1, 3)), np.eye(ns)[None] * 1e-4, state_refs,
                  state_a=np.zeros((1, 3)) if acceleration else None, q_jerk=1.0)
     return time.perf_counter() - start
+
+
+class _PoseStore:
+    """Per sensor pixel reference state with GLOBAL batch ids (-1: none) and the poses those batches had: what
+    the stream keeps between chunks (referenced batches and the last one), so memory does not grow with it."""
+
+    def __init__(self, num_pixels: int):
+        self.refs = ks.new_reference_state(num_pixels)
+        self.ref_gid = self.refs["ref_b"].astype(np.int64)
+        self.last_gid = self.refs["last_b"].astype(np.int64)
+        self.ids = np.zeros(0, np.int64)  # sorted global batch ids kept (referenced + the last batch)
+        self.R = np.zeros((0, 3, 3))
+        self.t = np.zeros(0)
+
+    def local_layout(self, chunk: Events, bs: int):
+        """Local batch layout of a chunk: 0 = the previous chunk's last batch (dt of the first batch), 1..nbc =
+        this chunk, then the stored poses of older batches that pixels still refer to. Returns (nbc, mids,
+        hist64, refs in local ids)."""
+        nbc = -(-len(chunk) // bs)
+        k_old = len(self.ids)
+        mids = np.empty(1 + nbc + k_old)
+        mids[1:1 + nbc] = batch_mid_times(chunk.t, bs)
+        mids[1 + nbc:] = self.t
+        hist64 = np.zeros((1 + nbc + k_old, 3, 3))
+        hist64[1 + nbc:] = self.R
+        if k_old:
+            mids[0], hist64[0] = self.t[-1], self.R[-1]
+        else:
+            mids[0], hist64[0] = mids[1], np.eye(3)
+
+        def to_local(g):
+            return np.where(g >= 0, 1 + nbc + np.searchsorted(self.ids, g), -1).astype(np.int32)
+
+        refs = {"ref_b": to_local(self.ref_gid), "last_b": to_local(self.last_gid), "last_p": self.refs["last_p"],
+                "count": self.refs["count"]}
+        return nbc, mids, hist64, refs
+
+    def keep(self, refs: dict, nbc: int, g0: int, hist64: np.ndarray, mids: np.ndarray) -> None:
+        """Back to global batch ids after a chunk (its first batch is global g0); keep the poses that pixels will
+        refer to, and the last batch."""
+        def to_global(loc):
+            out = np.full(len(loc), -1, np.int64)
+            cur, old = (loc >= 1) & (loc <= nbc), loc > nbc
+            out[cur] = g0 + loc[cur] - 1
+            out[old] = self.ids[loc[old] - 1 - nbc]
+            return out
+
+        self.ref_gid, self.last_gid = to_global(refs["ref_b"]), to_global(refs["last_b"])
+        ids = np.union1d(np.union1d(self.ref_gid[self.ref_gid >= 0], self.last_gid[self.last_gid >= 0]),
+                         [g0 + nbc - 1])
+        in_chunk = ids >= g0
+        old_pos = np.searchsorted(self.ids, ids[~in_chunk])
+        new_R = np.empty((len(ids), 3, 3))
+        new_t = np.empty(len(ids))
+        new_R[in_chunk], new_t[in_chunk] = hist64[1 + ids[in_chunk] - g0], mids[1 + ids[in_chunk] - g0]
+        new_R[~in_chunk], new_t[~in_chunk] = self.R[old_pos], self.t[old_pos]
+        self.ids, self.R, self.t = ids, new_R, new_t
+
+
+class _MapFeeder:
+    """Gives the mapper the tracked batches of a chunk, ``map_batches`` at a time, lagging the tracker."""
+
+    def __init__(self, mapper: GrayscaleMapper, chunk: Events, ctx: _Context, map_batches: int):
+        self.mapper, self.chunk, self.ctx, self.map_batches = mapper, chunk, ctx, map_batches
+        self.mapped = 1  # local batches already given to the mapper
+
+    def __call__(self, upto: int) -> None:
+        bs, n, ctx = self.ctx.batch_size, len(self.chunk), self.ctx
+        while self.mapped < upto:
+            lo, hi = self.mapped, min(upto, self.mapped + self.map_batches)
+            e0, e1 = (lo - 1) * bs, min((hi - 1) * bs, n)
+            self.mapper.update(self.chunk[e0:e1], ctx.hist[lo:hi], bs, bearings=ctx.bearings[bs + e0:bs + e1],
+                               batch_times=ctx.mids[lo:hi])
+            self.mapped = hi
+
+
+class _LossWatch:
+    """The loss tests of the tracked batches (module doc): the window of the last loss_window s and, once
+    lost, why and from when."""
+
+    def __init__(self, cfg: SmtConfig):
+        self.cfg = cfg
+        self.window: deque = deque()
+        self.sums = np.zeros(4)  # valid, supported, agreeing, significant measurements in the window
+        self.totals = np.zeros(4)
+        self.status, self.reason, self.lost_t, self.detected_at = "ok", "", None, None
+
+    def batches(self, diag: np.ndarray, b0: int, b1: int, mids: np.ndarray, hist64: np.ndarray,
+                t_track0: float) -> bool:
+        """Loss checks of batches b0..b1-1 (diagnostics row b - b0), batch by batch; True when tracking is lost."""
+        cfg = self.cfg
+        for i, b in enumerate(range(b0, b1)):
+            d = diag[i, [0, 1, 2, 4]]
+            self.totals += d
+            self.window.append((mids[b], hist64[b], d))
+            self.sums += d
+            while self.window and self.window[0][0] < mids[b] - cfg.loss_window:
+                self.sums -= self.window.popleft()[2]
+            why = _loss_reason(cfg, diag[i, 3], hist64[b], float(mids[b]), t_track0, self.window, self.sums)
+            if why:
+                self.lost(why, float(mids[b]), max(float(mids[b]) - cfg.loss_window, t_track0))
+                return True
+        return False
+
+    def lost(self, reason: str, detected_at: float, lost_t: float) -> None:
+        self.status, self.reason, self.detected_at, self.lost_t = "lost", reason, detected_at, lost_t
+
+
+def _chunk_context(cfg: SmtConfig, chunk: Events, camera: Camera, mapper: GrayscaleMapper, refs: dict,
+                   mids: np.ndarray, hist: np.ndarray, hist64: np.ndarray, contrast: float, sigma: float) -> _Context:
+    """The trackers' arrays of a chunk; events are padded by one batch so that local batch b's events start at
+    b * batch_size, as the kernels index them."""
+    bs, n, dtype = (cfg.batch_size if cfg.tracker == "ekf" else cfg.pf_batch_size), len(chunk), mapper.dtype
+    pad = lambda a: np.concatenate([np.zeros((bs,) + a.shape[1:], a.dtype), a])  # noqa: E731
+    pix = np.ascontiguousarray(pad(km.sensor_index(chunk.x, chunk.y, camera.width)))
+    bearings = np.ascontiguousarray(pad(camera.bearings(chunk.x, chunk.y, dtype=dtype)))
+    pol = np.ascontiguousarray(pad(np.asarray(chunk.p, np.int8)))
+    max_len = min(cfg.max_segment_px, cfg.mapping.outlier_distance_px) if cfg.tracker == "ekf" \
+        else cfg.mapping.outlier_distance_px
+    return _Context(bearings, pix, pol, refs, np.zeros((bs + n, 2), dtype), np.zeros(bs + n, np.int32),
+                    np.zeros(bs + n, np.int32), mids, hist, hist64, mapper, contrast, sigma, bs,
+                    cfg.min_displacement_px, cfg.max_latitude_deg, cfg.max_segment_events, cfg.crossing_position_var,
+                    max_len)
+
+
+def _consistency_check(cfg: SmtConfig, camera: Camera, chunk: Events, ctx: _Context, nbb: int,
+                       t_track0: float) -> tuple[MotionConsistencyCheck, float]:
+    """The motion consistency check from the start of tracking (after nbb bootstrap batches); its compile time."""
+    checker = MotionConsistencyCheck(camera, t_track0, cfg.consistency_interval, cfg.consistency_span,
+                                     cfg.consistency_min_ratio, cfg.consistency_checks,
+                                     drift_horizon=cfg.consistency_drift_horizon,
+                                     drift_parts=cfg.consistency_drift_parts, drift_min_deg=cfg.consistency_drift_deg)
+    seconds = checker.compile()
+    boot_events = int(nbb * ctx.batch_size)
+    checker.update(chunk[max(boot_events - 1, 0):boot_events], ctx.mids[nbb:nbb + 1], ctx.hist64[nbb:nbb + 1],
+                   t_track0)
+    return checker, seconds
+
+
+def _track_chunk(trk, ctx: _Context, chunk: Events, b_start: int, nbc: int, map_batches: int, watch: _LossWatch,
+                 checker, feed_mapper: _MapFeeder, t_track0: float) -> int:
+    """Track batches b_start..nbc of a chunk, map_batches per launch, with the loss tests after each launch; the
+    mapper gets the tracked batches. Returns the end of the local batches kept (a lost track ends where its
+    failing window started)."""
+    bs, n, mids, hist64 = ctx.batch_size, len(chunk), ctx.mids, ctx.hist64
+    end = 1 + nbc
+    b0 = b_start
+    while b0 <= nbc and watch.status == "ok":
+        b1 = min(b0 + map_batches, 1 + nbc)
+        watch.batches(trk.run(b0, b1, ctx), b0, b1, mids, hist64, t_track0)
+        if watch.status == "ok" and checker is not None:
+            e0, e1 = (b0 - 1) * bs, min((b1 - 1) * bs, n)
+            failed_from = checker.update(chunk[e0:e1], mids[b0:b1], hist64[b0:b1], float(mids[b1 - 1]))
+            if failed_from is not None:
+                watch.lost(checker.failure, float(mids[b1 - 1]), max(failed_from, t_track0))
+        if watch.status == "ok":
+            feed_mapper(b1)
+        else:
+            end = b1
+        b0 = b1
+    if watch.status != "ok":  # map what was tracked before the failure (in this chunk)
+        end = max(int(np.searchsorted(mids[1:end], watch.lost_t, side="right")) + 1, b_start)
+        feed_mapper(end)
+    return end
+
+
+def _smt_report(cfg: SmtConfig, trk, checker, watch: _LossWatch, trajectory: Trajectory, gmap, figures: dict) -> dict:
+    """report.json of an SMT run; ``figures``: counts, times and bootstrap facts gathered along the run."""
+    wall, n_total, n_tracked, track_seconds = (figures.pop(k) for k in
+                                               ("wall_seconds", "events_processed", "events_tracked",
+                                                "tracking_seconds"))
+    report = {
+        "method": f"smt-{cfg.tracker}",
+        "status": watch.status,
+        "lost_at": float(trajectory.t_end) if watch.status == "lost" else None,
+        "lost_detected_at": watch.detected_at,
+        "lost_reason": watch.reason or None,
+        "events_processed": int(n_total),
+        "events_tracked": int(n_tracked),
+        "bootstrap_source": figures["bootstrap_source"],
+        "bootstrap_end": figures["bootstrap_end"],
+        "contrast_threshold": figures["contrast_threshold"],
+        "map_gain": figures["map_gain"],
+        "wall_seconds": wall,
+        "compile_seconds": figures["compile_seconds"],
+        "tracking_seconds": track_seconds,
+        "us_per_event": 1e6 * wall / max(n_total, 1),
+        "tracking_us_per_event": 1e6 * track_seconds / max(n_tracked, 1),
+        "consistency": checker.summary() if checker is not None else None,
+        "measurements": {k: int(v) for k, v in zip(("valid", "supported", "agree", "significant"), watch.totals)},
+        "map": gmap.summary(),
+        "parameters": dataclasses.asdict(cfg),
+    }
+    if cfg.tracker == "pf" and trk is not None:
+        report["resamples"] = int(trk.resamples)
+    if isinstance(trk, EkfTracker) and trk.jerk_used:
+        # the jerk intensity the per-batch acceleration steps came to (rad/s^2.5): min, median, max over the calls
+        report["angular_jerk_std_range"] = [float(np.min(trk.jerk_used)), float(np.median(trk.jerk_used)),
+                                            float(np.max(trk.jerk_used))]
+    if isinstance(trk, EkfTracker) and trk.kappa_sums[1] > 0:
+        # innovation consistency (kernels/baselines/smt.py): ~1 when the batch innovations match the filter's covariance
+        report["innovation_kappa"] = float(trk.kappa_sums[0] / trk.kappa_sums[1])
+    return report
+
+
+def _trajectory(out_t: list, out_R: list, watch: _LossWatch) -> Trajectory:
+    """The tracked poses (one per batch), cut where the failing window of a lost track started."""
+    times, poses = np.concatenate(out_t), np.concatenate(out_R)
+    if watch.status != "ok":
+        keep_n = max(int(np.searchsorted(times, watch.lost_t, side="right")), 1)
+        times, poses = times[:keep_n], poses[:keep_n]
+    keep = np.concatenate([[True], np.diff(times) > 0])
+    return Trajectory(times[keep], poses[keep])
 
 
 def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig | None = None,
@@ -647,226 +869,73 @@ def run_smt(events: Events | Iterable[Events], camera: Camera, config: SmtConfig
     dead reckoning). ``contrast_threshold``: C (default: :func:`smt_contrast` without a dataset path, i.e.
     mapping.contrast_threshold or 0.22). Never raises on tracking failure: see ``report['status']``.
     """
-    from ..frontend import as_chunks
-
     cfg = config or SmtConfig()
     if tracker is not None:
         cfg = dataclasses.replace(cfg, tracker=tracker)
     wall0 = time.perf_counter()
     contrast = float(contrast_threshold) if contrast_threshold else smt_contrast(cfg)
-    mcfg = cfg.mapping
-    width, height = mcfg.pano_size
-    mapper = GrayscaleMapper(camera, width, height, mcfg, contrast)
-    dtype = mapper.dtype
-    compile_seconds = _warm_up(dtype, cfg.tracker == "ekf" and cfg.motion_model == "constant_acceleration")
+    mapper = GrayscaleMapper(camera, *cfg.mapping.pano_size, cfg.mapping, contrast)
+    figures = {"compile_seconds": _warm_up(mapper.dtype, cfg),
+               "contrast_threshold": contrast, "map_gain": 1.0, "bootstrap_end": None, "tracking_seconds": 0.0}
     bs = cfg.batch_size if cfg.tracker == "ekf" else cfg.pf_batch_size
     map_batches = max(1, cfg.map_update_events // bs)
     rng = np.random.default_rng(cfg.seed)
-
-    # per sensor pixel: reference state (kernels/baselines/smt.py) with GLOBAL batch ids (-1: none); the poses they need
-    refs_g = ks.new_reference_state(camera.width * camera.height)
-    ref_gid = refs_g["ref_b"].astype(np.int64)
-    last_gid = refs_g["last_b"].astype(np.int64)
-    store_ids = np.zeros(0, np.int64)  # sorted global batch ids kept (referenced + the last batch)
-    store_R = np.zeros((0, 3, 3))
-    store_t = np.zeros(0)
-    out_t: list[np.ndarray] = []  # output trajectory pieces (batch mid-times and poses)
-    out_R: list[np.ndarray] = []
-
-    boot = boot_source = None
-    trk = checker = None
-    gain, c_eff, sigma_eff = 1.0, contrast, cfg.measurement_sigma
-    t_boot = t_track0 = bootstrap_end = None
-    window: deque = deque()
-    sums = np.zeros(4)  # valid, supported, agreeing, significant measurements in the window
-    diag_total = np.zeros(4)
-    status, reason, lost_t, detected_at = "ok", "", None, None
-    n_total = n_tracked = 0
-    g0 = 0  # global index of the chunk's first batch
-    track_seconds = 0.0
-
-    chunks = _aligned_chunks(as_chunks(events), bs, cfg.bootstrap_seconds, cfg.chunk_events)
-    for chunk in chunks:
+    store = _PoseStore(camera.width * camera.height)
+    out_t, out_R = [], []  # output trajectory pieces (batch mid-times and poses)
+    boot = trk = checker = t_boot = t_track0 = None
+    c_eff, sigma_eff = contrast, cfg.measurement_sigma
+    watch = _LossWatch(cfg)
+    n_total = n_tracked = g0 = 0  # g0: global index of the chunk's first batch
+    for chunk in _aligned_chunks(as_chunks(events), bs, cfg.bootstrap_seconds, cfg.chunk_events):
         n = len(chunk)
-        nbc = -(-n // bs)
         if boot is None:
-            boot, boot_source = _bootstrap_trajectory(chunk, imu, groundtruth, cfg.bootstrap_seconds)
+            boot, figures["bootstrap_source"] = _bootstrap_trajectory(chunk, imu, groundtruth, cfg.bootstrap_seconds)
             t_boot = float(chunk.t[0]) + cfg.bootstrap_seconds
-        # local batch layout: 0 = the previous chunk's last batch (dt of the first batch), 1..nbc = this chunk,
-        # then the stored poses of older batches that pixels still refer to; events are padded by one batch so
-        # that local batch b's events start at b * bs, as the kernels index them
-        k_old = len(store_ids)
-        mids = np.empty(1 + nbc + k_old)
-        mids[1:1 + nbc] = batch_mid_times(chunk.t, bs)
-        mids[1 + nbc:] = store_t
-        hist64 = np.zeros((1 + nbc + k_old, 3, 3))
-        hist64[1 + nbc:] = store_R
-        if k_old:
-            mids[0], hist64[0] = store_t[-1], store_R[-1]
-        else:
-            mids[0], hist64[0] = mids[1], np.eye(3)
-        def to_local(g):
-            return np.where(g >= 0, 1 + nbc + np.searchsorted(store_ids, g), -1).astype(np.int32)
-
-        refs = {"ref_b": to_local(ref_gid), "last_b": to_local(last_gid), "last_p": refs_g["last_p"],
-                "count": refs_g["count"]}
-        pad = lambda a: np.concatenate([np.zeros((bs,) + a.shape[1:], a.dtype), a])  # noqa: E731
-        pix = np.ascontiguousarray(pad(km.sensor_index(chunk.x, chunk.y, camera.width)))
-        bearings = np.ascontiguousarray(pad(camera.bearings(chunk.x, chunk.y, dtype=dtype)))
-        pol = np.ascontiguousarray(pad(np.asarray(chunk.p, np.int8)))
-
-        # bootstrap batches: known poses
-        nbb = 0
+        nbc, mids, hist64, refs = store.local_layout(chunk, bs)
+        nbb = 0  # bootstrap batches: known poses
         if t_track0 is None:
             nbb = min(max(int(np.searchsorted(mids[1:1 + nbc], t_boot, side="left")), 1), nbc)
             hist64[1:1 + nbb] = boot.at(mids[1:1 + nbb])
-        hist = hist64.astype(dtype)
-        ctx = _Context(bearings, pix, pol, refs, np.zeros((bs + n, 2), dtype), np.zeros(bs + n, np.int32),
-                       np.zeros(bs + n, np.int32), mids,
-                       hist, hist64, mapper, c_eff, sigma_eff, bs, cfg.min_displacement_px, cfg.max_latitude_deg,
-                       cfg.max_segment_events, cfg.crossing_position_var,
-                       min(cfg.max_segment_px, mcfg.outlier_distance_px) if cfg.tracker == "ekf"
-                       else mcfg.outlier_distance_px)
-        mapped = 1  # local batches already given to the mapper
-
-        def feed_mapper(upto: int):
-            nonlocal mapped
-            while mapped < upto:
-                hi = min(upto, mapped + map_batches)
-                e0, e1 = (mapped - 1) * bs, min((hi - 1) * bs, n)
-                mapper.update(chunk[e0:e1], hist[mapped:hi], bs, bearings=bearings[bs + e0:bs + e1],
-                              batch_times=mids[mapped:hi])
-                mapped = hi
-
+        ctx = _chunk_context(cfg, chunk, camera, mapper, refs, mids, hist64.astype(mapper.dtype), hist64, c_eff,
+                             sigma_eff)
+        feed_mapper = _MapFeeder(mapper, chunk, ctx, map_batches)
         b_start = 1
         if t_track0 is None:
             feed_mapper(1 + nbb)
-            ctx.select(1, 1 + nbb, hist[1:1 + nbb])
+            ctx.select(1, 1 + nbb, ctx.hist[1:1 + nbb])
             b_start = 1 + nbb
-            bootstrap_end = float(mids[nbb])
+            figures["bootstrap_end"] = float(mids[nbb])
             if b_start <= nbc:  # tracking starts in this chunk
-                t_track0 = bootstrap_end
+                t_track0 = figures["bootstrap_end"]
                 if cfg.gain_calibration_seconds > 0:
-                    gain = _calibrate_gain(cfg, ctx, contrast, 1, 1 + nbb)
-                c_eff, sigma_eff = contrast / gain, cfg.measurement_sigma / gain
+                    figures["map_gain"] = _calibrate_gain(cfg, ctx, contrast, 1, 1 + nbb)
+                c_eff, sigma_eff = contrast / figures["map_gain"], cfg.measurement_sigma / figures["map_gain"]
                 ctx.contrast, ctx.sigma = c_eff, sigma_eff
                 trk = (EkfTracker if cfg.tracker == "ekf" else PfTracker)(hist64[nbb], cfg, rng,
                                                                           _bootstrap_velocity(boot, t_track0))
                 if cfg.consistency_interval > 0:
-                    checker = MotionConsistencyCheck(camera, t_track0, cfg.consistency_interval,
-                                                     cfg.consistency_span, cfg.consistency_min_ratio,
-                                                     cfg.consistency_checks,
-                                                     drift_horizon=cfg.consistency_drift_horizon,
-                                                     drift_parts=cfg.consistency_drift_parts,
-                                                     drift_min_deg=cfg.consistency_drift_deg)
-                    compile_seconds += checker.compile()
-                    boot_events = int(nbb * bs)
-                    checker.update(chunk[max(boot_events - 1, 0):boot_events], mids[nbb:nbb + 1],
-                                   hist64[nbb:nbb + 1], t_track0)
+                    checker, seconds = _consistency_check(cfg, camera, chunk, ctx, nbb, t_track0)
+                    figures["compile_seconds"] += seconds
         tic = time.perf_counter()
         end = 1 + nbc  # local batches kept in the output
         if trk is not None:
-            b0 = b_start
-            while b0 <= nbc and status == "ok":
-                b1 = min(b0 + map_batches, 1 + nbc)
-                diag = trk.run(b0, b1, ctx)
-                for i, b in enumerate(range(b0, b1)):  # loss checks, batch by batch
-                    d = diag[i, [0, 1, 2, 4]]
-                    diag_total += d
-                    window.append((mids[b], hist64[b], d))
-                    sums += d
-                    while window and window[0][0] < mids[b] - cfg.loss_window:
-                        sums -= window.popleft()[2]
-                    why = _loss_reason(cfg, diag[i, 3], hist64[b], float(mids[b]), t_track0, window, sums)
-                    if why:
-                        status, reason = "lost", why
-                        detected_at = float(mids[b])
-                        lost_t = max(detected_at - cfg.loss_window, t_track0)
-                        break
-                if status == "ok" and checker is not None:
-                    e0, e1 = (b0 - 1) * bs, min((b1 - 1) * bs, n)
-                    failed_from = checker.update(chunk[e0:e1], mids[b0:b1], hist64[b0:b1], float(mids[b1 - 1]))
-                    if failed_from is not None:
-                        status, reason = "lost", checker.failure
-                        detected_at = float(mids[b1 - 1])
-                        lost_t = max(failed_from, t_track0)
-                if status == "ok":
-                    feed_mapper(b1)
-                else:
-                    end = b1
-                b0 = b1
-            if status != "ok":  # map what was tracked before the failure (in this chunk)
-                end = max(int(np.searchsorted(mids[1:end], lost_t, side="right")) + 1, b_start)
-                feed_mapper(end)
+            end = _track_chunk(trk, ctx, chunk, b_start, nbc, map_batches, watch, checker, feed_mapper, t_track0)
             n_tracked += min((end - 1) * bs, n) - (b_start - 1) * bs
-        track_seconds += time.perf_counter() - tic
+        figures["tracking_seconds"] += time.perf_counter() - tic
         out_t.append(mids[1:end])
         out_R.append(hist64[1:end].copy())
         n_total += min((end - 1) * bs, n)
-        if status != "ok":
+        if watch.status != "ok":
             break
-        # back to global batch ids; keep the poses that pixels will refer to, and the last batch
-        def to_global(loc):
-            out = np.full(len(loc), -1, np.int64)
-            cur, old = (loc >= 1) & (loc <= nbc), loc > nbc
-            out[cur] = g0 + loc[cur] - 1
-            out[old] = store_ids[loc[old] - 1 - nbc]
-            return out
-
-        ref_gid, last_gid = to_global(refs["ref_b"]), to_global(refs["last_b"])
-        ids = np.union1d(np.union1d(ref_gid[ref_gid >= 0], last_gid[last_gid >= 0]), [g0 + nbc - 1])
-        in_chunk = ids >= g0
-        old_pos = np.searchsorted(store_ids, ids[~in_chunk])
-        new_R = np.empty((len(ids), 3, 3))
-        new_t = np.empty(len(ids))
-        new_R[in_chunk], new_t[in_chunk] = hist64[1 + ids[in_chunk] - g0], mids[1 + ids[in_chunk] - g0]
-        new_R[~in_chunk], new_t[~in_chunk] = store_R[old_pos], store_t[old_pos]
-        store_ids, store_R, store_t = ids, new_R, new_t
+        store.keep(refs, nbc, g0, hist64, mids)
         g0 += nbc
     if boot is None:
         raise InputError("SMT needs events, got none")
-
     gmap = mapper.reconstruct()
-    times, poses = np.concatenate(out_t), np.concatenate(out_R)
-    if status != "ok":  # the trajectory ends where the failing window started
-        keep_n = max(int(np.searchsorted(times, lost_t, side="right")), 1)
-        times, poses = times[:keep_n], poses[:keep_n]
-    keep = np.concatenate([[True], np.diff(times) > 0])
-    trajectory = Trajectory(times[keep], poses[keep])
-    wall = time.perf_counter() - wall0 - compile_seconds
-    report = {
-        "method": f"smt-{cfg.tracker}",
-        "status": status,
-        "lost_at": float(trajectory.t_end) if status == "lost" else None,
-        "lost_detected_at": detected_at,
-        "lost_reason": reason or None,
-        "events_processed": int(n_total),
-        "events_tracked": int(n_tracked),
-        "bootstrap_source": boot_source,
-        "bootstrap_end": bootstrap_end,
-        "contrast_threshold": contrast,
-        "map_gain": gain,
-        "wall_seconds": wall,
-        "compile_seconds": compile_seconds,
-        "tracking_seconds": track_seconds,
-        "us_per_event": 1e6 * wall / max(n_total, 1),
-        "tracking_us_per_event": 1e6 * track_seconds / max(n_tracked, 1),
-        "consistency": checker.summary() if checker is not None else None,
-        "measurements": {"valid": int(diag_total[0]), "supported": int(diag_total[1]), "agree": int(diag_total[2]),
-                         "significant": int(diag_total[3])},
-        "map": gmap.summary(),
-        "parameters": dataclasses.asdict(cfg),
-    }
-    if cfg.tracker == "pf" and trk is not None:
-        report["resamples"] = int(trk.resamples)
-    if isinstance(trk, EkfTracker) and trk.jerk_used:
-        # the jerk intensity the per-batch acceleration steps came to (rad/s^2.5): min, median, max over the calls
-        report["angular_jerk_std_range"] = [float(np.min(trk.jerk_used)), float(np.median(trk.jerk_used)),
-                                            float(np.max(trk.jerk_used))]
-    if isinstance(trk, EkfTracker) and trk.kappa_sums[1] > 0:
-        # innovation consistency (kernels/baselines/smt.py): ~1 when the batch innovations match the filter's covariance
-        report["innovation_kappa"] = float(trk.kappa_sums[0] / trk.kappa_sums[1])
-    return SmtResult(trajectory, gmap, report)
+    trajectory = _trajectory(out_t, out_R, watch)
+    figures.update(wall_seconds=time.perf_counter() - wall0 - figures["compile_seconds"], events_processed=n_total,
+                   events_tracked=n_tracked)
+    return SmtResult(trajectory, gmap, _smt_report(cfg, trk, checker, watch, trajectory, gmap, figures))
 
 
 def run_smt_ekf(events, camera, config: SmtConfig | None = None, **kwargs) -> SmtResult:
@@ -884,8 +953,6 @@ def _as_baseline(tracker: str, events_or_chunks, camera, config=None, imu=None, 
     """Registry adapter: (events, camera, BaselineConfig, imu) -> BaselineResult (map: the 8-bit grayscale
     panorama; report['us_per_event'] = {'frontend': ...} like the other baselines, the SMT figures kept apart).
     The SMT parameters come from ``config.smt`` when the BaselineConfig has that section, else the defaults."""
-    from . import BaselineResult
-
     cfg = getattr(config, "smt", None) or SmtConfig()
     res = run_smt(events_or_chunks, camera, cfg, tracker=tracker, imu=imu,
                   groundtruth=groundtruth, contrast_threshold=contrast_threshold)

@@ -19,6 +19,13 @@ import time
 
 import numpy as np
 
+from ti_cmax import progress
+from ti_cmax.config import FrontendConfig, parse_overrides, update_config
+from ti_cmax.kernels import runtime
+from ti_cmax.metrics import evaluate_rotations
+from ti_cmax.pipelines.frontend import estimate_angular_velocity
+from ti_cmax.simulate import SimulatorConfig, simulate_sequence
+
 
 def _omega_rmse(result, seq) -> float:
     gt = np.column_stack([np.interp(result.t, seq.omega_t, seq.omega[:, i]) for i in range(3)])
@@ -27,12 +34,6 @@ def _omega_rmse(result, seq) -> float:
 
 def run_one(scene: str, duration: float, rule: str, overrides: dict, seed: int = 0,
             sensor: str = "DAVIS240C") -> dict:
-    from ti_cmax.config import FrontendConfig, update_config
-    from ti_cmax.metrics import evaluate_rotations
-    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
-
-    from ti_cmax.pipelines.frontend import estimate_angular_velocity
-
     t0 = time.perf_counter()
     seq = simulate_sequence(SimulatorConfig(scene=scene, duration=duration, sensor=sensor, seed=seed))
     sim_s = time.perf_counter() - t0
@@ -56,9 +57,6 @@ def run_one(scene: str, duration: float, rule: str, overrides: dict, seed: int =
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ti_cmax.config import parse_overrides
-    from ti_cmax.kernels import runtime
-
     ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.evaluation.bench_frontend", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=5.0)
@@ -72,7 +70,6 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.threads:
         runtime.set_num_threads(args.threads)
-    from ti_cmax import progress
 
     progress.set_quiet(True)
     overrides = parse_overrides(args.overrides)

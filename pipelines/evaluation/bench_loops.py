@@ -30,6 +30,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ti_cmax import so3
+from ti_cmax.config import SlamConfig, load_config, update_config
+from ti_cmax.io import open_dataset, read_tum, write_tum
+from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
+from ti_cmax.pipelines.panorama import render_panorama
+from ti_cmax.pipelines.realtime import LEVELS, RealtimeController
+from ti_cmax.pipelines.sensor_defaults import resolve_config
+from ti_cmax.pipelines.slam import OnlineSlam, run_slam
+from ti_cmax.simulate import SimulatorConfig, simulate_to_folder
+
 # Declared before any result was seen (session 5). Revisits (2-3 turns): the issue's DAVIS240C bay pan, other
 # scenes and seeds, VGA, and the hard cases where drift is large: long pans, lower event rates (higher contrast
 # threshold), background noise, the 128x128 DVS128. Without revisits: random motion and a pan that stops short
@@ -69,9 +79,6 @@ DEFAULT_SEQUENCES = REVISIT_SEQUENCES + NO_REVISIT_SEQUENCES
 
 
 def _dataset(cache: Path, spec: str) -> Path:
-    from ti_cmax.config import update_config
-    from ti_cmax.simulate import SimulatorConfig, simulate_to_folder
-
     parts = [p for p in spec.split(":") if "=" not in p]
     extra = dict(p.split("=", 1) for p in spec.split(":") if "=" in p)
     if len(parts) < 4:
@@ -92,8 +99,6 @@ def _dataset(cache: Path, spec: str) -> Path:
 
 def _short_relative_errors(gt, est, delta: float = 0.1) -> np.ndarray:
     """Angle (deg) between estimated and true rotation over every delta-s step of the estimate's time range."""
-    from ti_cmax import so3
-
     t = np.arange(max(est.t_start, gt.t_start) + 0.1, min(est.t_end, gt.t_end) - delta, delta)
     d_est = np.swapaxes(est.at(t), 1, 2) @ est.at(t + delta)
     d_gt = np.swapaxes(gt.at(t), 1, 2) @ gt.at(t + delta)
@@ -117,7 +122,6 @@ def jump_at_revisit(gt, est, t_revisit: float | None) -> float | None:
     windows entering the old map snap to it there), None without a revisit."""
     if t_revisit is None:
         return None
-    from ti_cmax import so3
 
     t = np.arange(max(t_revisit - 1.0, est.t_start, gt.t_start), min(t_revisit + 2.0, est.t_end - 0.1), 0.01)
     d_est = np.swapaxes(est.at(t), 1, 2) @ est.at(t + 0.1)
@@ -134,8 +138,6 @@ def error_trace(gt, est, step: float = 0.5) -> str:
     the start; all poses if it never does): a loop closer takes the first turn's map as the reference, so with
     no error at all after the first turn its abs RMSE would still be about that part."""
     from scipy.spatial.transform import Rotation
-
-    from ti_cmax.metrics import evaluate_rotations
 
     err = evaluate_rotations(gt, est)
     aligned = est.aligned_to(gt, err.t0)
@@ -162,13 +164,6 @@ def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, repo
                  cpu_seconds: float | None = None) -> dict:
     """One table row from a run's trajectory and report.json (the map rendered along the trajectory);
     ``cpu_seconds``: the run's process CPU time (None: unknown)."""
-    from ti_cmax.config import SlamConfig, load_config
-    from ti_cmax.io import open_dataset, read_tum
-    from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
-
-    from ti_cmax.pipelines.panorama import render_panorama
-    from ti_cmax.pipelines.sensor_defaults import resolve_config
-
     ds = open_dataset(dataset)
     gt = read_tum(dataset / "groundtruth.txt")
     cfg = load_config(SlamConfig, None, list(overrides) + [f"loop_closure={str(on).lower()}"])
@@ -202,12 +197,6 @@ def run_at_level(dataset: Path, cfg, level: int, loop_slice: float | None = None
     what ``--realtime`` computes on a machine that cannot keep up at that level, without the wall clock (so without
     the BA's time budget: level 1, the budget alone, computes as level 0 here).
     ``loop_slice``: loop verifications in slices (OnlineSlam's loop_slice_seconds; None: at once)."""
-    from ti_cmax.io import open_dataset
-
-    from ti_cmax.pipelines.realtime import LEVELS, RealtimeController
-    from ti_cmax.pipelines.slam import OnlineSlam
-    from ti_cmax.pipelines.sensor_defaults import resolve_config
-
     ds = open_dataset(dataset)
     online = OnlineSlam(ds.camera, cfg, loop_slice_seconds=loop_slice)
     keep, _divisor, every = LEVELS[level]
@@ -223,11 +212,6 @@ def bench(dataset: Path, overrides: list[str], out: Path | None = None, modes=(F
     to out (``saved``: evaluate the trajectory and report already there instead of running). ``level``: the
     real-time degradation level held throughout (``run_at_level``; 0: the offline computation, ``run_slam``)."""
     import json
-
-    from ti_cmax.config import SlamConfig, load_config
-    from ti_cmax.io import open_dataset, read_tum, write_tum
-
-    from ti_cmax.pipelines.slam import run_slam
 
     rows = []
     for on in modes:
@@ -320,8 +304,6 @@ def main(argv=None) -> int:
                       args.level, args.loop_slice)
         print(f"{spec}: {time.perf_counter() - tic:.0f} s", file=sys.stderr)
         if args.trace and args.out:
-            from ti_cmax.io import read_tum
-
             for m in args.modes.split(","):
                 print(f"{data.name} loop closure {m}: " + error_trace(read_tum(data / "groundtruth.txt"),
                       read_tum(args.out / data.name / f"trajectory_{m}.txt"), args.trace), flush=True)

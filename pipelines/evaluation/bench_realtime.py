@@ -28,7 +28,12 @@ import shutil
 import sys
 from pathlib import Path
 
-from ti_cmax.pipelines.evaluation.bench_sensors import _f, speed_probe
+from ti_cmax.errors import InputError
+from ti_cmax.io import read_tum
+from ti_cmax.metrics import evaluate_rotations
+from ti_cmax.pipelines.evaluation.bench_sensors import _f, _run_slam, speed_probe
+from ti_cmax.pipelines.evaluation.methods import BenchmarkSettings, ensure_sequence
+from ti_cmax.pipelines.evaluation.suites import SUITES
 
 MODES = ("parallel", "sequential")
 REAL_TIME_RATE = 2.5  # Mev/s: up to this mean rate the target is real time with every event, above it a bounded lag
@@ -65,12 +70,6 @@ def evaluate_case(spec, root: Path, modes=("parallel",), threads: int | None = N
                   tag: str = "") -> list[dict]:
     """Offline and real-time runs of one suite sequence; one row per real-time mode. The runs go to
     ROOT/runs/CASE/{offline,realtime-MODE}TAG (a round's tag keeps every round's outputs and trace)."""
-    from ti_cmax.io import read_tum
-    from ti_cmax.metrics import evaluate_rotations
-
-    from ti_cmax.pipelines.evaluation.bench_sensors import _run_slam
-    from ti_cmax.pipelines.evaluation.benchmark import BenchmarkSettings, ensure_sequence
-
     seq, info, _ = ensure_sequence(spec, BenchmarkSettings(), root / "sequences")
     gt = read_tum(seq / "groundtruth.txt")
     probe_ms = speed_probe()  # this machine's speed right before the runs (bench_sensors.speed_probe)
@@ -158,10 +157,6 @@ def format_table(rows: list[dict]) -> str:
 
 def run(out: Path, names: list[str] | None = None, modes=("parallel",), threads: int | None = None,
         overrides=(), log=print, rounds: int = 1) -> str:
-    from ti_cmax.errors import InputError
-
-    from ti_cmax.pipelines.evaluation.benchmark import SUITES
-
     suite = SUITES["realtime"]
     unknown = [n for n in names or [] if n not in suite]
     if unknown:

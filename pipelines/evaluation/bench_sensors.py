@@ -24,6 +24,15 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+from ti_cmax.io import read_angular_velocity, read_tum
+from ti_cmax.kernels.engine import ENGINES, installed_engines
+from ti_cmax.kernels.iwe import IWEWorkspace
+from ti_cmax.metrics import evaluate_rotations
+from ti_cmax.pipelines.evaluation.suites import SUITES
+from ti_cmax.simulate import SimulatorConfig, simulate_to_folder
+from ti_cmax.so3 import integrate_angular_velocity
+from ti_cmax.trajectory import Trajectory
+
 
 def simulator_overrides(spec) -> dict:
     """SimulatorConfig fields of a suite sequence (``pipelines.benchmark.SequenceSpec``)."""
@@ -33,8 +42,6 @@ def simulator_overrides(spec) -> dict:
 
 def _simulate(case, folder: Path) -> dict:
     """Simulate the case into folder unless a matching simulation is there already; returns simulation.json."""
-    from ti_cmax.simulate import SimulatorConfig, simulate_to_folder
-
     info_path = folder / "simulation.json"
     config = SimulatorConfig(**simulator_overrides(case)).resolved()
     wanted = {k: getattr(config, k) for k in simulator_overrides(case)}
@@ -64,11 +71,6 @@ def _run_slam(dataset: Path, out: Path, threads: int | None, overrides: list[str
 
 def evaluate_case(case, root: Path, threads: int | None = None, overrides: list[str] = (),
                   engine: str | None = None) -> dict:
-    from ti_cmax.io import read_angular_velocity, read_tum
-    from ti_cmax.metrics import evaluate_rotations
-    from ti_cmax.so3 import integrate_angular_velocity
-    from ti_cmax.trajectory import Trajectory
-
     seq = root / "sequences" / case.name
     info = _simulate(case, seq)
     out = root / "runs" / case.name / (engine or "")
@@ -110,8 +112,6 @@ def speed_probe(evaluations: int = 40, seed: int = 0) -> float:
     same front-end run 0.19-0.25 vs 0.31-0.42 us per input event), more than most changes measured, so a table
     row carries the probe taken just before its runs (about 50 ms, plus the kernels' preparation once)."""
     import numpy as np
-
-    from ti_cmax.kernels.iwe import IWEWorkspace
 
     rng = np.random.default_rng(seed)
     w, h, f = 240, 180, 199.0
@@ -171,8 +171,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--engines", default="", help="comma-separated kernel engines, a row each (default: every "
                     "installed one: taichi, quadrants)")
     args = ap.parse_args(argv)
-    from ti_cmax.kernels.engine import ENGINES, installed_engines
-    from ti_cmax.pipelines.evaluation.benchmark import SUITES
 
     engines = [e.strip().lower() for e in args.engines.split(",") if e.strip()] or installed_engines()
     if set(engines) - set(ENGINES):

@@ -27,9 +27,17 @@ import time
 
 import numpy as np
 
+from ti_cmax import progress
+from ti_cmax.config import SlamConfig, parse_overrides, update_config
+from ti_cmax.kernels import runtime
+from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
 from ti_cmax.outputs import peak_rss_mb
-
+from ti_cmax.pipelines.baselines.imu import dead_reckoning
+from ti_cmax.pipelines.evaluation.bench_sensors import speed_probe
+from ti_cmax.pipelines.panorama import render_panorama
 from ti_cmax.pipelines.sensor_defaults import pano_size
+from ti_cmax.pipelines.slam import refine, run_slam
+from ti_cmax.simulate import SimulatorConfig, simulate_sequence
 
 METHODS = ("front-end (CMax-omega)", "SLAM linear", "SLAM cubic", "IMU dead reckoning", "IMU + offline BA")
 ROW_KEYS = ("method", "abs_rmse_deg", "rel_rmse_deg_per_s", "ea_percent", "gm", "map_events",
@@ -43,16 +51,12 @@ TARGETS = {"abs_rmse_deg": 0.3, "rel_rmse_deg_per_s": 0.3, "backend_linear": 1.0
 
 
 def _map_figures(image: np.ndarray, lambda0: float) -> tuple[float, float]:
-    from ti_cmax.metrics import event_area_percent, gradient_magnitude
-
     return event_area_percent(image, lambda0), gradient_magnitude(image)
 
 
 def _row(method: str, gt, trajectory, image: np.ndarray, map_events: int, lambda0: float, *,
          fe_us: float | None = None, be_us: float | None = None, compile_s: float | None = None,
          wall_s: float | None = None, extra: dict | None = None) -> dict:
-    from ti_cmax.metrics import evaluate_rotations
-
     err = evaluate_rotations(gt, trajectory)
     ea, gm = _map_figures(image, lambda0)
     row = {
@@ -76,15 +80,6 @@ def _slam_extra(report: dict) -> dict:
 def bench_sequence(sensor: str, scene: str, duration: float, overrides: dict | None = None, seed: int = 0,
                    quick: bool = False, refine_degree: int = 1) -> dict:
     """Simulate one sequence, run every method of METHODS on it and return its rows plus metadata."""
-    from ti_cmax.config import SlamConfig, update_config
-    from ti_cmax.simulate import SimulatorConfig, simulate_sequence
-
-    from ti_cmax.pipelines.baselines.imu import dead_reckoning
-    from ti_cmax.pipelines.panorama import render_panorama
-    from ti_cmax.pipelines.slam import refine, run_slam
-
-    from ti_cmax.pipelines.evaluation.bench_sensors import speed_probe
-
     load_start = os.getloadavg()
     probe_start = speed_probe()
     tic = time.perf_counter()
@@ -211,9 +206,6 @@ def anchors_text() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ti_cmax.config import parse_overrides
-    from ti_cmax.kernels import runtime
-
     ap = argparse.ArgumentParser(prog="python -m ti_cmax.pipelines.evaluation.bench_slam", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=5.0)
@@ -230,7 +222,6 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.threads:
         runtime.set_num_threads(args.threads)
-    from ti_cmax import progress
 
     progress.set_quiet(True)
     overrides = parse_overrides(args.overrides)

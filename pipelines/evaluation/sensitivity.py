@@ -12,7 +12,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ti_cmax.config import SlamConfig, update_config
+from ti_cmax.config import SlamConfig, build_config, config_to_dict, update_config
+from ti_cmax.pipelines.evaluation.benchmark import suite_tasks
+from ti_cmax.pipelines.evaluation.methods import BenchmarkConfig
+from ti_cmax.pipelines.evaluation.tasks import LocalExecutor, run_tasks
 
 # parameter -> (label, values, overrides builder)
 SWEEPS = {
@@ -57,10 +60,6 @@ def sweep_configs(base: SlamConfig = SlamConfig(), parameters=tuple(SWEEPS), qui
 
 def as_task_config(cfg: SlamConfig):
     """A SlamConfig as the task model's BenchmarkConfig: CMax-SLAM at its own spline degree only."""
-    from ti_cmax.config import build_config, config_to_dict
-
-    from ti_cmax.pipelines.evaluation.benchmark import BenchmarkConfig
-
     values = {**config_to_dict(cfg), "benchmark": {"slam_degrees": str(cfg.backend.spline_degree)}}
     return build_config(BenchmarkConfig, values, source="sweep")
 
@@ -69,9 +68,6 @@ def run_sweep(dataset, name: str, base: SlamConfig = SlamConfig(), parameters=tu
               *, out_dir, executor=None, quiet: bool = True, log=None) -> list[SweepRow]:
     """CMax-SLAM on the dataset at ``dataset`` (with ground truth) once per parameter value, each run a task
     (``pipelines.tasks``) with its files in out_dir/tasks; finished runs are skipped on a rerun."""
-    from ti_cmax.pipelines.evaluation.benchmark import suite_tasks
-    from ti_cmax.pipelines.evaluation.tasks import LocalExecutor, run_tasks
-
     runs = sweep_configs(base, parameters, quick)
     tasks = suite_tasks([(name, str(dataset), {})], ["cmax-slam"], {r[0]: as_task_config(r[3]) for r in runs})
     summary = run_tasks(tasks, out_dir, executor or LocalExecutor(), quiet=quiet, log=log)

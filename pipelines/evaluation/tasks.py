@@ -34,6 +34,17 @@ import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from ti_cmax import progress
+from ti_cmax.config import build_config
+from ti_cmax.errors import UNGUARDED_MAIN, UNGUARDED_MAIN_EXIT, InputError, exit_if_spawn_bootstrapping
+from ti_cmax.io import write_tum
+from ti_cmax.kernels import runtime
+from ti_cmax.outputs import json_ready, peak_rss_mb
+
+from ti_cmax.pipelines.evaluation.methods import BenchmarkConfig, run_method
+
 TASKS_DIR = "tasks"
 TMP_PREFIX = ".tmp-"
 _PROCESS_LOCK = threading.Lock()  # one task at a time per process (one Taichi runtime)
@@ -53,8 +64,6 @@ def dataset_fingerprint(path, sample_bytes: int = 1 << 20) -> str:
     """Fingerprint of a dataset folder or file: per file its name, size and the bytes of its first, middle and
     last ``sample_bytes`` (a re-simulated or replaced recording changes it; reading all of a 5 GB file would not
     be worth it on every run). Paths and modification times are left out, so a copy keeps its fingerprint."""
-    from ti_cmax.errors import InputError
-
     path = Path(path)
     if not path.exists():
         raise InputError("dataset not found", source=str(path))
@@ -108,9 +117,6 @@ def task_id(*parts: str) -> str:
 
 def setup_process(threads: int | None) -> None:
     """Per worker process: Taichi's thread count (before its first kernel) and no progress bars."""
-    from ti_cmax import progress
-    from ti_cmax.kernels import runtime
-
     progress.set_quiet(True)
     if threads and not runtime._state["initialized"]:
         runtime.set_num_threads(int(threads))
@@ -136,8 +142,6 @@ def _replace_dir(tmp: Path, final: Path) -> None:
 
 def _write_json(path: Path, doc: dict) -> dict:
     """Write ``doc`` as strict JSON; returns what a reader of the file gets (NaN -> None, numpy -> Python)."""
-    from ti_cmax.pipelines.evaluation.benchmark import json_ready
-
     doc = json_ready(doc)
     path.write_text(json.dumps(doc, indent=2) + "\n")
     return doc
@@ -177,11 +181,6 @@ def run_task(task: Task, out_dir) -> dict:
 
     An exception of the method gives status "failed" (error and traceback in the log), not an exception here;
     an interruption leaves nothing behind."""
-    from ti_cmax.config import build_config
-
-    from ti_cmax.pipelines.evaluation import benchmark as B
-    from ti_cmax.pipelines.evaluation.bench_slam import peak_rss_mb
-
     with _task_folder(task, out_dir) as tmp:
         with open(tmp / "task.log", "w") as log_fh:
             def log(msg: str) -> None:
@@ -193,18 +192,14 @@ def run_task(task: Task, out_dir) -> dict:
             log(f"task {task.id}: {task.method} on {task.dataset} (fingerprint {task.fingerprint}, "
                 f"config {task.config_hash}), pid {os.getpid()} on {result['host']}")
             try:
-                cfg = build_config(B.BenchmarkConfig, task.config, source=f"task {task.id}")
-                out = B.run_method(task.dataset, cfg, task.method, log=log)
+                cfg = build_config(BenchmarkConfig, task.config, source=f"task {task.id}")
+                out = run_method(task.dataset, cfg, task.method, log=log)
                 rows = [{**row, **task.labels} for row in out.rows]
                 for i, (row, traj) in enumerate(zip(rows, out.trajectories)):
                     if traj is not None:
-                        from ti_cmax.io import write_tum
-
                         row["trajectory_file"] = f"trajectory_{i}.txt"
                         write_tum(tmp / row["trajectory_file"], traj)
                 if out.arrays:
-                    import numpy as np
-
                     np.savez_compressed(tmp / "arrays.npz", **out.arrays)
                 result.update(status="done", rows=rows, dataset_info=out.dataset_info)
             except Exception as exc:  # noqa: BLE001 - reported as a failed task, the others go on
@@ -259,15 +254,11 @@ class LocalExecutor:
         self.jobs = max(1, int(jobs))
         self.threads = threads
         if not threads and self.jobs > 1:
-            from ti_cmax.kernels import runtime
-
             self.threads = max(1, runtime.available_cores() // self.jobs)
         self.running = 0
         self.on_interrupt = None  # called after the workers are stopped on Ctrl-C
 
     def describe(self) -> str:
-        from ti_cmax.kernels import runtime
-
         threads = self.threads or runtime.num_threads()
         return f"local, {self.jobs} job{'s' if self.jobs > 1 else ''} x {threads} thread{'s' if threads > 1 else ''}"
 
@@ -276,8 +267,6 @@ class LocalExecutor:
 
     def _in_process(self) -> bool:
         """One job runs here unless this process's Taichi already runs with another thread count."""
-        from ti_cmax.kernels import runtime
-
         return self.jobs == 1 and (not self.threads or not runtime._state["initialized"]
                                    or runtime.num_threads() == self.threads)
 
@@ -301,8 +290,6 @@ class LocalExecutor:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        from ti_cmax.errors import exit_if_spawn_bootstrapping
-
         exit_if_spawn_bootstrapping()  # in a pool worker re-running an unguarded script: one line, a known exit
         return ProcessPoolExecutor(max_workers=self.jobs, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=_pool_initializer, initargs=(self.threads,))
@@ -313,8 +300,6 @@ class LocalExecutor:
         that kills its worker again alone is the one reported failed, and never the calls that ran beside it."""
         from concurrent.futures import FIRST_COMPLETED, wait
         from concurrent.futures.process import BrokenProcessPool
-
-        from ti_cmax.errors import UNGUARDED_MAIN, UNGUARDED_MAIN_EXIT
 
         queue = list(range(len(args_list)))[::-1]  # pop() takes the next one
         alone: list = []  # calls in flight when the pool broke: retried one at a time
@@ -419,12 +404,8 @@ class DaskExecutor:
         try:
             import distributed  # noqa: F401
         except ImportError:
-            from ti_cmax.errors import InputError
-
             raise InputError("--scheduler dask needs dask.distributed: pip install 'ti-cmax[distributed]'") from None
         if client is None and not address:
-            from ti_cmax.errors import InputError
-
             raise InputError("--scheduler dask needs --address tcp://HOST:PORT")
         self.address, self.threads = address, threads or 1
         self._owned = client is None
@@ -445,8 +426,6 @@ class DaskExecutor:
         try:
             return Client(self.address, timeout="20s")
         except (OSError, TimeoutError) as exc:
-            from ti_cmax.errors import InputError
-
             raise InputError(f"cannot reach the Dask scheduler: {exc}", source=str(self.address)) from None
 
     def results(self, fn, args_list):
@@ -549,8 +528,6 @@ def run_tasks(tasks: list[Task], out_dir, executor, *, quiet: bool = False, log=
 
 
 def make_executor(scheduler: str = "local", jobs: int = 1, threads: int | None = None, address: str | None = None):
-    from ti_cmax.errors import InputError
-
     if scheduler == "local":
         if jobs < 1:
             raise InputError(f"--jobs must be >= 1, got {jobs}")

@@ -28,14 +28,16 @@ from typing import Iterable
 import numpy as np
 
 from ti_cmax.camera import Camera
-from ti_cmax.config import SlamConfig, config_to_dict, update_config
+from ti_cmax.config import SlamConfig, build_config, config_to_dict, load_config, parse_overrides, update_config
 from ti_cmax.errors import InputError
 from ti_cmax.events import Events
+from ti_cmax.io import open_dataset_from_config
+from ti_cmax.io.star import is_star_dataset, open_star_dataset, undistorted_star_events, write_star_dataset
 from ti_cmax.metrics import STAR_WINDOW, star_tracking_errors
-from ti_cmax.trajectory import Trajectory
-
 from ti_cmax.pipelines.frontend import FrontendResult, estimate_angular_velocity
 from ti_cmax.pipelines.slam import SlamResult, refine
+from ti_cmax.simulate import SimulatorConfig, simulate_sequence, simulate_to_folder
+from ti_cmax.trajectory import Trajectory
 
 STAR_DEFAULTS: dict = {
     "frontend_min_packet_span": 0.5,
@@ -119,8 +121,6 @@ def motion_warning(omega: np.ndarray, probe_rates: list[float], limit_deg: float
 def star_tracking_config(config_path=None, overrides=None) -> SlamConfig:
     """Global defaults <- STAR_DEFAULTS <- YAML file <- overrides (the user's values always win)."""
     import yaml
-
-    from ti_cmax.config import build_config, load_config, parse_overrides
 
     values = dict(STAR_DEFAULTS)
     if config_path:
@@ -239,8 +239,6 @@ def star_simulator_config(duration: float = 30.0, *, num_stars: int = 1000, rate
 
     1000 stars give about 60 k events/s, i.e. 1.4-2.8 M events over 20-45 s (the real sequences:
     1.4-6.2 M over 45 s)."""
-    from ti_cmax.simulate import SimulatorConfig
-
     return SimulatorConfig(scene="stars", trajectory="constant", constant_rate_deg=rate_deg, duration=duration,
                            num_stars=num_stars, sensor="DAVIS240C", seed=seed, **overrides)
 
@@ -252,9 +250,6 @@ def simulate_star_sequence(out_dir, duration: float = 30.0, *, form: str = "star
     form="star": the star dataset's form (events undistorted to float coordinates with the camera's K,
     calibration.txt = K^-1, groundtruth.txt); form="ecd": the simulator's ECD-layout folder. Returns the
     simulation info. The whole sequence is simulated in memory (45 s is ~3 M events, ~60 MB)."""
-    from ti_cmax.io.star import undistorted_star_events, write_star_dataset
-    from ti_cmax.simulate import simulate_sequence, simulate_to_folder
-
     cfg = star_simulator_config(duration, num_stars=num_stars, rate_deg=rate_deg, seed=seed, **overrides)
     if form == "ecd":
         return simulate_to_folder(cfg, out_dir, show_progress=show_progress)
@@ -269,9 +264,6 @@ def simulate_star_sequence(out_dir, duration: float = 30.0, *, form: str = "star
 
 def open_star_or_dataset(path, dataset_config):
     """The star dataset's form when recognized (``is_star_dataset``), else ``open_dataset_from_config``."""
-    from ti_cmax.io import open_dataset_from_config
-    from ti_cmax.io.star import is_star_dataset, open_star_dataset
-
     if is_star_dataset(path):
         return open_star_dataset(path, dataset_config.width or None, dataset_config.height or None)
     return open_dataset_from_config(path, dataset_config)

@@ -24,12 +24,11 @@ import numpy as np
 from ti_cmax.camera import Camera
 from ti_cmax.config import SlamConfig, parse_map_sizes, update_config
 from ti_cmax.errors import InputError
-from ti_cmax.metrics import event_area_percent, gradient_magnitude
+from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
 from ti_cmax.outputs import peak_rss_mb
-from ti_cmax.trajectory import Trajectory
-
-from ti_cmax.pipelines.panorama import render_panorama
+from ti_cmax.pipelines.panorama import map_to_uint8, render_panorama
 from ti_cmax.pipelines.slam import run_slam
+from ti_cmax.trajectory import Trajectory
 
 DEFAULT_SIZES = ((512, 256), (1024, 512), (2048, 1024), (4096, 2048), (8192, 4096))
 CENTRAL_FRACTION = 0.5  # quality figures on the central half (in both directions) of the visited region
@@ -74,8 +73,6 @@ def piqe_score(image_u8: np.ndarray) -> float | None:
 
 def quality_figures(image: np.ndarray, gamma: float = 0.75, lambda0: float = 1.0) -> dict:
     """GM and EA% of the central part; PIQE of its display form when available; NIQE unavailable."""
-    from ti_cmax.pipelines.panorama import map_to_uint8
-
     crop = central_crop(np.asarray(image, dtype=np.float64))
     out = {
         "central_crop_size": [int(crop.shape[1]), int(crop.shape[0])],
@@ -144,8 +141,6 @@ def iter_super_resolution(source: Callable[[], Iterable], camera: Camera, sizes,
                           progress_total: float | None = None):
     """Yield one :class:`SizeResult` per map size (CMax-SLAM with pano_width x pano_height = size, then the IWE
     of its trajectory rendered at that size). ``source()`` returns a fresh iterable of event chunks."""
-    from ti_cmax.metrics import evaluate_rotations
-
     for w, h in sizes:
         cfg = update_config(config, {"pano_width": int(w), "pano_height": int(h)}, source="super-resolution")
         res = run_slam(source(), camera, cfg, progress_total=progress_total)

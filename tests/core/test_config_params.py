@@ -149,6 +149,7 @@ def test_version_imports_no_kernel_and_is_fast():
     assert out.stdout.startswith("ti-cmax ") and elapsed < 1.0, elapsed
 
 
+@pytest.mark.slow
 def test_closed_output_pipe_ends_quietly():
     proc = subprocess.Popen([sys.executable, "-m", "ti_cmax.cli", "params", "smt"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)

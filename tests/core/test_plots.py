@@ -14,6 +14,7 @@ def _is_png(path):
     return len(data) > 1000 and data[:8] == PNG_MAGIC
 
 
+@pytest.mark.slow
 def test_plot_trajectories(tmp_path):
     t = np.linspace(0.0, 3.0, 151)
     gt = Trajectory(t, so3.exp(np.stack([0.3 * np.sin(t), 0.2 * t, 2.5 * t], axis=1)))  # yaw passes 180 deg
@@ -25,6 +26,7 @@ def test_plot_trajectories(tmp_path):
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
 
 
+@pytest.mark.slow
 def test_plot_error_distributions(tmp_path):
     rng = np.random.default_rng(0)
     abs_err = {"a": rng.gamma(2.0, 0.5, 200), "b": rng.gamma(2.0, 1.0, 200), "one sample": np.array([1.0]),

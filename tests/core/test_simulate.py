@@ -34,6 +34,7 @@ def panoramic_iwe(events, camera, rotations, w=1024, h=512):
 
 
 # events ------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_short_dvs128_run_is_valid(seq):
     ev = seq.events
     cam = seq.camera
@@ -75,6 +76,7 @@ def test_event_count_scales_inversely_with_threshold():
     assert 1.9 < n_lo / n_hi < 2.8
 
 
+@pytest.mark.slow
 def test_noise_events_and_refractory_period():
     base = dict(SHORT, duration=0.2, max_angular_velocity=0.0, trajectory="random")
     quiet = simulate_sequence(SimulatorConfig(**base))
@@ -227,6 +229,7 @@ def test_sensors():
     assert SimulatorConfig(sensor="HD", contrast_threshold=0.3).resolved().contrast_threshold == 0.3
 
 
+@pytest.mark.slow
 def test_hd_simulation_streams_in_bounded_chunks(tmp_path, monkeypatch):
     """A short HD simulation renders in chunks whose buffer stays under chunk_megabytes and writes each chunk
     as it comes (so 1 s of HD streams to disk in bounded memory)."""

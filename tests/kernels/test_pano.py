@@ -84,6 +84,7 @@ def test_event_area_and_density():
     assert pano.event_area(img, lambda0=2.0) == pytest.approx((1 - np.exp(-0.5)) + (1 - np.exp(-1.5)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("degree", [1, 3])
 @pytest.mark.parametrize(
     "yaw0, yaw_rate, expect",

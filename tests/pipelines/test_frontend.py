@@ -432,6 +432,7 @@ def _slow_stream(omega, duration, seed, scene_rate=40000, noise_rate=20000):
     return Events(t[order], x, y, np.ones(len(t)))
 
 
+@pytest.mark.slow
 def test_a_lookback_finds_a_motion_too_slow_for_one_packet_and_none_in_a_still_scene(ti_runtime):
     """0.005 rad/s moves a 0.1 s packet's events by +-0.05 px: every packet is flat (omega = 0). Over the last 0.4 s
     the same motion is +-0.2 px, which 20 000 events measure: the flat packets' lookbacks find it once 0.4 s of
@@ -460,6 +461,7 @@ def test_a_lookback_finds_a_motion_too_slow_for_one_packet_and_none_in_a_still_s
     assert not np.any(fr.lookback) and not moving[fr.flat].any()
 
 
+@pytest.mark.slow
 def test_a_motion_right_after_flat_packets_must_show_over_a_lookback(ti_runtime):
     """A packet of a still scene that passes its score test by chance (forced here) right after flat packets is a
     false alarm unless the longer span measures a motion too: it is declared flat, omega = 0. A real start (the
@@ -517,6 +519,7 @@ def test_the_lookback_holds_its_span_at_a_bounded_density():
     assert len(look.recent(0.2)) == pytest.approx(0.2 * 10000, rel=0.1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend_process", [False, True])
 def test_slam_gives_no_ba_to_a_still_start(ti_runtime, backend_process):
     """CMax-SLAM on a camera at rest for 0.4 s (a still scene plus noise) that then turns: the front-end's moving
@@ -536,6 +539,7 @@ def test_slam_gives_no_ba_to_a_still_start(ti_runtime, backend_process):
     np.testing.assert_array_equal(at_rest, np.eye(3)[None].repeat(5, 0))
 
 
+@pytest.mark.slow
 def test_a_fast_pan_is_not_declared_flat(ti_runtime, monkeypatch):
     """A pan speeding up to 20 rad/s (4 000 px/s on a DAVIS240C, ~17 M events/s): a 40 ms packet moves its events by
     up to 160 px, and consecutive packets' optima lie a few pixels apart (a 1 % change of omega). Score-testing those
@@ -557,6 +561,7 @@ def test_a_fast_pan_is_not_declared_flat(ti_runtime, monkeypatch):
     assert np.count_nonzero(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat) > 5
 
 
+@pytest.mark.slow
 def test_a_stream_that_starts_at_full_speed_is_not_declared_flat(ti_runtime, monkeypatch):
     """A stream starting in a pan that reaches 40 rad/s within 60 ms: no warm start, so every packet's optimum is far
     from it and score-tested at omega = 0, where a 40 ms packet's IWE is blurred flat; the test is repeated over the

@@ -117,6 +117,7 @@ def _error(be, t, duration=DURATION, turns=TURNS):
     return np.degrees(so3.geodesic_angle(be.spline.evaluate(t), _pan(t, duration, turns)))
 
 
+@pytest.mark.slow
 def test_injected_drift_over_a_revisit_is_found_and_removed(ti_runtime):
     t_ev, b_ev = _events()
     be = _run(t_ev, b_ev, _drifted)
@@ -144,6 +145,7 @@ def test_injected_drift_over_a_revisit_is_found_and_removed(ti_runtime):
     assert event_area_percent(be.refresh_map().raw) < event_area_percent(ref.refresh_map().raw)
 
 
+@pytest.mark.slow
 def test_every_revisit_is_closed_once(ti_runtime):
     """A 2.3-turn pan whose drift keeps growing: every later revisit closes the drift built up since the last
     loop (against the corrected map), and no correction is applied twice."""
@@ -162,6 +164,7 @@ def test_every_revisit_is_closed_once(ti_runtime):
     assert err.max() < 0.25 * drift_deg(applied[-1]["t_ref"]), err  # 3.6 deg injected there
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("second_visit", ["other", "textureless"])
 def test_false_revisits_are_rejected(ti_runtime, second_visit):
     t_ev, b_ev = _events(1, second_visit)
@@ -198,6 +201,7 @@ def test_chain_pose_graph_spread_matches_least_squares():
     np.testing.assert_allclose(got[-1], phi, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_loop_closure_false_is_todays_output_and_refine_cli_reports_loops(short_sequence, short_dataset, tmp_path):
     """Without a revisit the loop closer changes nothing (bitwise); loop_closure=false attaches none, and
     `refine --loop-closure` writes the "loops" list."""
@@ -308,6 +312,7 @@ def test_registration_events_follow_the_sensor_and_need_a_resolved_config():
         LoopCloser(LoopClosureConfig(loop_closure=True), backend)
 
 
+@pytest.mark.slow
 def test_bench_level_holds_the_realtime_degradation(short_dataset):
     """bench_loops --level 4 (the drift benchmark's setting): the real-time controller's last level held offline,
     every window keeps the front-end's poses (BA skipped)."""
@@ -319,6 +324,7 @@ def test_bench_level_holds_the_realtime_degradation(short_dataset):
     assert backend["windows"] > 5 and backend["windows_optimized"] == 0
 
 
+@pytest.mark.slow
 def test_checkpointed_rebuild_equals_the_full_one(ti_runtime):
     """After several applied loops (each later one rebuilt from the last rebuild's checkpoint), the old map, the
     age and visit maps and the global map equal a rebuild of every stored stride from scratch, bit for bit."""
@@ -339,6 +345,7 @@ def test_checkpointed_rebuild_equals_the_full_one(ti_runtime):
     assert lc._checkpoint_start() == 0
 
 
+@pytest.mark.slow
 def test_advanced_checkpoint_gives_the_same_run(ti_runtime, monkeypatch):
     """The checkpoint moved past each loop's recent block (_advance_checkpoint: later rebuilds vote fewer strides)
     gives the same loops, trajectory and maps, bit for bit, as rebuilding from the last rebuild's checkpoint."""
@@ -356,6 +363,7 @@ def test_advanced_checkpoint_gives_the_same_run(ti_runtime, monkeypatch):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_runtime):
     """In real time (LoopCloser.slice_seconds) a verification runs in slices: one before each window here (budget
     0) and 5 in the idle time after it: the registration finds what the verification at once finds (the same poses and maps as detected,
@@ -411,6 +419,7 @@ def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_r
     assert _error(sliced, t_end)[0] < 1.25 * _error(at_once, t_end)[0] + 0.1 < np.degrees(DRIFT) * 0.5
 
 
+@pytest.mark.slow
 def test_backend_worker_runs_sliced_verifications(short_sequence):
     """With a back-end worker process and loop_slice_seconds (what `slam --realtime` sets), the verifications run
     in slices there (between windows and while idle) and reaches report.json's "loops" (short checks forced by
@@ -451,6 +460,7 @@ def test_texture_equals_the_scipy_twin():
                                    atol=1e-9)
 
 
+@pytest.mark.slow
 def test_old_map_votes_wait_for_a_verification(ti_runtime):
     """Ageing marks the age and visit maps only: before any verification no old-map vote is cast (a run without a
     revisit never pays for them); voted later, the old map equals the one voted at ageing, bit for bit."""
@@ -467,6 +477,7 @@ def test_old_map_votes_wait_for_a_verification(ti_runtime):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_checks_after_a_loop_wait_for_the_drift_to_build_up(ti_runtime):
     """loop_check_drift_px: after an applied loop the next check waits until the drift rate that loop measured
     has moved the map by that many pixels (at most loop_min_age); 0 checks again after loop_recent_time."""
@@ -482,6 +493,7 @@ def test_checks_after_a_loop_wait_for_the_drift_to_build_up(ti_runtime):
     assert len(runs[1e4].loops) < len(runs[0.0].loops)
 
 
+@pytest.mark.slow
 def test_global_map_is_rebuilt_once_when_read(ti_runtime, monkeypatch):
     """Without BA between them (the real-time controller's level 4) several applied loops cost one global-map
     rebuild, when the map is read; the strides settled meanwhile go to the store only (no map to vote into), and
@@ -526,6 +538,7 @@ def test_fast_pan_revisits_count_by_the_rotation_travelled(ti_runtime):
     assert err.max() < 0.25 * err_age.min(), (err, err_age)
 
 
+@pytest.mark.slow
 def test_the_last_window_closes_the_drift_since_the_last_check(ti_runtime):
     """At the end of the stream (the back-end's last window) a check runs when the last verification was at least
     loop_recent_time before: the drift built up since the last applied loop is closed there, not left to a check

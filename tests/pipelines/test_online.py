@@ -23,6 +23,7 @@ def _random_chunks(ev, rng, max_size):
         i += n
 
 
+@pytest.mark.slow
 def test_online_equals_run_slam_for_any_chunking(half_second):
     seq, ev = half_second
     offline = run_slam(ev, seq.camera, SlamConfig())
@@ -91,6 +92,7 @@ def test_source_that_stops_mid_window_finishes_cleanly(half_second):
         online2.push(part[:10])
 
 
+@pytest.mark.slow
 def test_backend_process_equals_the_sequential_run(half_second):
     """The back-end in a worker process (concurrent with the front-end) gives the sequential result; pose() follows
     the worker's refined spline; a small input queue only makes push() wait (no event lost)."""
@@ -146,6 +148,7 @@ def test_pushed_events_are_checked_before_anything_runs(half_second):
     assert len(estimate_angular_velocity(paused, cam, cfg).t) > 0
 
 
+@pytest.mark.slow
 def test_pose_after_a_pause_of_the_stream_follows_the_worker(half_second):
     """A pause of the stream (0.8 s without events): the back-end fits its empty windows with the next one that has
     events, adding control poses before that window's; pose() in the main process follows the worker's spline
@@ -171,6 +174,7 @@ def test_pose_after_a_pause_of_the_stream_follows_the_worker(half_second):
     assert np.max(so3.geodesic_angle(before_close, result.rotation_at(t_check))) < 1e-6
 
 
+@pytest.mark.slow
 def test_unguarded_script_asking_for_a_worker_gets_one_clear_error(tmp_path):
     """A script that starts a back-end worker at its top level (no ``if __name__ == "__main__":``) is run again by
     the spawned worker; it must end with one message saying so, not hang (it hung in multiprocessing's launch while

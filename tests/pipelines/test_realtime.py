@@ -23,6 +23,7 @@ def _realtime(report_dir):
     return json.loads((report_dir / "report.json").read_text())["realtime"]
 
 
+@pytest.mark.slow
 def test_realtime_cli_writes_sane_lag_fields(short_dataset, tmp_path, capsys):
     from ti_cmax.cli import main
 
@@ -54,6 +55,7 @@ def test_realtime_cli_writes_sane_lag_fields(short_dataset, tmp_path, capsys):
     assert not (tmp_path / "offline" / "realtime_windows.csv").exists()
 
 
+@pytest.mark.slow
 def test_slow_consumer_degrades_and_bounds_the_lag(short_sequence):
     """Replayed 4x faster than the sensor, the pipeline cannot keep up: the controller degrades, says so, and keeps
     the lag well below that of the same replay with degradation off."""
@@ -169,6 +171,7 @@ def test_one_thread_bitwise_offline_and_parallel_undegraded_realtime(tmp_path):
     assert worker_peak > 50 and report["peak_rss_mb"] > worker_peak + 50
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
 def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path, sig):
     """Ctrl-C (SIGINT to the process group) and `kill PID` (SIGTERM to the main process; it left partial outputs)."""
@@ -201,6 +204,7 @@ def test_ctrl_c_leaves_no_output_and_no_traceback(short_dataset, tmp_path, sig):
     assert not out.exists() or not any(out.iterdir())
 
 
+@pytest.mark.slow
 def test_slow_consumers_lose_no_events(short_sequence):
     """A slow on_window callback (sequential) and a worker bounded to a short backlog (push waits for it): every
     event reaches the map, the result is the unthrottled one; map() mid-stream comes from the worker."""

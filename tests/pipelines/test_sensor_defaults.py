@@ -75,6 +75,7 @@ def _packet(camera, omega, n, seed):
     return Events(t[idx], pix[idx, 0].astype(np.float32), pix[idx, 1].astype(np.float32), np.ones(n))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("camera", [VGA, HD], ids=["VGA", "HD"])
 def test_large_sensor_packet_recovers_omega_with_derived_size(ti_runtime, camera):
     omega = np.array([0.9, -1.3, 0.5])
@@ -85,6 +86,7 @@ def test_large_sensor_packet_recovers_omega_with_derived_size(ti_runtime, camera
     assert not e.suspect and e.gain > 1.5
 
 
+@pytest.mark.slow
 def test_noise_packet_far_from_the_warm_start_is_suspect(ti_runtime):
     """A packet whose IWE does not constrain omega (uniform noise, as an HD IWE of far too few events looks): the
     solution stays pixels away from omega = 0 without sharpening anything, and is flagged; its run is

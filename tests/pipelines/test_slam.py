@@ -26,6 +26,7 @@ def fast_sequence(ti_runtime):
     return simulate_sequence(SimulatorConfig(scene="bay", duration=1.5, seed=11))
 
 
+@pytest.mark.slow
 def test_settled_global_map_stays_consistent_with_a_wider_blur(fast_sequence):
     """The back-end settles each stride into I_G with its blur kept up to date region by region: with
     backend_blur_sigma = 2 (radius 8 px) B(I_G), its sums, N_e and the event area still equal a from-scratch
@@ -49,6 +50,7 @@ def test_settled_global_map_stays_consistent_with_a_wider_blur(fast_sequence):
     assert gm.area == pytest.approx(event_area(gm.raw), rel=1e-5)
 
 
+@pytest.mark.slow
 def test_slam_beats_frontend_alone(fast_sequence):
     seq = fast_sequence
     result = run_slam(seq.events, seq.camera, SlamConfig())
@@ -70,6 +72,7 @@ def test_slam_beats_frontend_alone(fast_sequence):
     assert abs(result.map.sum() - len(seq.events)) < 0.01 * len(seq.events)
 
 
+@pytest.mark.slow
 def test_refine_imu_dead_reckoning_cuts_error_and_sharpens_map(short_sequence):
     seq = short_sequence
     gt = seq.groundtruth
@@ -104,6 +107,7 @@ def test_backend_initialization_follows_the_source_without_refinement(short_sequ
     assert err.abs_max_deg < 0.3  # linear spline at 20 Hz vs the smooth ground truth
 
 
+@pytest.mark.slow
 def test_linear_spline_slam_runs(short_sequence):
     """The reference's linear spline (the default is cubic)."""
     seq = short_sequence
@@ -128,6 +132,7 @@ def test_a_backend_worker_by_default_on_two_cores_or_more_up_to_vga(monkeypatch)
     assert default_backend_process(davis) is False
 
 
+@pytest.mark.slow
 def test_cli_slam_refine_imu_map_evaluate(short_dataset, tmp_path, capsys, monkeypatch):
     from ti_cmax.kernels import runtime
 
@@ -174,6 +179,7 @@ def test_cli_bad_input_leaves_no_output(short_dataset, tmp_path, capsys):
     assert "error" in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_public_api_and_backend_options(short_sequence):
     """The top-level API, back-end downsampling and pixel freezing run and keep their promises."""
     import ti_cmax
@@ -191,6 +197,7 @@ def test_public_api_and_backend_options(short_sequence):
     assert ti_cmax.evaluate_rotations(seq.groundtruth, res.trajectory).abs_rmse_deg < 1.0
 
 
+@pytest.mark.slow
 def test_false_maxima_are_rejected_on_a_map_too_coarse_for_the_sensor(ti_runtime):
     """A 128x64 map (2.8 deg per pixel for a 0.5 deg/pixel sensor) has false maxima: windows whose optimum moves
     a control pose by more than backend_max_correction keep their initialization instead of diverging."""
@@ -205,6 +212,7 @@ def test_false_maxima_are_rejected_on_a_map_too_coarse_for_the_sensor(ti_runtime
     assert slam.abs_rmse_deg < 2 * front.abs_rmse_deg  # without the guard: about 35 deg
 
 
+@pytest.mark.slow
 def test_sparse_knots_are_judged_by_the_trajectory_not_the_control_poses(ti_runtime):
     """With 10 Hz control poses, a window's end poses are barely reached by its events: the optimum moves them by
     5-14 deg while the trajectory where the events are moves by 1-2.5 deg. The false-maximum guard must judge the
@@ -217,6 +225,7 @@ def test_sparse_knots_are_judged_by_the_trajectory_not_the_control_poses(ti_runt
     assert evaluate_rotations(seq.groundtruth, res.trajectory).abs_rmse_deg < 1.0
 
 
+@pytest.mark.slow
 def test_backend_bfgs_carries_the_curvature_and_beats_cg(short_sequence):
     """The back-end's BFGS (inverse Hessian carried from window to window) needs fewer evaluations per window than
     Fletcher-Reeves CG for a comparable result (refining IMU dead reckoning of a simulated sequence: on 8 sequences
@@ -238,6 +247,7 @@ def test_backend_bfgs_carries_the_curvature_and_beats_cg(short_sequence):
     assert err_b.abs_rmse_deg < 1.3 * err_c.abs_rmse_deg and err_b.rel_rmse_deg_per_s < 1.3 * err_c.rel_rmse_deg_per_s
 
 
+@pytest.mark.slow
 def test_backend_takes_its_last_bfgs_step_without_evaluating_it(short_sequence):
     """backend_bfgs_last_step_unevaluated (default): the step that would only confirm a window's convergence is
     taken without its evaluation: fewer evaluations per window for the same accuracy (the paper suite: abs / rel
@@ -260,6 +270,7 @@ def test_backend_takes_its_last_bfgs_step_without_evaluating_it(short_sequence):
     assert abs(err_on.rel_rmse_deg_per_s / err_off.rel_rmse_deg_per_s - 1.0) < 0.1
 
 
+@pytest.mark.slow
 def test_start_up_and_map_figures_do_not_import_scipy_ndimage():
     """scipy.ndimage costs ~0.2 s to import, in each process of every `slam`: the back-end's kernel preparation
     and the map's figures (Sobel gradient magnitude) do without it (OpenCV gives the same to rounding)."""
@@ -283,6 +294,7 @@ def test_image_gradient_is_scipys_sobel():
     np.testing.assert_allclose(gy, ndimage.sobel(img, axis=0) / 8.0, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_short_and_still_streams(short_sequence):
     """Streams a new user may hand over: shorter than half a front-end step (the first packet's centre) still get a
     packet and a trajectory; events that all share one timestamp get one clear InputError (it was an IndexError from
@@ -322,6 +334,7 @@ def test_short_and_still_streams(short_sequence):
     assert np.degrees(err.max()) < 0.3
 
 
+@pytest.mark.slow
 def test_map_takes_every_event_of_a_rounded_trajectory_and_refuses_one_without_overlap(short_dataset, tmp_path,
                                                                                        capsys):
     """A TUM file keeps 9 decimals, so the trajectory `slam` writes may start a fraction of a nanosecond after the

@@ -35,7 +35,7 @@ HELP = "paper-style benchmark tables (Tab. II, IV, VI) on simulated sequences: t
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ti_cmax.pipelines.evaluation.benchmark import METHOD_KEYS, SUITES
+    from ti_cmax.pipelines.evaluation.suites import METHOD_KEYS, SUITES
 
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (sequences are cached in DIR/sequences)")
     parser.add_argument("--quick", action="store_true", help="2 short sequences, linear BA only, smaller maps")

@@ -12,6 +12,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from ..camera import SENSORS
 from ..errors import InputError
 from ..events import Events, signed_polarity
 
@@ -205,8 +206,6 @@ def infer_sensor_size(max_x: float, max_y: float, source: str,
     """Smallest sensor of ``ti_cmax.camera.SENSORS`` (by pixel count) containing pixel (max_x, max_y) and,
     when a calibration gives it, whose central half holds the principal point (cx, cy): so a DAVIS240C
     recording whose first events happen to stay below x, y < 128 is not taken for a DVS128."""
-    from ..camera import SENSORS
-
     def centred(w, h):
         if principal_point is None:
             return True

@@ -28,7 +28,10 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from ..events import Events, signed_polarity
+from ..outputs import OutputDir
 from ..trajectory import Trajectory
+from .events_txt import txt_time_range
+from .text import read_tum, write_tum
 
 CALIB_MATRIX_NAMES = ("calibration.txt", "calib_matrix.txt", "calib.txt")
 DEFAULT_SENSOR = (240, 180)  # DAVIS240C
@@ -315,8 +318,6 @@ class StarDataset:
 
     @cached_property
     def groundtruth(self) -> Trajectory | None:
-        from .text import read_tum
-
         return read_tum(self.groundtruth_path) if self.groundtruth_path is not None else None
 
     def iter_events(self, chunk_size: int = 1_000_000, t_start: float | None = None,
@@ -331,8 +332,6 @@ class StarDataset:
 
     @cached_property
     def _time_range(self) -> tuple[float, float]:
-        from .events_txt import txt_time_range
-
         return txt_time_range(self.events_path)
 
     def time_range(self) -> tuple[float, float]:
@@ -367,9 +366,6 @@ def write_star_dataset(folder, events, matrix, groundtruth: Trajectory | None = 
                        sensor_size: tuple[int, int] | None = None, chunk: int = 500_000) -> Path:
     """Write a star-form folder (all-or-nothing): events.txt (from Events or an iterable of chunks),
     calibration.txt, sensor.txt and optional groundtruth.txt."""
-    from ..outputs import OutputDir
-    from .text import write_tum
-
     m = np.asarray(matrix, dtype=float)
     if m.shape != (3, 3):
         raise InputError(f"calibration matrix must be 3x3, got shape {m.shape}")

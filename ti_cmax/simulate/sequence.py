@@ -20,6 +20,7 @@ from ..camera import Camera
 from ..errors import InputError
 from ..events import Events
 from ..outputs import OutputDir
+from ..progress import progress
 from ..trajectory import Trajectory
 from .config import SimulatorConfig
 from .generate import generate_events, pixel_speed_factor, render_times, sensor_camera
@@ -97,8 +98,6 @@ def _info(config: SimulatorConfig, s: _Setup, num_events: int, wall: float) -> d
 
 
 def _progress(config: SimulatorConfig, show: bool):
-    from ..progress import progress
-
     bar = progress(total=round(config.duration, 6), desc="simulate", unit="s") if show else None
 
     def update(t_end: float):

@@ -57,6 +57,7 @@ def test_rtpt_track_and_map_update_match_twins(rtpt_problem):
     assert (n_ti - N).sum() > 0
 
 
+@pytest.mark.slow
 def test_rtpt_gauss_newton_reduces_eq4_on_simulated_packet(ti_runtime):
     """A map built from the true poses; a packet tracked from a 1 deg perturbed start: cost down, rotation back."""
     from ti_cmax.simulate import SimulatorConfig, simulate_sequence

@@ -163,6 +163,7 @@ def test_iterated_update_equals_information_form(scene):
     np.testing.assert_allclose(x, np.linalg.solve(info, np.concatenate([bvec + lam @ d, np.zeros(3)])), rtol=1e-8)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model", ["pose", "velocity", "acceleration"])
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_ekf_track_matches_numpy(ti_runtime, scene, dtype, model):

@@ -20,6 +20,7 @@ def slow_sequence(ti_runtime):
     return simulate_sequence(SimulatorConfig(scene="city", duration=1.2, max_angular_velocity=1.0, seed=1))
 
 
+@pytest.mark.slow
 def test_rtpt_tracks_near_map_centre(slow_sequence):
     seq = slow_sequence
     result = run_baseline("rtpt", seq.events, seq.camera)
@@ -32,6 +33,7 @@ def test_rtpt_tracks_near_map_centre(slow_sequence):
     assert result.map.shape == (512, 1024) and 0 <= result.map.min() and result.map.max() <= 1
 
 
+@pytest.mark.slow
 def test_rtpt_loses_track_at_the_map_border(ti_runtime):
     """A constant pan about the vertical axis: tracking is lost when the view reaches lon = +-180 deg."""
     from ti_cmax.simulate import SimulatorConfig, simulate_sequence
@@ -47,6 +49,7 @@ def test_rtpt_loses_track_at_the_map_border(ti_runtime):
     assert evaluate_rotations(seq.groundtruth, result.trajectory).abs_rmse_deg < 3.0  # fine until then
 
 
+@pytest.mark.slow
 def test_cmax_gae_tracks_slow_sequence_with_bounded_memory(slow_sequence):
     seq = slow_sequence
     cfg = BaselineConfig(gae=GAEConfig(gae_sphere_height=512))
@@ -104,6 +107,7 @@ def tiny_dataset(ti_runtime, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_baseline_command(tiny_dataset, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(cli.COMMANDS, "baseline", "baseline")  # registered by the lead in cli.py
     out = tmp_path / "rtpt"
@@ -130,6 +134,7 @@ def test_baseline_command(tiny_dataset, tmp_path, monkeypatch, capsys):
     assert not bad.exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["rtpt", "cmax-gae", "imu"])
 def test_baselines_stream_their_input(slow_sequence, name):
     """Uneven chunks from a generator (never the whole stream at once) give the same result as one Events."""

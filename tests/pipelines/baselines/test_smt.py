@@ -28,6 +28,7 @@ def _run(seq, tracker, config=None, events=None):
                    imu=seq.imu, groundtruth=seq.groundtruth, contrast_threshold=seq.config.contrast_threshold)
 
 
+@pytest.mark.slow
 def test_ekf_smt_tracks_with_imu_bootstrap(city):
     """Defaults, loss checks on (the fixture was declared by an earlier session; with the random-walk EKF and
     per-event measurements this run was declared lost at 1.39 s, 1.5 deg up to there, 2.6 deg over the whole run
@@ -49,6 +50,7 @@ def test_ekf_smt_tracks_with_imu_bootstrap(city):
     assert img.shape == (512, 1024) and img.max() > img.min()
 
 
+@pytest.mark.slow
 def test_pf_smt_tracks_and_is_reproducible(city):
     res = _run(city, "pf")
     rep = res.report
@@ -68,6 +70,7 @@ def test_pf_smt_tracks_and_is_reproducible(city):
     assert a.report["resamples"] > 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene,seed", [("bicycle", 0), ("bay", 1)])
 def test_ekf_smt_never_returns_a_silently_bad_trajectory(ti_runtime, scene, seed):
     """Simulator defaults (peak 5 rad/s), the first two seeds, two textures: declared before any run, not picked
@@ -88,6 +91,7 @@ def test_ekf_smt_never_returns_a_silently_bad_trajectory(ti_runtime, scene, seed
         assert err.abs_rmse_deg < 3.0, (err.abs_rmse_deg, rep["status"], rep["lost_at"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene,seed", [("street", 301), ("town", 302), ("bicycle", 311)])
 def test_ekf_smt_tracks_declared_sequences(ti_runtime, scene, seed):
     """Simulator defaults (DAVIS240C, random motion up to 5 rad/s), 1.5 s, seeds declared before the first run
@@ -103,6 +107,7 @@ def test_ekf_smt_tracks_declared_sequences(ti_runtime, scene, seed):
     assert err.abs_rmse_deg < 3.0, err.abs_rmse_deg
 
 
+@pytest.mark.slow
 def test_ekf_smt_tracks_fast_angular_acceleration(ti_runtime):
     """Random motion up to 5 rad/s with frequencies up to 3 Hz instead of 1.5 (angular accelerations up to about
     twice those of the benchmark suite), DAVIS240C bay, 1.5 s, seed 303, declared before
@@ -118,6 +123,7 @@ def test_ekf_smt_tracks_fast_angular_acceleration(ti_runtime):
     assert err.abs_rmse_deg < 3.0, err.abs_rmse_deg
 
 
+@pytest.mark.slow
 def test_textureless_stretch_is_reported_lost(ti_runtime, tmp_path):
     """DVS128 panning one full turn in 3 s, with background noise, over the procedural city panorama made flat over
     the 120 deg of longitude behind the start: the view holds texture until about 1 s and is wholly flat from about
@@ -147,6 +153,7 @@ def test_textureless_stretch_is_reported_lost(ti_runtime, tmp_path):
     assert err.abs_rmse_deg < 1.0, err.abs_rmse_deg
 
 
+@pytest.mark.slow
 def test_pure_noise_is_reported_lost_not_raised(ti_runtime):
     """Background-activity events only: no map worth the name, tracking must end with status lost."""
     cam = Camera.ideal(64, 48, 60.0)
@@ -186,6 +193,31 @@ def test_config_loads_with_nested_mapping_keys():
         load_config(SmtConfig, None, ["num_particles=0"])
 
 
+@pytest.mark.parametrize("settings, expected", [
+    ({"tracker": "pf"}, {"pf_loglik"}),
+    ({"tracker": "ekf"}, {"ekf_track": (9, True)}),
+    ({"tracker": "ekf", "motion_model": "constant_velocity", "reference": "pose"}, {"ekf_track": (6, False)}),
+    ({"tracker": "ekf", "motion_model": "random_walk"}, {"ekf_track": (6, False)}),
+])
+def test_warm_up_compiles_only_the_trackers_kernels(monkeypatch, settings, expected):
+    """A run compiles the kernels it launches before it is timed, and no other (PF-SMT without the filter,
+    EKF-SMT with its state size and kind of reference only): each EKF variant costs seconds to compile."""
+    from ti_cmax.pipelines.baselines import smt as smt_module
+
+    calls = {}
+    monkeypatch.setattr(smt_module.km, "warm_up", lambda dtype: None)
+    for name in ("select_references", "ekf_accumulate", "pf_loglik"):
+        monkeypatch.setattr(smt_module.ks, name, lambda *a, _n=name, **k: calls.setdefault(_n, True))
+
+    def track(*args, state_a=None, **kwargs):
+        calls["ekf_track"] = (args[27].shape[1], args[28])  # state_P, velocity_reference
+
+    monkeypatch.setattr(smt_module.ks, "ekf_track", track)
+    smt_module._warm_up(np.float32, SmtConfig(**settings))
+    assert calls.pop("select_references") and calls.pop("ekf_accumulate")
+    assert calls == (expected if isinstance(expected, dict) else {k: True for k in expected})
+
+
 def test_ekf_acceleration_steps_are_per_batch_not_per_second(monkeypatch):
     """The acceleration's random-walk step is acceleration_step_std per batch whatever the batch lasts (module doc):
     the kernel gets the jerk intensity step / sqrt(mean batch duration of the call), so batches 4x shorter (a 4x
@@ -221,6 +253,7 @@ def test_ekf_acceleration_steps_are_per_batch_not_per_second(monkeypatch):
     assert seen == [SmtConfig().angular_jerk_std] and trk.jerk_used == []
 
 
+@pytest.mark.slow
 def test_segments_longer_than_two_map_pixels_are_not_measurements(city, monkeypatch):
     """EKF-SMT: segments longer than max_segment_px (2 map px by default) restart without a measurement, in the
     bootstrap's selection (gain calibration) and in the EKF's (module doc: their increments are over-predicted, and
@@ -358,6 +391,7 @@ def test_consistency_check_passes_truth_and_flags_a_velocity_error(city):
     assert summary["min_ratio"] < 0.8
 
 
+@pytest.mark.slow
 def test_streaming_chunks_give_the_same_tracking(city):
     """Chunks of 60k events (20 per second of this sequence) instead of 1M: between chunks only per-pixel state
     is carried, so the result matches up to the map-update timing at chunk ends."""
@@ -373,6 +407,7 @@ def test_streaming_chunks_give_the_same_tracking(city):
     assert err.abs_rmse_deg < 3.0
 
 
+@pytest.mark.slow
 def test_slow_drift_is_caught_where_the_contrast_ratio_is_blind(city):
     """Slow-drift test (consistency.py): ground-truth poses pass; a steady 0.2 rad/s error about the camera x axis
     from t = 0.6 s keeps the contrast ratios above 0.9 (the ratio rule alone never fails it; 0.3 rad/s it does, late)

@@ -1,9 +1,12 @@
 """Smoke test of the CMax-SLAM benchmark: one tiny sequence, every method row present and well formed."""
 import math
 
+import pytest
+
 from ti_cmax.pipelines.evaluation.bench_slam import METHODS, ROW_KEYS, bench_sequence, format_table
 
 
+@pytest.mark.slow
 def test_bench_sequence_rows_on_tiny_dvs128():
     res = bench_sequence("DVS128", "city", 0.6, overrides={"pano_height": 128}, quick=True)
     assert res["map_size"] == [256, 128]

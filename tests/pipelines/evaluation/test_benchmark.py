@@ -9,6 +9,7 @@ import pytest
 from ti_cmax.cli import main
 from ti_cmax.errors import InputError
 from ti_cmax.pipelines.evaluation import benchmark as B
+from ti_cmax.pipelines.evaluation.methods import ba_source
 
 
 def _rows(path):
@@ -29,6 +30,7 @@ def _table(text: str, heading: str) -> list[str]:
     return out
 
 
+@pytest.mark.slow
 def test_benchmark_tiny_suite(tmp_path, monkeypatch):
     # one registered baseline is hidden: it must appear as a "not implemented" row, never be dropped
     monkeypatch.delitem(B.BASELINES, "rtpt", raising=False)
@@ -77,6 +79,7 @@ def test_benchmark_tiny_suite(tmp_path, monkeypatch):
     assert math.isfinite(doc["results"][0]["wall_seconds"])
 
 
+@pytest.mark.slow
 def test_lost_front_end_and_cache(tmp_path, monkeypatch):
     """A lost front-end shows "-" with a note, its BA is skipped; a raising one is an "error" row; the second run
     reuses the cached sequence."""
@@ -138,7 +141,7 @@ def test_ba_source_resampling():
 
     t = np.linspace(0.0, 1.0, 1001)  # 1 kHz
     traj = Trajectory(t, so3.exp(np.outer(t, [0.0, 0.3, 0.1])))
-    out = B.ba_source(traj, 200.0)
+    out = ba_source(traj, 200.0)
     assert len(out) == 201 and out.t[0] == 0.0 and out.t[-1] == 1.0
     assert np.allclose(out.R, traj.at(out.t), atol=1e-9)
-    assert B.ba_source(out, 200.0) is out and B.ba_source(traj, 0.0) is traj
+    assert ba_source(out, 200.0) is out and ba_source(traj, 0.0) is traj

@@ -1,8 +1,11 @@
 import json
 
+import pytest
+
 from ti_cmax.cli import main
 
 
+@pytest.mark.slow
 def test_sweep_cli_quick(tmp_path, capsys, ti_runtime):
     out = tmp_path / "sweep"
     assert main(["sweep", "--out", str(out), "--quick", "--duration", "0.6", "--scene", "bay",

@@ -25,6 +25,7 @@ def tiny_cfg():
     return update_config(B.BenchmarkConfig(), TINY)
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_matches_serial(tmp_path, tiny_cfg, ti_runtime):
     distributed = pytest.importorskip("distributed")
     spec = [B.SUITE["playroom"]]
@@ -53,6 +54,7 @@ def _tasks(tmp_path, cfg, broken=True):
     return B.suite_tasks(datasets, ["gt", "imu"], {"": cfg})
 
 
+@pytest.mark.slow
 def test_rerun_skips_finished_tasks_and_reports_failures(tmp_path, tiny_cfg, ti_runtime):
     out = tmp_path / "out"
     tasks = _tasks(tmp_path, tiny_cfg)
@@ -96,6 +98,7 @@ def _maybe_die(i):
     return i * 10
 
 
+@pytest.mark.slow
 def test_local_pool_survives_a_dying_worker():
     """Only the call that kills its worker fails, also the one that ran beside it when the pool broke."""
     ex = T.LocalExecutor(jobs=2, threads=1)
@@ -109,6 +112,7 @@ def test_config_hash_ignores_key_order():
     assert T.config_hash({"a": 1}) != T.config_hash({"a": 2})
 
 
+@pytest.mark.slow
 def test_batch_cli_parameter_sets_on_a_process_pool(tmp_path):
     from ti_cmax.cli import main
 
@@ -202,6 +206,7 @@ def test_batch_records_datasets_that_cannot_be_read_and_refuses_unreadable_files
         assert not (tmp_path / "out2").exists()
 
 
+@pytest.mark.slow
 def test_unguarded_script_running_calls_in_a_pool_is_told_why(tmp_path):
     """A script that runs calls on a local pool at its top level: each spawned worker runs the script again and
     would start a pool itself. The calls fail with the reason (they failed as 'worker process died (crash or out of

@@ -129,6 +129,7 @@ def test_config_loads_with_overrides(tmp_path):
         load_config(GrayscaleConfig, None, ["measurement_noise=-1"])
 
 
+@pytest.mark.slow
 def test_cli_grayscale_multi_size(short_dataset, tmp_path, capsys):
     from ti_cmax.cli import main
 

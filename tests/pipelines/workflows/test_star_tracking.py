@@ -103,6 +103,7 @@ def star_sequence(ti_runtime, tmp_path_factory):
     return out, info
 
 
+@pytest.mark.slow
 def test_star_tracking_workflow_on_short_simulated_sequence(star_sequence, tmp_path, capsys):
     from ti_cmax.cli import main
 
@@ -162,6 +163,7 @@ def test_undistorted_star_events_match_camera_bearings():
     assert np.allclose(sc.bearings(star.x, star.y), cam.bearings(ev.x, ev.y), atol=1e-5)
 
 
+@pytest.mark.slow
 def test_first_window_does_not_turn_a_fast_star_field_nor_bend_its_start(ti_runtime):
     """With no global map yet, the first window's contrast barely changes when the whole trajectory turns; point
     splats (stars) still gain a little from the map's sampling, and with the first control pose held the BA turned

@@ -39,6 +39,7 @@ def small_dataset(ti_runtime, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_super_resolution_two_sizes(small_dataset, tmp_path, capsys):
     from ti_cmax.cli import main
 
