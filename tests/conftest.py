@@ -32,16 +32,24 @@ _EVENT_MSG = "uint16 x\nuint16 y\ntime ts\nbool polarity\n"
 _EVENT_ARRAY_MSG = "std_msgs/Header header\nuint32 height\nuint32 width\ndvs_msgs/Event[] events\n"
 
 
-def _write_ros1_bag(path, events, camera, per_msg=700, with_camera_info=True):
-    """A ROS1 bag as the reference's driver records it: dvs_msgs/EventArray on /dvs/events (frame_id varying) and,
-    optionally, a sensor_msgs/CameraInfo of ``camera`` on /dvs/camera_info; written with rosbags."""
-    rosbag1 = pytest.importorskip("rosbags.rosbag1")
+def ros1_event_typestore():
+    """The ROS1 noetic typestore of rosbags with dvs_msgs/Event and dvs_msgs/EventArray registered."""
+    pytest.importorskip("rosbags.rosbag1")
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS1_NOETIC)
     types = get_types_from_msg(_EVENT_MSG, "dvs_msgs/msg/Event")
     types.update(get_types_from_msg(_EVENT_ARRAY_MSG, "dvs_msgs/msg/EventArray"))
     store.register(types)
+    return store
+
+
+def _write_ros1_bag(path, events, camera, per_msg=700, with_camera_info=True):
+    """A ROS1 bag as the reference's driver records it: dvs_msgs/EventArray on /dvs/events (frame_id varying) and,
+    optionally, a sensor_msgs/CameraInfo of ``camera`` on /dvs/camera_info; written with rosbags."""
+    from rosbags import rosbag1
+
+    store = ros1_event_typestore()
     Event, EventArray = store.types["dvs_msgs/msg/Event"], store.types["dvs_msgs/msg/EventArray"]
     Header, Time = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
 
@@ -72,6 +80,12 @@ def _write_ros1_bag(path, events, camera, per_msg=700, with_camera_info=True):
             c2 = w.add_connection("/dvs/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store)
             w.write(c2, int(events.t[0] * 1e9), store.serialize_ros1(ci, "sensor_msgs/msg/CameraInfo"))
     return path
+
+
+@pytest.fixture(scope="session")
+def ros1_store():
+    """``ros1_event_typestore()`` once per session: the typestore that serializes dvs_msgs for a bag."""
+    return ros1_event_typestore()
 
 
 @pytest.fixture(scope="session")

@@ -27,6 +27,13 @@ class OutputError(InputError):
     one line naming the path and the cause, exit 2 as for bad input."""
 
 
+def exception_line(exc: BaseException, limit: int = 200) -> str:
+    """A third-party exception as one short line for an InputError: its first non-blank line of text (some span
+    many, such as a parser quoting the whole document), cut to ``limit`` characters, or its type's name."""
+    text = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 def os_error_line(exc: OSError) -> str:
     """An operating-system error as one line: the path(s) it names, then the cause."""
     cause = exc.strerror or (os.strerror(exc.errno) if exc.errno else str(exc) or type(exc).__name__)

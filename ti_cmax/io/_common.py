@@ -42,6 +42,12 @@ def grouped_blocks(arrays, block: int, make_events) -> Iterator[Block]:
         yield Block(make_events(np.concatenate(parts)), None, first)
 
 
+def is_decoder_error(exc: BaseException) -> bool:
+    """An exception of a compiled decoder (faery, aedat): ordinary ones, and Rust panics (pyo3's PanicException is
+    a BaseException); never KeyboardInterrupt, SystemExit or GeneratorExit."""
+    return isinstance(exc, Exception) or type(exc).__name__ == "PanicException"
+
+
 class NoCompanions:
     """Reader mixin: the events file carries no intrinsics, IMU or ground truth."""
 

@@ -15,7 +15,7 @@ from typing import Iterator
 import numpy as np
 
 from ..camera import Camera
-from ..errors import InputError, missing_extra
+from ..errors import InputError, exception_line, missing_extra
 from ..events import Events, signed_polarity
 from ..trajectory import Trajectory
 from ._common import Block, grouped_blocks
@@ -42,11 +42,31 @@ def _reader(path: Path):
         r = AnyReader([path], default_typestore=get_typestore(Stores.ROS1_NOETIC))
         r.open()
     except Exception as exc:  # rosbags raises its own error types for corrupt or unknown files
-        raise InputError(f"cannot open ROS bag: {exc}", source=str(path)) from None
+        raise InputError(f"cannot open ROS bag: {exception_line(exc)}", source=str(path)) from None
     try:
         yield r
     finally:
         r.close()
+
+
+def _messages(r, source: str, connections, **kw):
+    """(connection, log time, raw bytes) of ``r.messages(connections, **kw)``; the errors rosbags raises while
+    reading a damaged bag (its ReaderError, KeyError on a record header without a field, decompression errors)
+    become one InputError."""
+    try:
+        yield from r.messages(connections=connections, **kw)
+    except Exception as exc:
+        raise InputError(f"cannot read the ROS bag (truncated or corrupt?): {type(exc).__name__}: "
+                         f"{exception_line(exc)}", source=source) from None
+
+
+def _deserialize(r, source: str, raw, msgtype: str):
+    """A message of a bag deserialized, or one InputError when its bytes do not hold a ``msgtype``."""
+    try:
+        return r.deserialize(raw, msgtype)
+    except Exception as exc:
+        raise InputError(f"malformed {msgtype} message ({type(exc).__name__}: {exception_line(exc)})",
+                         source=source) from None
 
 
 def decode_event_array(raw: bytes | memoryview) -> tuple[int, int, np.ndarray]:
@@ -92,24 +112,25 @@ class BagSource:
             self.topic = topic
             self._types = {k: sorted({c.topic for c in v}) for k, v in by_type.items()}
             self.sensor_size = None
-            for c, _, raw in r.messages(connections=[c for c in ev if c.topic == topic]):
+            for c, _, raw in _messages(r, self.source, [c for c in ev if c.topic == topic]):
                 h, w, _ = self._decode(raw, 0)
                 if w > 0 and h > 0:
                     self.sensor_size = (w, h)
                 break
 
-    def _decode(self, raw, index):
+    def _decode(self, raw, index: int | None = None):
         try:
             return decode_event_array(raw)
         except (ValueError, TypeError) as exc:
-            raise InputError(f"event message {index}: malformed EventArray ({exc})", source=self.source) from None
+            which = "an event message" if index is None else f"event message {index}"
+            raise InputError(f"{which}: malformed EventArray ({exception_line(exc)})", source=self.source) from None
 
     def _connections(self, r, msgtype, topic=None):
         return [c for c in r.connections if c.msgtype == msgtype and (topic is None or c.topic == topic)]
 
     def iter_blocks(self, t_start=None) -> Iterator[Block]:
         with _reader(self.path) as r:
-            messages = r.messages(connections=self._connections(r, EVENT_ARRAY, self.topic))
+            messages = _messages(r, self.source, self._connections(r, EVENT_ARRAY, self.topic))
             yield from grouped_blocks((self._decode(raw, k)[2] for k, (_, _, raw) in enumerate(messages)),
                                       self.block, self._events)
 
@@ -122,14 +143,14 @@ class BagSource:
         first = last = None
         with _reader(self.path) as r:
             conns = self._connections(r, EVENT_ARRAY, self.topic)
-            for _, _, raw in r.messages(connections=conns):
-                a = decode_event_array(raw)[2]
+            for k, (_, _, raw) in enumerate(_messages(r, self.source, conns)):
+                a = self._decode(raw, k)[2]
                 if len(a):
                     first = float(a["sec"][0]) + 1e-9 * float(a["nsec"][0])
                     break
             for start in (max(r.start_time, r.end_time - 2_000_000_000), None):
-                for _, _, raw in r.messages(connections=conns, start=start):
-                    a = decode_event_array(raw)[2]
+                for _, _, raw in _messages(r, self.source, conns, start=start):
+                    a = self._decode(raw)[2]
                     if len(a):
                         last = float(a["sec"][-1]) + 1e-9 * float(a["nsec"][-1])
                 if last is not None:
@@ -141,7 +162,7 @@ class BagSource:
     def num_events(self) -> int:
         n = 0
         with _reader(self.path) as r:
-            for k, (_, _, raw) in enumerate(r.messages(connections=self._connections(r, EVENT_ARRAY, self.topic))):
+            for k, (_, _, raw) in enumerate(_messages(r, self.source, self._connections(r, EVENT_ARRAY, self.topic))):
                 n += len(self._decode(raw, k)[2])
         return n
 
@@ -154,8 +175,8 @@ class BagSource:
         if topic is None:
             return None
         with _reader(self.path) as r:
-            for c, _, raw in r.messages(connections=self._connections(r, CAMERA_INFO, topic)):
-                m = r.deserialize(raw, c.msgtype)
+            for c, _, raw in _messages(r, self.source, self._connections(r, CAMERA_INFO, topic)):
+                m = _deserialize(r, self.source, raw, c.msgtype)
                 K = np.asarray(getattr(m, "K", getattr(m, "k", None)), dtype=float).reshape(3, 3)
                 D = [float(v) for v in getattr(m, "D", getattr(m, "d", []))]
                 if K[0, 0] <= 0:
@@ -169,8 +190,8 @@ class BagSource:
             return None
         t, acc, gyro = [], [], []
         with _reader(self.path) as r:
-            for c, _, raw in r.messages(connections=self._connections(r, IMU, topic)):
-                m = r.deserialize(raw, c.msgtype)
+            for c, _, raw in _messages(r, self.source, self._connections(r, IMU, topic)):
+                m = _deserialize(r, self.source, raw, c.msgtype)
                 t.append(_stamp(m))
                 a, g = m.linear_acceleration, m.angular_velocity
                 acc.append((a.x, a.y, a.z))
@@ -183,8 +204,8 @@ class BagSource:
             return None
         t, q = [], []
         with _reader(self.path) as r:
-            for c, _, raw in r.messages(connections=self._connections(r, POSE, topic)):
-                m = r.deserialize(raw, c.msgtype)
+            for c, _, raw in _messages(r, self.source, self._connections(r, POSE, topic)):
+                m = _deserialize(r, self.source, raw, c.msgtype)
                 o = m.pose.orientation
                 t.append(_stamp(m))
                 q.append((o.x, o.y, o.z, o.w))

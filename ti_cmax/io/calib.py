@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..errors import InputError
+from ..errors import InputError, exception_line
 
 _CALIB_EXPECTED = "expected 'fx fy cx cy [k1 k2 p1 p2 [k3]]' (4, 8 or 9 numbers)"
 
@@ -64,7 +64,7 @@ def read_camera_info_yaml(path, width: int | None = None, height: int | None = N
     try:
         d = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:
-        raise InputError(f"not valid YAML ({str(exc).splitlines()[0]})", source=source) from None
+        raise InputError(f"not valid YAML ({exception_line(exc)})", source=source) from None
     except UnicodeDecodeError as exc:
         raise InputError(f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}): save the "
                          "camera_info YAML as UTF-8", source=source) from None
@@ -76,17 +76,24 @@ def read_camera_info_yaml(path, width: int | None = None, height: int | None = N
         h = int(height or d["image_height"])
         model = str(d.get("distortion_model", "plumb_bob"))
         dist = [float(v) for v in (d.get("distortion_coefficients") or {}).get("data", [])]
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise InputError(f"malformed camera_info YAML ({type(exc).__name__}: {exc}); expected image_width, "
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+        raise InputError(f"malformed camera_info YAML ({type(exc).__name__}: {exception_line(exc)}); expected "
+                         "image_width, "
                          "image_height, camera_matrix.data (9 numbers), distortion_coefficients.data",
                          source=source) from None
     if model not in ("plumb_bob", "rational_polynomial", "radtan", "none", "") :
         raise InputError(f"distortion_model {model!r} is not supported (use plumb_bob)", source=source)
     if model == "rational_polynomial" and any(dist[5:]):
         raise InputError("rational_polynomial with k4..k6 != 0 is not supported", source=source)
+    return _camera(source, w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(dist[:5]))
+
+
+def _camera(source: str, width, height, fx, fy, cx, cy, dist) -> Camera:
+    """Camera(...), its InputError (NaN or non-positive intrinsics, intrinsics that do not fit the sensor) naming
+    the calibration file."""
     try:
-        return Camera(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(dist[:5]))
-    except InputError as exc:  # NaN or non-positive intrinsics: name the file
+        return Camera(int(width), int(height), fx, fy, cx, cy, dist)
+    except InputError as exc:
         raise InputError(str(exc), source=source) from None
 
 
@@ -132,4 +139,4 @@ def read_calib(path, width: int | None = None, height: int | None = None) -> Cam
         if size is None:
             raise InputError("calib.txt holds no sensor size: give width and height", source=str(path))
         width, height = size[:2]
-    return Camera(int(width), int(height), fx, fy, cx, cy, dist)
+    return _camera(str(path), width, height, fx, fy, cx, cy, dist)

@@ -23,8 +23,8 @@ from typing import Iterator
 
 import numpy as np
 
-from ..errors import InputError
-from ._common import Block, ScannedSource, grouped_blocks
+from ..errors import InputError, exception_line
+from ._common import Block, ScannedSource, grouped_blocks, is_decoder_error
 
 HEADER_SCAN_BYTES = 1 << 20  # a RAW header is a few hundred bytes; more than this is not a header
 _WORD_BYTES = {"evt2": 4, "evt2.1": 8, "evt3": 2}
@@ -37,12 +37,6 @@ def _faery(path: Path):
         raise InputError("reading Prophesee RAW needs the 'faery' package (pip install ti-cmax[prophesee])",
                          source=str(path)) from None
     return faery
-
-
-def _is_decoder_error(exc: BaseException) -> bool:
-    """An exception of faery's decoder: ordinary ones, and Rust panics (pyo3's PanicException is a
-    BaseException); never KeyboardInterrupt, SystemExit or GeneratorExit."""
-    return isinstance(exc, Exception) or type(exc).__name__ == "PanicException"
 
 
 def raw_header(path: Path) -> tuple[list[str], int]:
@@ -83,9 +77,9 @@ class RawSource(ScannedSource):
             with faery.evt.Decoder(self.source, None, None) as dec:
                 self.version, self.sensor_size = dec.version, tuple(int(v) for v in dec.dimensions)
         except BaseException as exc:  # faery raises RuntimeError on headers it cannot use
-            if not _is_decoder_error(exc):
+            if not is_decoder_error(exc):
                 raise
-            raise InputError(f"cannot read the RAW header: {exc}", source=self.source) from None
+            raise InputError(f"cannot read the RAW header: {exception_line(exc)}", source=self.source) from None
         tail = (self.path.stat().st_size - self.data_offset) % _WORD_BYTES.get(self.version, 2)
         if tail:
             raise InputError(f"truncated {self.version.upper()} data: the file ends {tail} byte(s) into a "
@@ -101,9 +95,9 @@ class RawSource(ScannedSource):
         except InputError:
             raise
         except BaseException as exc:
-            if not _is_decoder_error(exc):
+            if not is_decoder_error(exc):
                 raise
-            raise InputError(f"cannot decode {self.version.upper()} data (corrupt file?): {exc}",
+            raise InputError(f"cannot decode {self.version.upper()} data (corrupt file?): {exception_line(exc)}",
                              source=self.source) from None
 
     def iter_blocks(self, t_start=None) -> Iterator[Block]:
