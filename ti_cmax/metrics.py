@@ -393,7 +393,8 @@ def revolution_errors(groundtruth: Trajectory, times: np.ndarray, errors_deg: np
     means = total.sum(axis=1) / count.sum(axis=1)
     covered = np.minimum(progress.max() - np.arange(n), 1.0)
     if complete:
-        swing = float(np.nanmax(np.nanmax(sector_means[:complete], axis=1) - np.nanmin(sector_means[:complete], axis=1)))
+        full = sector_means[:complete]
+        swing = float(np.nanmax(np.nanmax(full, axis=1) - np.nanmin(full, axis=1)))
         spread = float(np.ptp(means[:complete]))
     else:
         swing = spread = float("nan")
