@@ -20,8 +20,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 
-# the files and folders the history guard scans (relative to the repository root)
-HISTORY_GUARD_ROOTS = ("README.md", "mkdocs.yml", "CHANGELOG.md", "docs")
+# the files and folders the history guard scans (relative to the repository root): the whole tree
+HISTORY_GUARD_ROOTS = (".",)
 
 HISTORY_PATTERNS = {
     "numbered work period": re.compile(r"\bsessions? \d+", re.IGNORECASE),
@@ -63,7 +63,8 @@ def history_findings(relpath: str, text: str) -> list[str]:
 
 
 def guarded_files() -> list[Path]:
-    """Files under HISTORY_GUARD_ROOTS: git's tracked and untracked (not ignored) ones, else every file."""
+    """Files under HISTORY_GUARD_ROOTS: git's tracked and untracked (not ignored) ones, else every file outside
+    hidden folders and build products."""
     try:
         out = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "--",
                               *HISTORY_GUARD_ROOTS], cwd=ROOT, capture_output=True, text=True, check=True).stdout
@@ -73,6 +74,9 @@ def guarded_files() -> list[Path]:
         for root in HISTORY_GUARD_ROOTS:
             path = ROOT / root
             files += [path] if path.is_file() else [p for p in path.rglob("*") if p.is_file()]
+        # without git: leave out hidden folders (.git, .venv) and build products
+        files = [f for f in files if not any(part.startswith(".") or part.endswith(".egg-info")
+                                             for part in f.relative_to(ROOT).parts[:-1])]
     return [f for f in files if f.is_file() and "__pycache__" not in f.parts]
 
 

@@ -16,6 +16,7 @@ Reasons (thresholds below):
   at 100x the floor rate) has lost the motion (e.g. a star field turning at 100-250 deg/s).
 - most windows rejected by the back-end (their correction exceeded ``backend_max_correction``).
 - a trajectory that does not cover the events' time range (under 90 %).
+- the run's own warnings (``report["warnings"]``, e.g. star tracking on a motion beyond what it handles).
 """
 from __future__ import annotations
 
@@ -81,6 +82,7 @@ def run_status(report: dict, *, events_range=None, trajectory_range=None) -> tup
     if isinstance(report.get("backend"), dict):
         reasons += _backend_reasons(report["backend"])
     reasons += _coverage_reasons(events_range, trajectory_range)
+    reasons += [str(w) for w in report.get("warnings") or [] if str(w) not in reasons]
     own = report.get("status", "ok")
     status = own if own not in ("ok", "suspect") else ("suspect" if reasons else "ok")
     return status, reasons

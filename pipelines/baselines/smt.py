@@ -6,160 +6,69 @@ Eq. 38, outliers beyond 10 map px, 5 visits cap; Poisson M only for the output m
 chunks of ``map_update_events`` events, lagging the tracker (parallel tracking and mapping). Tracking: events
 in batches of ``batch_size`` sharing one pose R (world_from_camera); the brightness increment of a sensor pixel
 along its map segment is predicted from the GRADIENT map, z_hat = g(p_mid) . dp, and compared with p n C
-(kernels/baselines/smt.py). Bootstrap: for the first ``bootstrap_seconds`` the poses come from IMU dead reckoning (started
-at the ground-truth pose when it is known) or from ground truth when there is no IMU. C: App. B's values (0.2
+(kernels/baselines/smt.py). Bootstrap: for the first ``bootstrap_seconds`` the poses come from IMU dead reckoning
+(started at the ground-truth pose when it is known) or from ground truth when there is no IMU. C: App. B's values (0.2
 synthetic: the simulator's from simulation.json; 0.22 real).
 
-Where this departs from App. B / [12], [57] and why (each measured on the simulated suite of ``ti-cmax
-benchmark`` with ground truth, 1024 x 512 map):
+Where this departs from App. B / [12], [57] and why (rationale with figures: docs/design.md, SMT baselines):
 
 * Gradient map instead of a refreshed Poisson M in the measurement: it is what the mapping EKFs estimate (same
   sign and scale of g), current after every map update (no solve, no refresh lag, no smoothing-in of unmapped
   areas), and it carries a covariance, so unmapped or unconverged pixels weigh little (S = n sigma^2 +
   dp^T P_g dp).
-* Constant-velocity EKF (state R and camera-frame w, ``motion_model``), not a random walk on R. Each event
-  measures the motion since an earlier event of its pixel, relative to the pose estimated then: a random-walk
-  prior, which says "no motion since the last batch", shrinks every weakly observed velocity component toward
-  zero, and the relative measurements never undo the lag. Roll about the optical axis carries 6-10x less
-  information per batch than pan and tilt (measured), so its prior dominated: even on a map built from
-  ground-truth poses the random-walk EKF drifted in roll until it failed (DVS128 playroom at 2.34 s; with the
-  constant-velocity model 0.1-0.2 deg to the end). ``motion_model=random_walk`` keeps the original.
-* State references (``reference=velocity``, kernels/baselines/smt.py): the reference point of a segment is predicted from
-  the state being estimated, p(R exp(-w dt_ref) b), not taken from the pose estimated for the reference's batch
-  (``reference=pose``). With pose references each event measures R relative to an earlier estimate taken as
-  exact: the pose std shrank to 0.01 deg at 0.2 deg of error, and reference errors fed back into the pose until
-  it ran away (3 deg in 0.1 s; simulated DAVIS240C city seed 101, lost at 1.3 s, also on a map built from
-  ground-truth poses; with ground-truth references instead: 0.04 deg to the end). The state reference makes the
-  increment a measurement of the angular velocity, as Eq. 38 writes it (h = -g . v dt), with the constant-
-  velocity extrapolation's variance (q_acc^2 dt_ref^3 / 3 per axis) in S; the update is 6-d.
-* Constant-acceleration EKF (``motion_model=constant_acceleration``, state R, w, a; kernels/baselines/smt.py): a reference
-  segment dt_ref long measures the mean angular velocity over it, w - a dt_ref / 2; the constant-velocity state
-  read it as the current w, so its velocity lagged under angular acceleration and its velocity random walk
-  (``angular_acceleration_std``) could only trade that lag for noise. Measured on bicycle (paper suite, seed 1),
-  RMS error of w against the ground truth (sampled every 50 batches), constant velocity -> constant acceleration:
-  0.5-2.4 s 0.25 -> 0.19 rad/s, 2.4-4.0 s (|a| up to 20 rad/s^2) 0.63 -> 0.27, 4.0-4.7 s (braking from 5 to
-  1 rad/s) 0.77 -> 0.65; the constant-velocity filter was lost at 4.76 s, the other tracks to the end (1.0 deg).
-  The filter's own w std is 0.05-0.07 rad/s (0.15-0.2 before): still overconfident by 3-10x.
-  ``constant_velocity`` keeps the previous model.
-* Acceleration steps per batch, not per second (``acceleration_step_std`` s_b = 10 rad/s^2; session 8; the default
-  since session 9, see the end of this item): the acceleration is a random walk whose step has the std s_b in every
-  batch, whatever the batch lasts; the kernel gets the jerk intensity q_j = s_b / sqrt(dt) at each call's mean batch
-  duration dt (report ``angular_jerk_std_range``). Rule: every batch carries about the same information
-  (``batch_size`` events under the same noise model), and a Kalman filter's gains are set by the process noise per
-  update against the measurement noise per update (the tracking index of Bar-Shalom, Li & Kirubarajan, Estimation with
-  Applications to Tracking and Navigation, 2001, ch. 6), so a fixed step per batch gives the filter a memory of a
-  fixed number of events at any event rate. The event rate grows with the apparent speed (the events per radian turned
-  are set by the texture), so per batch is nearly per angle turned. With a fixed intensity per second (session 6:
-  ``angular_jerk_std`` 1000 rad/s^2.5, kept with ``acceleration_step_std=0``) the step per batch shrank as the camera
-  sped up: the filter was stiffest where it moved fastest, where the losses were (city at 3.3-3.8 s, |w| 3.5 rad/s:
-  speed 6-9 % low, pose error 0.3 -> 2 deg; the acceleration error of 100-300 rad/s^2 came with that pose error).
-  Value: 10 rad/s^2 per batch is session 6's 1000 rad/s^2.5 at 1 M events/s (100 us batches; city's batches span
-  0.2-10 M events/s, mean 3.2), so the jerk intensity now runs from ~450 (slow) to ~3200 (fast) on city; it is about
+* A motion state, not a random walk on R (``motion_model``). Each event measures the motion since an earlier event
+  of its pixel, relative to the pose estimated then: a random-walk prior, which says "no motion since the last
+  batch", shrinks every weakly observed velocity component toward zero (roll about the optical axis carries several
+  times less information per batch than pan and tilt), and the relative measurements never undo the lag.
+  ``motion_model=random_walk`` keeps App. B's model.
+* State references (``reference=velocity``, kernels/baselines/smt.py): the reference point of a segment is predicted
+  from the state being estimated, p(R exp(-w dt_ref) b), not taken from the pose estimated for the reference's batch
+  (``reference=pose``). A pose reference is an earlier estimate taken as exact: the pose std shrinks far below the
+  error and reference errors feed back into the pose until it runs away. The state reference makes the increment a
+  measurement of the angular velocity, as Eq. 38 writes it (h = -g . v dt), with the constant-velocity
+  extrapolation's variance (q_acc^2 dt_ref^3 / 3 per axis) in S; the update is 6-d.
+* Constant-acceleration EKF (the default ``motion_model=constant_acceleration``, state R, w, a;
+  kernels/baselines/smt.py): a reference segment dt_ref long measures the mean angular velocity over it,
+  w - a dt_ref / 2; a constant-velocity state reads it as the current w, so its velocity lags under angular
+  acceleration, and its velocity random walk (``angular_acceleration_std``) can only trade that lag for noise.
+  ``constant_velocity`` keeps that model.
+* Acceleration steps per batch, not per second (``acceleration_step_std`` s_b = 10 rad/s^2): the acceleration is a
+  random walk whose step has the std s_b in every batch, whatever the batch lasts; the kernel gets the jerk
+  intensity q_j = s_b / sqrt(dt) at each call's mean batch duration dt (report ``angular_jerk_std_range``). Every
+  batch carries about the same information (``batch_size`` events under the same noise model), and a Kalman
+  filter's gains are set by the process noise per update against the measurement noise per update (the tracking
+  index of Bar-Shalom, Li & Kirubarajan, Estimation with Applications to Tracking and Navigation, 2001, ch. 6), so a
+  fixed step per batch gives the filter a memory of a fixed number of events at any event rate. The event rate grows
+  with the apparent speed (the events per radian turned are set by the texture), so per batch is nearly per angle
+  turned; a fixed intensity per second makes the filter stiffest where the camera moves fastest. The value is about
   the rms angular acceleration per axis of the simulated motion (6-11 rad/s^2): each batch's prior lets the
-  acceleration move by its own size, and the segments of the last few batches say where it is. The magnitude is not
-  derived from the motion: the white-jerk intensity of the simulated motion itself (jerk rms 40-100 rad/s^3 per axis
-  over its 1.5 Hz band: q_j ~ 30-60) is far too stiff. Measured (paper-suite bicycle and city, held-out street 102,
-  crossing-position noise on, 1 M-event chunks, 1 thread), fixed intensity q_j = 100 / 300 / 1000 / 2000 / 4000 / 8000
-  / 16000: bicycle lost 4.06 s / 1.25 deg / 0.65 / 0.22 / 0.17 / - / lost 0.56 s (pose std > 5 deg); city lost 4.64 s
-  / lost 4.69 / ok 2.55 (4.4 deg off at 4.3 s, not flagged) / lost 3.84 / lost 4.84 / lost 2.84 / lost 0.97; street
-  102 lost 1.58 s / lost 1.63 / lost 2.58 / 1.33 / 0.54 / - / lost 0.65: no fixed value tracks all three. Per batch
-  (s_b 10; these traces set the step from the previous 50 batches' mean duration): bicycle 0.48, city 0.92, street 102
-  1.17 deg, all ok; velocity NEES (mean / median, 3 expected) 12 / 7, 25 / 10, 30 / 16 (was 16 / 8, 34 / 15, 46 / 26
-  with q_j 1000): still overconfident. Tried and dropped: an acceleration bounded by a first-order Gauss-Markov prior
-  (Singer 1970; stationary std ~30 rad/s^2: q_j 1000 with a 1.8 ms time constant, 300 with 20 ms): street 102 lost at
-  1.68 / 1.63 s, city at 4.89 s; the acceleration observed only through the dynamics (no H_a): lost within 0.6 s; the
-  step referred to the bootstrap's event rate (q_j 1000 at its mean batch duration): bicycle 0.14, city 0.89, street
-  102 1.08, playroom 0.11, as good, but the value would depend on how fast the bootstrap happens to move (0.25-2 M
-  events/s on the suite). Session 6's choice of q_j among 150 / 500 / 1000 / 2000 (without the crossing-position
-  noise: 500 lost bicycle at 4.1 s, 2000 city at 3.8 s, 1000 street 102 at 2.23 s) and an innovation-adaptive jerk
-  noise (covariance matching, dropped: bicycle lost at 4.1 s) are in the README. Session 8 left it opt-in (0:
-  ``angular_jerk_std`` per second): with s_b = 10 and the crossing-position noise below, ``ti-cmax benchmark`` tracks
-  all 24 paper and held-out sequences, 22 of them more accurately (README), but in the textureless-stretch test
-  (tests/pipelines/test_smt.py: DVS128 pan over a flat 60 deg, background noise, 0.25 M events/s, so a jerk intensity
-  of only 257-675) EKF-SMT then tracks from 0.5 s, drifts steadily (abs 0.7 deg by 0.7 s, 3.1 by 1.1 s, max 13 deg)
-  and is reported lost only at 1.45 s, in the flat stretch: a silent drift of 6.3 deg RMSE before lost_at (5.3 without
-  the crossing noise). With the defaults that run is lost at 0.50 s, right after the bootstrap (with the crossing
-  noise alone: divergence at 0.55 s). The drift is a speed error of ~7 % that the 40 ms motion-consistency ratio
-  cannot see (ratios 0.97-0.99 while the tracker's speed is 0.1-0.35 rad/s low; the contrast optimum of the same
-  checks is within 0.01-0.1 rad/s of the truth). Session 9 added the slow-drift test (end of this doc) that compares
-  the two over 0.6 s: that run is now reported lost at 0.70 s (detected at 1.30 s), 0.50 deg RMSE up to there, and
-  both terms are the defaults; with them all 24 benchmark sequences still track (README). Of the held-out seeds
-  241-246 declared then, 5 track (0.13-0.49 deg) and bicycle 244 is lost at 2.88 s of 3 (0.47 deg up to there; a
-  40 ms speed collapse at 5 rad/s, caught by the ratio; it tracks since session 10's 2 px segment gate, below);
-  without the crossing noise it tracks (1.00 deg), but then the benchmark's city 231 is lost at 2.73 s and street
-  102 drifts to 4.1 deg, so both terms stay on.
-* Crossing-position noise in S (``crossing_position_var`` = 1/6, i.e. 2 x 1/12 map px^2, kernels/baselines/smt.py; the
-  default since session 9: with the per-second jerk noise the paper suite's city is lost at a turn-back; with the
-  per-batch acceleration steps above every benchmark sequence tracks, see the end of that item): each end of a
-  segment is a level crossing somewhere within its map pixel, so the increment read from the gradient is
-  uncertain by |g|^2 / 6, on top of n sigma^2 and the map's dp^T P_g dp. A rule from the map's resolution, not a
-  value tried on sequences (it was the first and only value run). Diagnosis that led to it (session 7, simulated
-  held-out street seed 102, 1 thread): with the jerk noise of 1000, the filter's own statistics were consistent
-  (per-event NIS 0.6-2.9; the batch-projected innovation statistic ``innovation_kappa`` 0.4-1.3, so no
-  correlation between the events of a batch showed in the innovations), yet its velocity NEES against the
-  ground truth was 35-100 (median, mean; 3 expected). On a map built from ground-truth poses (an oracle, so no
-  map-pose co-drift) the speed was still 6-15 % low (RMS velocity error 0.2-0.57 rad/s) and the weighted least
-  squares slope of z on z_hat at the ground-truth motion was 0.73-0.85: the regressor z_hat carries the map's
-  error, whose variance S did not grow with |g|, so the fit is attenuated (errors in variables), a bias no
-  innovation test sees. With the term: street 102 lost at 2.63 s instead of 2.23 s in ``ti-cmax benchmark``
-  (2.88 s with 1 M-event chunks, abs 1.62 deg up to there, was 2.39), bicycle 0.64 deg (was 1.03), velocity NEES
-  16 (mean) on bicycle; city lost at 3.84 s at a turn-back (0.67 deg up to there; it tracked at 2.81 deg before),
-  its acceleration state off by 100-300 rad/s^2 (with the per-batch steps above city tracks; README). Tried and
-  dropped: scaling the
-  batch information by an innovation-estimated kappa (kappa stayed <= 1: no change), and calibrating the gain
-  with the tracker's own weighted least squares slope (0.69 at the bootstrap, where the map is young, against
-  0.73-0.85 later: speed 60-80 % too high at the ground truth).
+  acceleration move by its own size, and the segments of the last few batches say where it is.
+  ``acceleration_step_std=0`` uses ``angular_jerk_std`` per second instead.
+* Crossing-position noise in S (``crossing_position_var`` = 1/6, i.e. 2 x 1/12 map px^2, kernels/baselines/smt.py):
+  each end of a segment is a level crossing somewhere within its map pixel (uniform: variance 1/12 px^2 per end), so
+  the increment read from the gradient is uncertain by |g|^2 / 6, on top of n sigma^2 and the map's dp^T P_g dp. A
+  rule from the map's resolution, not a tuned value. Without it the regressor z_hat carries the map's error while S
+  does not grow with |g|, so the fitted speed is attenuated (errors in variables), a bias no innovation test sees.
 * Segments also end after ``max_segment_events`` (2) events: the length test uses the estimated motion, so after
-  a missed stop or turn-back the estimate said "at rest", no segment reached 1 map px and the events only grew n
-  (city seed 2 lost at 2.89 s that way; at 4.19 s with the rule).
+  a missed stop or turn-back an estimate "at rest" lets no segment reach 1 map px and the events only grow n.
 * Reference segments of at least ``min_displacement_px`` (1 map px) instead of the previous event: the map
   holds pixel-averaged gradients and events fire where the gradient is steep, so segments shorter than a pixel
-  had their increment under-predicted by 20-60 % (residuals at ground truth); the tracker reads that as a motion
-  scale error, and +-10 % of scale multiplied the drift by 5-10. The events of a short segment are summed
-  (n C), nothing is dropped.
-* EKF-SMT: reference segments of at most ``max_segment_px`` (2 map px; session 10; before, the mapper's 10 px
-  outlier distance, which PF-SMT keeps, below): a longer segment restarts at its event without a measurement. Rule
-  from the model: z_hat = g(p_mid) . dp reads the bilinear gradient map at the midpoint, whose stencil reaches one
-  pixel either side of it, so a segment whose ends lie farther than 1 px from its midpoint integrates gradient the
-  model does not read. And a segment grows long only because its pixel's brightness hardly changed (it is selected
-  by the quantity it measures), so its increment is over-predicted. Measured at the ground-truth motion (held-out
-  bicycle 244, map of the tracker up to 2.88 s), weighted slope of z on z_hat by segment length: 1.1-1.9 below 1 px,
-  0.8-1.0 at 1-1.5 px, 0.57-0.86 at 1.5-2.5 px, 0.33-0.75 beyond (13-16 % of the segments); with a map built from
-  ground-truth poses (1 s of the same motion), relative to the overall slope: 1.66, 1.35, 1.13, 0.98 (1.5-2 px),
-  0.91 (2-3 px), 0.84 (3-10 px, 30 % of the segments). The length sets the segment's age (length / speed), and the
-  constant-acceleration state reads a bias that changes with the age as an acceleration (a segment dt_ref old
-  measures w - a dt_ref / 2): bicycle 244's acceleration error lay along w, its mean growing with the speed squared
-  (+48 rad/s^2 below 1 rad/s, +64-81 at 1-4 rad/s, +428 above 4.5 rad/s, where the filter's own std was 65), and at
-  5 rad/s (3.3 M events/s) the velocity ran 25 % high within 10 ms and tracking was lost at 2.88 s. With the gate
-  (``ti-cmax benchmark --suite paper|heldout --methods smt-ekf``, BA rows off, 1 thread, nice 15, 2026-12-02
-  09:48-10:42 UTC, before and after on the same machine, load 2-8): all 34 sequences track (before 33: bicycle 244
-  lost), abs 0.09-0.70 deg (before 0.09-1.92); 11 more accurate by over 5 %, 15 less, 7 within 5 %; mean abs 0.33 ->
-  0.25 deg, median 0.21 -> 0.23. Before -> after (abs deg): paper playroom 0.09 -> 0.14, bicycle 0.45 -> 0.29, city
-  1.04 -> 0.27, street 0.12 -> 0.12, town 0.15 -> 0.17, bay 0.14 -> 0.14; held out city 231 1.92 -> 0.26, street 102
-  0.95 -> 0.23, city 101 0.41 -> 0.11, city 212 0.35 -> 0.17, bay 254 0.65 -> 0.40, bicycle 244 lost at 2.88 s ->
-  0.26; worse: bay 243 0.49 -> 0.70, bay 203 0.21 -> 0.49, bay 103 0.13 -> 0.28, town 245 0.15 -> 0.32, city 246
-  0.13 -> 0.26, town 211 0.11 -> 0.20, bay 232 0.21 -> 0.34, street 253 0.20 -> 0.28, the rest within 0.06 deg.
-  Seeds 251-254 were declared before any run of the gate: 0.14, 0.09, 0.28, 0.40 (main's code: 0.18, 0.09, 0.20,
-  0.65). The textureless-stretch test's DVS128 pan (tests/pipelines/test_smt.py) is lost at 0.55 s (contrast ratio
-  0.87, detected at 0.65 s; main's code: at 0.65 s by the slow-drift test, detected at 1.25 s), both before the flat
-  stretch comes into view. What remains: the shorter segments' under-prediction still makes the bias depend on the
-  age (bicycle 244 with the gate: acceleration error +170 to +420 rad/s^2 along w above 1 rad/s, speed 7-29 % high),
-  which the map-anchored pose absorbs. Tried and dropped (bicycle 244): the acceleration left out of the measurement
-  (reference at p(R exp(-w dt_ref) b), H_a = 0, observed through the dynamics only): lost at 2.48 s with the 10 px
-  gate (speed 12 % low throughout), 1.36 deg with the 2 px gate; H_a = 0 but the reference still read with a dt_ref
-  / 2: diverged at 0.68 s. PF-SMT keeps the 10 px: its state has no velocity or acceleration for the age-dependent
-  bias to go into, and with the gate it was lost on the paper suite's playroom at 2.39 s (2.86 deg up to there; 0.39
-  deg to the end without).
+  have their increment under-predicted; the tracker reads that as a motion scale error, which it integrates into
+  drift. The events of a short segment are summed (n C), nothing is dropped.
+* EKF-SMT: reference segments of at most ``max_segment_px`` (2 map px; PF-SMT keeps the mapper's 10 px outlier
+  distance, below): a longer segment restarts at its event without a measurement. z_hat = g(p_mid) . dp reads the
+  bilinear gradient map at the midpoint, whose stencil reaches one pixel either side of it, so a segment whose ends
+  lie farther than 1 px from its midpoint integrates gradient the model does not read. And a segment grows long only
+  because its pixel's brightness hardly changed (it is selected by the quantity it measures), so its increment is
+  over-predicted. The length sets the segment's age (length / speed), and the constant-acceleration state would read
+  a bias that changes with the age as an acceleration. PF-SMT's state has no velocity or acceleration for such a
+  bias to go into, so it keeps the long segments' information.
 * No measurements beyond ``max_latitude_deg`` (70 deg): the equirectangular chart is singular at the poles
-  (u stretches by 1 / cos(lat)). The map frame stays the world frame of App. B: with pose references, 4 of the 5
-  losses happened while the field of view reached beyond 70 deg, but a map frame chosen (from ground truth, as
-  an oracle) to keep the whole sequence within 60-73 deg of latitude did not remove them (bicycle 3.16 -> 3.46 s,
-  city 4.59 -> 4.59 s, held-out street 1.33 -> 1.53 s, city 1.33 -> 1.48 s): the poles were not the cause; the
-  references were (above).
+  (u stretches by 1 / cos(lat)). The map frame stays the world frame of App. B.
 * Map gain: at the end of the bootstrap (known poses) the ratio k of the observed increments p n C to the
-  predicted g . dp is measured and C, sigma are divided by it (:func:`_calibrate_gain`; k = 1.05-1.3 on the
-  simulated sequences). The mapping EKF and the tracker read g differently (nearest pixel of each event's
-  midpoint vs bilinear along longer segments); without it EKF-SMT drifted several times faster.
+  predicted g . dp is measured and C, sigma are divided by it (:func:`_calibrate_gain`). The mapping EKF and the
+  tracker read g differently (nearest pixel of each event's midpoint vs bilinear along longer segments), and a
+  wrong scale is a velocity bias that the relative measurements integrate into drift.
 * The motion-consistency loss check below (the paper reports failures by inspection).
 
 * EKF-SMT: error-state EKF, update with Huber-weighted normal equations of the batch (iterated
@@ -171,17 +80,13 @@ benchmark`` with ground truth, 1024 x 512 map):
 
 Tracking loss, judged over a sliding window of ``loss_window`` s once tracking started: too few measurements land
 on mapped pixels (map support), the significant predicted increments (|z_hat| above its std: at a stop or a
-turn-back the others have no sign worth counting, and town seed 4 was reported lost there at 0.16 deg of error)
-agree in sign with the polarities barely more often than chance (likelihood collapse), or the estimate diverges (pose std, angular speed, non-finite values). These are the
-filter's own statistics, and a tracker that feeds its map can jump or drift while they stay healthy (measured:
-54 deg off with 99% support and 70-85% agreement); so the tracker's angular velocity is also checked against the
-events by contrast maximization (:class:`~ti_cmax.pipelines.baselines.consistency.MotionConsistencyCheck`):
-its contrast ratio catches large velocity errors (0.84 at 0.8 rad/s), and its slow-drift test a steady smaller
-error (``consistency_drift_*``: the tracker's motion against the contrast optimum, integrated over 0.6 s; every
-0.2 s of it must drift by more than 1.5 deg). Tried first and dropped (session 9, the textureless-stretch test's
-pan): removing the speed bias by adding S's dependence on the state (dp^T P_g dp: an errors-in-variables, Deming-type
-score) to the update's gradient diverged at 0.62 s (pose std 5 deg); a map fed ground-truth poses (to tell a
-map-pose scale co-drift from a measurement bias) diverged too (0.57 s), so the bias's cause stays open.
+turn-back the others have no sign worth counting) agree in sign with the polarities barely more often than chance
+(likelihood collapse), or the estimate diverges (pose std, angular speed, non-finite values). These are the
+filter's own statistics, and a tracker that feeds its map can jump or drift far while they stay healthy (high
+support and agreement); so the tracker's angular velocity is also checked against the events by contrast
+maximization (:class:`~ti_cmax.pipelines.baselines.consistency.MotionConsistencyCheck`): its contrast ratio catches
+large velocity errors, and its slow-drift test a steady smaller error (``consistency_drift_*``: the tracker's motion
+against the contrast optimum, integrated over 0.6 s; every 0.2 s of it must drift by more than 1.5 deg).
 The result then has status "lost", ``lost_at`` (start of the window that failed) and a trajectory that ends there.
 """
 from __future__ import annotations

@@ -11,12 +11,12 @@ Per case, ``ti-cmax slam`` runs in a child process offline (as fast as it can) a
 s). The table gives the rate, the real-time figures of report.json ("realtime": events used, lag, latency,
 degradation), the realtime / offline error ratio, the offline run's front-end / back-end us per input event, the
 1-minute load average around the run and a speed probe taken just before the case (bench_sensors.speed_probe): lags
-are wall-clock figures, so a machine shared with other jobs, or this VM in a slow phase, makes them pessimistic.
-Targets (issue 14): up to 2 M events/s real time (max lag <= 0.5 s, events used 1, errors within 10 % of offline);
+are wall-clock figures, so a machine shared with other jobs, or a virtual machine in a slow phase, makes them
+pessimistic. Targets: up to 2 M events/s real time (max lag <= 0.5 s, events used 1, errors within 10 % of offline);
 5 and 12 M events/s lag <= 1 s by degrading.
 ``--rounds N`` runs the whole suite N times, case after case in each round (so a machine whose speed drifts affects
-every case alike), lists every run and says per case in how many rounds issue 14's target held (this VM's speed
-varied 1.6-2x within an hour: one run decides nothing).
+every case alike), lists every run and says per case in how many rounds the target held (a shared or virtual
+machine's speed can vary by 1.5-2x within an hour: one run decides nothing).
 Writes DIR/realtime.md and DIR/realtime.json. A benchmark, not a test: about 5-10 minutes with cached sequences.
 """
 from __future__ import annotations
@@ -40,8 +40,8 @@ REAL_TIME_RATE = 2.5  # Mev/s: up to this mean rate the target is real time with
 
 
 def target_met(row: dict) -> bool:
-    """Issue 14's target for a row: up to REAL_TIME_RATE Mev/s every event used, lag max <= 0.5 s and abs / rel errors
-    within 10 % of offline; above it lag max <= 1 s."""
+    """The real-time target for a row: up to REAL_TIME_RATE Mev/s every event used, lag max <= 0.5 s and abs / rel
+    errors within 10 % of offline; above it lag max <= 1 s."""
     rt = row["realtime"]
     if row["event_rate_mev_s"] > REAL_TIME_RATE:
         return rt["max_lag_s"] <= 1.0
@@ -85,7 +85,7 @@ def evaluate_case(spec, root: Path, modes=("parallel",), threads: int | None = N
         report["process_wall_seconds"] = wall
         return report, evaluate_rotations(gt, read_tum(out / "trajectory.txt")), load
 
-    # the offline reference in one process: its per-stage us per input event are the issue's steady-state figures
+    # the offline reference in one process: its per-stage us per input event are the targets' steady-state figures
     offline, off_err, off_load = run("offline", ("--sequential",))
     rows = []
     for mode in modes:
@@ -146,10 +146,10 @@ def format_table(rows: list[dict]) -> str:
               "as offline); lag: wall time behind sensor time when a window completes; latency: from an event to its "
               "first refined pose; abs deg / rel deg/s against ground truth, ratio = real time / offline; CPU s: "
               "steady-state CPU of the front-end, back-end (its worker with --parallel) and reading; offline us/ev: "
-              "the offline run's steady-state wall time per input event (issue 14: front-end <= 0.3, back-end <= 0.6 "
+              "the offline run's steady-state wall time per input event (targets: front-end <= 0.3, back-end <= 0.6 "
               "linear / 0.8 cubic at 1-2 Mev/s); load: 1-minute load average before-after the real-time run; probe: "
               "this machine's speed just before the case (bench_sensors.speed_probe: ms per front-end evaluation of a "
-              "fixed 15 000-event packet; every timing scales with it). Targets (issue 14): <= 2 Mev/s real time "
+              "fixed 15 000-event packet; every timing scales with it). Targets: <= 2 Mev/s real time "
               "(max lag <= 0.5 s, events used 1, errors within 10 % of offline); 5 and 12 Mev/s lag <= 1 s by "
               "degrading."]
     return "\n".join(lines)

@@ -108,9 +108,9 @@ PROBE_EVENTS = 15_000  # about a DAVIS240C front-end packet at 1 M ev/s after th
 def speed_probe(evaluations: int = 40, seed: int = 0) -> float:
     """This machine's speed right now: median milliseconds of one front-end contrast evaluation (vote, blur, gather;
     kernels/iwe.py, on the calling thread) of a fixed synthetic packet of PROBE_EVENTS events on a DAVIS240C-sized
-    image. Every timing of these benchmarks scales with it: this VM's speed varied 1.5-2x within an hour (the
-    same front-end run 0.19-0.25 vs 0.31-0.42 us per input event), more than most changes measured, so a table
-    row carries the probe taken just before its runs (about 50 ms, plus the kernels' preparation once)."""
+    image. Every timing of these benchmarks scales with it, and a shared or virtual machine's speed can vary by
+    1.5-2x within an hour, more than most changes measured, so a table row carries the probe taken just before its
+    runs (about 50 ms, plus the kernels' preparation once)."""
     import numpy as np
 
     rng = np.random.default_rng(seed)
@@ -155,7 +155,7 @@ def format_table(rows: list[dict]) -> str:
             _f(r["events_used_fraction"]), _f(r["loadavg"][0], 1)]) + " |")
     lines += ["", "abs deg / rel deg/s against ground truth (aligned at start + 0.1 s); us per input event in steady "
               "state (compilation apart); s per s of data = (FE + BE) us/event x events / duration; load = 1-min "
-              "load average after the case. Targets (issue 13): abs <= 0.3 deg, rel <= 0.3 deg/s on every sensor; "
+              "load average after the case. Targets: abs <= 0.3 deg, rel <= 0.3 deg/s on every sensor; "
               "VGA at 12 Mev/s no costlier per input event than DAVIS240C at 1 Mev/s; HD peak < 1.5 GB."]
     return "\n".join(lines)
 

@@ -1,4 +1,4 @@
-"""Benchmark of CMax-SLAM on simulated sequences (issue 4; a command, not a test).
+"""Benchmark of CMax-SLAM on simulated sequences (a command, not a test).
 
     python -m ti_cmax.pipelines.evaluation.bench_slam [--duration 5] [--sensors DAVIS240C,DVS128,DAVIS346]
         [--scenes bay,city] [--set key=value ...] [--threads N] [--refine-degree 1] [--json OUT.json] [--quick]
@@ -12,8 +12,8 @@ panoramic map (the back-end's I_G for SLAM/refine, else the events rendered with
 the same map size), us/event of front-end and back-end in steady state (compile time in its own column), wall
 time, and the process's peak resident memory so far (ru_maxrss). The 1-minute load average is printed with
 every table because timings are only comparable on an idle machine, and so is a speed probe taken before and
-after the runs (bench_sensors.speed_probe: ms per front-end evaluation of a fixed packet; this VM's speed
-drifts). Paper anchors and our targets follow.
+after the runs (bench_sensors.speed_probe: ms per front-end evaluation of a fixed packet; a shared or virtual
+machine's speed drifts). Paper anchors and our targets follow.
 ``--quick`` lowers the map size and CG iteration caps (smoke runs; figures are not comparable).
 """
 from __future__ import annotations
@@ -44,7 +44,7 @@ ROW_KEYS = ("method", "abs_rmse_deg", "rel_rmse_deg_per_s", "ea_percent", "gm", 
             "frontend_us_per_event", "backend_us_per_event", "compile_seconds", "wall_seconds", "peak_rss_mb")
 QUICK_OVERRIDES = {"pano_height": 256, "frontend_cg_max_iters": 20, "backend_cg_max_iters": 10}
 
-# Paper anchors and our targets (issue 4)
+# Paper anchors and our targets
 PAPER_TAB2 = {"abs_rmse_deg": (0.33, 0.80), "rel_rmse_deg_per_s": (0.41, 0.72)}  # synthetic CMax-SLAM
 PAPER_TAB6 = {"linear": (4.6, 11.2), "cubic": (7.6, 20.4)}  # back-end us/event
 TARGETS = {"abs_rmse_deg": 0.3, "rel_rmse_deg_per_s": 0.3, "backend_linear": 1.0, "backend_cubic": 1.5}

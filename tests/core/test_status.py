@@ -105,3 +105,10 @@ def test_map_of_a_trajectory_covering_a_quarter_of_the_events_says_so(tmp_path, 
     figures = json.loads(out.with_suffix(".json").read_text())
     assert figures["status"] == "suspect" and "covers 25 %" in figures["reasons"][0]
     assert "; SUSPECT: the trajectory" in capsys.readouterr().out
+
+
+def test_a_run_that_warns_is_suspect():
+    """A workflow's own warning (star tracking beyond its motion range) is a reason not to trust the result."""
+    warning = "the camera turns at up to 268 deg/s, beyond the 60 deg/s star tracking handles"
+    status, reasons = run_status({"status": "ok", "warnings": [warning]})
+    assert status == "suspect" and reasons == [warning]
