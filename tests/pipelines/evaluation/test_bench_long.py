@@ -61,15 +61,15 @@ def test_unknown_recording_is_refused(tmp_path, capsys):
 def test_benchmark_tables_show_long_recording_figures(tmp_path):
     """A short multi-turn pan through the task model: rows carry the worst stretch and the swing, tables.md has the
     long-recording section (IMU dead reckoning: the cheapest method)."""
-    spec = B.SequenceSpec("pan", "DVS128", "city", 1.0, 0, trajectory="pan", options=(("turns", 1.3),))
-    cfg = update_config(B.BenchmarkConfig(), {"benchmark.map_height": 32})
+    spec = B.SequenceSpec("pan", "DVS128", "city", 0.5, 0, trajectory="pan", options=(("turns", 1.2),))
+    cfg = update_config(B.BenchmarkConfig(), {"benchmark.map_height": 16})
     res = B.run_benchmark(cfg, [spec], ["imu"], tmp_path, plots=False)
     imu = next(r for r in res[0]["rows"] if r["key"] == "imu")
     assert imu["status"] == "ok" and imu["worst_stretch_deg"] >= imu["abs_rmse_deg"] > 0
     assert imu["turn_swing_deg"] >= 0 and len(imu["turn_means_deg"]) == 2
-    text = B.format_tables(res, {"map_height": 32})
+    text = B.format_tables(res, {"map_height": 16})
     section = text.split("## Long recordings")[1].split("## Tab. IV")[0]
     assert "| method | pan worst 0.2 s | pan swing | pan loops |" in section
     assert f"| IMU dead reckoning | {imu['worst_stretch_deg']:.3f} | {imu['turn_swing_deg']:.3f} | - |" in section
     short = [{**res[0], "rows": [{**r, "turn_swing_deg": None} for r in res[0]["rows"]]}]
-    assert "## Long recordings" not in B.format_tables(short, {"map_height": 32})
+    assert "## Long recordings" not in B.format_tables(short, {"map_height": 16})
