@@ -145,9 +145,15 @@ class FrontendResult:
         return ~np.isnan(self.gain)
 
     def trajectory(self) -> Trajectory:
-        """Integrate omega (midpoint rule on SO(3)) to R_world_from_camera at the packet times, R(t_0) = I."""
+        """Integrate omega (midpoint rule on SO(3)) to R_world_from_camera at the packet times, R(t_0) = I.
+
+        A single packet (a recording of a few ms) gets poses one packet span either side of its time as well, at its
+        constant omega: alone, its time would hold one pose and its measured motion would show nowhere."""
         if len(self.t) == 0:
             raise InputError(NO_MOTION_MEASURABLE)
+        if len(self.t) == 1 and self.span[0] > 0:
+            dt = np.array([-self.span[0], 0.0, self.span[0]])
+            return Trajectory(self.t[0] + dt, so3.exp(dt[:, None] * self.omega[0]))
         return Trajectory(self.t, so3.integrate_angular_velocity(self.t, self.omega))
 
     def _trust_counters(self) -> dict:

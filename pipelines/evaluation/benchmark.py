@@ -140,7 +140,7 @@ def group_results(tasks, results, extra: dict | None = None) -> list[dict]:
     return out
 
 
-def plot_group(plots_dir, group: dict, out_dir, suffix: str = "") -> list[str]:
+def plot_group(plots_dir, group: dict, out_dir, suffix: str = "", note: str = "") -> list[str]:
     """The plots of one dataset from its tasks' arrays.npz (nothing without ground truth)."""
     arrays: dict = {}
     for tid in group["task_ids"]:
@@ -166,14 +166,15 @@ def plot_group(plots_dir, group: dict, out_dir, suffix: str = "") -> list[str]:
         return []
     if gt is None:
         return []
-    return write_plots(plots_dir, group["sequence"] + suffix, arrays, gt)
+    return write_plots(plots_dir, group["sequence"] + suffix, arrays, gt, note)
 
 
 def run_benchmark(cfg, sequences: list[SequenceSpec], methods: list[str], out_dir, *, executor=None, log=None,
-                  plots: bool = True, quiet: bool = True) -> list[dict]:
+                  plots: bool = True, quiet: bool = True, plot_note: str = "") -> list[dict]:
     """Run the suite as tasks (one per sequence and method, plus its ground-truth map) on ``executor`` (default:
     in this process). Sequences are cached in out_dir/sequences, task results in out_dir/tasks (finished ones are
-    skipped on a rerun), plots go to out_dir/plots. Returns the per-sequence results."""
+    skipped on a rerun), plots go to out_dir/plots (``plot_note`` ends their titles, e.g. "smoke test"). Returns the
+    per-sequence results."""
     out_dir = Path(out_dir)
     executor = executor or LocalExecutor()
     methods = [k for k in METHOD_KEYS if k in methods]  # the tables' order
@@ -201,7 +202,7 @@ def run_benchmark(cfg, sequences: list[SequenceSpec], methods: list[str], out_di
         else:
             g = groups[s.name]
             if plots:
-                g["plots"] = plot_group(out_dir / "plots", g, out_dir)
+                g["plots"] = plot_group(out_dir / "plots", g, out_dir, note=plot_note)
         g["tasks"]["skipped"] = sum(1 for t in tasks if t.labels["sequence"] == s.name and t.id in summary.skipped)
         results.append(g)
     return results
@@ -211,8 +212,10 @@ def run_benchmark(cfg, sequences: list[SequenceSpec], methods: list[str], out_di
 # plots
 # ------------------------------------------------------------------------------------------------------------
 
-def write_plots(plots_dir, name: str, arrays: dict, groundtruth) -> list[str]:
-    """errors_<seq>.png (violins), trajectories_<seq>.png (per axis, aligned), maps_<seq>.png (side by side)."""
+def write_plots(plots_dir, name: str, arrays: dict, groundtruth, note: str = "") -> list[str]:
+    """errors_<seq>.png (violins), trajectories_<seq>.png (per axis, aligned), maps_<seq>.png (side by side);
+    ``note`` ends every title."""
+    note = f" ({note})" if note else ""
     plots_dir = Path(plots_dir)
     plots_dir.mkdir(parents=True, exist_ok=True)
     written = []
@@ -220,17 +223,17 @@ def write_plots(plots_dir, name: str, arrays: dict, groundtruth) -> list[str]:
     rel_e = {m: a["rel"] for m, a in arrays.items() if "rel" in a}
     if abs_e:
         path = plots_dir / f"errors_{name}.png"
-        plot_error_distributions(path, abs_e, rel_e, title=f"{name}: rotation errors")
+        plot_error_distributions(path, abs_e, rel_e, title=f"{name}: rotation errors{note}")
         written.append(path.name)
     trajs = {m: a["trajectory_aligned"] for m, a in arrays.items() if "trajectory_aligned" in a and "+ BA" not in m}
     if trajs:
         path = plots_dir / f"trajectories_{name}.png"
-        plot_trajectories(path, trajs, groundtruth, title=f"{name}: front-ends and CMax-SLAM vs ground truth")
+        plot_trajectories(path, trajs, groundtruth, title=f"{name}: front-ends and CMax-SLAM vs ground truth{note}")
         written.append(path.name)
     maps = [(m, a["map"]) for m, a in arrays.items() if "map" in a]
     if maps:
         path = plots_dir / f"maps_{name}.png"
-        plot_maps(path, maps, title=f"{name}: panoramic IWE per trajectory")
+        plot_maps(path, maps, title=f"{name}: panoramic IWE per trajectory{note}")
         written.append(path.name)
     return written
 

@@ -35,3 +35,16 @@ def test_short_simulated_recording(short_sequence):
     rate = _mean_rate(res.trajectory)
     assert len(events) > 2000 and len(res.frontend) == 1 and np.linalg.norm(truth) > 1.0
     assert np.linalg.norm(rate - truth) < 0.2 * np.linalg.norm(truth), (rate, truth)
+
+
+def test_short_simulated_recording_front_end_alone(short_sequence):
+    """The front-end's own trajectory (``ti-cmax frontend``) of a one-packet recording turns at its omega too."""
+    from ti_cmax.config import FrontendConfig
+    from ti_cmax.pipelines.frontend import estimate_angular_velocity
+
+    seq = short_sequence
+    events = seq.events.slice_time(0.6, 0.604)
+    res = estimate_angular_velocity(events, seq.camera, FrontendConfig())
+    traj = res.trajectory()
+    assert len(res) == 1 and len(traj) == 3 and traj.t[0] <= events.t[0] and traj.t[-1] >= events.t[-1]
+    assert np.allclose(_mean_rate(traj), res.omega[0])

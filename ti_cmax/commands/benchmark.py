@@ -106,7 +106,8 @@ def _run(args) -> int:
     # sequences and finished tasks outlive an interrupted or failed run: a rerun goes on from there
     try:
         results = B.run_benchmark(cfg, sequences, methods, out, executor=executor, log=log,
-                                  plots=not args.no_plots, quiet=args.quiet)
+                                  plots=not args.no_plots, quiet=args.quiet,
+                                  plot_note="smoke test (--quick), not an accuracy comparison" if args.quick else "")
     finally:
         executor.close()
     total = time.perf_counter() - tic

@@ -145,3 +145,20 @@ def test_ba_source_resampling():
     assert len(out) == 201 and out.t[0] == 0.0 and out.t[-1] == 1.0
     assert np.allclose(out.R, traj.at(out.t), atol=1e-9)
     assert ba_source(out, 200.0) is out and ba_source(traj, 0.0) is traj
+
+
+def test_smoke_test_plots_say_so_in_their_titles(tmp_path, monkeypatch):
+    """``benchmark --quick``'s figures must not read as the methods' accuracy: the note ends every title."""
+    import numpy as np
+
+    from ti_cmax.pipelines.evaluation import benchmark as bench
+    from ti_cmax.trajectory import Trajectory
+
+    titles = []
+    for name in ("plot_error_distributions", "plot_trajectories", "plot_maps"):
+        monkeypatch.setattr(bench, name, lambda *a, title="", **k: titles.append(title))
+    traj = Trajectory(np.array([0.0, 1.0]), np.stack([np.eye(3)] * 2))
+    arrays = {"cmax-slam": {"abs": np.zeros(3), "rel": np.zeros(3), "trajectory_aligned": traj,
+                            "map": np.zeros((4, 8))}}
+    bench.write_plots(tmp_path, "city", arrays, traj, "smoke test")
+    assert len(titles) == 3 and all(t.endswith("(smoke test)") for t in titles)
