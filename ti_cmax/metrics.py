@@ -12,6 +12,9 @@ benchmarks read files and call these).
 * Optional Gaussian low-pass filter of the ground truth on SO(3) (paper: 50 ms, for noisy mocap).
 * Event area EA% (lambda0 = 1) and gradient magnitude GM (Eq. 24) of an image of warped events.
 * Star tracking (Chin et al.): angle between estimated and true relative rotations over 400 ms, RMSE and std.
+* Long recordings: the worst stretch (largest RMS of the absolute error over any 0.2 s) and the absolute error per
+  revolution of a pan (its mean per part of each turn: an error that depends on where the camera points swings
+  once per turn; its mean per turn shows whether later turns differ from the first).
 """
 from __future__ import annotations
 
@@ -29,6 +32,8 @@ T0_OFFSET_SYNTHETIC = 0.1  # alignment time after the start of the overlap, synt
 T0_OFFSET_REAL = 1.0  # same for real recordings (s)
 GT_FILTER_SPAN = 0.05  # time span of the Gaussian low-pass filter applied to mocap ground truth (s)
 STAR_WINDOW = 0.4  # interval of the star-tracking relative-rotation metric (s)
+WORST_WINDOW = 0.2  # span of the worst stretch of a long recording (s)
+TURN_SECTORS = 4  # parts of a turn over which the per-revolution error is averaged (quarter turns)
 _EPS_T = 1e-9
 
 
@@ -310,6 +315,93 @@ def star_tracking_errors(groundtruth: Trajectory, estimate: Trajectory, window: 
 
 
 # ------------------------------------------------------------------------------------------
+# long recordings
+# ------------------------------------------------------------------------------------------
+
+def worst_stretch(times: np.ndarray, errors_deg: np.ndarray, window: float = WORST_WINDOW) -> tuple[float, float]:
+    """(RMS, start time) of the window [t, t + window] (t a sample time) where the errors' RMS is largest: a short
+    failure that an RMSE over a minute dilutes. Windows lie inside the samples' time range (the whole range when
+    it is shorter than ``window``); (nan, nan) without samples."""
+    t, e = np.asarray(times, dtype=float), np.asarray(errors_deg, dtype=float)
+    if len(t) == 0:
+        return float("nan"), float("nan")
+    csum = np.concatenate([[0.0], np.cumsum(e * e)])
+    starts = np.flatnonzero(t <= t[-1] - window + _EPS_T)
+    if len(starts) == 0:
+        starts = np.array([0])
+    ends = np.searchsorted(t, t[starts] + window + _EPS_T, side="right")
+    rms = np.sqrt((csum[ends] - csum[starts]) / (ends - starts))
+    k = int(np.argmax(rms))
+    return float(rms[k]), float(t[starts[k]])
+
+
+def pan_angle_deg(groundtruth: Trajectory, times: np.ndarray) -> np.ndarray:
+    """Angle (deg) the camera has turned about its own vertical axis (camera y, the simulator's pan axis) since the
+    ground truth's start, at ``times``: the y components of the body-frame rotations between consecutive ground-truth
+    poses, summed. A pan's turns are counted even when a wobble has tilted that axis away from the world vertical
+    (over a minute it can turn the camera upside down: the pan goes on about the tilted axis)."""
+    step = so3.log(np.swapaxes(groundtruth.R[:-1], -1, -2) @ groundtruth.R[1:])[:, 1]
+    turned = np.concatenate([[0.0], np.cumsum(step)])
+    return np.degrees(np.interp(np.asarray(times, dtype=float), groundtruth.t, turned))
+
+
+@dataclass(frozen=True, eq=False)
+class RevolutionErrors:
+    """The absolute error per revolution of a pan: ``means_deg[k]`` over turn k (the last one possibly partial,
+    ``turns[k]`` of a turn covered), ``sector_means_deg[k, j]`` over part j of it (nan: no sample). ``swing_deg``:
+    the largest max - min of the part means within one complete turn (an error that follows where the camera
+    points); ``spread_deg``: max - min of the complete turns' means (later turns against the first). Both nan
+    without a complete turn."""
+
+    means_deg: np.ndarray
+    turns: np.ndarray
+    sector_means_deg: np.ndarray
+    swing_deg: float
+    spread_deg: float
+    complete: int  # number of complete turns
+
+    def to_dict(self) -> dict:
+        fin = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731
+        return {"means_deg": [fin(v) for v in self.means_deg], "turns": [float(v) for v in self.turns],
+                "sector_means_deg": [[fin(v) for v in row] for row in self.sector_means_deg],
+                "swing_deg": fin(self.swing_deg), "spread_deg": fin(self.spread_deg), "complete": self.complete}
+
+
+def revolution_errors(groundtruth: Trajectory, times: np.ndarray, errors_deg: np.ndarray,
+                      sectors: int = TURN_SECTORS) -> RevolutionErrors:
+    """The absolute errors ``errors_deg`` at ``times`` (e.g. ``RotationErrors.abs_errors_deg``, start-aligned)
+    grouped by the revolution of the pan (:func:`pan_angle_deg`) made since ``times[0]`` (in its overall direction)
+    and by ``sectors`` equal parts of each turn (see :class:`RevolutionErrors`)."""
+    if sectors < 1:
+        raise InputError(f"sectors must be at least 1, got {sectors}")
+    t, e = np.asarray(times, dtype=float), np.asarray(errors_deg, dtype=float)
+    if len(t) == 0:
+        nan = float("nan")
+        return RevolutionErrors(np.zeros(0), np.zeros(0), np.zeros((0, sectors)), nan, nan, 0)
+    pan = pan_angle_deg(groundtruth, t)
+    progress = np.maximum((pan - pan[0]) * (1.0 if pan[-1] >= pan[0] else -1.0), 0.0) / 360.0
+    turn = np.floor(progress).astype(int)
+    part = np.minimum(((progress - turn) * sectors).astype(int), sectors - 1)
+    n = int(turn.max()) + 1
+    complete = int(np.floor(progress.max()))
+    count = np.zeros((n, sectors))
+    total = np.zeros((n, sectors))
+    np.add.at(count, (turn, part), 1.0)
+    np.add.at(total, (turn, part), e)
+    with np.errstate(invalid="ignore"):
+        sector_means = total / count
+    means = total.sum(axis=1) / count.sum(axis=1)
+    covered = np.minimum(progress.max() - np.arange(n), 1.0)
+    if complete:
+        full = sector_means[:complete]
+        swing = float(np.nanmax(np.nanmax(full, axis=1) - np.nanmin(full, axis=1)))
+        spread = float(np.ptp(means[:complete]))
+    else:
+        swing = spread = float("nan")
+    return RevolutionErrors(means, covered, sector_means, swing, spread, complete)
+
+
+# ------------------------------------------------------------------------------------------
 # map quality (Sec. IV-B3)
 # ------------------------------------------------------------------------------------------
 
@@ -379,5 +471,6 @@ __all__ = [
     "EvaluationConfig", "RotationErrors", "RelativeRotationErrors", "check_comparable",
     "rotation_angle_deg", "time_overlap", "default_t0", "absolute_errors_deg", "relative_pair_starts",
     "relative_errors_deg", "smooth_trajectory", "evaluate_rotations", "evaluate_with_config",
-    "star_tracking_errors", "event_area_percent", "image_gradient", "gradient_magnitude",
+    "star_tracking_errors", "event_area_percent", "image_gradient", "gradient_magnitude", "WORST_WINDOW",
+    "TURN_SECTORS", "worst_stretch", "pan_angle_deg", "RevolutionErrors", "revolution_errors",
 ]

@@ -34,6 +34,7 @@ from ti_cmax import so3
 from ti_cmax.config import SlamConfig, load_config, update_config
 from ti_cmax.io import open_dataset, read_tum, write_tum
 from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
+from ti_cmax.pipelines.evaluation.bench_slam import loop_counts
 from ti_cmax.pipelines.panorama import render_panorama
 from ti_cmax.pipelines.realtime import LEVELS, RealtimeController
 from ti_cmax.pipelines.sensor_defaults import resolve_config
@@ -172,12 +173,13 @@ def evaluate_run(dataset: Path, overrides: list[str], on: bool, trajectory, repo
     n = report["events_processed"]
     lc = report["backend"].get("loop_closure", {})
     loops = report.get("loops", [])
+    applied, _accepted, candidates = loop_counts(report)
     return {
         "sequence": dataset.name, "loop_closure": on, "events": n,
         "abs_rmse_deg": err.abs_rmse_deg, "rel_rmse_deg_per_s": err.rel_rmse_deg_per_s,
         "step_max_deg": float(short.max()), "step_median_deg": float(np.median(short)),
         "ea_percent": event_area_percent(pano.image, cfg.backend.lambda0), "gm": gradient_magnitude(pano.image),
-        "loops_applied": sum(bool(e.get("applied")) for e in loops), "loops_candidates": len(loops),
+        "loops_applied": applied, "loops_candidates": candidates,
         "loops": loops, "backend_us_per_event": report["us_per_event"]["backend"],
         "frontend_us_per_event": report["us_per_event"]["frontend"],
         "loop_us_per_event": lc.get("seconds", 0.0) * 1e6 / max(n, 1), "load_1min": os.getloadavg()[0],

@@ -70,11 +70,19 @@ def _row(method: str, gt, trajectory, image: np.ndarray, map_events: int, lambda
     return row
 
 
+def loop_counts(report: dict) -> tuple[int, int, int]:
+    """The loop closer's (applied, accepted, candidates) from a report's "loops" (zeros without loop closure)."""
+    loops = report.get("loops") or []
+    return (sum(bool(e.get("applied")) for e in loops), sum(bool(e.get("accepted")) for e in loops), len(loops))
+
+
 def _slam_extra(report: dict) -> dict:
     be = report["backend"]
+    applied, accepted, candidates = loop_counts(report)
     return {"windows": be["windows"], "windows_optimized": be["windows_optimized"],
             "backend_mean_iterations": be["mean_iterations"], "events_settled": be["events_settled"],
-            "backend_seconds": be["wall_seconds"]}
+            "backend_seconds": be["wall_seconds"], "loops_applied": applied, "loops_accepted": accepted,
+            "loops_candidates": candidates}
 
 
 def bench_sequence(sensor: str, scene: str, duration: float, overrides: dict | None = None, seed: int = 0,

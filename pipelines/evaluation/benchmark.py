@@ -308,6 +308,14 @@ def format_tables(results: list[dict], meta: dict) -> str:
     out += ["", "## Tab. II: absolute [deg] / relative [deg/s] rotation RMSE", ""]
     out += _grid(results, ("front-end", "ba", "slam"), (("abs_rmse_deg", 3), ("rel_rmse_deg_per_s", 3)),
                  ("abs", "rel"), notes)
+    if any(r.get("turn_swing_deg") is not None for res in results for r in res["rows"]):
+        out += ["", "## Long recordings: worst 0.2 s stretch [deg], swing in a turn [deg], loops applied", ""]
+        out += _grid(results, ("front-end", "ba", "slam"), (("worst_stretch_deg", 3), ("turn_swing_deg", 3),
+                                                            ("loops_applied", 0)), ("worst 0.2 s", "swing", "loops"),
+                     notes)
+        out += ["", "worst 0.2 s: the largest RMS of the abs error (aligned at t0) over any 0.2 s window; swing: the "
+                "largest max - min of the abs error's quarter-turn means within one complete turn of the pan "
+                "(\"-\" without a complete turn); loops: loop corrections applied."]
     out += ["", "## Tab. IV: event area EA% and gradient magnitude GM of the panoramic IWE "
             f"({2 * meta['map_height']}x{meta['map_height']})", ""]
     out += _grid(results, ("reference", "front-end", "ba", "slam"), (("ea_percent", 2), ("gm", 4)),

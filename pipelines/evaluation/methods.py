@@ -16,7 +16,7 @@ import numpy as np
 from ti_cmax.config import Params, SlamConfig, param, update_config
 from ti_cmax.errors import InputError
 from ti_cmax.io import open_dataset_from_config
-from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude
+from ti_cmax.metrics import evaluate_rotations, event_area_percent, gradient_magnitude, revolution_errors, worst_stretch
 from ti_cmax.simulate import SimulatorConfig, simulate_to_folder
 
 from ti_cmax.pipelines.frontend import as_chunks, estimate_angular_velocity
@@ -49,7 +49,7 @@ QUICK_OVERRIDES = {"pano_height": 256, "backend.pano_height": 256, "frontend_cg_
 ROW_FIELDS = ("sequence", "sensor", "scene", "duration_s", "events", "method", "key", "kind", "source",
               "spline_degree", "status", "note", "lost_at", "abs_rmse_deg", "rel_rmse_deg_per_s", "abs_max_deg",
               "num_rel", "ea_percent", "gm", "map_events", "frontend_us_per_event", "backend_us_per_event",
-              "us_per_event", "compile_seconds", "wall_seconds")
+              "us_per_event", "compile_seconds", "wall_seconds", "worst_stretch_deg", "turn_swing_deg", "loops_applied")
 
 
 @dataclass(frozen=True)
@@ -151,7 +151,7 @@ def resolve_sequences(names: list[str] | None, quick: bool = False, suite: str =
 # methods of a suite when --methods is not given (the sensor suite: the front-end and CMax-SLAM only; SMT or
 # RTPT on 30 M events/s of HD data would take hours)
 SUITE_METHODS = {"sensors": ("cmax-omega", "cmax-slam"), "realtime": ("cmax-omega", "cmax-slam"),
-                 "heldout": ("smt-ekf", "smt-pf", "cmax-omega")}
+                 "heldout": ("smt-ekf", "smt-pf", "cmax-omega"), "long": ("cmax-slam",)}
 
 
 def resolve_methods(keys: list[str] | None, suite: str = "paper") -> list[str]:
@@ -340,6 +340,15 @@ def run_sequence_methods(events, camera, groundtruth, imu, cfg, methods: list[st
     return runs
 
 
+def long_recording_figures(groundtruth, err) -> dict:
+    """The worst 0.2 s stretch of the start-aligned abs error and its error per revolution of a pan
+    (``metrics.worst_stretch``, ``metrics.revolution_errors``; swing None without a complete turn)."""
+    worst, worst_at = worst_stretch(err.abs_times, err.abs_errors_deg)
+    turns = revolution_errors(groundtruth, err.abs_times, err.abs_errors_deg).to_dict()
+    return {"worst_stretch_deg": worst, "worst_stretch_at_s": worst_at, "turn_swing_deg": turns["swing_deg"],
+            "turn_means_deg": turns["means_deg"]}
+
+
 def score(run: MethodRun, groundtruth, events, camera, cfg) -> tuple[dict, dict]:
     """Row dict of a run (errors vs ground truth if any, EA/GM of its panoramic IWE) and its per-sample arrays +
     map. ``events`` as in :func:`run_sequence_methods`."""
@@ -362,6 +371,7 @@ def score(run: MethodRun, groundtruth, events, camera, cfg) -> tuple[dict, dict]
         arrays["trajectory_aligned"] = run.trajectory.aligned_to(groundtruth, err.t0)
         if run.status == "ok":
             arrays["abs"], arrays["rel"] = err.abs_errors_deg, err.rel_errors_deg_per_s
+            row.update(long_recording_figures(groundtruth, err))
     if run.status == "ok":
         h = cfg.benchmark.map_height
         pano = render_panorama(as_chunks(_chunks(events)), camera, run.trajectory, 2 * h, h,

@@ -22,6 +22,10 @@ def make_suite(*specs: SequenceSpec) -> dict[str, SequenceSpec]:
     return {s.name: s for s in specs}
 
 
+# the motion and sensor defects of the minute-long suite (SimulatorConfig fields)
+LONG_OPTIONS = (("turns", 3.7), ("pan_wobble", 1.0), ("threshold_sigma", 0.03), ("refractory_period", 5e-4),
+                ("noise_rate", 0.1), ("hot_pixels", 5), ("hot_pixel_rate", 200.0))
+
 # Suites of simulated sequences (``--suite NAME``); a new suite is one more entry here.
 SUITES = {
     "paper": make_suite(
@@ -89,6 +93,13 @@ SUITES = {
         SequenceSpec("street253", "DAVIS240C", "street", 3.0, 253),
         SequenceSpec("bay254", "DAVIS240C", "bay", 3.0, 254),
     ),
+    # minute-long recordings (``--suite long``, pipelines/evaluation/bench_long.py): 60 s DAVIS240C pans of 3.7
+    # turns about the vertical (the camera revisits every region three times) with a seeded random wobble of up to
+    # about 1 rad/s, the sensor's lens distortion and mild defects: threshold mismatch, a refractory period,
+    # background noise and a few hot pixels; three scenes and seeds
+    "long": make_suite(*(
+        SequenceSpec(f"pan-{scene}{seed}", "DAVIS240C", scene, 60.0, seed, trajectory="pan", options=LONG_OPTIONS)
+        for scene, seed in (("bay", 301), ("city", 302), ("street", 303)))),
 }
 SUITE = SUITES["paper"]
 
@@ -98,4 +109,4 @@ METHOD_KEYS = FRONTENDS + ("cmax-slam",)
 LABELS = {"smt-ekf": "EKF-SMT", "smt-pf": "PF-SMT", "rtpt": "RTPT", "cmax-gae": "CMax-GAE",
           "cmax-omega": "CMax-omega", "imu": "IMU dead reckoning", "cmax-slam": "CMax-SLAM", "gt": "ground truth"}
 
-__all__ = ["SequenceSpec", "make_suite", "SUITES", "SUITE", "FRONTENDS", "METHOD_KEYS", "LABELS"]
+__all__ = ["SequenceSpec", "make_suite", "SUITES", "LONG_OPTIONS", "SUITE", "FRONTENDS", "METHOD_KEYS", "LABELS"]

@@ -9,7 +9,8 @@ from ti_cmax import so3
 from ti_cmax.errors import InputError
 from ti_cmax.metrics import (
     EvaluationConfig, default_t0, evaluate_rotations, evaluate_with_config, event_area_percent,
-    gradient_magnitude, relative_pair_starts, rotation_angle_deg, smooth_trajectory, star_tracking_errors,
+    gradient_magnitude, pan_angle_deg, relative_pair_starts, revolution_errors, rotation_angle_deg, smooth_trajectory,
+    star_tracking_errors, worst_stretch,
 )
 from ti_cmax.trajectory import Trajectory
 
@@ -249,3 +250,87 @@ def test_evaluate_refuses_a_ground_truth_it_cannot_compare(tmp_path, capsys):
         assert len(err) == 1 and re.search(message, err[0]), err
     assert main(["evaluate", "--groundtruth", str(paths["gt"]), "--estimate", str(paths["est"])]) == 0
     assert "absolute RMSE: 0.3502 deg" in capsys.readouterr().out
+
+
+# long recordings -----------------------------------------------------------------------------------------------
+def _pan(turns=3.5, duration=35.0, rate=100.0, sign=1.0):
+    """A pan about the world vertical (y) at a constant rate: R(t) = R_y(theta(t)); returns (trajectory, theta)."""
+    t = np.arange(int(round(duration * rate)) + 1) / rate
+    theta = sign * 2 * np.pi * turns * t / duration
+    return Trajectory(t, so3.exp(np.outer(theta, [0.0, 1.0, 0.0]))), theta
+
+
+def test_worst_stretch_finds_a_short_excursion():
+    t = np.arange(1001) / 100.0
+    e = np.full_like(t, 0.1)
+    e[500:510] = 2.0  # 0.1 s at 2 deg, from 5.0 s
+    rms, start = worst_stretch(t, e, 0.2)
+    # every 0.2 s window holds 21 samples; the worst holds the 10 spike samples and 11 at 0.1 deg
+    assert rms == pytest.approx(np.sqrt((10 * 4.0 + 11 * 0.01) / 21))
+    assert 4.89 - 1e-9 <= start <= 5.0 + 1e-9  # windows from 4.89 s to 5.0 s hold the whole excursion
+    assert worst_stretch(t, np.full_like(t, 0.3))[0] == pytest.approx(0.3)
+    assert worst_stretch(t[:5], e[:5], 0.2)[0] == pytest.approx(0.1)  # shorter than the window: the whole range
+    assert np.isnan(worst_stretch(np.zeros(0), np.zeros(0))[0])
+
+
+def test_worst_stretch_of_an_estimate_that_snaps_back():
+    """A 0.2 s excursion of 3 deg in 10 s: the RMSE dilutes it, the worst stretch shows it."""
+    gt = _gt(duration=10.0)
+    off = np.where((gt.t >= 6.0) & (gt.t < 6.2), np.radians(3.0), 0.0)
+    est = Trajectory(gt.t, gt.R @ so3.exp(np.outer(off, AXIS)))
+    err = evaluate_rotations(gt, est)
+    assert err.abs_rmse_deg < 0.5
+    rms, start = worst_stretch(err.abs_times, err.abs_errors_deg)
+    assert rms == pytest.approx(3.0 * np.sqrt(20 / 21))
+    assert 5.99 - 1e-9 <= start <= 6.0 + 1e-9  # the windows from 5.99 s and 6.0 s hold all 20 samples
+
+
+def test_pan_angle_unwraps_over_turns():
+    gt, theta = _pan(turns=2.5, duration=10.0)
+    np.testing.assert_allclose(pan_angle_deg(gt, gt.t), np.degrees(theta), atol=1e-6)
+
+
+def test_pan_angle_counts_turns_about_a_tilted_axis():
+    """A pan about the camera's own y axis after a 120 deg tilt (as a long wobble leaves it): still 2.5 turns."""
+    gt, theta = _pan(turns=2.5, duration=10.0)
+    tilted = gt.left_multiplied(so3.exp(np.radians(120.0) * AXIS))
+    np.testing.assert_allclose(pan_angle_deg(tilted, tilted.t), np.degrees(theta), atol=1e-6)
+    np.testing.assert_allclose(pan_angle_deg(tilted, [2.5, 7.5]), [225.0, 675.0], atol=1e-6)
+
+
+def test_an_error_that_follows_the_pan_swings_once_per_turn():
+    """abs error 0.1 + 0.05 sin(theta): quarter-turn means 0.1 +- 0.05 * 2 / pi, the same every turn."""
+    gt, theta = _pan()
+    res = revolution_errors(gt, gt.t, 0.1 + 0.05 * np.sin(theta))
+    assert res.complete == 3
+    np.testing.assert_allclose(res.turns, [1.0, 1.0, 1.0, 0.5], atol=1e-9)
+    np.testing.assert_allclose(res.sector_means_deg[:3], np.tile(0.1 + 0.1 / np.pi * np.array([1, 1, -1, -1]), (3, 1)),
+                               atol=2e-4)
+    assert np.isnan(res.sector_means_deg[3, 3])  # the half turn never reaches its last quarter
+    assert res.swing_deg == pytest.approx(0.2 / np.pi, abs=5e-4)
+    assert res.spread_deg < 1e-3
+    assert res.to_dict()["sector_means_deg"][3][3] is None
+
+
+def test_an_error_growing_per_turn_spreads_and_does_not_swing():
+    gt, theta = _pan(sign=-1.0)  # the other direction: progress is counted along the pan
+    res = revolution_errors(gt, gt.t, 0.1 + 0.02 * np.floor(np.abs(theta) / (2 * np.pi) + 1e-9))
+    np.testing.assert_allclose(res.means_deg, [0.1, 0.12, 0.14, 0.16], atol=1e-9)
+    assert res.spread_deg == pytest.approx(0.04) and res.swing_deg == pytest.approx(0.0, abs=1e-9)
+    short, _ = _pan(turns=0.8, duration=8.0)
+    none = revolution_errors(short, short.t, np.ones(len(short)))
+    assert none.complete == 0 and np.isnan(none.swing_deg) and none.to_dict()["swing_deg"] is None
+    with pytest.raises(InputError):
+        revolution_errors(gt, gt.t, np.ones(len(gt)), sectors=0)
+
+
+def test_revolution_errors_of_a_yaw_dependent_map_error():
+    """An estimate tilted by 0.3 (1 - cos theta) deg, as a first turn's map error that later turns follow: after the
+    start alignment the abs error is that tilt, its quarter-turn means swing by 0.3 * 4 / pi deg each turn."""
+    gt, theta = _pan()
+    tilt = np.radians(0.3) * (1 - np.cos(theta))
+    est = Trajectory(gt.t, gt.R @ so3.exp(np.outer(tilt, [1.0, 0.0, 0.0])))
+    err = evaluate_rotations(gt, est)
+    res = revolution_errors(gt, err.abs_times, err.abs_errors_deg)
+    assert res.swing_deg == pytest.approx(0.3 * 4 / np.pi, rel=0.02)
+    assert res.spread_deg < 0.01

@@ -91,6 +91,17 @@ def test_noise_events_and_refractory_period():
     assert np.all(np.diff(refr.t[order])[same] >= 5e-3 - 1.5e-6)  # timestamps rounded to 1 us
 
 
+def test_hot_pixels_fire_at_their_rate_on_a_still_camera():
+    base = dict(SHORT, duration=0.5, max_angular_velocity=0.0, trajectory="random")
+    ev = simulate_sequence(SimulatorConfig(**base, hot_pixels=3, hot_pixel_rate=400.0)).events
+    pixels, counts = np.unique(ev.y.astype(np.int64) * 128 + ev.x, return_counts=True)
+    assert len(pixels) == 3  # only the hot pixels fire
+    assert np.all(np.abs(counts - 200) < 5 * np.sqrt(200))  # 400 Hz x 0.5 s each, Poisson
+    assert set(np.unique(ev.p)) == {-1, 1}
+    again = simulate_sequence(SimulatorConfig(**base, hot_pixels=3, hot_pixel_rate=400.0)).events
+    np.testing.assert_array_equal(again.x, ev.x)  # seeded
+
+
 # IMU and ground truth ----------------------------------------------------------------------------
 def test_imu_gyro_matches_groundtruth_within_noise(seq):
     cfg = seq.config

@@ -2,7 +2,10 @@
 suite of simulated sequences (``--suite paper``: playroom-like DVS128 2.5 s; bicycle, city, street, town, bay
 DAVIS240C 5 s; ``--suite sensors``: DVS128, DAVIS240C, DAVIS346, DVXplorer and HD sequences of 1.5-2 s with the
 sensor-derived defaults, CMax-omega and CMax-SLAM only unless ``--methods`` says otherwise; ``--suite heldout``: four
-3 s DAVIS240C sequences of seeds 201-204 declared for the SMT baselines, EKF-SMT, PF-SMT and CMax-omega by default).
+3 s DAVIS240C sequences of seeds 201-204 declared for the SMT baselines, EKF-SMT, PF-SMT and CMax-omega by default;
+``--suite long``: three 60 s DAVIS240C pans of 3.7 turns with wobble and sensor defects, CMax-SLAM by default, with
+the worst 0.2 s stretch, the swing of the error within a turn and the loops applied; the fuller table with
+``--realtime`` figures, wall time and memory is ``python -m ti_cmax.pipelines.evaluation.bench_long``).
 
 Each method on each sequence is a task (see ``ti-cmax batch``): ``--jobs N`` runs N at once in spawned processes,
 ``--scheduler dask --address tcp://HOST:PORT`` on a Dask cluster; a rerun skips finished tasks (DIR/tasks) and

@@ -48,6 +48,9 @@ class SimulatorConfig(Params):
     threshold_min: float = param(0.01, "thresholds are clipped below at this value", gt=0)
     refractory_period: float = param(0.0, "per-pixel refractory period", unit="s", ge=0)
     noise_rate: float = param(0.0, "background-activity events per pixel per second", unit="Hz", ge=0)
+    hot_pixels: int = param(0, "hot pixels: seeded pixels firing on their own at hot_pixel_rate", ge=0)
+    hot_pixel_rate: float = param(200.0, "events per second of each hot pixel (Poisson, random polarity)", unit="Hz",
+                                  ge=0)
     max_pixel_step: float = param(0.2, "render so that no pixel moves more than this between renders", unit="px",
                                   gt=0)
     max_render_dt: float = param(0.002, "longest interval between renders (slow motion)", unit="s", gt=0)

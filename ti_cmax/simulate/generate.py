@@ -118,7 +118,7 @@ def generate_events(motion: RotationalMotion, camera: Camera, log_pano: np.ndarr
                     times: np.ndarray | None = None, on_chunk=None) -> Iterator[Events]:
     """Yield time-sorted Events chunk by chunk for the whole motion.
 
-    ``config`` is a SimulatorConfig (thresholds, noise, refractory period, chunk size, seed).
+    ``config`` is a SimulatorConfig (thresholds, background noise, hot pixels, refractory period, chunk size, seed).
     ``on_chunk(t_end)`` is called after each chunk (progress).
     """
     from ..kernels import render as rk
@@ -135,6 +135,7 @@ def generate_events(motion: RotationalMotion, camera: Camera, log_pano: np.ndarr
                            np.full(n, -np.inf))
     k_chunk = max(int(config.chunk_megabytes * 2**20 / (4 * n)) - 1, 4)
     noise_rng = np.random.default_rng([config.seed, 37])
+    hot = np.random.default_rng([config.seed, 41]).choice(n, min(config.hot_pixels, n), replace=False)
     for k0 in range(0, len(times) - 1, k_chunk):
         tc = times[k0: k0 + k_chunk + 1]
         rots = motion.rotation(tc).astype(np.float32)
@@ -143,9 +144,11 @@ def generate_events(motion: RotationalMotion, camera: Camera, log_pano: np.ndarr
         t, x, y, p = rk.write_events(lbuf, tc, state.ref, state.cpos, state.cneg, state.last_t,
                                      config.refractory_period, counts, camera.width)
         del lbuf
-        if config.noise_rate > 0:
-            m = noise_rng.poisson(config.noise_rate * n * (tc[-1] - tc[0]))
-            pix = noise_rng.integers(0, n, m)
+        for rate, pixels in ((config.noise_rate, None), (config.hot_pixel_rate, hot)):
+            if rate <= 0 or (pixels is not None and len(pixels) == 0):
+                continue
+            m = noise_rng.poisson(rate * (n if pixels is None else len(pixels)) * (tc[-1] - tc[0]))
+            pix = noise_rng.integers(0, n, m) if pixels is None else noise_rng.choice(pixels, m)
             t = np.concatenate([t, noise_rng.uniform(tc[0], tc[-1], m)])
             x = np.concatenate([x, (pix % camera.width).astype(np.uint16)])
             y = np.concatenate([y, (pix // camera.width).astype(np.uint16)])
