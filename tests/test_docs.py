@@ -136,6 +136,16 @@ def test_command_line_page_lists_every_command_and_option():
         assert f"`{option}" in page
 
 
+def test_every_docs_picture_is_shown():
+    """Each picture under docs/img is shown by a page (or the README), and the live viewer's picture is there."""
+    pages = "".join(p.read_text(encoding="utf-8") for p in [ROOT / "README.md", *DOCS.glob("*.md")])
+    pictures = sorted(p.name for p in (DOCS / "img").iterdir())
+    assert "viewer.png" in pictures and "demo.png" in pictures
+    for name in pictures:
+        assert f"img/{name})" in pages, f"docs/img/{name} is shown nowhere"
+    assert "(img/viewer.png)" in (DOCS / "getting-started.md").read_text(encoding="utf-8")
+
+
 def test_readme_is_a_front_page():
     """The README says what and why, how to install and run, and links into docs/; the rest lives in docs/."""
     readme = (ROOT / "README.md").read_text(encoding="utf-8")

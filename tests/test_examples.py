@@ -123,3 +123,23 @@ def test_docs_figures_composes_the_demo_picture(tmp_path):
     image = iio.imread(out)
     assert image.shape[0] > image.shape[1] / 2 and image.std() > 0  # two panels stacked, not blank
     assert (EXAMPLES.parent / "docs" / "img" / "demo.png").is_file()  # the README shows it
+
+
+def test_viewer_screenshot_downscales_the_picture(tmp_path):
+    """viewer_screenshot.py writes the browser's screenshot at the documentation's width (the capture itself needs
+    a browser and runs by hand)."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    script = runpy.run_path(str(EXAMPLES / "viewer_screenshot.py"))
+    rgb = np.zeros((1000, 1600, 3), np.uint8)
+    rgb[:, 800:] = 255
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="PNG")
+    script["write_scaled"](buf.getvalue(), tmp_path / "viewer.png", 1200)
+    image = np.asarray(Image.open(tmp_path / "viewer.png").convert("RGB"))
+    assert image.shape == (750, 1200, 3)
+    assert image[:, :590].max() < 10 and image[:, 610:].min() > 245
+    assert script["free_port"]() > 0

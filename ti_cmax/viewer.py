@@ -15,6 +15,10 @@ What it logs, on the timeline ``sensor_time`` (seconds of data):
   pipelines/panorama.map_image), at most every ``map_every`` seconds of data, and the final map;
 * ``angular_velocity/{x,y,z}`` (rad/s, camera frame) per packet and ``orientation/{roll,pitch,yaw}`` (deg, Euler
   xyz of R_world_from_camera) at each packet's time, from the best estimate so far.
+
+Its default layout (``blueprint``): the packet IWE and the map side by side above one plot of the angular velocity
+and one of the orientation (the viewer's own heuristic gives each scalar its own plot and may leave one out), each
+plot's three lines in red, green and blue (``SERIES_COLORS``).
 """
 from __future__ import annotations
 
@@ -23,6 +27,9 @@ import numpy as np
 from .errors import InputError
 
 TIMELINE = "sensor_time"
+# one colour per axis, told apart in each plot (x/roll red, y/pitch green, z/yaw blue)
+SERIES_COLORS = {"angular_velocity/x": 0xD62728, "angular_velocity/y": 0x2CA02C, "angular_velocity/z": 0x1F77B4,
+                 "orientation/roll": 0xD62728, "orientation/pitch": 0x2CA02C, "orientation/yaw": 0x1F77B4}
 MAX_MAP_WIDTH = 2048  # larger maps are logged downsampled (a 8192-wide map per window made recordings of GBs)
 
 
@@ -53,6 +60,22 @@ def packet_iwe(camera, events, omega: np.ndarray, t_ref: float) -> np.ndarray:
     return img
 
 
+def blueprint():
+    """The default layout: the images on top, the three angular velocities in one plot and the three Euler angles in
+    another below, the side panels collapsed (they open from the viewer's top bar)."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Vertical(
+            rrb.Horizontal(rrb.Spatial2DView(origin="camera/iwe", name="packet IWE"),
+                           rrb.Spatial2DView(origin="map", name="map so far"), column_shares=[1, 2]),
+            rrb.Horizontal(rrb.TimeSeriesView(origin="angular_velocity", name="angular velocity (rad/s)"),
+                           rrb.TimeSeriesView(origin="orientation", name="orientation (deg)")),
+            row_shares=[3, 2]),
+        rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=TIMELINE))
+
+
 class RerunViewer:
     """Streams a run to the rerun viewer (``spawn``), a recording file (``save``), or both."""
 
@@ -64,9 +87,11 @@ class RerunViewer:
         self.gamma = config.output.gamma if config is not None else 0.75
         self.rec = rr.RecordingStream(application_id)
         if save is not None:
-            self.rec.save(str(save))
+            self.rec.save(str(save), default_blueprint=blueprint())
         if spawn:
-            self.rec.spawn()
+            self.rec.spawn(default_blueprint=blueprint())
+        for path, rgb in SERIES_COLORS.items():
+            self.rec.log(path, rr.SeriesLines(colors=[(rgb << 8) | 0xFF], names=path.rsplit("/", 1)[1]), static=True)
         self.iwe_every = max(1, int(iwe_every))
         self.map_every = float(map_every)
         self.online = None
@@ -133,4 +158,4 @@ class RerunViewer:
             self.rec.disconnect()
 
 
-__all__ = ["RerunViewer", "packet_iwe", "TIMELINE"]
+__all__ = ["RerunViewer", "blueprint", "packet_iwe", "TIMELINE"]

@@ -1,5 +1,6 @@
 """The live view (rerun): ``slam --save-recording`` writes a recording that reads back with each packet's angular
-velocity, orientation and image of warped events, and the growing map; the IWE of a packet is sharp at its omega."""
+velocity, orientation and image of warped events, and the growing map, laid out by its own default blueprint; the IWE
+of a packet is sharp at its omega."""
 import numpy as np
 import pytest
 
@@ -24,6 +25,24 @@ def read_recording(path) -> dict:
             continue
         out.setdefault(c.entity_path.lstrip("/"), []).extend(zip(times, values))
     return {k: sorted(v) for k, v in out.items()}
+
+
+def read_layout(path) -> tuple[set, dict]:
+    """The origins of the default blueprint's views, and {entity path: line colour} of the plotted series."""
+    chunk = pytest.importorskip("rerun.chunk")
+    reader = chunk.RrdReader(path)
+    origins = set()
+    for store in reader.blueprints():
+        for c in reader.stream(store=store):
+            batch = c.to_record_batch()
+            if "ViewBlueprint:space_origin" in batch.schema.names:
+                origins.update(o[0] for o in batch.column("ViewBlueprint:space_origin").to_pylist())
+    colors = {}
+    for c in reader.stream():
+        batch = c.to_record_batch()
+        if "SeriesLines:colors" in batch.schema.names:
+            colors[c.entity_path.lstrip("/")] = batch.column("SeriesLines:colors").to_pylist()[0][0]
+    return origins, colors
 
 
 def test_slam_save_recording_reads_back(tmp_path, ti_runtime):
@@ -52,6 +71,11 @@ def test_slam_save_recording_reads_back(tmp_path, ti_runtime):
     t_yaw, yaw = np.array(got["orientation/yaw"]).T
     final = np.degrees(Rotation.from_matrix(traj.at(t_yaw)).as_euler("xyz"))[:, 2]
     assert np.max(np.abs(yaw - final)) < 2.0 and np.ptp(final) > 5.0
+    # one view per kind: both images, all three angular velocities in one plot, all three angles in another
+    origins, colors = read_layout(rrd)
+    assert origins == {"camera/iwe", "map", "angular_velocity", "orientation"}
+    for plot in ("angular_velocity/", "orientation/"):
+        assert len({rgba for path, rgba in colors.items() if path.startswith(plot)}) == 3, colors
 
 
 def test_packet_iwe_is_sharpest_at_the_packet_omega(ti_runtime):
