@@ -30,7 +30,7 @@ class SimulatorConfig(Params):
                                     "constant for the stars scene (what a star tracker sees), else random",
                             choices=("auto",) + TRAJECTORIES)
     turns: float = param(1.0, "full turns of trajectory=pan (2-3: the camera revisits the first turn's map)", gt=0)
-    pan_wobble: float = param(0.0, "peak of a seeded random wobble added to trajectory=pan (0: a pure pan)",
+    pan_wobble: float = param(0.0, "peak rate of a seeded random tilt of trajectory=pan, bounded (0: a pure pan)",
                               unit="rad/s", ge=0)
     max_angular_velocity: float = param(5.0, "peak of the random trajectory (reached near the end)", unit="rad/s",
                                         ge=0)

@@ -11,8 +11,10 @@ Kinds:
   peak angular velocity near the end), like the ECD rotation sequences.
 - ``pan``: ``turns`` full turns (default 1) about the world vertical axis (y, pointing down) with a smooth
   velocity profile 2 pi turns / T (1 - cos(2 pi t / T)) (zero rate at both ends), plus an optional seeded
-  ``wobble`` (rad/s peak, sum of sinusoids per camera axis, zero at both ends): multi-turn pans revisit
-  the first turn's map (loop closure).
+  ``wobble``: R(t) = Ry(theta(t)) exp(phi(t)), a tilt phi(t) of sinusoids per axis (0.3 Hz up to
+  ``frequency_max``, amplitudes giving a rate of about ``wobble`` rad/s at peak, so a tilt of some 10-20 degrees at
+  1 rad/s) under the envelope sin^2(pi t / T), zero with its rate at both ends. The pan stays about the world
+  vertical however long it lasts, so multi-turn pans revisit the first turn's map (loop closure).
 - ``constant``: a constant rate about a fixed camera-frame axis (star tracking, 4 deg/s).
 """
 from __future__ import annotations
@@ -82,15 +84,29 @@ def _omega(kind: str, p: dict, duration: float, t: np.ndarray) -> np.ndarray:
     if kind == "pan":
         tc = np.clip(t, 0, duration)
         rate = 2 * np.pi * p.get("turns", 1.0) / duration * (1 - np.cos(2 * np.pi * tc / duration))
-        omega = rate[:, None] * np.asarray(p["axis"])[None, :]
-        if p.get("wobble", 0.0) > 0:
-            amp, freq, phase = (np.asarray(p[k]) for k in ("wobble_amplitudes", "wobble_frequencies", "wobble_phases"))
-            waves = np.sum(amp[None] * np.sin(2 * np.pi * freq[None] * tc[:, None, None] + phase[None]), axis=2)
-            omega = omega + p["wobble"] * waves * np.sin(np.pi * tc / duration)[:, None]
-        return omega
+        axis = np.asarray(p["axis"])
+        if p.get("wobble", 0.0) <= 0:
+            return rate[:, None] * axis[None, :]
+        phi, phi_dot = _tilt(p, duration, tc)
+        # R = Ry(theta) exp(phi): R^T dR/dt = [exp(phi)^T axis theta' + Jr(phi) phi']x
+        tilt_t = np.swapaxes(so3.exp(phi), -1, -2)
+        return rate[:, None] * (tilt_t @ axis) + np.einsum("nij,nj->ni", so3.right_jacobian(phi), phi_dot)
     if kind == "constant":
         return np.broadcast_to(np.asarray(p["omega"]), (len(t), 3)).copy()
     raise ValueError(f"unknown trajectory kind {kind!r}")
+
+
+def _tilt(p: dict, duration: float, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pan's wobble: tilt angles phi(t) (M, 3) and their rates, sinusoids per axis under sin^2(pi t / T)."""
+    amp, freq, phase = (np.asarray(p[k]) for k in ("wobble_amplitudes", "wobble_frequencies", "wobble_phases"))
+    w = 2 * np.pi * freq[None]  # (1, 3, M)
+    arg = w * t[:, None, None] + phase[None]
+    # angle amplitudes wobble * a / w: each sinusoid's rate peaks at wobble * a (a summing to 1 per axis)
+    ang = p["wobble"] * amp[None] / w
+    waves, waves_dot = np.sum(ang * np.sin(arg), axis=2), np.sum(ang * w * np.cos(arg), axis=2)
+    env = np.sin(np.pi * t / duration) ** 2
+    env_dot = np.pi / duration * np.sin(2 * np.pi * t / duration)
+    return waves * env[:, None], waves_dot * env[:, None] + waves * env_dot[:, None]
 
 
 def make_motion(kind: str, duration: float, *, seed: int = 0, max_angular_velocity: float = 5.0,
@@ -115,11 +131,11 @@ def make_motion(kind: str, duration: float, *, seed: int = 0, max_angular_veloci
         params = {"axis": [0.0, 1.0, 0.0]}
         if turns != 1.0:
             params["turns"] = float(turns)
-        if wobble > 0:  # amplitudes normalised so that the wobble's sinusoids peak at about `wobble` rad/s
+        if wobble > 0:  # weights summing to 1 per axis: the tilt's rate peaks at about `wobble` rad/s
             m = 3
             amp = rng.uniform(0.3, 1.0, (3, m))
             params.update(wobble=float(wobble), wobble_amplitudes=(amp / amp.sum(axis=1, keepdims=True)).tolist(),
-                          wobble_frequencies=rng.uniform(0.1, frequency_max, (3, m)).tolist(),
+                          wobble_frequencies=rng.uniform(0.3, max(frequency_max, 0.3), (3, m)).tolist(),
                           wobble_phases=rng.uniform(0, 2 * np.pi, (3, m)).tolist())
     elif kind == "constant":
         ax = np.asarray(axis, dtype=float) if len(axis) else rng.normal(size=3)
