@@ -30,6 +30,7 @@ packet is a :class:`~ti_cmax.pipelines.motion.Motion`.
 """
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
@@ -441,19 +442,19 @@ class PixelDither:
 
     def _grow(self, size: int) -> None:
         rng = np.random.default_rng(20261203)
-        u = rng.uniform(-self.amplitude, self.amplitude, (DITHER_PERIOD + size, 2)).T
-        # one table per column: adding a contiguous column is much faster than adding an (n, 2) block to the
-        # strided view of the packet's first two columns (numpy's inner loop of 2)
-        self._x = (u[0] / self.fx).astype(self.dtype)
-        self._y = (u[1] / self.fy).astype(self.dtype)
+        u = rng.uniform(-self.amplitude, self.amplitude, (DITHER_PERIOD + size, 2))
+        self.table = (u / [self.fx, self.fy]).astype(self.dtype)  # (rows, 2): x / fx, y / fy
 
-    def apply(self, packed: np.ndarray, n: int, t_ref: float) -> None:
-        """Add the dither to the bearings' x, y (columns 0, 1) of the first n rows of ``packed``, in place."""
-        if n > len(self._x) - DITHER_PERIOD:
+    def offset(self, n: int, t_ref: float) -> int:
+        """The table row a packet of n events centred on t_ref starts at (the table grows to hold it)."""
+        if n > len(self.table) - DITHER_PERIOD:
             self._grow(n)
-        offset = (int(round(t_ref * 1e5)) * 40503) % DITHER_PERIOD
-        packed[:n, 0] += self._x[offset:offset + n]
-        packed[:n, 1] += self._y[offset:offset + n]
+        return (int(round(t_ref * 1e5)) * 40503) % DITHER_PERIOD
+
+    def rows(self, n: int, t_ref: float) -> np.ndarray:
+        """The (n, 2) bearing offsets of such a packet's events (kernel ``pack`` adds them to x, y)."""
+        offset = self.offset(n, t_ref)
+        return self.table[offset:offset + n]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -512,19 +513,38 @@ class AngularVelocityEstimator:
         self.ws.compile()
         return time.perf_counter() - t0
 
-    def _objective(self, events: Events, t_ref: float):
-        """Load a packet (thinned); returns (fun, s, n): fun(x) = normalised contrast and gradient at omega = x / s,
-        s = focal * max |t - t_ref| (pixels per rad/s, so optimiser steps are in pixels of motion blur)."""
+    @functools.cached_property
+    def _lut(self) -> np.ndarray:
+        """The camera's per-pixel bearings (pixels, 4) in the workspace's float type (kernel ``pack`` reads it)."""
+        lut = self.camera.bearing_lut4
+        return lut if lut.dtype == self.ws.dtype else lut.astype(self.ws.dtype)
+
+    def _load(self, events: Events, t_ref: float) -> tuple[int, float]:
+        """Upload a packet, thinned (1 of k, k = ceil(n / frontend_max_packet_events), as :meth:`thin`), into the
+        workspace; returns (events loaded, max |t - t_ref|). Integer pixels go through kernel ``pack`` (table
+        bearings, dither and times read from the events' arrays in place); sub-pixel ones are undistorted here."""
+        cap = int(self.config.frontend_max_packet_events)
+        total = len(events)
+        k = -(-total // cap) if 0 < cap < total else 1
+        start = k // 2 if k > 1 else 0
+        n = len(range(start, total, k))
+        if n and not events.has_subpixel_coordinates:
+            offset = self.dither.offset(n, t_ref) if self.dither is not None else 0
+            return n, self.ws.pack(events.t, events.x, events.y, self._lut, self.camera.width, start, k, n, t_ref,
+                                   None if self.dither is None else self.dither.table, offset)
         events = self.thin(events)
-        self.events_evaluated += len(events)
         packed = self.camera.bearings(events.x, events.y, dtype=self.ws.dtype, columns=4)
-        if self.dither is not None and len(events) and np.issubdtype(events.x.dtype, np.integer):
-            self.dither.apply(packed, len(events), t_ref)
         dts = packed[:, 3]
         np.subtract(events.t, t_ref, out=dts, casting="unsafe")
         self.ws.set_packed(packed)
-        n = len(events)
-        s = self.focal * float(np.max(np.abs(dts))) if n else 0.0
+        return n, float(np.max(np.abs(dts))) if n else 0.0
+
+    def _objective(self, events: Events, t_ref: float):
+        """Load a packet (thinned); returns (fun, s, n): fun(x) = normalised contrast and gradient at omega = x / s,
+        s = focal * max |t - t_ref| (pixels per rad/s, so optimiser steps are in pixels of motion blur)."""
+        n, span = self._load(events, t_ref)
+        self.events_evaluated += n
+        s = self.focal * span if n else 0.0
         if not s > 0:
             raise InputError("packet has no time extent")
         mu0 = n / float(self.camera.width * self.camera.height)
