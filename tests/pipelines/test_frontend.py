@@ -591,3 +591,24 @@ def test_a_stream_that_starts_at_full_speed_is_not_declared_flat(ti_runtime, mon
     assert np.all(np.linalg.norm(res.omega - truth, axis=1)[fast] < 0.15 * np.linalg.norm(truth, axis=1)[fast])
     monkeypatch.setattr(frontend_policies, "FAST_PX", np.inf)
     assert np.count_nonzero(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat) > 5
+
+
+@pytest.mark.parametrize("where", [0, 500, -1])
+@pytest.mark.parametrize("bad, message", [(np.nan, "non-finite"), (np.inf, "non-finite"), (-np.inf, "non-finite"),
+                                          (-1.0, "not sorted")])
+def test_runner_check_names_bad_timestamps_anywhere(where, bad, message):
+    """The runner's one-pass check of a chunk (min of its time steps, its ends, its largest pixel) hands every bad
+    chunk to Events.validate, which names the event: a NaN or infinity at either end or inside, a step back."""
+    from ti_cmax.errors import InputError
+    from ti_cmax.pipelines.frontend import FrontendRunner
+
+    ev = _integer_pixels_with_noise(np.array([0.3, -0.2, 0.1]), seed=5, n=800, noise=200)
+    t = ev.t.copy()
+    if bad == -1.0:
+        t[where] = t[where] - 1.0 if where != 0 else t[1] + 1.0
+    else:
+        t[where] = bad
+    runner = FrontendRunner(CAM)
+    with pytest.raises(InputError, match=message):
+        runner.check(Events(t, ev.x, ev.y, ev.p))
+    runner.check(ev)  # a good chunk passes
