@@ -377,7 +377,8 @@ class IWEWorkspace:
         """Build (or fetch from the offline cache) the kernels an estimation uses, e.g. to time compilation apart
         (not ``iwe``'s display kernel: every command pays the start-up)."""
         self._ensure()
-        self.set_packet(np.zeros((1, 3)) + [0, 0, 1], np.zeros(1))
+        one = np.zeros(1, np.uint16)
+        self.pack(np.zeros(1), one, one, np.array([[0.0, 0.0, 1.0, 0.0]], self.dtype), 1, 0, 1, 1, 0.0)
         self.evaluate(np.zeros(3), np.eye(3))
 
     def set_packet(self, bearings: np.ndarray, dts: np.ndarray) -> None:

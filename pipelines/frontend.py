@@ -11,7 +11,9 @@ dt_ang_vel`` the event rate is low: the ``"paper"`` rule declares the camera sti
 keeps the events within t_j +- W/2, and the packet is sparse (omega = 0) only when they are fewer than
 ``frontend_min_event_rate * W``. So one N serves slow and fast phases alike. N, the thinning cap and the rate floor
 default to values derived from the sensor's pixel count (``sensor_defaults``), so that the image of warped events
-holds as many events per pixel on any sensor.
+holds as many events per pixel on any sensor. On large sensors that image is coarser than the sensor
+(``frontend_iwe_downsample`` d: an IWE pixel covers d x d sensor pixels, :func:`iwe_intrinsics`), with the blur
+kept at its width in sensor pixels.
 
 Cost per packet is bounded at any event rate: a packet above ``frontend_max_packet_events`` is thinned 1 of k (its
 span, hence the motion that makes omega measurable, is kept). The optimiser (``frontend_optimizer``: BFGS carrying
@@ -19,10 +21,10 @@ its inverse Hessian from packet to packet, or the reference's Fletcher-Reeves CG
 2 omega_{j-1} - omega_{j-2} (``frontend_warm_start``), usually a fraction of a pixel from the optimum.
 
 Scaling, so that the optimiser's tolerances mean the same across packet sizes and sensors: it sees x = omega * s with
-s = f * max_k |dt_k| (f: mean focal length), the displacement in pixels of the packet's farthest-in-time event, and
-the cost C / mu0^2 with mu0 = n / (width * height) the mean IWE value: the squared coefficient of variation of the
-IWE. Integer pixels are dithered by up to half a pixel (:class:`PixelDither`) so that the pixel grid does not pull
-slow motions to omega = 0.
+s = f * max_k |dt_k| (f: the IWE's mean focal length), the displacement in IWE pixels of the packet's farthest-in-time
+event, and the cost C / mu0^2 with mu0 = n / (IWE width * height) the mean IWE value: the squared coefficient of
+variation of the IWE. Integer pixels are dithered by up to half a (sensor) pixel (:class:`PixelDither`) so that the
+pixel grid does not pull slow motions to omega = 0.
 
 Contrast maximisation returns an optimum also where the events do not constrain omega; the rules that tell a
 measured motion from noise (score test, lookbacks, gain check) are in ``frontend_policies`` and their outcome per
@@ -49,7 +51,7 @@ from . import frontend_policies as policies
 from .frontend_policies import Lookback, LookbackTest
 from .motion import Motion
 from .optim import CGResult, bfgs, fletcher_reeves
-from .sensor_defaults import resolve_frontend
+from .sensor_defaults import iwe_size, resolve_frontend
 
 
 NO_MOTION_MEASURABLE = ("the events span no time (no events, or all at one timestamp): no packet, so no angular "
@@ -420,6 +422,16 @@ class PacketSlicer:
         return Packet(t_ref, Events.empty() if sparse else packet, span, sparse)
 
 
+def iwe_intrinsics(K: np.ndarray, downsample: int) -> np.ndarray:
+    """Intrinsics of an IWE whose pixel covers d x d sensor pixels: sensor pixel (i, j) spans [i - 1/2, i + 1/2], so
+    IWE coordinate = (sensor coordinate + 1/2) / d - 1/2 (the sensor's edges stay the IWE's)."""
+    d = float(downsample)
+    Kd = np.array(K, dtype=float)
+    Kd[:2, :2] /= d
+    Kd[:2, 2] = (Kd[:2, 2] + 0.5) / d - 0.5
+    return Kd
+
+
 DITHER_PERIOD = 1 << 16  # distinct offsets of the dither table (a packet's start in it: a hash of its time)
 
 
@@ -467,12 +479,15 @@ class AngularVelocityEstimator:
     def __init__(self, camera: Camera, config: FrontendConfig = FrontendConfig(), dtype=np.float32):
         config = resolve_frontend(config, camera)
         self.camera, self.config = camera, config
-        self.K = camera.K
-        self.focal = 0.5 * (camera.fx + camera.fy)
+        d = int(config.frontend_iwe_downsample)
+        self.iwe_width, self.iwe_height = iwe_size(camera, d)
+        self.K = iwe_intrinsics(camera.K, d)
+        self.focal = 0.5 * (self.K[0, 0] + self.K[1, 1])  # of the IWE: optimiser steps are in IWE pixels
         cap = config.num_events_per_packet
         if config.frontend_max_packet_events > 0:
             cap = max(cap, config.frontend_max_packet_events)
-        self.ws = IWEWorkspace(camera.width, camera.height, dtype, config.frontend_blur_sigma,
+        # the blur keeps its width in sensor pixels (its angle): sigma / d IWE pixels
+        self.ws = IWEWorkspace(self.iwe_width, self.iwe_height, dtype, config.frontend_blur_sigma / d,
                                capacity=cap)
         # integer pixels are dithered (PixelDither: the pixel grid's bias towards omega = 0); float ones are not
         self.dither = PixelDither(camera, config.frontend_pixel_dither, dtype, cap) \
@@ -547,7 +562,7 @@ class AngularVelocityEstimator:
         s = self.focal * span if n else 0.0
         if not s > 0:
             raise InputError("packet has no time extent")
-        mu0 = n / float(self.camera.width * self.camera.height)
+        mu0 = n / float(self.iwe_width * self.iwe_height)
         scale = self._scale = 1.0 / (mu0 * mu0)
         measure = self.config.contrast_measure
 
