@@ -425,11 +425,12 @@ class IWEWorkspace:
         if n > self.capacity:
             self.capacity = 1 << int(np.ceil(np.log2(n)))
             self._kernels = None
+        same = packed is self._packed  # the buffer ``pack`` fills: the launches are bound to it already
         self._packed = packed if len(packed) else np.zeros((1, 4), self.dtype)
         self.n = n
         if self._kernels is None:
             self._ensure()  # built (or rebuilt for the capacity) at the upload, as before the first evaluation
-        else:
+        elif not same:
             self._vote.set_array(0, self._packed)
             self._gather.set_array(0, self._packed)
 
