@@ -39,9 +39,12 @@ through ``correct_poses`` and ``drop_map``:
    while the BA is skipped (real-time level 4) several loops cost one rebuild and the strides settled meanwhile are
    not voted into a map about to be replaced. The old map and the age map restart from the checkpoint the last
    rebuild left when the correction left its strides' poses unchanged, so a rebuild votes the strides aged since,
-   not every stride since the start (bitwise the same maps);
+   not every stride since the start (bitwise the same maps). At most once per ``loop_min_travel`` of rotation an
+   accepted revisit is applied whatever its size, with a joint refinement of the poses since the old visit
+   (``_joint_refine``, ``joint_refinement.refine_jointly``: a BA of all stored events) before the rebuild: the
+   window BA's pull to the map makes later visits copy the first one's errors, the joint BA averages the visits;
 5. real time (``slice_seconds``, set by ``ti-cmax slam --realtime``): the verification and the rebuild after it run
-   in slices (a helper thread run as a coroutine, strictly alternating with the back-end: one cost evaluation, map
+   (with the joint refinement) in slices (a helper thread run as a coroutine, strictly alternating with the back-end: one cost evaluation, map
    step or stored stride per slice) for at most ``slice_seconds`` before each window and in the back-end worker's
    idle time; the result is applied before the window after the verification ends (to the poses then), with the age
    map as detected; the old maps serve meanwhile. No new check while one is in flight. Offline (None) all runs at
