@@ -785,24 +785,31 @@ class LoopCloser(WindowObserver):
 
     def _joint_refine(self, correction, info: dict):
         """The loop's correction refined jointly (``joint_refinement.refine_jointly``): from the chain spread, the
-        control poses from the old visit on, with the stored strides; returns the correction in the same form
-        (poses i0..i1 get theirs, later ones the last one's) and fills ``info`` for the report."""
+        control poses from the first stored stride on (every visit the store holds; the first pose anchors the
+        world frame) with the stored strides, coarse (nodes every 5 window lengths: the window BA fixes the motion
+        within a window, the errors it leaves vary over many) then fine (half as many iterations); returns the
+        correction in the same form (poses first..last get theirs, later ones the last one's) and fills ``info``."""
         tic, paused0 = time.perf_counter(), self._paused()
         i0, i1, spread, corr = correction
         spline = self._correct(self.backend.spline.copy(), correction)
+        knots = spline.knot_times()
+        first = min(int(np.searchsorted(knots, float(self.chunks[0][0][0]) if self.chunks else knots[0])), i0)
         last = spline.num_control - 1
         if self.chunks:  # the last pose the stored strides reach; later poses follow it rigidly
             s_end, _ = spline.support(min(float(self.chunks[-1][0][-1]), spline.valid_time_range()[1]))
             last = min(max(int(np.max(s_end)) + spline.degree, i1), last)
-        x, summary = refine_jointly(spline, list(self.chunks), i0, last, self.backend.cfg, self.backend.width,
-                                    self.backend.height, max_events=self.cfg.loop_joint_events,
-                                    iterations=self.cfg.loop_joint_iterations, max_step=self.cfg.loop_max_correction,
-                                    slice_point=self._slice_point)
-        chain = np.concatenate([spread, np.broadcast_to(corr, (max(last - i1, 0), 3, 3))])[:last - i0 + 1]
+        bcfg, cfg = self.backend.cfg, self.cfg
+        x, summary = refine_jointly(spline, list(self.chunks), first, last, bcfg, self.backend.width,
+                                    self.backend.height, max_events=cfg.loop_joint_events,
+                                    iterations=cfg.loop_joint_iterations, fine_iterations=cfg.loop_joint_iterations // 2,
+                                    coarse_spacing=5 * bcfg.backend_time_window_size,
+                                    max_step=cfg.loop_max_correction, slice_point=self._slice_point)
+        eye = np.broadcast_to(np.eye(3), (i0 - first, 3, 3))
+        chain = np.concatenate([eye, spread, np.broadcast_to(corr, (max(last - i1, 0), 3, 3))])[:last - first + 1]
         info.update(summary, seconds=time.perf_counter() - tic - (self._paused() - paused0))
         if self.slice_seconds is None:  # (sliced: counted with the rebuild task it runs in)
             self.profile["joint"] += info["seconds"]
-        return i0, last, so3.exp(x) @ chain, so3.exp(x[-1]) @ corr
+        return first, last, so3.exp(x) @ chain, so3.exp(x[-1]) @ corr
 
     def _correct(self, spline, correction):
         """Apply a loop's correction (i0, i1, spread rotations of poses i0..i1, rotation of the later poses) to a

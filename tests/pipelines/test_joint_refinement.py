@@ -64,7 +64,7 @@ def test_a_later_visit_is_pulled_onto_the_earlier_visits_map(ti_runtime):
 
     before = error(spline)
     x, info = refine_jointly(spline, _chunks(t, b), first, last, cfg, 1024, 512, max_events=200_000,
-                             iterations=60, max_step=0.1)
+                             iterations=30, fine_iterations=15, coarse_spacing=0.5, max_step=0.1)
     refined = spline.copy()
     refined.control_R[first:last + 1] = so3.exp(x) @ refined.control_R[first:last + 1]
     after = error(refined)
