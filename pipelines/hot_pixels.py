@@ -5,40 +5,46 @@ events pile up at a few image points, dominate the variance of every image of wa
 maximisation towards no motion (a still camera keeps them sharp).
 
 Rule (isolation): a rotating camera moves brightness patterns across the sensor, so an edge or a point that makes a
-pixel fire also crosses a neighbour of it: the one next along the motion (and, for edges, those along the edge)
+pixel fire also crosses a neighbour of it: the next one along the motion (and, for an edge, those along the edge)
 fires for the same pattern, as often up to the pixels' threshold mismatch. A pixel that fires far more than every
 pixel around it is not seeing the scene. Over a block of events, with c the pixel's count and m the largest count
-in its (2 r + 1)^2 neighbourhood (r = ``NEIGHBOURHOOD_RADIUS``), the pixel is hot when
+among its neighbours up to r = ``NEIGHBOURHOOD_RADIUS`` pixels away in x and y (24 of them), the pixel is hot when
 
     c >= hot_pixel_min_events   and   c >= hot_pixel_factor * (m + 1).
 
 The rule compares counts of one block, so it holds from a DVS128 to an HD sensor and at any event rate without
-scaling: the scene's rate moves c and m together. Polarity is ignored (a flickering pixel fires both).
-``hot_pixel_min_events`` keeps single noise events and the few events a faint edge gives one low-threshold pixel
-(one per crossing) from ever being tested; the factor stands far above what threshold mismatch gives neighbours on
-the same edge (a factor of 2 for a 30 % mismatch) and above the Poisson spread of small counts. A star moving slowly
-(a sparse bright point) passes from a pixel into the next: the pixel it leaves fires as much as the one it enters,
-so it is never isolated; the radius of 2 covers the undistorted coordinates of star data, which spread neighbouring
-pixels up to two grid cells apart at the image corners. Nothing here depends on the events being even in time, so a
-flickering pixel (bursts) is caught like a steadily hot one. Two hot pixels side by side shield each other (a
-known limit of the rule).
+scaling: the scene's rate moves c and m together. Polarity is ignored. Nothing depends on the events being even in
+time, so a flickering pixel (bursts) is caught like a steadily hot one. ``hot_pixel_min_events`` (16) keeps noise
+and the single events a faint edge gives one low-threshold pixel per crossing from being tested at all; the factor
+(8) stands far above what threshold mismatch gives two pixels on the same edge (2 for a 30 % mismatch) and the
+Poisson spread of small counts: on simulated sequences from a DVS128 to an HD sensor (0.4 to 33 M events/s; city,
+bay and town scenes at up to 5 rad/s; star fields of 1000-3000 stars at 4-30 deg/s, also as undistorted star data)
+the largest c / (m + 1) of a pixel that was not hot was 2.7 (over a 60 s pan, 138 blocks), while the 200 Hz hot
+pixels of that pan's slow start scored 26-68 in its first 0.35 s. A star moving slowly (a sparse bright point)
+passes from a pixel into the next: the pixel it leaves fires as much as the one it enters, so it is never isolated.
+The radius of 2 covers undistorted star data, where neighbouring sensor pixels land up to 1.7 grid cells apart at the
+image corners (DAVIS240C lens). Near the sensor's edge the neighbourhood is cut: a point entering the view fires the
+first pixel it meets with no neighbour on the sensor, then moves on; a pixel within r of the edge must pass the rule
+in two consecutive blocks. Two hot pixels side by side shield each other (a limit of the rule).
 
-Blocks: the counts of the pixels not yet flagged build up until the busiest reaches ``BLOCK_PEAK_FACTOR`` x
-``hot_pixel_min_events`` events (then the factor can be met against neighbours with a few events) or the block
-holds ``BLOCK_EVENTS_PER_PIXEL`` events per sensor pixel (a pixel holding fewer than its peak count among that many
-events weighs under 1 % in an image's variance: nothing left to find); then the rule runs and the counts restart. So
-blocks are short at high event rates and long at low ones, where a slow hot pixel needs time to stand out, and a
-pixel that turns hot later is flagged by the end of the block in which it does. Flagged pixels stay flagged: their
-later events are dropped before anything else sees them.
+Blocks: the counts of the pixels not yet flagged build up until the busiest reaches ``BLOCK_PEAK_FACTOR`` (4) x
+hot_pixel_min_events, where the factor can be met against neighbours with a few events, or the block holds
+``BLOCK_EVENTS_PER_PIXEL`` (4) events per sensor pixel: then a pixel below that peak holds less than 64^2 / (16 P)
+of the block's sum of squared counts (P pixels: 0.6 % on a DAVIS240C, 1.6 % on a DVS128), too little to pull an
+image's variance. Then the rule runs and the counts restart. So blocks are short at high event rates and long at
+low ones, where a slow hot pixel needs time to stand out, and a pixel that turns hot later is flagged at the end of
+the block in which it does. Flagged pixels stay flagged: their later events are dropped before anything else sees
+them. Counting is batched (numpy's bincount, a few ns per event): pending events are counted once they are an
+eighth of the pixel count or span ``COUNT_INTERVAL`` s, so a block ends at most that late.
 
-Start: the events are held back until the first block ends, or at most ``hot_pixel_hold_time`` seconds of sensor
-time (the real-time replay's start-up lag), so that the first packets and windows never see the hot pixels of the
-start, when the motion is often slowest. Memory: that first block (at most BLOCK_EVENTS_PER_PIXEL events per sensor
-pixel, 13 bytes each: 2.2 MB on a DAVIS240C, 48 MB on an HD sensor), one count per pixel and the events of the
-current count interval. Later events pass on as they come, less those of flagged pixels.
-
-Counting is batched (numpy's bincount over a whole image per batch, a few ns per event): a batch is counted once it
-holds an eighth of the pixel count or spans ``COUNT_INTERVAL`` s; so the rule runs at most that late.
+Start: the events are held back until the first test, which comes once the busiest pixel fired
+``START_PEAK_FACTOR`` (2) x hot_pixel_min_events (hot pixels of similar rates then have hot_pixel_min_events each,
+Poisson spread included), or the held events reach ``START_EVENTS_PER_PIXEL`` (1) per sensor pixel (a busy scene:
+a pixel below 32 events then weighs under 1024 / P of the squared counts), or after ``hot_pixel_hold_time`` s of
+sensor time; so the first packets and windows do not see the hot pixels of the start, when the motion is often
+slowest. A 200 Hz hot pixel is caught within 0.2 s; at 2 M events/s the start is held about 0.1 s. The held events
+are at most P events plus one count batch (13 bytes each: 0.6 MB on a DAVIS240C, 14 MB on an HD sensor); besides,
+the filter keeps one count and one flag per pixel. Later events pass on as they come, less those of flagged pixels.
 """
 from __future__ import annotations
 
@@ -52,6 +58,8 @@ from ti_cmax.events import Events
 NEIGHBOURHOOD_RADIUS = 2  # neighbours up to 2 pixels away in x and y: 24 of them
 BLOCK_PEAK_FACTOR = 4  # a block ends when its busiest pixel fired this x hot_pixel_min_events
 BLOCK_EVENTS_PER_PIXEL = 4  # ... or holds this many events per sensor pixel
+START_PEAK_FACTOR = 2  # the held start is tested when its busiest pixel fired this x hot_pixel_min_events
+START_EVENTS_PER_PIXEL = 1  # ... or it holds this many events per sensor pixel
 COUNT_INTERVAL = 0.02  # s of events at most between two counts of the pending events
 REPORTED_PIXELS = 40  # coordinates listed in report.json at most
 
@@ -102,6 +110,8 @@ class HotPixelFilter:
         self.hold_time = float(config.hot_pixel_hold_time)
         pixels = self.width * self.height
         self.block_peak = BLOCK_PEAK_FACTOR * self.min_events
+        self.start_peak = START_PEAK_FACTOR * self.min_events
+        self.start_events = START_EVENTS_PER_PIXEL * pixels
         self.block_events = BLOCK_EVENTS_PER_PIXEL * pixels
         self._batch = max(1, pixels // 8)  # pending events counted at once at most
         self.flagged = np.zeros(pixels, bool)
@@ -112,6 +122,7 @@ class HotPixelFilter:
         self._pending_n = 0
         self._t_counted: float | None = None  # time of the last count
         self._holding = self.enabled
+        self._suspects: set[int] = set()  # pixels near the edge that passed the rule in the last block
         self._held: list[Events] = []
         self._t_first: float | None = None
         self.events_seen = self.events_dropped = 0
@@ -216,8 +227,12 @@ class HotPixelFilter:
             self._peak = max(self._peak, int(self._counts[index].max()))
         if end:
             return False
-        held_long = self._holding and t >= self._t_first + self.hold_time
-        if held_long or self._peak >= self.block_peak or self._in_block >= self.block_events:
+        if self._holding:
+            done = self._peak >= self.start_peak or self._in_block >= self.start_events or \
+                t >= self._t_first + self.hold_time
+        else:
+            done = self._peak >= self.block_peak or self._in_block >= self.block_events
+        if done:
             self._test(t)
             return True
         return False
@@ -226,6 +241,13 @@ class HotPixelFilter:
         """The module's rule over the block's counts; then a new block starts (and a held start goes on)."""
         counts = self._counts.reshape(self.height, self.width)
         hot = isolated_pixels(counts, self.factor, self.min_events)
+        # near the sensor's edge the neighbourhood is cut: a point entering the view fires the first pixel it meets
+        # with no neighbour on the sensor, then moves on; such a pixel must pass in two consecutive blocks
+        y, x = np.divmod(hot, self.width)
+        r = NEIGHBOURHOOD_RADIUS
+        edge = (x < r) | (y < r) | (x >= self.width - r) | (y >= self.height - r)
+        suspects, self._suspects = self._suspects, set(hot[edge].tolist())
+        hot = hot[~edge | np.isin(hot, list(suspects))]
         for i in hot:
             y, x = divmod(int(i), self.width)
             self.found.append((x, y, t, int(self._counts[i])))

@@ -105,7 +105,8 @@ class OnlineSlam:
         self._t_prev: float | None = None
         self._first: list | None = None  # the first packet's source samples while it is the only one (_packet)
         self._w_prev: np.ndarray | None = None
-        self.t_last: float | None = None  # time of the last event passed on to the front-end and the back-end
+        self.t_last: float | None = None  # time of the last event pushed
+        self._t_used: float | None = None  # time of the last event passed on to the front-end and the back-end
         self.events_read = 0  # events pushed
         self._events_used = 0  # of them, passed on (the hot pixels' dropped, a held-back start not yet)
         # real-time degradation (``degrade``): the front-end processes 1 of frontend_keep packets (the others are
@@ -136,16 +137,17 @@ class OnlineSlam:
             return
         self.runner.check(events)  # times, pixels and pauses (one clear InputError)
         self.events_read += len(events)
+        self.t_last = float(events.t[-1])
         for kept in self.hot_pixels.push(events):
             self._use(kept)
-        self._notify(self.backend.poll(self.t_last))
+        self._notify(self.backend.poll(self._t_used))
 
     def _use(self, events: Events) -> None:
         """Events that passed the hot-pixel filter: to the back-end's window buffer and the front-end's slicer."""
         offset = self._events_used
         self.backend.push_events(events)
         self._events_used += len(events)
-        self.t_last = float(events.t[-1])
+        self._t_used = float(events.t[-1])
         for packet in self.runner.slicer.push(every_qth(events, self._q_front, offset)):
             self._packet(packet)
 
