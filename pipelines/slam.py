@@ -64,7 +64,9 @@ class OnlineSlam:
     packets, a ROS message); the results do not depend on it. ``on_window(report)`` is called after every window
     the back-end completes (a :class:`~ti_cmax.pipelines.backend.WindowReport`); ``close()`` ends the stream and
     returns the :class:`SlamResult` that ``run_slam`` returns. The trajectory starts at the identity at the first
-    event (the world frame is the first camera frame).
+    event (the world frame is the first camera frame). Events pass the hot-pixel filter first
+    (pipelines/hot_pixels.py), which holds the start of the stream back until its first test (at most
+    ``hot_pixel_hold_time`` of sensor time; 0.05-0.2 s on a DAVIS240C): until then ``pose`` is the world frame.
 
     The back-end is an ``online_backend.OnlineBackend``: in this process, or with ``backend_process=True`` in a
     worker process at the same time as the front-end (paper Fig. 3; pipelines/worker.py), with the same results.
