@@ -157,7 +157,10 @@ class HotPixelFilter:
                 index, inside = self._pixel_index(part)
                 self._pending.append(index if inside is None else index[inside])
                 self._pending_n += len(part)
-                (self._held if self._holding else parts).append(part)
+                if self._holding:  # a copy: a view would keep the caller's whole chunk alive
+                    self._held.append(Events(*(np.array(getattr(part, f)) for f in ("t", "x", "y", "p"))))
+                else:
+                    parts.append(part)
             i = j
         if first_out is None:
             return []
