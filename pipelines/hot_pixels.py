@@ -267,6 +267,14 @@ class HotPixelFilter:
         kept = [part for part in (self._drop(part) for part in held) if len(part)]
         return [Events.concatenate(kept)] if kept else []
 
+    def all_dropped(self) -> str | None:
+        """Why nothing went on when every event seen came from flagged pixels (one line), else None."""
+        if not self.events_seen or self.events_dropped < self.events_seen:
+            return None
+        where = ", ".join(f"({x}, {y})" for x, y, _, _ in self.found[:5]) + (", ..." if len(self.found) > 5 else "")
+        return (f"no events to process: all {self.events_seen} events came from {len(self.found)} hot pixel(s) "
+                f"firing with no neighbour, {where} (hot_pixel_filter=false keeps them)")
+
     def summary(self) -> dict:
         """report.json's "hot_pixels" block: the pixels flagged (at most REPORTED_PIXELS listed, the first flagged
         first, with the sensor time and their count in the block that flagged them) and the events dropped."""

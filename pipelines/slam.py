@@ -168,7 +168,9 @@ class OnlineSlam:
             self._first[1:] = []
         if not self.backend.started or self._t_prev is None:  # no events, or no packet: nothing to refine
             self.backend.abort()
-            raise InputError("no events to process" if not self.backend.started else NO_MOTION_MEASURABLE)
+            if not self.backend.started:
+                raise InputError(self.hot_pixels.all_dropped() or "no events to process")
+            raise InputError(NO_MOTION_MEASURABLE)
         reports, outcome = self.backend.finish(self.budget)
         self._notify(reports)
         self._result = self._assemble(outcome)
@@ -358,7 +360,7 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
                 feed.backend.step()
             bars.at("back-end", feed.backend.window_start)
         if feed.backend is None:
-            raise InputError("no events within the trajectory's time range "
+            raise InputError(hot_pixels.all_dropped() or "no events within the trajectory's time range "
                              f"[{trajectory.t_start:.6f}, {trajectory.t_end:.6f}] s")
         feed.backend.finish()
         bars.done()

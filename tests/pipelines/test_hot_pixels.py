@@ -300,3 +300,16 @@ def test_the_front_end_alone_and_refine_drop_them_too(slow_pan_with_hot_pixels):
     assert fe.hot_pixels["count"] == ba.report["hot_pixels"]["count"] == 5
     assert fe.hot_pixels["pixels"] == ba.report["hot_pixels"]["pixels"]
     assert ba.report["events_processed"] == fe.timing["events_processed"] == len(half)
+
+
+def test_a_stream_of_hot_pixels_alone_is_one_clear_error(ti_runtime):
+    from ti_cmax.camera import Camera
+    from ti_cmax.config import SlamConfig
+    from ti_cmax.errors import InputError
+    from ti_cmax.pipelines.slam import run_slam
+
+    camera = Camera(240, 180, 200.0, 200.0, 120.0, 90.0)
+    n = 400
+    lone = Events(np.linspace(0.0, 0.5, n), np.full(n, 100), np.full(n, 90), np.ones(n))
+    with pytest.raises(InputError, match=r"all 400 events came from 1 hot pixel\(s\).*\(100, 90\)"):
+        run_slam(lone, camera, SlamConfig())
