@@ -371,6 +371,8 @@ class SlidingWindowBackend:
         self.events_settled = 0
         self.events_optimized = 0  # event-window pairs that went through BA
         self._last_correction: float | None = None  # |x| of the last window's BA solution
+        # the accepted corrections of the last windows (rad), the source's typical error (policy.departure_bound)
+        self._corrections: deque[float] = deque(maxlen=policy.RECENT_WINDOWS)
         self._inv_hessian = None  # BFGS: (first free control pose, inverse Hessian) of the last window
         self.fitted_from: int | None = None  # the first control pose a fit changed since the last update (updates)
         self._fitted_after: tuple | None = None  # the anchor the last _initialize_until continued from
@@ -703,8 +705,8 @@ class SlidingWindowBackend:
             spline.control_R[first_free:] = so3.exp(step(res.x)) @ base[first_free:]
             return spline.evaluate_at(s_c, u_c)
 
-        def refit(bound: float):  # a local refit from the initialisation (its optimum)
-            return self._maximise(problem, perturbed, base, first_free, n_free, budget, step_bound=bound)[0]
+        def refit(step_bound: float):  # a local refit from the initialisation (its optimum)
+            return self._maximise(problem, perturbed, base, first_free, n_free, budget, step_bound=step_bound)[0]
 
         before = spline.evaluate_at(s_c, u_c)
         after = trajectory_at(result)
@@ -720,6 +722,7 @@ class SlidingWindowBackend:
             self._inv_hessian = None  # the curvature of a false maximum
             return
         self._last_correction = float(np.linalg.norm(result.x))
+        self._corrections.append(report.max_correction)
         report.variance_before, report.variance_after = var0, result.fun / scale
         report.optimized, report.iterations = True, result.iterations
         report.cut_short = result.message == "time budget reached"
@@ -729,16 +732,17 @@ class SlidingWindowBackend:
     def _recheck(self, result, before, after, trajectory_at, refit, report: WindowReport):
         """The check of an optimum (``after``: the trajectory at the window's samples with it; ``before``: at the
         initialisation; ``trajectory_at(optimum)`` applies one and samples it there): when its correction exceeds the
-        check's bound (policy.departs), a local refit from the initialisation (``refit(bound)``: no carried inverse
-        Hessian, steps of at most the bound) decides (policy.refit_outcome): the first optimum confirmed, replaced by
-        the refit's, or neither (report.false_maximum set and report.refitted False: the caller keeps the
-        initialisation). Leaves the spline at the kept optimum; returns (it, the evaluations of both)."""
-        bound = policy.departure_bound(self.width, self.cfg.backend_blur_sigma)
+        check's bound (policy.departs; the bound follows the recent windows' corrections), a local refit from the
+        initialisation (``refit(step)``: no carried inverse Hessian, steps of at most the reach of a vote) decides
+        (policy.refit_outcome): the first optimum confirmed, replaced by the refit's, or neither (report.false_maximum
+        set and report.refitted False: the caller keeps the initialisation). Leaves the spline at the kept optimum;
+        returns (it, the evaluations of both)."""
+        bound = policy.departure_bound(self.width, self.cfg.backend_blur_sigma, self._corrections)
         suspect = policy.departs(report.max_correction, bound)
         if suspect is None:
             return result, result.evaluations
         carried = self._inv_hessian
-        local = refit(bound)
+        local = refit(policy.departure_bound(self.width, self.cfg.backend_blur_sigma))  # steps within a vote's reach
         refitted = trajectory_at(local)
         outcome = policy.refit_outcome(_largest_angle(before, refitted), _largest_angle(after, refitted), bound)
         evaluations = result.evaluations + local.evaluations

@@ -21,6 +21,11 @@ SKIPPED = "skipped by the real-time budget"
 CONFIRMED = "confirmed"  # a local refit found the same maximum: the optimum is kept
 REFITTED = "refitted"  # the local refit found a maximum within the bound: its optimum replaces the first one
 KEPT_INITIALISATION = "initialisation kept"  # the refit departed beyond the bound too, elsewhere: no optimum is trusted
+# departure_bound: the accepted corrections of this many preceding windows give a source's typical one, and a
+# correction up to TYPICAL_FACTOR times their median is within its spread (for Gaussian errors the largest magnitude
+# in a thousand windows is 2.6 (three axes) to 4.9 (one axis) times their median)
+RECENT_WINDOWS = 20
+TYPICAL_FACTOR = 5.0
 
 
 @dataclass(frozen=True)
@@ -151,7 +156,7 @@ def false_maximum(max_correction: float, cfg) -> str | None:
     return None
 
 
-def departure_bound(width: int, blur_sigma: float) -> float:
+def departure_bound(width: int, blur_sigma: float, recent=()) -> float:
     """The false-maximum check's bound (rad): the reach of one event's vote in the blurred map, 3 sigma of the blur
     plus the bilinear vote's pixel, as an angle on a map ``width`` pixels around: (3 sigma + 1) 2 pi / width.
     An optimum that moves the trajectory by more than this from the initialisation has carried the window's events
@@ -159,8 +164,11 @@ def departure_bound(width: int, blur_sigma: float) -> float:
     refinement of the initialisation, which a local optimiser's long step (a carried inverse Hessian, a step cap of
     several pixels) can reach past the maximum nearest to it. The front-end's motion over a window is off by far
     less on the data it measures well (its packets are sharp to a fraction of a sensor pixel, and a map pixel is
-    at most one)."""
-    return (3.0 * float(blur_sigma) + 1.0) * 2.0 * np.pi / float(width)
+    at most one). A poorer initialising trajectory (a refined baseline, IMU dead reckoning with a large bias) is off
+    by more in every window; ``recent``, the accepted corrections of the last windows (rad), raises the bound to
+    TYPICAL_FACTOR times their median, so that only a correction far out of the source's own spread is checked."""
+    reach = (3.0 * float(blur_sigma) + 1.0) * 2.0 * np.pi / float(width)
+    return max(reach, TYPICAL_FACTOR * float(np.median(recent))) if len(recent) else reach
 
 
 def departs(correction: float, bound: float) -> str | None:
@@ -176,8 +184,8 @@ def departs(correction: float, bound: float) -> str | None:
 
 
 def refit_outcome(refit_correction: float, between: float, bound: float) -> str:
-    """What a suspect window keeps after its local refit (started afresh from the initialisation with steps of at
-    most ``bound``, so that it climbs to the maximum nearest to it); the figures are the largest changes of the
+    """What a suspect window keeps after its local refit (started afresh from the initialisation with steps within
+    the reach of a vote, so that it climbs to the maximum nearest to it); the figures are the largest changes of the
     trajectory at the window's events (rad). The first optimum when the refit lands within ``bound`` of it
     (``between``: the same maximum, the initialisation was that far off; CONFIRMED); the refit's optimum when its
     correction is within ``bound`` (REFITTED); else the initialisation: the events offer maxima far from it in more

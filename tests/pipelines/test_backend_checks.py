@@ -16,6 +16,10 @@ def test_departure_bound_is_the_reach_of_a_blurred_vote():
     assert policy.departure_bound(512, 1.0) == pytest.approx(4 * policy.departure_bound(2048, 1.0))
     assert policy.departure_bound(2048, 2.0) == pytest.approx(7 / 4 * policy.departure_bound(2048, 1.0))
     assert policy.departure_bound(2048, 0.0) == pytest.approx(2 * np.pi / 2048)
+    # a source off by more in every window: five times the median of the recent windows' corrections
+    reach = policy.departure_bound(2048, 1.0)
+    assert policy.departure_bound(2048, 1.0, [0.1 * reach] * 5) == reach
+    assert policy.departure_bound(2048, 1.0, [0.4 * reach, 0.5 * reach, 3 * reach]) == pytest.approx(2.5 * reach)
 
 
 def test_departs_and_false_maximum_give_their_reasons():
@@ -155,3 +159,26 @@ def test_nothing_is_flagged_without_a_false_maximum(ti_runtime, monkeypatch):
     assert first is None and len(be.windows) >= 9 and all(w.optimized for w in be.windows)
     assert not any(w.false_maximum or w.confirmed or w.refitted or w.rejected for w in be.windows)
     assert max(_window_error_deg(be.spline, w) for w in be.windows) < 0.3
+
+
+def test_a_poor_source_is_refined_without_rechecking_every_window(short_sequence):
+    """Offline BA from a trajectory off by up to 3 deg, 4 deg/s (its errors wobble at about 1 Hz): the BA corrects
+    most windows by more than the reach of a vote, as much as the source is off. Once a few windows have shown the
+    source's spread the bound follows it: at most the first windows are refitted (each confirmed), and the result is
+    the one without the check."""
+    from ti_cmax import so3
+    from ti_cmax.config import SlamConfig
+    from ti_cmax.metrics import evaluate_rotations
+    from ti_cmax.pipelines.slam import refine
+    from ti_cmax.trajectory import Trajectory
+
+    gt = short_sequence.groundtruth
+    wobble = 3.0 * DEG * np.stack([np.sin(2 * np.pi * gt.t), np.cos(1.4 * np.pi * gt.t + 1.0),
+                                   0.5 * np.sin(2.6 * np.pi * gt.t)], 1)
+    source = Trajectory(gt.t, gt.R @ so3.exp(wobble))
+    res = refine(short_sequence.events, short_sequence.camera, source, SlamConfig())
+    bound = policy.departure_bound(res.report["backend"]["map_size"][0], 1.0)  # the reach of a vote
+    assert sum(w.max_correction > bound for w in res.windows) > len(res.windows) / 2
+    assert res.report["backend"]["windows_confirmed_by_refit"] <= 2
+    assert not any(w.rejected or w.refitted for w in res.windows)
+    assert evaluate_rotations(gt, res.trajectory).abs_rmse_deg < 0.15
