@@ -163,10 +163,11 @@ def departure_bound(width: int, blur_sigma: float, recent=()) -> float:
     beyond where their votes at the initialisation reached: onto other structure, a different alignment rather than a
     refinement of the initialisation, which a local optimiser's long step (a carried inverse Hessian, a step cap of
     several pixels) can reach past the maximum nearest to it. The front-end's motion over a window is off by far
-    less on the data it measures well (its packets are sharp to a fraction of a sensor pixel, and a map pixel is
-    at most one). A poorer initialising trajectory (a refined baseline, IMU dead reckoning with a large bias) is off
-    by more in every window; ``recent``, the accepted corrections of the last windows (rad), raises the bound to
-    TYPICAL_FACTOR times their median, so that only a correction far out of the source's own spread is checked."""
+    less on the data it measures well: its packets are sharp to a fraction of a sensor pixel, and the reach is 4 map
+    pixels with the default blur, 2.7 sensor pixels at the default map scale. A poorer initialising trajectory (a
+    refined baseline, IMU dead reckoning with a large bias) is off by more in every window; ``recent``, the accepted
+    corrections of the last windows (rad), raises the bound to TYPICAL_FACTOR times their median, so that only a
+    correction far out of the source's own spread is checked."""
     reach = (3.0 * float(blur_sigma) + 1.0) * 2.0 * np.pi / float(width)
     return max(reach, TYPICAL_FACTOR * float(np.median(recent))) if len(recent) else reach
 
