@@ -182,7 +182,8 @@ def plot_angular_velocity(path, estimates: dict, groundtruth=None, title: str | 
 
 
 _WINDOW_STATES = (  # (WindowReport flag, label, colour) in order of precedence
-    ("rejected", "rejected (correction too large)", "tab:red"),
+    ("rejected", "rejected (false maximum)", "tab:red"),
+    ("refitted", "refitted (false maximum)", "tab:olive"),
     ("still", "still (no BA)", "tab:gray"),
     ("skipped", "skipped (real-time)", "tab:orange"),
     ("cut_short", "cut short (real-time)", "tab:purple"),

@@ -68,6 +68,9 @@ def test_slam_beats_frontend_alone(fast_sequence):
     assert rep["us_per_event"]["frontend"] > 0 and rep["us_per_event"]["backend"] > 0
     assert rep["backend"]["windows_optimized"] >= 10
     assert rep["backend"]["mean_evaluations"] >= rep["backend"]["mean_iterations"] > 0
+    # no window's optimum is suspect of a false maximum: none refitted, rejected or even rechecked
+    assert rep["backend"]["windows_rejected"] == rep["backend"]["windows_refitted"] == 0
+    assert rep["backend"]["windows_confirmed_by_refit"] == 0 and rep["backend"]["false_maxima"] == []
     # the global map holds every settled event (bilinear votes sum to one per event, minus the polar rows)
     assert abs(result.map.sum() - len(seq.events)) < 0.01 * len(seq.events)
 
