@@ -116,6 +116,11 @@ if ENGINE == "taichi":  # quadrants neither draws the caret per node nor reads s
 _state = {"initialized": False, "threads": None, "chosen": False}
 
 
+def initialized() -> bool:
+    """Whether this process has initialized the engine (ensure_init)."""
+    return _state["initialized"]
+
+
 def set_num_threads(n: int | None) -> None:
     """Choose the CPU thread count; must be called before the first kernel launch."""
     if _state["initialized"] and n != _state["threads"]:
@@ -176,6 +181,18 @@ def ensure_init() -> None:
 
     set_blur_threads(threads)
     limit_blas_threads()
+
+
+def shutdown() -> None:
+    """Finalize the engine's program if this process initialized it: its offline cache writes the kernels compiled
+    here to disk, so that later processes load them. The engine does this when the interpreter tears down, which a
+    multiprocessing worker (it ends with os._exit) and the command line's quick exit skip: without it a back-end
+    worker compiled its kernels again in every run. Only at the end of a process: kernels bound before
+    (BoundLaunch) refer to the finalized program."""
+    if not _state["initialized"]:
+        return
+    _state["initialized"] = False
+    ti.reset()
 
 
 def limit_blas_threads() -> None:
@@ -311,5 +328,6 @@ def even_slice(it, n, tasks):
     return lo, hi
 
 
-__all__ = ["ti", "BoundLaunch", "ensure_init", "set_num_threads", "num_threads", "threads_chosen", "share_cores",
-           "available_cores", "PART_TASK", "check_parts", "part_slice", "even_slice"]
+__all__ = ["ti", "BoundLaunch", "ensure_init", "initialized", "shutdown", "set_num_threads", "num_threads",
+           "threads_chosen", "share_cores", "available_cores", "PART_TASK", "check_parts", "part_slice", "even_slice"]
+
