@@ -205,6 +205,8 @@ def limit_blas_threads() -> None:
     libraries loaded later and the back-end worker process."""
     if os.environ.get("OPENBLAS_NUM_THREADS") != "1":  # importing ti_cmax set it to 1 unless the user chose
         return
+    if not sys.modules["ti_cmax"]._NUMPY_BEFORE_BLAS_LIMIT:  # numpy's BLAS read the variable when it loaded
+        return  # (threadpoolctl's scan of the loaded libraries costs ~0.04 CPU s of each process's start-up)
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1, user_api="blas")  # the BLAS libraries already loaded (numpy's)

@@ -58,12 +58,16 @@ STAGES = (
 WORKER_POINTS = ("started", "ready", "done")
 
 
-def run_once(seq: Path, out: Path, threads: int | None, flags: tuple = (), overrides: tuple = ()) -> dict:
-    """One ``ti-cmax slam`` in a child process: its report, wall seconds, CPU seconds (with its worker) and the
-    stages (wall and CPU seconds per STAGES row, the worker's points against the launch)."""
+def run_once(seq: Path, out: Path, threads: int | None, flags: tuple = (), overrides: tuple = (),
+             python: str | None = None) -> dict:
+    """One ``ti-cmax slam`` in a child process (run by ``python``, default this interpreter): its report, wall
+    seconds, CPU seconds (with its worker) and the stages (wall and CPU seconds per STAGES row, the worker's points
+    against the launch; none from a version without report.json's timeline)."""
     if out.exists():
         shutil.rmtree(out)
-    cmd = [sys.executable, "-m", "ti_cmax.cli", "slam", str(seq), "--out", str(out), "--quiet", *SLAM_ARGS, *flags]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cmd = [python or sys.executable, "-m", "ti_cmax.cli", "slam", str(seq), "--out", str(out), "--quiet",
+           *SLAM_ARGS, *flags]
     if threads:
         cmd += ["--threads", str(threads)]
     for item in overrides:
@@ -71,14 +75,14 @@ def run_once(seq: Path, out: Path, threads: int | None, flags: tuple = (), overr
     load = [os.getloadavg()[0]]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     launch = time.time()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=out.parent)  # no checkout in the cwd
     end = time.time()
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     load.append(os.getloadavg()[0])
     if proc.returncode != 0:
         raise RuntimeError(f"slam failed: {proc.stderr.strip().splitlines()[-1:]}")
     report = json.loads((out / "report.json").read_text())
-    points = {"launch": [launch, 0.0], **report["timeline_seconds"]}
+    points = {"launch": [launch, 0.0], **report.get("timeline_seconds", {})}
     total_cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     worker = report.get("backend_process", {})
     worker_cpu = worker.get("process_cpu_seconds", 0.0)
@@ -113,8 +117,9 @@ def summarize(runs: list[dict], events: int) -> dict:
 def format_table(s: dict, runs: list[dict], accuracy, events: int) -> str:
     lines = ["| stage | wall s | CPU s (main) |", "|---|---|---|"]
     lines += [f"| {label} | {v['wall']:.2f} | {v['cpu']:.2f} |" for label, v in s["stages"].items()]
-    lines.append(f"| **whole process** | **{s['wall']:.2f}** | {s['cpu'] - s['worker_cpu']:.2f} "
-                 f"(+ worker {s['worker_cpu']:.2f}) |")
+    cpu = f"{s['cpu'] - s['worker_cpu']:.2f} (+ worker {s['worker_cpu']:.2f})" if s["worker_cpu"] else \
+        f"{s['cpu']:.2f} (with its worker, if any)"
+    lines.append(f"| **whole process** | **{s['wall']:.2f}** | {cpu} |")
     if s["worker"]:
         lines += ["", "| back-end worker (" + (s["start_method"] or "-") + ") | at s (from launch) | its CPU s |",
                   "|---|---|---|"]
@@ -139,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sequential", action="store_true", help="front-end and back-end in one process")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="a further slam override")
+    ap.add_argument("--python", default=None, metavar="PATH",
+                    help="the interpreter that runs ti-cmax (default this one; another checkout's venv to compare)")
     args = ap.parse_args(argv)
     if args.rounds < 1:
         ap.error("--rounds must be at least 1")
@@ -148,10 +155,11 @@ def main(argv: list[str] | None = None) -> int:
     seq, info, _ = ensure_sequence(CASE, BenchmarkSettings(), root / "sequences")
     events = int(info["num_events"])
     flags = ("--sequential",) if args.sequential else ()
-    run_once(seq, root / "runs" / "warm-up", args.threads, flags, tuple(args.overrides))
+    run_once(seq, root / "runs" / "warm-up", args.threads, flags, tuple(args.overrides), args.python)
     runs = []
     for i in range(args.rounds):
-        runs.append(run_once(seq, root / "runs" / f"round{i + 1}", args.threads, flags, tuple(args.overrides)))
+        runs.append(run_once(seq, root / "runs" / f"round{i + 1}", args.threads, flags, tuple(args.overrides),
+                             args.python))
         print(f"round {i + 1}: {runs[-1]['wall']:.2f} s wall, {runs[-1]['cpu']:.2f} s CPU, "
               f"load {runs[-1]['load'][1]:.1f}", file=sys.stderr, flush=True)
     accuracy = evaluate_rotations(read_tum(seq / "groundtruth.txt"),
