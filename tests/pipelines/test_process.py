@@ -16,6 +16,16 @@ def _python(code: str, env: dict | None = None) -> subprocess.CompletedProcess:
                           env={**os.environ, **(env or {})})
 
 
+def test_a_slam_process_imports_neither_scipy_nor_matplotlib_before_its_outputs():
+    """What `slam` imports before its first event (and its worker inherits): scipy (the joint refinement's L-BFGS,
+    the trajectory's Rotation) only when a run needs it, matplotlib only for the figure."""
+    code = ("import sys\n"
+            "import ti_cmax.cli, ti_cmax.commands.slam, ti_cmax.io, ti_cmax.pipelines.slam, ti_cmax.pipelines.worker\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'scipy', 'matplotlib', 'PIL', 'imageio'}))\n")
+    proc = _python(code)
+    assert proc.stdout.split() == ["[]"], proc.stderr
+
+
 @pytest.mark.skipif(not LINUX, reason="the worker is forked on Linux only")
 def test_the_worker_is_forked_from_a_single_threaded_process_before_the_engine_starts():
     """Forked, the worker inherits the imports (about 0.4 CPU s that a spawned one repeats before its kernels);
