@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ti_cmax import so3
+from ti_cmax import so3, timeline
 from ti_cmax.camera import Camera
 from ti_cmax.config import SlamConfig, config_to_dict
 from ti_cmax.errors import InputError
@@ -102,6 +102,7 @@ class OnlineSlam:
         self.startup = {"compile_seconds": self.compile_seconds,
                         "compile_cpu_seconds": time.process_time() - cpu0,
                         "process_cpu_seconds": time.process_time()}
+        timeline.mark("ready")
         self._q_front = int(config.frontend.frontend_event_sample_rate)
         self._r_src = np.eye(3)
         self._t_prev: float | None = None
@@ -171,7 +172,9 @@ class OnlineSlam:
             if not self.backend.started:
                 raise InputError(self.hot_pixels.all_dropped() or "no events to process")
             raise InputError(NO_MOTION_MEASURABLE)
+        timeline.mark("frontend_done")
         reports, outcome = self.backend.finish(self.budget)
+        timeline.mark("closed")
         self._notify(reports)
         self._result = self._assemble(outcome)
         return self._result
@@ -295,12 +298,15 @@ class OnlineSlam:
 
 
 def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig(), *,
-             progress_total: float | None = None, backend_process: bool = False, observer=None) -> SlamResult:
+             progress_total: float | None = None, backend_process: bool = False, observer=None,
+             on_start=None) -> SlamResult:
     """CMax-SLAM on an ``Events`` object, an iterable of time-ordered chunks, or a dataset (``iter_events``).
 
     The trajectory starts at the identity at the first event (the world frame is the first camera frame).
     ``backend_process``: run the back-end in a worker process at the same time as the front-end (OnlineSlam).
     ``observer``: OnlineSlam's ``on_packet`` and ``on_window``, and ``attach(online)`` (ti_cmax.viewer.RerunViewer).
+    ``on_start()``: called once the kernels are prepared and the worker started, before the first event (the command
+    line starts preparing its outputs there).
     """
     with stage("start-up and compile"):
         online = OnlineSlam(camera, config, backend_process=backend_process,
@@ -308,6 +314,8 @@ def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig()
                             on_window=getattr(observer, "on_window", None))
         if observer is not None:
             observer.attach(online)
+    if on_start is not None:
+        on_start()
     with StageBars(progress_total, ("reading", "front-end", "back-end")) as bars:
         for chunk in as_chunks(events_or_chunks):
             if len(chunk):
