@@ -2,11 +2,13 @@
 
 The sliding-window back-end aligns every new window to the global map, so once a region is mapped, later visits
 follow that map, errors included: the error of the first turn of a pan repeats in every later turn. At a verified
-revisit the loop closer (``pipelines/loop_closure.py``) calls :func:`refine_jointly`: the control poses from the old
-visit on are refined together to maximize the variance of the panoramic IWE of the stored event subsamples of the
+revisit the loop closer (``pipelines/loop_closure.py``) calls :func:`refine_jointly`: the control poses from the first
+stored stride on are refined together to maximize the variance of the panoramic IWE of the stored event subsamples of the
 whole recording (Eq. 18 without the global map: every event is in the IWE, at the poses being refined), so each
-visit's events sharpen the map of the others and the map is rebuilt from the result. The poses before the old visit
-stay fixed (they anchor the world frame); the events they carry are in the IWE as a fixed part of the map.
+visit's events sharpen the map of the others and the map is rebuilt from the result. The first pose stays fixed (it
+anchors the world frame). The unknowns are increments at nodes a few window lengths apart, interpolated linearly
+in time in between: the window BA leaves errors that vary slowly (the drift a turn builds up), which a chain of
+every pose with only local gradients would take many iterations to reach.
 
 The cost is bounded: at most ``max_events`` stored events (an even sample of each stride in proportion to the events
 it stands for), batches spanning the time of the back-end's batches, a map of at most 2048 columns (a coarser level

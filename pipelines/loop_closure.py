@@ -39,7 +39,7 @@ through ``correct_poses`` and ``drop_map``:
    while the BA is skipped (real-time level 4) several loops cost one rebuild and the strides settled meanwhile are
    not voted into a map about to be replaced. The old map and the age map restart from the checkpoint the last
    rebuild left when the correction left its strides' poses unchanged, so a rebuild votes the strides aged since,
-   not every stride since the start (bitwise the same maps). At most once per ``loop_min_travel`` of rotation an
+   not every stride since the start (bitwise the same maps). At most once per full turn of rotation travelled an
    accepted revisit is applied whatever its size, with a joint refinement of the poses since the old visit
    (``_joint_refine``, ``joint_refinement.refine_jointly``: a BA of all stored events) before the rebuild: the
    window BA's pull to the map makes later visits copy the first one's errors, the joint BA averages the visits;
@@ -517,7 +517,7 @@ class LoopCloser(WindowObserver):
         cfg = self.cfg
         tic = time.perf_counter()
         px = 2 * np.pi / self.backend.width
-        # a joint refinement (at most once per loop_min_travel of rotation) is worth a rebuild however small the
+        # a joint refinement (at most once per turn of rotation travelled) is worth a rebuild however small the
         # single rotation: it corrects the trajectory between the visits, not one offset
         joint = entry["accepted"] and self._joint_due()
         if entry["accepted"] and not joint and entry["correction_deg"] < np.degrees(cfg.loop_min_correction_px * px):
@@ -776,18 +776,19 @@ class LoopCloser(WindowObserver):
         return out
 
     def _joint_due(self) -> bool:
-        """A joint refinement at most once per loop_min_travel of rotation (180 deg when that is off): about once
-        per turn of a pan, so a minute costs a few of them."""
+        """A joint refinement at most once per full turn of rotation travelled: a revisit after it sees regions the
+        last refinement did not hold, while a pan's wobble (rotation travelled, not turns) or a slow revisit that goes
+        on for seconds does not repeat the refinement (each costs some 50 evaluations of every stored event)."""
         if not self.cfg.loop_joint_refinement:
             return False
-        need = math.radians(self.cfg.loop_min_travel if self.cfg.loop_min_travel > 0 else 180.0)
-        return float(self._travel_rec[1, self._n_travel - 1]) - self._joint_travel >= need
+        return float(self._travel_rec[1, self._n_travel - 1]) - self._joint_travel >= 2 * math.pi
 
     def _joint_refine(self, correction, info: dict):
         """The loop's correction refined jointly (``joint_refinement.refine_jointly``): from the chain spread, the
         control poses from the first stored stride on (every visit the store holds; the first pose anchors the
-        world frame) with the stored strides, coarse (nodes every 5 window lengths: the window BA fixes the motion
-        within a window, the errors it leaves vary over many) then fine (half as many iterations); returns the
+        world frame) with the stored strides, coarse: increments interpolated between nodes every 5 window lengths
+        (the window BA fixes the motion within a window, the errors it leaves vary over many; every pose free
+        would also fit the noise of the sampled events between the nodes); returns the
         correction in the same form (poses first..last get theirs, later ones the last one's) and fills ``info``."""
         tic, paused0 = time.perf_counter(), self._paused()
         i0, i1, spread, corr = correction
@@ -801,7 +802,7 @@ class LoopCloser(WindowObserver):
         bcfg, cfg = self.backend.cfg, self.cfg
         x, summary = refine_jointly(spline, list(self.chunks), first, last, bcfg, self.backend.width,
                                     self.backend.height, max_events=cfg.loop_joint_events,
-                                    iterations=cfg.loop_joint_iterations, fine_iterations=cfg.loop_joint_iterations // 2,
+                                    iterations=cfg.loop_joint_iterations,
                                     coarse_spacing=5 * bcfg.backend_time_window_size,
                                     max_step=cfg.loop_max_correction, slice_point=self._slice_point)
         eye = np.broadcast_to(np.eye(3), (i0 - first, 3, 3))
