@@ -116,6 +116,11 @@ if ENGINE == "taichi":  # quadrants neither draws the caret per node nor reads s
 _state = {"initialized": False, "threads": None, "chosen": False}
 
 
+def initialized() -> bool:
+    """Whether this process has initialized the engine (ensure_init)."""
+    return _state["initialized"]
+
+
 def set_num_threads(n: int | None) -> None:
     """Choose the CPU thread count; must be called before the first kernel launch."""
     if _state["initialized"] and n != _state["threads"]:
@@ -178,6 +183,18 @@ def ensure_init() -> None:
     limit_blas_threads()
 
 
+def shutdown() -> None:
+    """Finalize the engine's program if this process initialized it: its offline cache writes the kernels compiled
+    here to disk, so that later processes load them. The engine does this when the interpreter tears down, which a
+    multiprocessing worker (it ends with os._exit) and the command line's quick exit skip: without it a back-end
+    worker compiled its kernels again in every run. Only at the end of a process: kernels bound before
+    (BoundLaunch) refer to the finalized program."""
+    if not _state["initialized"]:
+        return
+    _state["initialized"] = False
+    ti.reset()
+
+
 def limit_blas_threads() -> None:
     """numpy's and scipy's BLAS (OpenBLAS) to one thread in a process that runs the kernels, unless the user set
     OPENBLAS_NUM_THREADS: the math runs in Taichi and OpenCV, BLAS only sees small products (spline fits, BFGS, a
@@ -188,6 +205,8 @@ def limit_blas_threads() -> None:
     libraries loaded later and the back-end worker process."""
     if os.environ.get("OPENBLAS_NUM_THREADS") != "1":  # importing ti_cmax set it to 1 unless the user chose
         return
+    if not sys.modules["ti_cmax"]._NUMPY_BEFORE_BLAS_LIMIT:  # numpy's BLAS read the variable when it loaded
+        return  # (threadpoolctl's scan of the loaded libraries costs ~0.04 CPU s of each process's start-up)
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1, user_api="blas")  # the BLAS libraries already loaded (numpy's)
@@ -311,5 +330,6 @@ def even_slice(it, n, tasks):
     return lo, hi
 
 
-__all__ = ["ti", "BoundLaunch", "ensure_init", "set_num_threads", "num_threads", "threads_chosen", "share_cores",
-           "available_cores", "PART_TASK", "check_parts", "part_slice", "even_slice"]
+__all__ = ["ti", "BoundLaunch", "ensure_init", "initialized", "shutdown", "set_num_threads", "num_threads",
+           "threads_chosen", "share_cores", "available_cores", "PART_TASK", "check_parts", "part_slice", "even_slice"]
+

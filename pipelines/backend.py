@@ -58,7 +58,12 @@ class WindowReport:
     # backend_cg_rel_cost_tol (relative)
     variance_after: float = 0.0
     max_correction: float = 0.0  # largest change of the trajectory at the window's events (rad)
-    rejected: bool = False  # the correction exceeded backend_max_correction and was not applied
+    # the window kept its initialisation: its BA's optimum was a false maximum (the correction exceeded
+    # backend_max_correction, or it failed the check and so did its refit)
+    rejected: bool = False
+    false_maximum: str | None = None  # why the BA's optimum was judged a false maximum; None: it was not
+    refitted: bool = False  # that optimum was replaced by a local refit's (backend_policies.refit_outcome)
+    confirmed: bool = False  # the optimum departed beyond the check's bound and a local refit found the same maximum
     seconds: float = 0.0
     no_ba: str | None = None  # why the window got no BA (backend_policies.why_no_ba); None: it got one
     cut_short: bool = False  # BA stopped at the real-time controller's time budget (ba_budget): its best point kept
@@ -143,6 +148,11 @@ class _Buffer:
         i0 = int(np.searchsorted(times, t0, side="left"))
         i1 = int(np.searchsorted(times, t1, side="right" if include_end else "left"))
         return times[i0:i1], self.b[i0:i1]
+
+
+def _largest_angle(r_a: np.ndarray, r_b: np.ndarray) -> float:
+    """The largest angle between two trajectories sampled at the same times, (n, 3, 3) each (rad)."""
+    return float(np.max(so3.geodesic_angle(r_a, r_b)))
 
 
 def _sum_and_squares(x: np.ndarray) -> tuple[float, float]:
@@ -361,6 +371,8 @@ class SlidingWindowBackend:
         self.events_settled = 0
         self.events_optimized = 0  # event-window pairs that went through BA
         self._last_correction: float | None = None  # |x| of the last window's BA solution
+        # the accepted corrections of the last windows (rad), the source's typical error (policy.departure_bound)
+        self._corrections: deque[float] = deque(maxlen=policy.RECENT_WINDOWS)
         self._inv_hessian = None  # BFGS: (first free control pose, inverse Hessian) of the last window
         self.fitted_from: int | None = None  # the first control pose a fit changed since the last update (updates)
         self._fitted_after: tuple | None = None  # the anchor the last _initialize_until continued from
@@ -661,7 +673,9 @@ class SlidingWindowBackend:
     def _refine(self, ev_t, ev_b, t0, report: WindowReport, moving_from: float | None = None,
                 budget: WindowBudget = FULL_BUDGET) -> None:
         """Maximise Var(B(I_L) + alpha B(I_G)) (Eq. 18) over the control poses from the first free one, on left
-        increments, and apply the optimum unless it is a false maximum (policy.false_maximum)."""
+        increments, and apply the optimum unless it is a false maximum: a correction beyond backend_max_correction
+        (policy.false_maximum), or one beyond the check's bound (policy.departs) unless a local refit confirms it or
+        replaces it (``_recheck``)."""
         cfg, spline = self.cfg, self.spline
         ev_t, ev_b = policy.even_sample(ev_t, ev_b, cfg.backend_max_window_events if budget.ba_cap is None
                                         else budget.ba_cap)
@@ -686,25 +700,68 @@ class SlidingWindowBackend:
         # the correction: how far the optimum moves the trajectory where the window's events are (not how far it
         # moves control poses, which the events may barely reach)
         s_c, u_c = policy.correction_samples(s, u)
+
+        def trajectory_at(res) -> np.ndarray:  # the trajectory at the samples with the optimum res applied
+            spline.control_R[first_free:] = so3.exp(step(res.x)) @ base[first_free:]
+            return spline.evaluate_at(s_c, u_c)
+
+        def refit(step_bound: float):  # a local refit from the initialisation (its optimum)
+            return self._maximise(problem, perturbed, base, first_free, n_free, budget, step_bound=step_bound)[0]
+
         before = spline.evaluate_at(s_c, u_c)
-        spline.control_R[first_free:] = so3.exp(step(result.x)) @ base[first_free:]
-        report.max_correction = float(np.max(so3.geodesic_angle(before, spline.evaluate_at(s_c, u_c))))
-        if policy.false_maximum(report.max_correction, cfg):
+        after = trajectory_at(result)
+        report.max_correction = _largest_angle(before, after)
+        report.false_maximum = policy.false_maximum(report.max_correction, cfg)
+        evaluations = result.evaluations
+        if report.false_maximum is None:
+            result, evaluations = self._recheck(result, before, after, trajectory_at, refit, report)
+        report.evaluations = evaluations
+        if report.false_maximum is not None and not report.refitted:
             spline.control_R[:] = base  # the window keeps its initialization
             report.rejected = True
             self._inv_hessian = None  # the curvature of a false maximum
             return
         self._last_correction = float(np.linalg.norm(result.x))
+        self._corrections.append(report.max_correction)
         report.variance_before, report.variance_after = var0, result.fun / scale
-        report.optimized, report.iterations, report.evaluations = True, result.iterations, result.evaluations
+        report.optimized, report.iterations = True, result.iterations
         report.cut_short = result.message == "time budget reached"
         self.events_optimized += len(ev_t)
         self._anchor_at(self._anchor[0])
 
-    def _maximise(self, problem, perturbed, base, first_free: int, n_free: int, budget: WindowBudget):
+    def _recheck(self, result, before, after, trajectory_at, refit, report: WindowReport):
+        """The check of an optimum (``after``: the trajectory at the window's samples with it; ``before``: at the
+        initialisation; ``trajectory_at(optimum)`` applies one and samples it there): when its correction exceeds the
+        check's bound (policy.departs; the bound follows the recent windows' corrections), a local refit from the
+        initialisation (``refit(step)``: no carried inverse Hessian, steps of at most the reach of a vote) decides
+        (policy.refit_outcome): the first optimum confirmed, replaced by the refit's, or neither (report.false_maximum
+        set and report.refitted False: the caller keeps the initialisation). Leaves the spline at the kept optimum;
+        returns (it, the evaluations of both)."""
+        bound = policy.departure_bound(self.width, self.cfg.backend_blur_sigma, self._corrections)
+        suspect = policy.departs(report.max_correction, bound)
+        if suspect is None:
+            return result, result.evaluations
+        carried = self._inv_hessian
+        local = refit(policy.departure_bound(self.width, self.cfg.backend_blur_sigma))  # steps within a vote's reach
+        refitted = trajectory_at(local)
+        outcome = policy.refit_outcome(_largest_angle(before, refitted), _largest_angle(after, refitted), bound)
+        evaluations = result.evaluations + local.evaluations
+        if outcome == policy.CONFIRMED:
+            report.confirmed, self._inv_hessian = True, carried
+            trajectory_at(result)
+            return result, evaluations
+        report.false_maximum, report.refitted = suspect, outcome == policy.REFITTED
+        if report.refitted:
+            report.max_correction = _largest_angle(before, refitted)
+        return local, evaluations
+
+    def _maximise(self, problem, perturbed, base, first_free: int, n_free: int, budget: WindowBudget,
+                  step_bound: float | None = None):
         """Run the configured optimiser (BFGS warm-started from the last window's inverse Hessian, or Fletcher-Reeves
-        CG) on the relative variance: the cost divided by var0, its value at the initialization (which the first
-        evaluation, x = 0, gives), so the tolerances are scale-free. Returns (result, var0, 1 / var0)."""
+        CG) on the relative variance: the cost divided by var0, its value at the initialization (the first
+        evaluation, x = 0), so the tolerances are scale-free. ``step_bound`` (a refit): start afresh, without the
+        carried inverse Hessian, with steps of at most this length (rad; CG: its first step), so that the optimiser
+        climbs to the maximum nearest to the initialisation. Returns (result, var0, 1 / var0)."""
         cfg = self.cfg
         var0 = scale = None
 
@@ -717,18 +774,21 @@ class SlidingWindowBackend:
             return var * scale, g * scale
 
         deadline = None if budget.ba_budget is None else time.monotonic() + budget.ba_budget
+        init_step, max_step = self._init_step(), cfg.backend_bfgs_max_step
+        if step_bound is not None:
+            init_step, max_step = step_bound, min(step_bound, max_step)
         if cfg.backend_optimizer == "bfgs":
-            warm = self._carried_inv_hessian(first_free, n_free)
+            warm = self._carried_inv_hessian(first_free, n_free) if step_bound is None else None
             result, h = bfgs(
                 objective, np.zeros(3 * n_free), maximize=True, inv_hessian=warm,
-                init_step=self._init_step(), max_iter=cfg.backend_cg_max_iters, grad_tol=cfg.backend_cg_grad_tol,
-                rel_cost_tol=cfg.backend_cg_rel_cost_tol, max_step=cfg.backend_bfgs_max_step,
+                init_step=init_step, max_iter=cfg.backend_cg_max_iters, grad_tol=cfg.backend_cg_grad_tol,
+                rel_cost_tol=cfg.backend_cg_rel_cost_tol, max_step=max_step,
                 max_line_evals=cfg.backend_cg_max_line_evals, deadline=deadline,
                 last_step_unevaluated=cfg.backend_bfgs_last_step_unevaluated)
             self._inv_hessian = None if h is None else (first_free, h)
         else:
             result = fletcher_reeves(
-                objective, np.zeros(3 * n_free), maximize=True, init_step=self._init_step(),
+                objective, np.zeros(3 * n_free), maximize=True, init_step=init_step,
                 line_search_tol=cfg.backend_cg_line_search_tol, max_iter=cfg.backend_cg_max_iters,
                 grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
                 max_line_evals=cfg.backend_cg_max_line_evals, step_guess=cfg.backend_cg_step_guess,

@@ -1,5 +1,6 @@
 """The rules around the back-end's window step (pipelines/backend.py): which windows get a BA, which control poses
-it may move, how the first window fixes the world frame, and what a window at the end of the stream covers.
+it may move, how the first window fixes the world frame, what a window at the end of the stream covers, and when a
+BA's optimum is a false maximum.
 
 Each rule is a small function of plain values, so the window step itself reads as the paper's three steps.
 """
@@ -16,6 +17,15 @@ EMPTY_WINDOWS_PER_FIT = 10  # windows without events fitted at once (fit_due)
 FEW_EVENTS = "too few events"
 STILL = "no motion measured over the window"  # every packet over it was still: the window is still
 SKIPPED = "skipped by the real-time budget"
+# what became of a window whose BA optimum departed beyond the check's bound (refit_outcome)
+CONFIRMED = "confirmed"  # a local refit found the same maximum: the optimum is kept
+REFITTED = "refitted"  # the local refit found a maximum within the bound: its optimum replaces the first one
+KEPT_INITIALISATION = "initialisation kept"  # the refit departed beyond the bound too, elsewhere: no optimum is trusted
+# departure_bound: the accepted corrections of this many preceding windows give a source's typical one, and a
+# correction up to TYPICAL_FACTOR times their median is within its spread (for Gaussian errors the largest magnitude
+# in a thousand windows is 2.6 (three axes) to 4.9 (one axis) times their median)
+RECENT_WINDOWS = 20
+TYPICAL_FACTOR = 5.0
 
 
 @dataclass(frozen=True)
@@ -136,11 +146,56 @@ def even_sample(ev_t: np.ndarray, ev_b: np.ndarray, cap: int):
     return ev_t[idx], np.take(ev_b, idx, axis=0)  # take: several times faster than ev_b[idx] on (n, 3) rows
 
 
-def false_maximum(max_correction: float, cfg) -> bool:
+def false_maximum(max_correction: float, cfg) -> str | None:
     """Rejected windows: a BA that moves the trajectory at the window's events by more than backend_max_correction
     found a false maximum (e.g. a map too coarse for the sensor); the window keeps its initialisation and is
-    refitted as a window without a BA."""
-    return max_correction > cfg.backend_max_correction
+    refitted as a window without a BA. Returns the reason, None when the correction is within the bound."""
+    if max_correction > cfg.backend_max_correction:
+        return (f"correction {np.degrees(max_correction):.2f} deg beyond backend_max_correction "
+                f"({np.degrees(cfg.backend_max_correction):.2f} deg)")
+    return None
+
+
+def departure_bound(width: int, blur_sigma: float, recent=()) -> float:
+    """The false-maximum check's bound (rad): the reach of one event's vote in the blurred map, 3 sigma of the blur
+    plus the bilinear vote's pixel, as an angle on a map ``width`` pixels around: (3 sigma + 1) 2 pi / width.
+    An optimum that moves the trajectory by more than this from the initialisation has carried the window's events
+    beyond where their votes at the initialisation reached: onto other structure, a different alignment rather than a
+    refinement of the initialisation, which a local optimiser's long step (a carried inverse Hessian, a step cap of
+    several pixels) can reach past the maximum nearest to it. The front-end's motion over a window is off by far
+    less on the data it measures well: its packets are sharp to a fraction of a sensor pixel, and the reach is 4 map
+    pixels with the default blur, 2.7 sensor pixels at the default map scale. A poorer initialising trajectory (a
+    refined baseline, IMU dead reckoning with a large bias) is off by more in every window; ``recent``, the accepted
+    corrections of the last windows (rad), raises the bound to TYPICAL_FACTOR times their median, so that only a
+    correction far out of the source's own spread is checked."""
+    reach = (3.0 * float(blur_sigma) + 1.0) * 2.0 * np.pi / float(width)
+    return max(reach, TYPICAL_FACTOR * float(np.median(recent))) if len(recent) else reach
+
+
+def departs(correction: float, bound: float) -> str | None:
+    """The check of a window's BA optimum against what the window was initialised from: the previous windows'
+    optimum (the control poses before the window stay fixed, so the initialisation continues it) followed by the
+    front-end's integrated angular velocity. An optimum that moves the trajectory at the window's events by more than
+    ``bound`` (departure_bound) from it bends away from both: suspect of a false maximum. Returns the reason, None
+    when it passes."""
+    if correction > bound:
+        return (f"correction {np.degrees(correction):.2f} deg beyond the check's bound "
+                f"({np.degrees(bound):.2f} deg)")
+    return None
+
+
+def refit_outcome(refit_correction: float, between: float, bound: float) -> str:
+    """What a suspect window keeps after its local refit (started afresh from the initialisation with steps within
+    the reach of a vote, so that it climbs to the maximum nearest to it); the figures are the largest changes of the
+    trajectory at the window's events (rad). The first optimum when the refit lands within ``bound`` of it
+    (``between``: the same maximum, the initialisation was that far off; CONFIRMED); the refit's optimum when its
+    correction is within ``bound`` (REFITTED); else the initialisation: the events offer maxima far from it in more
+    than one place, and none of them is trusted over it (KEPT_INITIALISATION, as a rejected window)."""
+    if between <= bound:
+        return CONFIRMED
+    if refit_correction <= bound:
+        return REFITTED
+    return KEPT_INITIALISATION
 
 
 def correction_samples(s: np.ndarray, u: np.ndarray, most: int = 256):

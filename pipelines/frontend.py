@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Iterable, Iterator
 
 import numpy as np
@@ -49,6 +49,7 @@ from ti_cmax.trajectory import Trajectory
 
 from . import frontend_policies as policies
 from .frontend_policies import Lookback, LookbackTest
+from .hot_pixels import HotPixelFilter
 from .motion import Motion
 from .optim import CGResult, bfgs, fletcher_reeves
 from .sensor_defaults import iwe_size, resolve_frontend
@@ -112,6 +113,7 @@ class FrontendResult:
     lookback: np.ndarray  # (M,) span (s) of the lookback that measured a motion around the packet (0: none)
     timing: dict = field(default_factory=dict)  # compile_seconds, wall_seconds, us_per_event, ...
     config: FrontendConfig = field(default_factory=FrontendConfig)
+    hot_pixels: dict = field(default_factory=dict)  # the ingest's hot-pixel filter (pipelines/hot_pixels.py)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -810,14 +812,16 @@ def estimate_angular_velocity(events_or_chunks, camera: Camera, config: Frontend
     with stage("start-up and compile"):
         runner = FrontendRunner(camera, config, dtype)
         runner.compile()
-    chunks = downsampled(runner.counted(as_chunks(events_or_chunks)), int(config.frontend_event_sample_rate))
+    hot_pixels = HotPixelFilter(camera.width, camera.height, config)
+    chunks = downsampled(hot_pixels.filter(runner.counted(as_chunks(events_or_chunks))),
+                         int(config.frontend_event_sample_rate))
     with StageBars(progress_total, ("front-end",)) as bars:
         for packet in runner.slicer(chunks):
             bars.start(packet.events.t[0] if len(packet.events) else packet.t_ref)
             runner.process(packet)
             bars.at("front-end", packet.t_ref)
         bars.done()
-    return runner.result()
+    return replace(runner.result(), hot_pixels=hot_pixels.summary())
 
 
 def report_parameters(config: FrontendConfig) -> dict:

@@ -39,9 +39,12 @@ through ``correct_poses`` and ``drop_map``:
    while the BA is skipped (real-time level 4) several loops cost one rebuild and the strides settled meanwhile are
    not voted into a map about to be replaced. The old map and the age map restart from the checkpoint the last
    rebuild left when the correction left its strides' poses unchanged, so a rebuild votes the strides aged since,
-   not every stride since the start (bitwise the same maps);
+   not every stride since the start (bitwise the same maps). At most once per full turn of rotation travelled an
+   accepted revisit is applied whatever its size, with a joint refinement of the poses since the old visit
+   (``_joint_refine``, ``joint_refinement.refine_jointly``: a BA of all stored events) before the rebuild: the
+   window BA's pull to the map makes later visits copy the first one's errors, the joint BA averages the visits;
 5. real time (``slice_seconds``, set by ``ti-cmax slam --realtime``): the verification and the rebuild after it run
-   in slices (a helper thread run as a coroutine, strictly alternating with the back-end: one cost evaluation, map
+   (with the joint refinement) in slices (a helper thread run as a coroutine, strictly alternating with the back-end: one cost evaluation, map
    step or stored stride per slice) for at most ``slice_seconds`` before each window and in the back-end worker's
    idle time; the result is applied before the window after the verification ends (to the poses then), with the age
    map as detected; the old maps serve meanwhile. No new check while one is in flight. Offline (None) all runs at
@@ -65,6 +68,7 @@ from ti_cmax.kernels.pano import (
 )
 
 from .backend import GlobalMap, WindowObserver
+from .joint_refinement import refine_jointly
 from .optim import bfgs
 
 _CELL = 4  # map pixels per side of an age cell
@@ -215,6 +219,8 @@ class LoopCloser(WindowObserver):
         self._closed_until = -np.inf  # recent block end of the last applied loop: poses before it are closed
         self._ref = -np.inf  # reference time of the last applied loop (its poses got the whole correction)
         self._drift_rate = 0.0  # rad/s: the drift the last applied loop closed, over the time it built up in
+        self._joint_travel = 0.0  # rotation travelled (rad, cumulative) at the last joint refinement
+        self.joint_refinements = 0
         self.loops: list[dict] = []
         self._inv_hessian: dict[int, np.ndarray] = {}  # per pyramid level: the last registration's (verify)
         # sliced verification (the real-time replay, pipelines/realtime.py): None verifies at once (offline);
@@ -233,7 +239,7 @@ class LoopCloser(WindowObserver):
         self.seconds = self.cpu_seconds = 0.0
         self.longest_call = (0.0, 0.0)  # (wall, CPU) seconds of the longest hook call (_spent)
         self._drained = False  # a sliced run's stream has ended (drain)
-        self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "rebuild": 0.0}  # parts of seconds
+        self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "joint": 0.0, "rebuild": 0.0}  # parts of seconds
 
     # ---- notifications (from the back-end) ------------------------------------------------------------------------
     def settled(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
@@ -511,12 +517,15 @@ class LoopCloser(WindowObserver):
         cfg = self.cfg
         tic = time.perf_counter()
         px = 2 * np.pi / self.backend.width
-        if entry["accepted"] and entry["correction_deg"] < np.degrees(cfg.loop_min_correction_px * px):
+        # a joint refinement (at most once per turn of rotation travelled) is worth a rebuild however small the
+        # single rotation: it corrects the trajectory between the visits, not one offset
+        joint = entry["accepted"] and self._joint_due()
+        if entry["accepted"] and not joint and entry["correction_deg"] < np.degrees(cfg.loop_min_correction_px * px):
             entry["applied"], entry["reason"] = False, "correction below loop_min_correction_px"
-        elif entry["accepted"] and entry["confidence"] - entry["confidence_before"] < cfg.loop_min_gain:
+        elif entry["accepted"] and not joint and entry["confidence"] - entry["confidence_before"] < cfg.loop_min_gain:
             entry["applied"], entry["reason"] = False, "correlation gain below loop_min_gain"
         elif entry["accepted"]:
-            entry.update(self._apply(t, b, old_cells, np.asarray(entry.pop("_phi")), t_now, ages))
+            entry.update(self._apply(t, b, old_cells, np.asarray(entry.pop("_phi")), t_now, ages, joint))
         entry.pop("_phi", None)
         # while the revisit goes on and the map stays consistent, verify less and less often (up to once per
         # loop_min_age): the cost of a long revisit stays bounded; an applied loop starts again at loop_recent_time
@@ -704,9 +713,10 @@ class LoopCloser(WindowObserver):
         return conf, peak, ncc(*maps_at(problem.local_box(base)))
 
     # ---- correction ----------------------------------------------------------------------------------------------
-    def _apply(self, t, b, old_cells, phi, t_now, ages=None) -> dict:
-        """Spread the correction over the control poses since the old visit; rebuild the maps. ``ages``: the
-        (age, visit) maps at detection (None: the current ones)."""
+    def _apply(self, t, b, old_cells, phi, t_now, ages=None, joint: bool = False) -> dict:
+        """Spread the correction over the control poses since the old visit (``joint``: then refine them jointly
+        with the stored events, ``_joint_refine``); rebuild the maps. ``ages``: the (age, visit) maps at detection
+        (None: the current ones)."""
         age, visit = ages if ages is not None else (self.age, self.visit)
         backend = self.backend
         spline = backend.spline
@@ -731,25 +741,76 @@ class LoopCloser(WindowObserver):
         # edge weights of the chain pose graph: rotation travelled, plus a little time (drift while nearly still)
         steps = so3.geodesic_angle(ctrl[i0:i1], ctrl[i0 + 1:i1 + 1]) + 0.01 * spline.dt
         correction = (i0, i1, so3.spread_correction(steps, phi), corr)
+        joint_info = None
+        if joint:
+            joint_info = {}
+            self._joint_travel = float(self._travel_rec[1, self._n_travel - 1])
+            self.joint_refinements += 1
         if self.slice_seconds is None:
+            if joint:
+                correction = self._joint_refine(correction, joint_info)
             self._correct(spline, correction)
             self._rebuild()
         else:  # in slices too, along a corrected copy; the back-end keeps its poses and maps (consistent with
             # each other, for the BA of the windows meanwhile) until the rebuilt maps replace them with the correction
             n_old, thinned = self._n_old, self._thinned
-            self._task_spline = self._correct(spline.copy(), correction)
             n_chunks = len(self.chunks)  # the strides the copy holds poses for
-            self._task = _Slices(lambda: self._rebuild_in_slices(n_old, n_chunks))
-            self._pending = {"kind": "rebuild", "n_old": n_old, "thinned": thinned, "seconds": 0.0,
-                             "correction": correction}
+            pending = {"kind": "rebuild", "n_old": n_old, "thinned": thinned, "seconds": 0.0, "correction": correction}
+
+            def refine_and_rebuild():
+                if joint:
+                    pending["correction"] = self._joint_refine(pending["correction"], joint_info)
+                self._task_spline = self._correct(self.backend.spline.copy(), pending["correction"])
+                return self._rebuild_in_slices(n_old, n_chunks)
+
+            self._task, self._pending = _Slices(refine_and_rebuild), pending
             self._advance(self.slice_seconds)
         self._closed_until = float(t[-1])
         # the drift since the old visit or the last loop's reference time (from which the poses carried its whole
         # correction): its rate schedules the next check (_conclude)
         self._drift_rate = float(np.linalg.norm(phi)) / max(t_ref - max(t_old, self._ref), 1e-3)
         self._ref = t_ref
-        return {"applied": True, "reason": "accepted", "t_old": t_old, "t_ref": t_ref,
-                "t_spread_from": float(knots[i0])}
+        out = {"applied": True, "reason": "accepted", "t_old": t_old, "t_ref": t_ref, "t_spread_from": float(knots[i0])}
+        if joint_info is not None:
+            out["joint"] = joint_info  # (filled in when a sliced refinement ends)
+        return out
+
+    def _joint_due(self) -> bool:
+        """A joint refinement at most once per full turn of rotation travelled: a revisit after it sees regions the
+        last refinement did not hold, while a pan's wobble (rotation travelled, not turns) or a slow revisit that goes
+        on for seconds does not repeat the refinement (each costs some 50 evaluations of every stored event)."""
+        if not self.cfg.loop_joint_refinement:
+            return False
+        return float(self._travel_rec[1, self._n_travel - 1]) - self._joint_travel >= 2 * math.pi
+
+    def _joint_refine(self, correction, info: dict):
+        """The loop's correction refined jointly (``joint_refinement.refine_jointly``): from the chain spread, the
+        control poses from the first stored stride on (every visit the store holds; the first pose anchors the
+        world frame) with the stored strides, coarse: increments interpolated between nodes every 5 window lengths
+        (the window BA fixes the motion within a window, the errors it leaves vary over many; every pose free
+        would also fit the noise of the sampled events between the nodes); returns the
+        correction in the same form (poses first..last get theirs, later ones the last one's) and fills ``info``."""
+        tic, paused0 = time.perf_counter(), self._paused()
+        i0, i1, spread, corr = correction
+        spline = self._correct(self.backend.spline.copy(), correction)
+        knots = spline.knot_times()
+        first = min(int(np.searchsorted(knots, float(self.chunks[0][0][0]) if self.chunks else knots[0])), i0)
+        last = spline.num_control - 1
+        if self.chunks:  # the last pose the stored strides reach; later poses follow it rigidly
+            s_end, _ = spline.support(min(float(self.chunks[-1][0][-1]), spline.valid_time_range()[1]))
+            last = min(max(int(np.max(s_end)) + spline.degree, i1), last)
+        bcfg, cfg = self.backend.cfg, self.cfg
+        x, summary = refine_jointly(spline, list(self.chunks), first, last, bcfg, self.backend.width,
+                                    self.backend.height, max_events=cfg.loop_joint_events,
+                                    iterations=cfg.loop_joint_iterations,
+                                    coarse_spacing=5 * bcfg.backend_time_window_size,
+                                    max_step=cfg.loop_max_correction, slice_point=self._slice_point)
+        eye = np.broadcast_to(np.eye(3), (i0 - first, 3, 3))
+        chain = np.concatenate([eye, spread, np.broadcast_to(corr, (max(last - i1, 0), 3, 3))])[:last - first + 1]
+        info.update(summary, seconds=time.perf_counter() - tic - (self._paused() - paused0))
+        if self.slice_seconds is None:  # (sliced: counted with the rebuild task it runs in)
+            self.profile["joint"] += info["seconds"]
+        return first, last, so3.exp(x) @ chain, so3.exp(x[-1]) @ corr
 
     def _correct(self, spline, correction):
         """Apply a loop's correction (i0, i1, spread rotations of poses i0..i1, rotation of the later poses) to a
@@ -903,4 +964,5 @@ class LoopCloser(WindowObserver):
                 "cpu_seconds": self.cpu_seconds, "unfinished": int(self._task is not None),
                 "longest_call_seconds": self.longest_call[0], "longest_call_cpu_seconds": self.longest_call[1],
                 "stored_events": int(self._stored), "map_rebuilds": self.map_rebuilds,
+                "joint_refinements": self.joint_refinements,
                 "seconds_by_part": dict(self.profile)}

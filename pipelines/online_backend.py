@@ -20,7 +20,7 @@ from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
 from .backend import SlidingWindowBackend, WindowReport
-from .backend_policies import WindowBudget
+from .backend_policies import KEPT_INITIALISATION, REFITTED, WindowBudget
 from .frontend import every_qth
 from .loop_closure import LoopCloser
 
@@ -79,7 +79,15 @@ def backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
         "windows_optimized": len(optimized),
         # windows over which the front-end measured no motion (backend_skip_still_windows): no BA
         "windows_still": sum(1 for w in backend.windows if w.still),
-        "windows_rejected": sum(1 for w in backend.windows if w.rejected),  # correction > backend_max_correction
+        # false maxima: the window kept its initialisation (a correction beyond backend_max_correction, or an
+        # optimum that failed the check and whose refit did too), or its refit's optimum replaced the first one
+        "windows_rejected": sum(1 for w in backend.windows if w.rejected),
+        "windows_refitted": sum(1 for w in backend.windows if w.refitted),
+        # the optimum departed beyond the check's bound and a local refit found the same maximum (kept)
+        "windows_confirmed_by_refit": sum(1 for w in backend.windows if w.confirmed),
+        "false_maxima": [{"t_start": w.t_start, "t_end": w.t_end, "reason": w.false_maximum,
+                          "outcome": REFITTED if w.refitted else KEPT_INITIALISATION}
+                         for w in backend.windows if w.false_maximum is not None],
         "mean_iterations": float(np.mean([w.iterations for w in optimized])) if optimized else 0.0,
         "mean_evaluations": float(np.mean([w.evaluations for w in optimized])) if optimized else 0.0,
         "events_settled": int(backend.events_settled),

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ti_cmax import so3
+from ti_cmax import so3, timeline
 from ti_cmax.camera import Camera
 from ti_cmax.config import SlamConfig, config_to_dict
 from ti_cmax.errors import InputError
@@ -28,6 +28,7 @@ from ti_cmax.trajectory import Trajectory
 
 from .backend_policies import FULL_BUDGET, WindowBudget
 from .frontend import NO_MOTION_MEASURABLE, FrontendResult, FrontendRunner, Packet, as_chunks, every_qth
+from .hot_pixels import HotPixelFilter
 from .online_backend import BackendOutcome, BackendRunner, OnlineBackend
 from .sensor_defaults import derived_summary, resolve_config
 from .worker import WORKER_MAX_SENSOR_PIXELS, WorkerBackend, default_backend_process  # noqa: F401 - re-exported
@@ -63,7 +64,9 @@ class OnlineSlam:
     packets, a ROS message); the results do not depend on it. ``on_window(report)`` is called after every window
     the back-end completes (a :class:`~ti_cmax.pipelines.backend.WindowReport`); ``close()`` ends the stream and
     returns the :class:`SlamResult` that ``run_slam`` returns. The trajectory starts at the identity at the first
-    event (the world frame is the first camera frame).
+    event (the world frame is the first camera frame). Events pass the hot-pixel filter first
+    (pipelines/hot_pixels.py), which holds the start of the stream back until its first test (at most
+    ``hot_pixel_hold_time`` of sensor time; 0.05-0.2 s on a DAVIS240C): until then ``pose`` is the world frame.
 
     The back-end is an ``online_backend.OnlineBackend``: in this process, or with ``backend_process=True`` in a
     worker process at the same time as the front-end (paper Fig. 3; pipelines/worker.py), with the same results.
@@ -88,6 +91,9 @@ class OnlineSlam:
             WorkerBackend(camera, config, queue_size, max_backlog, loop_slice_seconds, worker_threads) \
             if backend_process else BackendRunner(camera, config, loop_slice_seconds=loop_slice_seconds)
         self.runner = FrontendRunner(camera, config.frontend)
+        # hot pixels' events are dropped before anything else sees them (pipelines/hot_pixels.py); the start of the
+        # stream is held back until the first block of events is tested
+        self.hot_pixels = HotPixelFilter(camera.width, camera.height, config.frontend)
         self._packet_events = self.runner.slicer.n  # N of the resolved config (degrade's input thinning divides it)
         cpu0 = time.process_time()
         self.compile_seconds = self.runner.compile() + self.backend.compile()
@@ -96,13 +102,16 @@ class OnlineSlam:
         self.startup = {"compile_seconds": self.compile_seconds,
                         "compile_cpu_seconds": time.process_time() - cpu0,
                         "process_cpu_seconds": time.process_time()}
+        timeline.mark("ready")
         self._q_front = int(config.frontend.frontend_event_sample_rate)
         self._r_src = np.eye(3)
         self._t_prev: float | None = None
         self._first: list | None = None  # the first packet's source samples while it is the only one (_packet)
         self._w_prev: np.ndarray | None = None
         self.t_last: float | None = None  # time of the last event pushed
-        self.events_read = 0
+        self._t_used: float | None = None  # time of the last event passed on to the front-end and the back-end
+        self.events_read = 0  # events pushed
+        self._events_used = 0  # of them, passed on (the hot pixels' dropped, a held-back start not yet)
         # real-time degradation (``degrade``): the front-end processes 1 of frontend_keep packets (the others are
         # skipped: integration goes on from the last processed one); the back-end's windows get ``budget``
         self.frontend_keep = 1
@@ -130,18 +139,27 @@ class OnlineSlam:
         if len(events) == 0:
             return
         self.runner.check(events)  # times, pixels and pauses (one clear InputError)
-        offset = self.events_read
-        self.backend.push_events(events)
         self.events_read += len(events)
         self.t_last = float(events.t[-1])
+        for kept in self.hot_pixels.push(events):
+            self._use(kept)
+        self._notify(self.backend.poll(self._t_used))
+
+    def _use(self, events: Events) -> None:
+        """Events that passed the hot-pixel filter: to the back-end's window buffer and the front-end's slicer."""
+        offset = self._events_used
+        self.backend.push_events(events)
+        self._events_used += len(events)
+        self._t_used = float(events.t[-1])
         for packet in self.runner.slicer.push(every_qth(events, self._q_front, offset)):
             self._packet(packet)
-        self._notify(self.backend.poll(self.t_last))
 
     def close(self) -> SlamResult:
         """End of the stream: process the last packets and windows; the same result as ``run_slam``."""
         if self._result is not None:
             return self._result
+        for kept in self.hot_pixels.flush():
+            self._use(kept)
         for packet in self.runner.slicer.flush():
             self._packet(packet)
         if self._first is not None and len(self._first) == 2:
@@ -151,8 +169,12 @@ class OnlineSlam:
             self._first[1:] = []
         if not self.backend.started or self._t_prev is None:  # no events, or no packet: nothing to refine
             self.backend.abort()
-            raise InputError("no events to process" if not self.backend.started else NO_MOTION_MEASURABLE)
+            if not self.backend.started:
+                raise InputError(self.hot_pixels.all_dropped() or "no events to process")
+            raise InputError(NO_MOTION_MEASURABLE)
+        timeline.mark("frontend_done")
         reports, outcome = self.backend.finish(self.budget)
+        timeline.mark("closed")
         self._notify(reports)
         self._result = self._assemble(outcome)
         return self._result
@@ -266,6 +288,7 @@ class OnlineSlam:
             "us_per_event": {"frontend": runner.seconds * 1e6 / n, "backend": self.backend_seconds * 1e6 / n},
             "parameters": config_to_dict(config),
             "derived_parameters": self.derived,
+            "hot_pixels": self.hot_pixels.summary(),
         }
         if outcome.loops is not None:
             report["loops"] = outcome.loops
@@ -275,12 +298,15 @@ class OnlineSlam:
 
 
 def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig(), *,
-             progress_total: float | None = None, backend_process: bool = False, observer=None) -> SlamResult:
+             progress_total: float | None = None, backend_process: bool = False, observer=None,
+             on_start=None) -> SlamResult:
     """CMax-SLAM on an ``Events`` object, an iterable of time-ordered chunks, or a dataset (``iter_events``).
 
     The trajectory starts at the identity at the first event (the world frame is the first camera frame).
     ``backend_process``: run the back-end in a worker process at the same time as the front-end (OnlineSlam).
     ``observer``: OnlineSlam's ``on_packet`` and ``on_window``, and ``attach(online)`` (ti_cmax.viewer.RerunViewer).
+    ``on_start()``: called once the kernels are prepared and the worker started, before the first event (the command
+    line starts preparing its outputs there).
     """
     with stage("start-up and compile"):
         online = OnlineSlam(camera, config, backend_process=backend_process,
@@ -288,6 +314,8 @@ def run_slam(events_or_chunks, camera: Camera, config: SlamConfig = SlamConfig()
                             on_window=getattr(observer, "on_window", None))
         if observer is not None:
             observer.attach(online)
+    if on_start is not None:
+        on_start()
     with StageBars(progress_total, ("reading", "front-end", "back-end")) as bars:
         for chunk in as_chunks(events_or_chunks):
             if len(chunk):
@@ -328,9 +356,10 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
         compile_s = feed.compile()
     inside = (ev.slice_time(trajectory.t_start, np.nextafter(trajectory.t_end, np.inf))
               for ev in as_chunks(events_or_chunks))
+    hot_pixels = HotPixelFilter(camera.width, camera.height, config.frontend)
     tic = time.perf_counter()
     with StageBars(progress_total, ("reading", "back-end")) as bars:
-        for chunk in feed.feed(inside):
+        for chunk in feed.feed(hot_pixels.filter(inside)):
             if bars.t0 is None:  # the first chunk: the back-end exists from here
                 feed.backend.push_source_poses(trajectory.t, trajectory.R)
                 bars.start(chunk.t[0])
@@ -339,12 +368,12 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
                 feed.backend.step()
             bars.at("back-end", feed.backend.window_start)
         if feed.backend is None:
-            raise InputError("no events within the trajectory's time range "
+            raise InputError(hot_pixels.all_dropped() or "no events within the trajectory's time range "
                              f"[{trajectory.t_start:.6f}, {trajectory.t_end:.6f}] s")
         feed.backend.finish()
         bars.done()
     backend_seconds = time.perf_counter() - tic
-    events_read = feed.events_read
+    events_read = hot_pixels.events_seen
     feed.seconds = backend_seconds
     outcome = feed.outcome()
     report = {
@@ -357,6 +386,7 @@ def refine(events_or_chunks, camera: Camera, trajectory: Trajectory, config: Sla
         "us_per_event": {"backend": backend_seconds * 1e6 / max(events_read, 1)},
         "parameters": config_to_dict(config),
         "derived_parameters": derived,
+        "hot_pixels": hot_pixels.summary(),
         **({"loops": outcome.loops} if outcome.loops is not None else {}),
     }
     return SlamResult(outcome.spline, outcome.trajectory, outcome.map, report, None, outcome.windows)

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import os
 import queue
+import sys
 import time
 from typing import Callable, Iterator
 
 import numpy as np
 
+from ti_cmax import timeline
 from ti_cmax.camera import Camera
 from ti_cmax.config import SlamConfig
 from ti_cmax.errors import UNGUARDED_MAIN, UNGUARDED_MAIN_EXIT, WorkerLost, exit_if_spawn_bootstrapping
@@ -134,7 +136,10 @@ class WorkerBackend:
         self.seconds, self.cpu_seconds = done["seconds"], done["step_cpu_seconds"]
         outcome = done["outcome"]
         outcome.process = {"compile_seconds": done["compile_seconds"], "cpu_seconds": done["cpu_seconds"],
-                           "push_blocked_seconds": self._process.blocked_seconds, "peak_rss_mb": done["peak_rss_mb"]}
+                           "push_blocked_seconds": self._process.blocked_seconds, "peak_rss_mb": done["peak_rss_mb"],
+                           "process_cpu_seconds": done["process_cpu_seconds"],
+                           "start_method": self._process.start_method,
+                           "timeline_seconds": done["timeline_seconds"]}
         return reports, outcome
 
     def wait_ready(self) -> None:
@@ -165,8 +170,27 @@ class WorkerBackend:
         return None
 
 
+def worker_start_method() -> str:
+    """How the worker process starts: ``fork`` on Linux while this process has one thread and has not initialized
+    the kernel engine, else ``spawn``. A forked worker inherits the modules this process imported (a spawned one
+    imports them again: ~0.4 CPU s before its kernel preparation, on the critical path of a run) and needs no
+    importable main module; after ``ti.init`` a forked worker would hang, and forking a process with other threads
+    can copy a lock another thread holds."""
+    import multiprocessing as mp
+
+    from ti_cmax.kernels import runtime
+
+    if not sys.platform.startswith("linux") or "fork" not in mp.get_all_start_methods() or runtime.initialized():
+        return "spawn"
+    try:
+        threads = len(os.listdir("/proc/self/task"))  # also the threads of native libraries
+    except OSError:
+        return "spawn"
+    return "fork" if threads == 1 else "spawn"
+
+
 class _BackendProcess:
-    """The worker process, spawned (a forked one would hang after ti.init), connected by a bounded queue of inputs
+    """The worker process (``worker_start_method``: forked or spawned), connected by a bounded queue of inputs
     (``send`` blocks while it is full: back-pressure, nothing dropped) and a queue of results."""
 
     def __init__(self, camera: Camera, config: SlamConfig, queue_size: int, loop_slice_seconds: float | None = None,
@@ -177,7 +201,8 @@ class _BackendProcess:
         from ti_cmax.kernels import runtime
 
         exit_if_spawn_bootstrapping()  # in a worker re-running an unguarded script: one line, a known exit
-        ctx = mp.get_context("spawn")
+        self.start_method = worker_start_method()
+        ctx = mp.get_context(self.start_method)
         self.inbox, self.outbox = ctx.Queue(max(1, queue_size)), ctx.Queue()
         self.inbox.cancel_join_thread()  # never hang at exit on a worker that stopped reading (it failed)
         self.proc = ctx.Process(target=_backend_worker, daemon=True,
@@ -189,6 +214,8 @@ class _BackendProcess:
         # unblocked
         mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if hasattr(signal, "pthread_sigmask") else None
         try:
+            sys.stdout.flush()  # a forked worker would write this process's unflushed output again
+            sys.stderr.flush()
             self.proc.start()
         finally:
             if mask is not None:
@@ -268,9 +295,16 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
     """The worker process: a ``BackendRunner`` on messages ("events", chunk), ("pose", t, R, moving, budget),
     ("map",) (send a copy of the map) and ("finish", budget). While no message waits it advances the loop closer's
     verification in flight (sliced in real time)."""
+    import signal
+
     from ti_cmax.workers import die_with_parent
 
     die_with_parent()  # killed with the main process, also on SIGKILL
+    timeline.clear()  # forked: the parent's points came along
+    timeline.mark("started")
+    # forked: the command line's SIGTERM handler came along (it would end the worker as an error); a spawned worker
+    # has the default, SIGTERM ends it. SIGINT stays blocked (see _BackendProcess)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
         from ti_cmax import progress
         from ti_cmax.kernels import runtime
@@ -279,11 +313,14 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
         runtime.set_num_threads(threads)
         cpu0 = time.process_time()
         compile_s = compile_backend(config)
+        timeline.mark("ready")
         outbox.put(("ready", compile_s))
         _serve(BackendRunner(camera, config, loop_slice_seconds=loop_slice_seconds), inbox, outbox,
                {"compile_seconds": compile_s, "cpu0": cpu0})
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    runtime.shutdown()  # the kernels compiled here go to the offline cache (the worker ends with os._exit)
 
 
 def _serve(runner: BackendRunner, inbox, outbox, start: dict) -> None:
@@ -321,7 +358,10 @@ def _serve(runner: BackendRunner, inbox, outbox, start: dict) -> None:
                 outbox.put(("window", update))
         if kind == "finish":
             outcome.report["worker_stages"] = clock.summary()
+            timeline.mark("done")
             outbox.put(("done", {"outcome": outcome, "seconds": runner.seconds, "step_cpu_seconds": runner.cpu_seconds,
+                                 "timeline_seconds": timeline.points(),
                                  "compile_seconds": start["compile_seconds"],
-                                 "cpu_seconds": time.process_time() - start["cpu0"], "peak_rss_mb": peak_rss_mb()}))
+                                 "cpu_seconds": time.process_time() - start["cpu0"],
+                                 "process_cpu_seconds": time.process_time(), "peak_rss_mb": peak_rss_mb()}))
             return

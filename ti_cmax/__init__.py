@@ -9,11 +9,13 @@ imports ti_cmax.cli, and with it this package) stays a few ms instead of numpy's
     result = ti_cmax.run_slam(ds.iter_events(), ds.camera, ti_cmax.SlamConfig())
 """
 import os as _os
+import sys as _sys
 
 # numpy's BLAS (OpenBLAS) on one thread unless the user chose a count: set before numpy loads it, so its pool is
 # never started (kernels/runtime.limit_blas_threads: its idle threads spin beside the kernels; a 0.3 s `slam` spent
-# 0.4-1.2 CPU s more with them)
+# 0.4-1.2 CPU s more with them). A numpy loaded before this line has its pool already: limit_blas_threads limits it
 _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+_NUMPY_BEFORE_BLAS_LIMIT = "numpy" in _sys.modules
 
 __version__ = "0.2.0"
 

@@ -172,6 +172,30 @@ def main(argv: list[str] | None = None) -> int:
     return code
 
 
+def entry_point() -> None:
+    """The process's own command line (the ``ti-cmax`` script, ``python -m ti_cmax.cli``): :func:`main`, then the
+    process ends at once, after what its normal end runs that matters (threads joined, the threading and atexit
+    hooks, the kernel engine's offline cache written, output flushed) but without the interpreter's teardown of
+    every module and object: 0.3-0.8 s of a `slam` run, half its wall time once the results were written."""
+    _exit(main())
+
+
+def _exit(code: int) -> None:
+    import atexit
+    import threading
+
+    threading._shutdown()  # the interpreter's first step at exit: non-daemon threads joined, their exit hooks run
+    if "ti_cmax.kernels.runtime" in sys.modules:
+        sys.modules["ti_cmax.kernels.runtime"].shutdown()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a reader that went away, a closed stream: nothing more to say there
+            pass
+    os._exit(code)
+
+
 def _run_command(args) -> int:
     from . import progress
 
@@ -184,6 +208,9 @@ def _run_command(args) -> int:
             from .kernels import runtime  # imports the engine: a bad TI_CMAX_ENGINE is an InputError
 
             runtime.set_num_threads(threads)
+        from . import timeline
+
+        timeline.mark("command")  # the interpreter, the command line and the command's module are loaded
         code = int(args._run(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, not at interpreter exit
         raise_if_interrupted()  # a Ctrl-C that third-party code swallowed (see errors.raise_if_interrupted)
@@ -239,4 +266,4 @@ def _on_sigint(signum, frame):
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry_point()

@@ -258,6 +258,18 @@ class FrontendConfig(Params):
     # first trial step of each later line search: "decrease" (Nocedal & Wright eq. 3.60) or "secant" (minimum of
     # the quadratic model with the last step's secant curvature; see pipelines/optim.py)
     frontend_cg_step_guess: str = param("secant", "first trial step of later line searches", choices=STEP_GUESSES)
+    # hot pixels (pipelines/hot_pixels.py): over a block of events, a pixel firing at least hot_pixel_min_events and
+    # hot_pixel_factor x (1 + the count of its busiest neighbour within 2 px) is not seeing the scene (motion moves
+    # patterns across neighbours): its events are dropped from then on, before the front-end and the back-end see
+    # them; report.json "hot_pixels" lists what was flagged
+    hot_pixel_filter: bool = param(True, "drop the events of hot pixels (firing far more than every neighbour) at the "
+                                         "ingest")
+    hot_pixel_factor: float = param(8.0, "a hot pixel fires at least this x (1 + its busiest neighbour's events) in a "
+                                         "block", gt=1)
+    hot_pixel_min_events: int = param(16, "a hot pixel fires at least this many events in a block", unit="events",
+                                      ge=2)
+    hot_pixel_hold_time: float = param(0.5, "events are held back at the start until the first block is tested, at "
+                                            "most this long", unit="s", ge=0)
 
 
 @dataclass(frozen=True)
@@ -369,6 +381,12 @@ class LoopClosureConfig(Params):
                                           unit="events/s", gt=0)
     loop_max_stored_events: int = param(4000000, "stored events at most (all strides thinned by 2 beyond)",
                                         unit="events", ge=1000)
+    loop_joint_refinement: bool = param(True, "at a verified revisit (at most once per 360 deg of rotation travelled), "
+                                              "refine the control poses since the first stored stride jointly with the stored "
+                                              "events (a BA of the map over the visits) before the map is rebuilt")
+    loop_joint_events: int = param(500000, "stored events the joint refinement uses at most (an even sample)",
+                                   unit="events", ge=1000)
+    loop_joint_iterations: int = param(40, "L-BFGS iterations of the joint refinement", ge=1)
 
 
 @dataclass(frozen=True)

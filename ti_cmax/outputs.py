@@ -200,6 +200,10 @@ class OutputLock:
     def release(self, remove: bool = True) -> None:
         """Unlock; with ``remove``, delete the folders the lock made while they are empty (a failed first run)."""
         if self._fd is not None:
+            with contextlib.suppress(ImportError, OSError):  # unlocked also for a forked child holding the folder open
+                import fcntl
+
+                fcntl.flock(self._fd, fcntl.LOCK_UN)
             os.close(self._fd)
             self._fd = None
         if remove:

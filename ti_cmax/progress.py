@@ -29,7 +29,14 @@ def is_quiet() -> bool:
     return _QUIET["value"]
 
 
-class DataBar(tqdm):
+class Bar(tqdm):
+    """tqdm without its monitor thread (it only adjusts bars that update too rarely, and ours update with the
+    data): a process with one thread can fork a back-end worker (pipelines/worker.worker_start_method)."""
+
+    monitor_interval = 0
+
+
+class DataBar(Bar):
     """A bar over seconds of data: rounded totals, speed as a multiple of real time. ``at(seconds)`` moves it to
     that many seconds from the start of the data; ``done()`` to its total (the last chunk's work counted)."""
 
@@ -59,7 +66,7 @@ def progress(total=None, desc: str = "", unit: str = "it", **kw) -> tqdm:
         total = None if total is None or not 0 < total < float("inf") else float(total)  # NaN/inf: open bar
         return DataBar(total=total, unit="s", bar_format=_DATA_BAR if total else _DATA_OPEN, **common, **kw)
     kw.setdefault("unit_scale", True)
-    return tqdm(total=total, unit=unit, **common, **kw)
+    return Bar(total=total, unit=unit, **common, **kw)
 
 
 _STAGE_BAR = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}]"
@@ -69,7 +76,7 @@ _STAGE_BAR = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}]"
 def stage(desc: str = "start-up and compile"):
     """A bar for one step of unknown length (Taichi's start-up, kernel compilation): 0 % while it runs, 100 % when
     it is done; it stays on screen."""
-    bar = tqdm(total=1, desc=desc, file=sys.stderr, disable=_QUIET["value"], dynamic_ncols=True, leave=True,
+    bar = Bar(total=1, desc=desc, file=sys.stderr, disable=_QUIET["value"], dynamic_ncols=True, leave=True,
                bar_format=_STAGE_BAR)
     try:
         yield bar

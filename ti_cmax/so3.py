@@ -138,6 +138,19 @@ def to_quat_xyzw(r: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
+def euler_xyz(r: np.ndarray) -> np.ndarray:
+    """Rotation matrix(es) (N, 3, 3) -> extrinsic x-y-z Euler angles (N, 3) in radians, roll about x, pitch about y
+    in [-pi/2, pi/2], yaw about z, R = Rz(yaw) Ry(pitch) Rx(roll): scipy's ``as_euler("xyz")``, gimbal lock
+    (|pitch| = pi/2) included, where yaw is 0 and roll takes the whole turn about the vertical."""
+    m = np.asarray(r, dtype=float).reshape(-1, 3, 3)
+    cos_pitch = np.hypot(m[:, 0, 0], m[:, 1, 0])
+    pitch = np.arctan2(-m[:, 2, 0], cos_pitch)
+    lock = cos_pitch < 1e-7
+    roll = np.where(lock, np.arctan2(-m[:, 1, 2], m[:, 1, 1]), np.arctan2(m[:, 2, 1], m[:, 2, 2]))
+    yaw = np.where(lock, 0.0, np.arctan2(m[:, 1, 0], m[:, 0, 0]))
+    return np.stack([roll, pitch, yaw], axis=1)
+
+
 def from_quat_xyzw(q: np.ndarray) -> np.ndarray:
     """Quaternions (N, 4), x, y, z, w (normalised here) -> rotation matrices (N, 3, 3)."""
     q = np.asarray(q, dtype=float).reshape(-1, 4)

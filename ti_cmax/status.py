@@ -14,7 +14,8 @@ Reasons (thresholds below):
 - most packets set to omega = 0 while events keep arriving at a high rate: a still camera sees only noise, far
   fewer events than a moving one; a front-end that calls most packets still at the rate of its moving packets (or
   at 100x the floor rate) has lost the motion (e.g. a star field turning at 100-250 deg/s).
-- most windows rejected by the back-end (their correction exceeded ``backend_max_correction``).
+- most windows rejected by the back-end (false maxima: a correction beyond ``backend_max_correction``, or an optimum
+  that failed the back-end's check and so did its refit; the windows kept their initialisation).
 - a trajectory that does not cover the events' time range (under 90 %).
 - the run's own warnings (``report["warnings"]``, e.g. star tracking on a motion beyond what it handles).
 """
@@ -54,7 +55,7 @@ def _backend_reasons(be: dict) -> list[str]:
     windows = int(be.get("windows", 0)) - int(be.get("windows_still", 0))
     rejected = int(be.get("windows_rejected", 0))
     if windows > 0 and rejected > MOST * windows:
-        return [f"{rejected} of {windows} back-end windows rejected (correction beyond backend_max_correction)"]
+        return [f"{rejected} of {windows} back-end windows rejected (false maxima: they kept their initialisation)"]
     return []
 
 

@@ -82,7 +82,8 @@ def _slam_extra(report: dict) -> dict:
     return {"windows": be["windows"], "windows_optimized": be["windows_optimized"],
             "backend_mean_iterations": be["mean_iterations"], "events_settled": be["events_settled"],
             "backend_seconds": be["wall_seconds"], "loops_applied": applied, "loops_accepted": accepted,
-            "loops_candidates": candidates}
+            "loops_candidates": candidates, "windows_rejected": be["windows_rejected"],
+            "windows_refitted": be["windows_refitted"], "windows_confirmed_by_refit": be["windows_confirmed_by_refit"]}
 
 
 def bench_sequence(sensor: str, scene: str, duration: float, overrides: dict | None = None, seed: int = 0,

@@ -53,6 +53,19 @@ def test_so3_matches_scipy_and_jacobians():
         assert np.allclose(so3.right_jacobian_inv(p) @ jr, np.eye(3), atol=1e-9)
 
 
+def test_euler_angles_match_scipy_also_at_gimbal_lock():
+    """so3.euler_xyz is scipy's as_euler("xyz") (the run figure's orientation panel, without importing scipy)."""
+    import warnings
+
+    rotations = Rotation.random(2000, random_state=3)
+    assert np.allclose(so3.euler_xyz(rotations.as_matrix()), rotations.as_euler("xyz"), atol=1e-12)
+    locked = Rotation.from_euler("xyz", [[0.3, np.pi / 2, 0.5], [0.3, -np.pi / 2, 0.5], [-2.0, np.pi / 2, 1.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # scipy warns of the gimbal lock
+        expected = locked.as_euler("xyz")
+    assert np.allclose(so3.euler_xyz(locked.as_matrix()), expected, atol=1e-9)
+
+
 def test_camera_roundtrip_with_distortion():
     cam = Camera(240, 180, 199.09, 198.88, 132.19, 110.71, (-0.368, 0.150, -0.0003, -0.0002, 0.0))
     ys, xs = np.mgrid[0:180:7, 0:240:7]

@@ -182,3 +182,29 @@ def test_a_second_ctrl_c_does_not_cut_the_cleanup_of_the_first_short(tmp_path, m
     assert not out.exists()
     assert ignored == (signal.SIG_IGN, signal.SIG_IGN)  # until the process exits
     assert main(["params"]) == 130 and signal.getsignal(signal.SIGINT) == before[0]  # in-process: restored
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_an_output_lock_ends_with_its_release_also_while_a_forked_child_holds_the_folder_open(tmp_path):
+    """A forked back-end worker inherits the lock's descriptor: the lock still ends when the run releases it."""
+    import signal
+
+    from ti_cmax.errors import OutputError
+    from ti_cmax.outputs import OutputLock
+
+    first = OutputLock(tmp_path / "out")
+    first.acquire()
+    child = os.fork()
+    if child == 0:  # holds its copy of the descriptor until killed
+        signal.pause()
+        os._exit(0)
+    try:
+        with pytest.raises(OutputError, match="another ti-cmax run"):
+            OutputLock(tmp_path / "out").acquire()
+        first.release(remove=False)
+        second = OutputLock(tmp_path / "out")
+        second.acquire()
+        second.release(remove=False)
+    finally:
+        os.kill(child, signal.SIGKILL)
+        os.waitpid(child, 0)

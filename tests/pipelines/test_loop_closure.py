@@ -544,7 +544,9 @@ def test_the_last_window_closes_the_drift_since_the_last_check(ti_runtime):
     loop_recent_time before: the drift built up since the last applied loop is closed there, not left to a check
     scheduled after the end. Before the last window the same run."""
     (t_ev, b_ev), drifted, duration = _drifted_turns()
-    cfg = replace(LOOP, loop_check_drift_px=1e4)  # after a loop the next check waits loop_min_age
+    # after a loop the next check waits loop_min_age; the single-rotation closure alone (the joint refinement,
+    # tested on its own, also moves the poses before the old visit)
+    cfg = replace(LOOP, loop_check_drift_px=1e4, loop_joint_refinement=False)
     plain = _run(t_ev, b_ev, drifted, cfg, duration=duration).observer
     be = _run(t_ev, b_ev, drifted, cfg, duration=duration, final=True)
     lc = be.observer
@@ -573,3 +575,19 @@ def test_error_trace_gives_the_first_turns_part_of_the_abs_error():
         head = error_trace(gt, Trajectory(t, tilt @ gt.R), 0.5).splitlines()[0]
         total, part = (float(x) for x in re.findall(r"abs RMSE ([\d.]+) deg.*first turn's part ([\d.]+) deg", head)[0])
         assert total > 0.1 and part == pytest.approx(share * total, abs=0.002), head
+
+
+@pytest.mark.slow
+def test_a_revisit_after_a_full_turn_refines_the_visits_jointly(ti_runtime):
+    """Past a full turn of rotation a verified revisit runs the joint refinement (report entry ``joint``): the stored
+    events' IWE gets sharper, and without a window BA to tell the truth (strides settled along the drifted
+    trajectory) the trajectory is no worse than with the single-rotation closure alone; before it, none runs."""
+    (t_ev, b_ev), drifted, duration = _drifted_turns()
+    joint = _run(t_ev, b_ev, drifted, LOOP, duration=duration)
+    alone = _run(t_ev, b_ev, drifted, replace(LOOP, loop_joint_refinement=False), duration=duration)
+    runs = [e for e in joint.observer.loops if e.get("joint")]
+    assert runs and all(e["joint"]["evaluations"] > 5 and e["joint"]["gain"] > 1.0 for e in runs)
+    assert joint.observer.joint_refinements == len(runs) and not any(e.get("joint") for e in alone.observer.loops)
+    assert all(e["time"] >= duration / 2.3 for e in runs)  # a full turn travelled first
+    ts = np.linspace(0.1, duration - 0.3, 300)
+    assert _error(joint, ts, duration, 2.3).mean() < 1.1 * _error(alone, ts, duration, 2.3).mean()

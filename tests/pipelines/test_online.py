@@ -175,15 +175,21 @@ def test_pose_after_a_pause_of_the_stream_follows_the_worker(half_second):
 
 
 @pytest.mark.slow
-def test_unguarded_script_asking_for_a_worker_gets_one_clear_error(tmp_path):
-    """A script that starts a back-end worker at its top level (no ``if __name__ == "__main__":``) is run again by
-    the spawned worker; it must end with one message saying so, not hang (it hung in multiprocessing's launch while
-    the camera's 1.2 MB of bearing tables filled the pipe) nor print multiprocessing's page of traceback."""
+@pytest.mark.parametrize("start", ["fork", "spawn"])
+def test_unguarded_script_asking_for_a_worker(tmp_path, start):
+    """A script that starts a back-end worker at its top level (no ``if __name__ == "__main__":``): a forked worker
+    (Linux, a process with one thread) runs it as any other; a spawned one (here: the script runs a second thread)
+    runs the script again, and it must end with one message saying so, not hang (it hung in multiprocessing's launch
+    while the camera's 1.2 MB of bearing tables filled the pipe) nor print multiprocessing's page of traceback."""
     import subprocess
     import sys
 
+    if start == "fork" and not sys.platform.startswith("linux"):
+        pytest.skip("the worker is forked on Linux only")
     script = tmp_path / "unguarded.py"
     script.write_text(
+        ("import threading, time\nthreading.Thread(target=time.sleep, args=(600,), daemon=True).start()\n"
+         if start == "spawn" else "") +
         "import numpy as np\n"
         "from ti_cmax.camera import Camera\n"
         "from ti_cmax.config import SlamConfig\n"
@@ -195,8 +201,12 @@ def test_unguarded_script_asking_for_a_worker_gets_one_clear_error(tmp_path):
         "camera.bearing_lut4  # built before the worker is sent the camera\n"
         "ev = Events(np.sort(rng.uniform(0, 0.6, n)), rng.integers(0, 240, n), rng.integers(0, 180, n),\n"
         "            rng.integers(0, 2, n))\n"
-        "run_slam(ev, camera, SlamConfig(), backend_process=True)\n")
+        "result = run_slam(ev, camera, SlamConfig(), backend_process=True)\n"
+        "print(result.report['backend_process']['start_method'])\n")
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    if start == "fork":
+        assert proc.returncode == 0 and proc.stdout.split() == ["fork"], proc.stderr
+        return
     assert proc.returncode != 0
     assert "WorkerLost" in proc.stderr and 'if __name__ == "__main__":' in proc.stderr
     assert "bootstrapping phase" not in proc.stderr  # multiprocessing's own message is not shown

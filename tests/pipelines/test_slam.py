@@ -68,6 +68,9 @@ def test_slam_beats_frontend_alone(fast_sequence):
     assert rep["us_per_event"]["frontend"] > 0 and rep["us_per_event"]["backend"] > 0
     assert rep["backend"]["windows_optimized"] >= 10
     assert rep["backend"]["mean_evaluations"] >= rep["backend"]["mean_iterations"] > 0
+    # no window's optimum is suspect of a false maximum: none refitted, rejected or even rechecked
+    assert rep["backend"]["windows_rejected"] == rep["backend"]["windows_refitted"] == 0
+    assert rep["backend"]["windows_confirmed_by_refit"] == 0 and rep["backend"]["false_maxima"] == []
     # the global map holds every settled event (bilinear votes sum to one per event, minus the polar rows)
     assert abs(result.map.sum() - len(seq.events)) < 0.01 * len(seq.events)
 
@@ -306,9 +309,10 @@ def test_short_and_still_streams(short_sequence):
     cam = short_sequence.camera
     cfg = load_config(SlamConfig, None, ["loop_closure=false"])
     n = 50
-    tiny = Events(1.0 + np.linspace(0.0, 0.004, n), np.full(n, 100), np.full(n, 90), np.ones(n))
+    x, y = 100 + np.arange(n) % 7, 90 + np.arange(n) // 7  # one pixel firing them all would be a hot pixel
+    tiny = Events(1.0 + np.linspace(0.0, 0.004, n), x, y, np.ones(n))
     assert len(run_slam(tiny, cam, cfg).trajectory) >= 1
-    same = Events(np.ones(n), np.full(n, 100), np.full(n, 90), np.ones(n))
+    same = Events(np.ones(n), x, y, np.ones(n))
     for worker in (False, True):
         with pytest.raises(InputError, match="no angular velocity"):
             run_slam(same, cam, cfg, backend_process=worker)

@@ -92,6 +92,13 @@ def test_a_kernel_process_runs_blas_on_one_thread():
     assert out.returncode == 0, out.stderr
     value, blas = out.stdout.strip().splitlines()[-1].split(" ", 1)
     assert value == "1" and ast.literal_eval(blas) and set(ast.literal_eval(blas)) == {1}
+    # ti_cmax imported before numpy: BLAS read the variable when it loaded, no threadpoolctl needed at the start
+    first = ("import sys, ti_cmax\n" + code.replace("threadpoolctl\n", "sys\n")
+             .replace("runtime.ensure_init()\n", "runtime.ensure_init(); print('threadpoolctl' in sys.modules)\n"
+                      "import threadpoolctl\n"))
+    out = subprocess.run([sys.executable, "-c", first], capture_output=True, text=True, timeout=120, env=env)
+    loaded, line = out.stdout.strip().splitlines()[-2:]
+    assert loaded == "False" and line.startswith("1 [") and set(ast.literal_eval(line[2:])) == {1}, out.stderr
     env["OPENBLAS_NUM_THREADS"] = "2"  # the user's choice is kept
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
     assert out.stdout.strip().splitlines()[-1].startswith("2 [2")

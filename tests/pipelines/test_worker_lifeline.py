@@ -124,10 +124,11 @@ def test_slam_worker_and_resource_tracker_die_with_a_killed_slam(tmp_path):
                              "--parallel", "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             env={**os.environ, "TI_CMAX_NO_PROGRESS": "1"})
 
-    def worker_started():
+    def worker_started():  # forked (the command line of slam) or spawned (multiprocessing's spawn_main)
         kids = _children(slam.pid)
-        spawned = {p for p in kids if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()}
-        return kids if spawned else None
+        started = {p for p in kids if any(word in Path(f"/proc/{p}/cmdline").read_bytes()
+                                          for word in (b"spawn_main", b"ti_cmax.cli"))}
+        return kids if started else None
 
     try:
         processes = _wait_for(worker_started, 120, "the back-end worker")

@@ -51,6 +51,7 @@ def run(args) -> int:
             "packet_events": timing["packet_events"],  # counted once per overlapping packet
             "us_per_packet_event": timing["us_per_packet_event"],
             "summary": result.summary(),
+            "hot_pixels": result.hot_pixels,
             "parameters": config_to_dict(cfg.frontend),
             "derived_parameters": {k: v for k, v in derived.items() if hasattr(cfg.frontend, k)},
             "camera": camera.to_dict(),

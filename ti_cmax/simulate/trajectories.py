@@ -12,9 +12,9 @@ Kinds:
 - ``pan``: ``turns`` full turns (default 1) about the world vertical axis (y, pointing down) with a smooth
   velocity profile 2 pi turns / T (1 - cos(2 pi t / T)) (zero rate at both ends), plus an optional seeded
   ``wobble``: R(t) = Ry(theta(t)) exp(phi(t)), a tilt phi(t) of sinusoids per axis (0.3 Hz up to
-  ``frequency_max``, amplitudes giving a rate of about ``wobble`` rad/s at peak, so a tilt of some 10-20 degrees at
-  1 rad/s) under the envelope sin^2(pi t / T), zero with its rate at both ends. The pan stays about the world
-  vertical however long it lasts, so multi-turn pans revisit the first turn's map (loop closure).
+  ``frequency_max``, amplitudes giving a rate of about ``wobble`` rad/s at peak, so a tilt of some 15-25 degrees at
+  1 rad/s), at full strength after a 2 s ramp from each end (sin^2), zero with its rate at both ends. The pan stays
+  about the world vertical however long it lasts, so multi-turn pans revisit the first turn's map (loop closure).
 - ``constant``: a constant rate about a fixed camera-frame axis (star tracking, 4 deg/s).
 """
 from __future__ import annotations
@@ -96,16 +96,23 @@ def _omega(kind: str, p: dict, duration: float, t: np.ndarray) -> np.ndarray:
     raise ValueError(f"unknown trajectory kind {kind!r}")
 
 
+_WOBBLE_RAMP = 2.0  # s: the wobble ramps up (and down) over this span at the pan's ends
+
+
 def _tilt(p: dict, duration: float, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The pan's wobble: tilt angles phi(t) (M, 3) and their rates, sinusoids per axis under sin^2(pi t / T)."""
+    """The pan's wobble: tilt angles phi(t) (M, 3) and their rates, sinusoids per axis under a ramped envelope."""
     amp, freq, phase = (np.asarray(p[k]) for k in ("wobble_amplitudes", "wobble_frequencies", "wobble_phases"))
     w = 2 * np.pi * freq[None]  # (1, 3, M)
     arg = w * t[:, None, None] + phase[None]
     # angle amplitudes wobble * a / w: each sinusoid's rate peaks at wobble * a (a summing to 1 per axis)
     ang = p["wobble"] * amp[None] / w
     waves, waves_dot = np.sum(ang * np.sin(arg), axis=2), np.sum(ang * w * np.cos(arg), axis=2)
-    env = np.sin(np.pi * t / duration) ** 2
-    env_dot = np.pi / duration * np.sin(2 * np.pi * t / duration)
+    # full strength after a ramp of tau = min(2 s, T / 4) from each end: sin^2 ramps, zero with their rate at the ends
+    tau = min(_WOBBLE_RAMP, duration / 4)
+    edge = np.minimum(t, duration - t)
+    c = np.clip(edge / tau, 0.0, 1.0)
+    env = np.sin(0.5 * np.pi * c) ** 2
+    env_dot = np.where(c < 1, 0.5 * np.pi / tau * np.sin(np.pi * c), 0.0) * np.where(t <= duration - t, 1.0, -1.0)
     return waves * env[:, None], waves_dot * env[:, None] + waves * env_dot[:, None]
 
 

@@ -123,6 +123,7 @@ def test_star_tracking_workflow_on_short_simulated_sequence(star_sequence, tmp_p
     assert report["backend"]["windows_optimized"] == report["backend"]["windows"] > 0
     assert report["parameters"]["backend"]["backend_min_ev_rate"] == 1000.0  # star-tracking default applied
     assert report["dataset"]["calibration"] == "calibration.txt"
+    assert report["hot_pixels"]["count"] == report["hot_pixels"]["events_dropped"] == 0  # stars are not hot pixels
     omega = np.loadtxt(out / "angular_velocity.txt")
     assert np.degrees(np.linalg.norm(np.median(omega[:, 1:], axis=0))) == pytest.approx(4.0, rel=0.1)
     assert report["warnings"] == [] and "warning" not in capsys.readouterr().err  # 4 deg/s: what it is made for

@@ -1,0 +1,74 @@
+"""Joint refinement over revisits (pipelines/joint_refinement.py): a later visit's error is pulled onto the map of
+the earlier visit, the sampling keeps strides in proportion, large panoramas use a coarser level."""
+import numpy as np
+import pytest
+
+from ti_cmax import so3
+from ti_cmax.config import BackendConfig
+from ti_cmax.pipelines.joint_refinement import map_level, refine_jointly, sample_chunks
+
+from test_loop_closure import _events, _pan, _spline
+
+DURATION, TURNS = 4.0, 2.0  # s, pan turns: the second turn revisits the first
+BUMP = np.radians(1.0)  # error of the second turn at its middle (zero at its ends), about BUMP_AXIS
+BUMP_AXIS = np.array([1.0, 0.4, 0.2]) / np.linalg.norm([1.0, 0.4, 0.2])
+
+
+def _bumped(t):
+    """The pan with an error in its second turn only: a drift that a loop closure left between the visits."""
+    t = np.asarray(t, dtype=float)
+    phase = np.clip((t - DURATION / TURNS) / (DURATION / TURNS), 0.0, 1.0)
+    return so3.exp(np.outer(BUMP * np.sin(np.pi * phase), BUMP_AXIS)) @ _pan(t, DURATION, TURNS)
+
+
+def _chunks(t, b, stride=0.1):
+    edges = np.arange(0, DURATION + 1e-9, stride)
+    out = []
+    for a, z in zip(edges[:-1], edges[1:]):
+        m = (t >= a) & (t < z)
+        out.append((t[m], b[m], 1.0, float(a), True))
+    return out
+
+
+def test_sample_keeps_each_stride_in_proportion_to_the_events_it_stands_for():
+    rng = np.random.default_rng(0)
+    chunks = [(np.sort(rng.uniform(k, k + 1, n)), rng.normal(size=(n, 3)).astype(np.float32), w, float(k), True)
+              for k, (n, w) in enumerate([(1000, 1.0), (1000, 4.0), (500, 2.0)])]
+    t, b, frac = sample_chunks(chunks, 1500)
+    assert len(t) == len(b) <= 1500 + 3 and frac == pytest.approx(len(t) / 6000, rel=1e-3)
+    per = np.histogram(t, bins=[0, 1, 2, 3])[0]
+    np.testing.assert_allclose(per / per.sum(), [1 / 6, 4 / 6, 1 / 6], atol=0.01)  # 1000, 4000, 1000 stood for
+    assert np.all(np.diff(t) >= 0)
+    t_all, _, frac_all = sample_chunks(chunks, 10**6)  # above what is stored: every stride whole
+    assert len(t_all) == 2500 and frac_all == pytest.approx(2500 / 6000)
+
+
+def test_map_level_brings_large_panoramas_to_at_most_2048_columns():
+    assert map_level(2048, 1024) == 1
+    assert map_level(4096, 2048) == 2
+    assert map_level(6000, 3000) == 4
+    assert map_level(4097, 2048) == 1  # no level divides it: full size
+
+
+@pytest.mark.slow
+def test_a_later_visit_is_pulled_onto_the_earlier_visits_map(ti_runtime):
+    t, b = _events(seed=4, duration=DURATION, turns=TURNS, rate=60_000)
+    spline = _spline(_bumped, duration=DURATION)
+    cfg = BackendConfig(pano_height=512)
+    first = int(np.searchsorted(spline.knot_times(), DURATION / TURNS))  # the second turn's poses are free
+    last = spline.num_control - 1
+    ts = np.linspace(DURATION / TURNS + 0.1, DURATION - 0.1, 200)
+
+    def error(spl):
+        return np.degrees(so3.geodesic_angle(spl.evaluate(ts), _pan(ts, DURATION, TURNS)))
+
+    before = error(spline)
+    x, info = refine_jointly(spline, _chunks(t, b), first, last, cfg, 1024, 512, max_events=200_000,
+                             iterations=30, fine_iterations=15, coarse_spacing=0.5, max_step=0.1)
+    refined = spline.copy()
+    refined.control_R[first:last + 1] = so3.exp(x) @ refined.control_R[first:last + 1]
+    after = error(refined)
+    assert info["gain"] > 1.0 and info["evaluations"] > 5 and info["poses"] == last - first + 1
+    assert before.max() > 0.9 and after.max() < 0.3 * before.max(), (before.max(), after.max())
+    # the first turn's poses stayed: they anchor the world frame
+    assert np.all(np.abs(x) <= 0.1 + 1e-12)
