@@ -42,7 +42,9 @@ dt * Jl(phi)^T (x' x a), x' the rotated bearing and a = (dpix/dx')^T (dC/dpix).
 
 Kernels are generated per dtype (f32 for speed, f64 for finite-difference checks) and sensor
 size (compile-time constants); per-event buffers are fields allocated once per workspace, the images numpy arrays
-(for OpenCV), the packet (N, 4) an ndarray argument read in place. :func:`contrast_numpy` is the float64 numpy twin (test oracle).
+(for OpenCV), the packet (N, 4) an ndarray argument read in place. Kernel ``pack`` builds that packet from the
+events' own arrays (1 of k events, table bearings plus dither, dt) in one launch (:meth:`IWEWorkspace.pack`).
+:func:`contrast_numpy` and :func:`pack_numpy` are the float64 numpy twins (test oracles).
 """
 import functools
 
@@ -150,7 +152,17 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
                     if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
                         wp[k] = ti.Vector([u, v, xr[0], xr[1], xr[2], bb, cc, iz])
                         x0, y0, ax, ay = bl.split(u, v)
-                        sw += bl.scatter(img, part * h, h, y0, x0, x0 + 1, x0 >= 0, x0 + 1 < w, ax, ay, f(1.0), ADD)
+                        if x0 >= 0 and y0 >= 0 and x0 < w - 1 and y0 < h - 1:  # all four neighbours inside
+                            r = part * h + y0
+                            bx = f(1.0) - ax
+                            img[r, x0] = img[r, x0] + bx * (f(1.0) - ay)
+                            img[r, x0 + 1] = img[r, x0 + 1] + ax * (f(1.0) - ay)
+                            img[r + 1, x0] = img[r + 1, x0] + bx * ay
+                            img[r + 1, x0 + 1] = img[r + 1, x0 + 1] + ax * ay
+                            sw += f(1.0)
+                        else:
+                            sw += bl.scatter(img, part * h, h, y0, x0, x0 + 1, x0 >= 0, x0 + 1 < w, ax, ay, f(1.0),
+                                             ADD)
                         cnt += 1
             psum[it] = ti.Vector([ti.cast(sw, ti.f64), ti.cast(cnt, ti.f64)])
         ti.loop_config(serialize=True)
@@ -251,6 +263,61 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
     return vote, gather, render
 
 
+@functools.cache
+def _pack_kernel(dtype_name: str):
+    """Kernel ``pack``: a packet's rows (bearing from the per-pixel table, plus dither; dt) from the events' own
+    arrays, read in place (see :meth:`IWEWorkspace.pack`)."""
+    f = ti.f32 if dtype_name == "f32" else ti.f64
+
+    @ti.kernel
+    def pack(t: ti.types.ndarray(dtype=ti.f64, ndim=1), x: ti.types.ndarray(dtype=ti.u16, ndim=1),
+             y: ti.types.ndarray(dtype=ti.u16, ndim=1), lut: ti.types.ndarray(dtype=f, ndim=2),
+             dxy: ti.types.ndarray(dtype=f, ndim=2), out: ti.types.ndarray(dtype=f, ndim=2),
+             prm: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+        """Row j of ``out`` from event i = start + j step (j < n): lut[y_i w + x_i] (bx, by, bz) + (dx, dy) of dither
+        row offset + j (when dithered), and dt = t_i - t_ref rounded to the workspace's float; prm = start, step, n,
+        t_ref, sensor width, dithered, dither offset, then max |dt| (out)."""
+        start = ti.cast(prm[0], ti.i64)
+        step = ti.cast(prm[1], ti.i64)
+        n = ti.cast(prm[2], ti.i32)
+        t_ref = prm[3]
+        width = ti.cast(prm[4], ti.i32)
+        dithered = ti.cast(prm[5], ti.i32)
+        offset = ti.cast(prm[6], ti.i32)
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            big = f(0.0)
+            for j in range(n):
+                i = start + j * step
+                pix = ti.cast(y[i], ti.i32) * width + ti.cast(x[i], ti.i32)
+                bx = lut[pix, 0]
+                by = lut[pix, 1]
+                if dithered != 0:
+                    bx += dxy[offset + j, 0]
+                    by += dxy[offset + j, 1]
+                d = ti.cast(t[i] - t_ref, f)
+                out[j, 0] = bx
+                out[j, 1] = by
+                out[j, 2] = lut[pix, 2]
+                out[j, 3] = d
+                big = ti.max(big, ti.abs(d))
+            prm[7] = ti.cast(big, ti.f64)
+
+    return pack
+
+
+def pack_numpy(t, x, y, lut, start: int, step: int, n: int, t_ref: float, dxy=None, offset: int = 0,
+               width: int | None = None, dtype=np.float32) -> np.ndarray:
+    """Twin of kernel ``pack`` (test oracle): (n, 4) rows bx + dx, by + dy, bz, dt of events start + j step."""
+    idx = start + step * np.arange(n)
+    pix = np.asarray(y)[idx].astype(np.int64) * int(width) + np.asarray(x)[idx]
+    out = np.asarray(lut, dtype)[pix].copy()
+    if dxy is not None:
+        out[:, :2] += np.asarray(dxy, dtype)[offset:offset + n]
+    out[:, 3] = (np.asarray(t, np.float64)[idx] - t_ref).astype(dtype)
+    return out
+
+
 class IWEWorkspace:
     """Compiled kernels and buffers for one sensor size, dtype, blur and packet capacity.
 
@@ -262,8 +329,8 @@ class IWEWorkspace:
     thread count. A packet's vote and gather are memory-bound scatters and gathers of ~0.2-3 ms: a second thread
     saved at most ~10 % of them, while handing a loop to Taichi's thread pool costs 45-100+ us per launch, more when
     the pool's thread has gone idle between evaluations (the optimiser's Python runs between them), so serial loops
-    are the faster choice for front-end packets. ``parts`` = P splits the events into P parts voted in parallel (P copies of I; P a multiple
-    of the thread count or below it, ``runtime.check_parts``).
+    are the faster choice for front-end packets. ``parts`` = P splits the events into P parts voted in parallel
+    (P copies of I; P a multiple of the thread count or below it, ``runtime.check_parts``).
     """
 
     def __init__(self, width: int, height: int, dtype=np.float32, blur_sigma: float = 1.0,
@@ -282,6 +349,10 @@ class IWEWorkspace:
         self._prm = np.zeros(22)  # evaluate's parameters and results (kernel arguments)
         self.n = 0
         self._packed = np.zeros((1, 4), self.dtype)  # the current packet (read by the kernels in place)
+        self._own = np.zeros((1024, 4), self.dtype)  # the packet buffer ``pack`` fills (grown as needed)
+        self._pack_prm = np.zeros(8)
+        self._no_dither = np.zeros((1, 2), self.dtype)
+        self._packer = None  # BoundLaunch of kernel ``pack`` (built on first use)
 
     def _ensure(self):
         if self._kernels is None:
@@ -306,7 +377,8 @@ class IWEWorkspace:
         """Build (or fetch from the offline cache) the kernels an estimation uses, e.g. to time compilation apart
         (not ``iwe``'s display kernel: every command pays the start-up)."""
         self._ensure()
-        self.set_packet(np.zeros((1, 3)) + [0, 0, 1], np.zeros(1))
+        one = np.zeros(1, np.uint16)
+        self.pack(np.zeros(1), one, one, np.array([[0.0, 0.0, 1.0, 0.0]], self.dtype), 1, 0, 1, 1, 0.0)
         self.evaluate(np.zeros(3), np.eye(3))
 
     def set_packet(self, bearings: np.ndarray, dts: np.ndarray) -> None:
@@ -318,6 +390,31 @@ class IWEWorkspace:
             packed[:n, 3] = dts
         self.set_packed(packed, n)
 
+    def pack(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, lut: np.ndarray, width: int, start: int, step: int,
+             n: int, t_ref: float, dxy: np.ndarray | None = None, offset: int = 0) -> float:
+        """Set the packet from events read in place (``t`` float64, ``x``, ``y`` uint16 pixels, C-contiguous): rows
+        j < n from events start + j step (1 of step: a thinned packet without copying it first), bearing
+        lut[y * width + x] ((pixels, >= 3) of this dtype) plus dither row offset + j of ``dxy`` ((rows, 2), or None),
+        dt = t - t_ref. One launch into a buffer the workspace keeps (a numpy gather, copy and add per packet cost
+        ~30 ns per event). Returns max |dt| over the rows."""
+        self._ensure()
+        n = int(n)
+        if n > len(self._own):
+            self._own = np.zeros((max(n, 2 * len(self._own)), 4), self.dtype)
+        if n:
+            dither = dxy if dxy is not None else self._no_dither
+            self._pack_prm[:7] = (start, step, n, t_ref, width, dxy is not None, offset)
+            args = (t, x, y, lut, dither, self._own, self._pack_prm)
+            if self._packer is None:
+                self._packer = BoundLaunch(_pack_kernel(_DTYPES[self.dtype]), *args)
+            else:
+                for i, a in enumerate(args):
+                    if a is not self._packer._args[i]:
+                        self._packer.set_array(i, a)
+            self._packer()
+        self.set_packed(self._own, n)
+        return float(self._pack_prm[7]) if n else 0.0
+
     def set_packed(self, packed: np.ndarray, n: int | None = None) -> None:
         """Set the packet: a C-contiguous (>= N, 4) array of this workspace's dtype, rows bx, by, bz, dt_k. The
         kernels read it in place (kept by reference: do not modify it while evaluating; copying it into a field
@@ -328,11 +425,12 @@ class IWEWorkspace:
         if n > self.capacity:
             self.capacity = 1 << int(np.ceil(np.log2(n)))
             self._kernels = None
+        same = packed is self._packed  # the buffer ``pack`` fills: the launches are bound to it already
         self._packed = packed if len(packed) else np.zeros((1, 4), self.dtype)
         self.n = n
         if self._kernels is None:
             self._ensure()  # built (or rebuilt for the capacity) at the upload, as before the first evaluation
-        else:
+        elif not same:
             self._vote.set_array(0, self._packed)
             self._gather.set_array(0, self._packed)
 
@@ -477,5 +575,5 @@ def gradient_covariance_numpy(terms) -> np.ndarray:
 
 __all__ = [
     "MEASURES", "IWEWorkspace", "gaussian_taps", "gram_taps", "measure_id", "contrast_and_gradient",
-    "warp_numpy", "vote_numpy", "contrast_numpy", "gradient_covariance_numpy",
+    "warp_numpy", "vote_numpy", "contrast_numpy", "gradient_covariance_numpy", "pack_numpy",
 ]

@@ -11,7 +11,9 @@ dt_ang_vel`` the event rate is low: the ``"paper"`` rule declares the camera sti
 keeps the events within t_j +- W/2, and the packet is sparse (omega = 0) only when they are fewer than
 ``frontend_min_event_rate * W``. So one N serves slow and fast phases alike. N, the thinning cap and the rate floor
 default to values derived from the sensor's pixel count (``sensor_defaults``), so that the image of warped events
-holds as many events per pixel on any sensor.
+holds as many events per pixel on any sensor. On large sensors that image is coarser than the sensor
+(``frontend_iwe_downsample`` d: an IWE pixel covers d x d sensor pixels, :func:`iwe_intrinsics`), with the blur
+kept at its width in sensor pixels.
 
 Cost per packet is bounded at any event rate: a packet above ``frontend_max_packet_events`` is thinned 1 of k (its
 span, hence the motion that makes omega measurable, is kept). The optimiser (``frontend_optimizer``: BFGS carrying
@@ -19,10 +21,10 @@ its inverse Hessian from packet to packet, or the reference's Fletcher-Reeves CG
 2 omega_{j-1} - omega_{j-2} (``frontend_warm_start``), usually a fraction of a pixel from the optimum.
 
 Scaling, so that the optimiser's tolerances mean the same across packet sizes and sensors: it sees x = omega * s with
-s = f * max_k |dt_k| (f: mean focal length), the displacement in pixels of the packet's farthest-in-time event, and
-the cost C / mu0^2 with mu0 = n / (width * height) the mean IWE value: the squared coefficient of variation of the
-IWE. Integer pixels are dithered by up to half a pixel (:class:`PixelDither`) so that the pixel grid does not pull
-slow motions to omega = 0.
+s = f * max_k |dt_k| (f: the IWE's mean focal length), the displacement in IWE pixels of the packet's farthest-in-time
+event, and the cost C / mu0^2 with mu0 = n / (IWE width * height) the mean IWE value: the squared coefficient of
+variation of the IWE. Integer pixels are dithered by up to half a (sensor) pixel (:class:`PixelDither`) so that the
+pixel grid does not pull slow motions to omega = 0.
 
 Contrast maximisation returns an optimum also where the events do not constrain omega; the rules that tell a
 measured motion from noise (score test, lookbacks, gain check) are in ``frontend_policies`` and their outcome per
@@ -30,6 +32,7 @@ packet is a :class:`~ti_cmax.pipelines.motion.Motion`.
 """
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field, replace
 from typing import Iterable, Iterator
@@ -49,7 +52,7 @@ from .frontend_policies import Lookback, LookbackTest
 from .hot_pixels import HotPixelFilter
 from .motion import Motion
 from .optim import CGResult, bfgs, fletcher_reeves
-from .sensor_defaults import resolve_frontend
+from .sensor_defaults import iwe_size, resolve_frontend
 
 
 NO_MOTION_MEASURABLE = ("the events span no time (no events, or all at one timestamp): no packet, so no angular "
@@ -421,6 +424,16 @@ class PacketSlicer:
         return Packet(t_ref, Events.empty() if sparse else packet, span, sparse)
 
 
+def iwe_intrinsics(K: np.ndarray, downsample: int) -> np.ndarray:
+    """Intrinsics of an IWE whose pixel covers d x d sensor pixels: sensor pixel (i, j) spans [i - 1/2, i + 1/2], so
+    IWE coordinate = (sensor coordinate + 1/2) / d - 1/2 (the sensor's edges stay the IWE's)."""
+    d = float(downsample)
+    Kd = np.array(K, dtype=float)
+    Kd[:2, :2] /= d
+    Kd[:2, 2] = (Kd[:2, 2] + 0.5) / d - 0.5
+    return Kd
+
+
 DITHER_PERIOD = 1 << 16  # distinct offsets of the dither table (a packet's start in it: a hash of its time)
 
 
@@ -443,19 +456,19 @@ class PixelDither:
 
     def _grow(self, size: int) -> None:
         rng = np.random.default_rng(20261203)
-        u = rng.uniform(-self.amplitude, self.amplitude, (DITHER_PERIOD + size, 2)).T
-        # one table per column: adding a contiguous column is much faster than adding an (n, 2) block to the
-        # strided view of the packet's first two columns (numpy's inner loop of 2)
-        self._x = (u[0] / self.fx).astype(self.dtype)
-        self._y = (u[1] / self.fy).astype(self.dtype)
+        u = rng.uniform(-self.amplitude, self.amplitude, (DITHER_PERIOD + size, 2))
+        self.table = (u / [self.fx, self.fy]).astype(self.dtype)  # (rows, 2): x / fx, y / fy
 
-    def apply(self, packed: np.ndarray, n: int, t_ref: float) -> None:
-        """Add the dither to the bearings' x, y (columns 0, 1) of the first n rows of ``packed``, in place."""
-        if n > len(self._x) - DITHER_PERIOD:
+    def offset(self, n: int, t_ref: float) -> int:
+        """The table row a packet of n events centred on t_ref starts at (the table grows to hold it)."""
+        if n > len(self.table) - DITHER_PERIOD:
             self._grow(n)
-        offset = (int(round(t_ref * 1e5)) * 40503) % DITHER_PERIOD
-        packed[:n, 0] += self._x[offset:offset + n]
-        packed[:n, 1] += self._y[offset:offset + n]
+        return (int(round(t_ref * 1e5)) * 40503) % DITHER_PERIOD
+
+    def rows(self, n: int, t_ref: float) -> np.ndarray:
+        """The (n, 2) bearing offsets of such a packet's events (kernel ``pack`` adds them to x, y)."""
+        offset = self.offset(n, t_ref)
+        return self.table[offset:offset + n]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -468,12 +481,15 @@ class AngularVelocityEstimator:
     def __init__(self, camera: Camera, config: FrontendConfig = FrontendConfig(), dtype=np.float32):
         config = resolve_frontend(config, camera)
         self.camera, self.config = camera, config
-        self.K = camera.K
-        self.focal = 0.5 * (camera.fx + camera.fy)
+        d = int(config.frontend_iwe_downsample)
+        self.iwe_width, self.iwe_height = iwe_size(camera, d)
+        self.K = iwe_intrinsics(camera.K, d)
+        self.focal = 0.5 * (self.K[0, 0] + self.K[1, 1])  # of the IWE: optimiser steps are in IWE pixels
         cap = config.num_events_per_packet
         if config.frontend_max_packet_events > 0:
             cap = max(cap, config.frontend_max_packet_events)
-        self.ws = IWEWorkspace(camera.width, camera.height, dtype, config.frontend_blur_sigma,
+        # the blur keeps its width in sensor pixels (its angle): sigma / d IWE pixels
+        self.ws = IWEWorkspace(self.iwe_width, self.iwe_height, dtype, config.frontend_blur_sigma / d,
                                capacity=cap)
         # integer pixels are dithered (PixelDither: the pixel grid's bias towards omega = 0); float ones are not
         self.dither = PixelDither(camera, config.frontend_pixel_dither, dtype, cap) \
@@ -514,22 +530,41 @@ class AngularVelocityEstimator:
         self.ws.compile()
         return time.perf_counter() - t0
 
-    def _objective(self, events: Events, t_ref: float):
-        """Load a packet (thinned); returns (fun, s, n): fun(x) = normalised contrast and gradient at omega = x / s,
-        s = focal * max |t - t_ref| (pixels per rad/s, so optimiser steps are in pixels of motion blur)."""
+    @functools.cached_property
+    def _lut(self) -> np.ndarray:
+        """The camera's per-pixel bearings (pixels, 4) in the workspace's float type (kernel ``pack`` reads it)."""
+        lut = self.camera.bearing_lut4
+        return lut if lut.dtype == self.ws.dtype else lut.astype(self.ws.dtype)
+
+    def _load(self, events: Events, t_ref: float) -> tuple[int, float]:
+        """Upload a packet, thinned (1 of k, k = ceil(n / frontend_max_packet_events), as :meth:`thin`), into the
+        workspace; returns (events loaded, max |t - t_ref|). Integer pixels go through kernel ``pack`` (table
+        bearings, dither and times read from the events' arrays in place); sub-pixel ones are undistorted here."""
+        cap = int(self.config.frontend_max_packet_events)
+        total = len(events)
+        k = -(-total // cap) if 0 < cap < total else 1
+        start = k // 2 if k > 1 else 0
+        n = len(range(start, total, k))
+        if n and not events.has_subpixel_coordinates:
+            offset = self.dither.offset(n, t_ref) if self.dither is not None else 0
+            return n, self.ws.pack(events.t, events.x, events.y, self._lut, self.camera.width, start, k, n, t_ref,
+                                   None if self.dither is None else self.dither.table, offset)
         events = self.thin(events)
-        self.events_evaluated += len(events)
         packed = self.camera.bearings(events.x, events.y, dtype=self.ws.dtype, columns=4)
-        if self.dither is not None and len(events) and np.issubdtype(events.x.dtype, np.integer):
-            self.dither.apply(packed, len(events), t_ref)
         dts = packed[:, 3]
         np.subtract(events.t, t_ref, out=dts, casting="unsafe")
         self.ws.set_packed(packed)
-        n = len(events)
-        s = self.focal * float(np.max(np.abs(dts))) if n else 0.0
+        return n, float(np.max(np.abs(dts))) if n else 0.0
+
+    def _objective(self, events: Events, t_ref: float):
+        """Load a packet (thinned); returns (fun, s, n): fun(x) = normalised contrast and gradient at omega = x / s,
+        s = focal * max |t - t_ref| (pixels per rad/s, so optimiser steps are in pixels of motion blur)."""
+        n, span = self._load(events, t_ref)
+        self.events_evaluated += n
+        s = self.focal * span if n else 0.0
         if not s > 0:
             raise InputError("packet has no time extent")
-        mu0 = n / float(self.camera.width * self.camera.height)
+        mu0 = n / float(self.iwe_width * self.iwe_height)
         scale = self._scale = 1.0 / (mu0 * mu0)
         measure = self.config.contrast_measure
 
@@ -689,14 +724,17 @@ class FrontendRunner:
         already; this guards the Python API."""
         if len(chunk) == 0:
             return
+        t = chunk.t
+        gaps = np.diff(t)
+        # one pass per array on good input (a non-decreasing run between finite ends is finite, and a NaN fails the
+        # min); anything else goes through Events.validate, which names the first bad event
         if chunk.has_subpixel_coordinates:  # undistorted coordinates (star tracking) may fall off the sensor
             chunk.validate(source="events")
-        else:
+        elif not (np.isfinite(t[0]) and np.isfinite(t[-1]) and (not len(gaps) or gaps.min() >= 0)
+                  and int(chunk.x.max()) < self.width and int(chunk.y.max()) < self.height):
             chunk.validate(self.width, self.height, source="events")
-        t = chunk.t
         if self._t_checked is not None and t[0] < self._t_checked:
             raise InputError(f"event chunks are not in time order (t={float(t[0])!r} after {self._t_checked!r})")
-        gaps = np.diff(t)
         k = int(np.argmax(gaps)) if len(gaps) else -1
         gap, at = (float(gaps[k]), float(t[k])) if k >= 0 else (0.0, 0.0)
         if self._t_checked is not None and t[0] - self._t_checked > gap:

@@ -175,9 +175,15 @@ class FrontendConfig(Params):
     """CMax-omega front-end (Sec. II-B, III-C1)."""
 
     contrast_measure: str = param("variance", "contrast of the image of warped events", choices=CONTRAST_MEASURES)
-    frontend_blur_sigma: float = param(1.0, "Gaussian blur of the IWE", unit="px", ge=0, le=50)
+    frontend_blur_sigma: float = param(1.0, "Gaussian blur of the IWE, in sensor pixels (sigma / d IWE pixels)",
+                                       unit="px", ge=0, le=50)
+    # the IWE has 1/d of the sensor's pixels per axis (the optimiser's pixel tolerances are IWE pixels, d sensor
+    # pixels wide); derived from the blur and the sensor's pixel count (pipelines/sensor_defaults.py)
+    frontend_iwe_downsample: int = param(0, "IWE pixel = d x d sensor pixels; derived: the largest d <= sqrt(6) x "
+                                            "blur sigma keeping >= 43200 IWE pixels", ge=1, le=16, zero="derived")
     frontend_event_sample_rate: int = param(1, "keep 1 of Q events", ge=1)
-    num_events_per_packet: int = param(0, "events per packet N (Sec. III-C1); derived: 10000 x max(1, pixels / 43200)",
+    num_events_per_packet: int = param(0, "events per packet N (Sec. III-C1); derived: 10000 x max(1, IWE pixels / "
+                                          "43200)",
                                        unit="events", ge=2, le=10_000_000, zero="derived")
     dt_ang_vel: float = param(0.01, "spacing of the packet centres, 1/f", unit="s", gt=0)
     still_span_factor: float = param(10.0, "a packet spanning more than this x dt_ang_vel means a still camera",
@@ -198,9 +204,9 @@ class FrontendConfig(Params):
                                             unit="s", ge=0)
     # packets holding more events than this are thinned uniformly (1 of k, k = ceil(n / max)) before the
     # optimisation: the span (motion) is kept, the cost per packet is bounded at high event rates
-    frontend_max_packet_events: int = param(0, "packets with more events are thinned 1 of k; derived: 20000 x max(1, "
-                                               "pixels / 43200)", unit="events", ge=2, le=10_000_000, zero="derived",
-                                       off=-1)
+    frontend_max_packet_events: int = param(0, "packets with more events are thinned 1 of k; derived: (d + 1) x 10000 "
+                                               "x max(1, IWE pixels / 43200)", unit="events", ge=2, le=10_000_000,
+                                            zero="derived", off=-1)
     # each integer event pixel is dithered by up to this many pixels (uniform, from a fixed table: deterministic)
     # before warping, so that omega = 0 is not favoured by the pixel grid (pipelines/frontend.PixelDither); 0: none
     frontend_pixel_dither: float = param(0.5, "sub-pixel dither of event coordinates against the pixel-grid bias",

@@ -228,6 +228,22 @@ def test_thinning_keeps_the_span_and_the_accuracy(ti_runtime):
     assert off.thin(ev) is ev
 
 
+def test_packed_packet_is_the_thinned_dithered_bearings(ti_runtime):
+    """The estimator uploads integer-pixel packets through kernel ``pack`` (1 of k, read in place): its rows are
+    those of the thinned events' table bearings plus the packet's dither rows, and dt = t - t_ref."""
+    ev = _integer_pixels_with_noise(np.array([0.3, -0.2, 0.1]), seed=4, n=12000, noise=3000)
+    est = AngularVelocityEstimator(CAM, FrontendConfig(frontend_max_packet_events=4000))
+    t_ref = 0.05
+    n, span = est._load(ev, t_ref)
+    thin = est.thin(ev)
+    want = CAM.bearings(thin.x, thin.y, columns=4)
+    want[:, :2] += est.dither.rows(len(thin), t_ref)
+    want[:, 3] = thin.t - t_ref
+    assert n == len(thin) == est.ws.n
+    np.testing.assert_array_equal(est.ws._packed[:n], want)
+    assert span == float(np.abs(want[:, 3]).max())
+
+
 def test_one_notion_of_still_with_its_reason():
     """Every outcome but MOVING gives omega = 0; the camera counts as still (no BA) only where no motion was measured:
     a SLOW packet (flat, its lookback measured a motion) is flat but not still, a SPARSE one still but not flat."""
@@ -346,11 +362,8 @@ def test_pixel_dither_is_uniform_over_the_pixel_and_deterministic(ti_runtime):
 
     dither = PixelDither(CAM, 0.5, np.float32, size=1000)
     n = 50000  # beyond the table's size: it grows
-    a, b, c = (np.zeros((n, 4), np.float32) for _ in range(3))
-    dither.apply(a, n, 0.125)
-    dither.apply(b, n, 0.125)
-    dither.apply(c, n, 0.135)
-    assert np.array_equal(a, b) and not np.array_equal(a[:, :2], c[:, :2]) and not a[:, 2:].any()
+    a, b, c = (dither.rows(n, t) for t in (0.125, 0.125, 0.135))
+    assert a.shape == (n, 2) and np.array_equal(a, b) and not np.array_equal(a, c)
     for d in (a[:, 0] * CAM.fx, a[:, 1] * CAM.fy):  # pixels: uniform over [-0.5, 0.5], the grid leaves no trace
         assert d.min() >= -0.5 and d.max() <= 0.5 and abs(d.mean()) < 0.01 and abs(d.std() - 0.5 / np.sqrt(3)) < 0.01
         assert np.histogram(d, bins=10, range=(-0.5, 0.5))[0].min() > 0.09 * n
@@ -578,3 +591,24 @@ def test_a_stream_that_starts_at_full_speed_is_not_declared_flat(ti_runtime, mon
     assert np.all(np.linalg.norm(res.omega - truth, axis=1)[fast] < 0.15 * np.linalg.norm(truth, axis=1)[fast])
     monkeypatch.setattr(frontend_policies, "FAST_PX", np.inf)
     assert np.count_nonzero(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat) > 5
+
+
+@pytest.mark.parametrize("where", [0, 500, -1])
+@pytest.mark.parametrize("bad, message", [(np.nan, "non-finite"), (np.inf, "non-finite"), (-np.inf, "non-finite"),
+                                          (-1.0, "not sorted")])
+def test_runner_check_names_bad_timestamps_anywhere(where, bad, message):
+    """The runner's one-pass check of a chunk (min of its time steps, its ends, its largest pixel) hands every bad
+    chunk to Events.validate, which names the event: a NaN or infinity at either end or inside, a step back."""
+    from ti_cmax.errors import InputError
+    from ti_cmax.pipelines.frontend import FrontendRunner
+
+    ev = _integer_pixels_with_noise(np.array([0.3, -0.2, 0.1]), seed=5, n=800, noise=200)
+    t = ev.t.copy()
+    if bad == -1.0:
+        t[where] = t[where] - 1.0 if where != 0 else t[1] + 1.0
+    else:
+        t[where] = bad
+    runner = FrontendRunner(CAM)
+    with pytest.raises(InputError, match=message):
+        runner.check(Events(t, ev.x, ev.y, ev.p))
+    runner.check(ev)  # a good chunk passes
