@@ -526,8 +526,11 @@ def test_fast_pan_revisits_count_by_the_rotation_travelled(ti_runtime):
     pan = lambda t: _pan(t, duration, turns)  # noqa: E731
     drifted = lambda t: so3.exp(np.outer(DRIFT * np.asarray(t) / duration, DRIFT_AXIS)) @ pan(t)  # noqa: E731
     t_ev, b_ev = _events(3, duration=duration, turns=turns, rate=60_000)
-    be = _run(t_ev, b_ev, drifted, duration=duration)
-    age_only = _run(t_ev, b_ev, drifted, replace(LOOP, loop_min_travel=-1.0), duration=duration)
+    # the single-rotation closure alone (the joint refinement, tested on its own, also moves the poses before the
+    # old visit: without a window BA in this test nothing tells it the truth)
+    cfg = replace(LOOP, loop_joint_refinement=False)
+    be = _run(t_ev, b_ev, drifted, cfg, duration=duration)
+    age_only = _run(t_ev, b_ev, drifted, replace(cfg, loop_min_travel=-1.0), duration=duration)
     applied = [e for e in be.observer.loops if e["applied"]]
     assert applied and applied[0]["time"] < 3.0, be.observer.loops
     assert not any(e["applied"] for e in age_only.observer.loops), age_only.observer.loops
