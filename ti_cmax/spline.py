@@ -265,7 +265,11 @@ class SO3Spline:
         # retract
         self.control_R[free] = r_off @ so3.exp(x[free])
 
-        for _ in range(refine_iters):
+        return self._refine(times, rotations, free, refine_iters, smoothness)
+
+    def _refine(self, times, rotations, free, iters: int, smoothness: float) -> "SO3Spline":
+        """Gauss-Newton steps on the manifold over the ``free`` control poses (residual log(R_k R(t_k)^T))."""
+        for _ in range(iters):
             s, r_t, jac = self.jacobians(times)
             res = so3.log(rotations @ np.swapaxes(r_t, -1, -2)).reshape(-1)
             a = self._jacobian_matrix(s, jac, free)
@@ -279,12 +283,29 @@ class SO3Spline:
         cls, degree: int, dt: float, times: np.ndarray, rotations: np.ndarray, t0: float | None = None,
         refine_iters: int = 2,
     ) -> "SO3Spline":
-        """A spline whose valid range starts at t0 (default times[0]) fitted to all samples (no pose fixed)."""
+        """A spline whose valid range starts at t0 (default times[0]) fitted to all samples (no pose fixed).
+
+        The lift about one offset rotation holds within half a turn of it, so samples that turn further are lifted
+        in consecutive segments, each within ``LIFT_SEGMENT_ANGLE`` of its first sample (each segment's new control
+        poses fitted with the earlier ones fixed); the Gauss-Newton steps then refine all poses together."""
         times = np.asarray(times, dtype=np.float64).reshape(-1)
+        rotations = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
         start = float(times[0]) if t0 is None else float(t0)
         lead = (degree - 1) // 2
-        spline = cls(degree, start - lead * dt, dt, np.broadcast_to(np.asarray(rotations)[0], (degree + 1, 3, 3)))
-        return spline.fit_new_segment(times, rotations, 0, refine_iters=refine_iters)
+        spline = cls(degree, start - lead * dt, dt, np.broadcast_to(rotations[0], (degree + 1, 3, 3)))
+        ends = _lift_segment_ends(rotations)
+        if len(ends) == 1:
+            return spline.fit_new_segment(times, rotations, 0, refine_iters=refine_iters)
+        begin = 0
+        for end in ends:
+            # the poses after the last one the previous segment's samples reach are free; its samples stay in the
+            # fit so that the new poses join the fixed ones smoothly
+            first_free = 0 if begin == 0 else int(spline.support(times[begin - 1 : begin])[0][0]) + spline.order
+            first_free = min(first_free, spline.num_control_to_cover(times[end - 1]) - 1)
+            lo = 0 if begin == 0 else max(0, np.searchsorted(times, times[begin] - spline.order * dt))
+            spline.fit_new_segment(times[lo:end], rotations[lo:end], first_free)
+            begin = end
+        return spline._refine(times, rotations, np.arange(spline.num_control), refine_iters, 1e-4)
 
     # helpers of the fit
     def _design(self, s, w, free, x, y):
@@ -353,6 +374,21 @@ class SO3Spline:
 
         lhs = (a.T @ a + weight * (d.T @ d) + 1e-12 * sp.identity(a.shape[1])).tocsc()
         return np.atleast_1d(spla.spsolve(lhs, b))
+
+
+LIFT_SEGMENT_ANGLE = math.pi / 2  # a lift segment's samples stay this close to its first one (well inside pi)
+
+
+def _lift_segment_ends(rotations: np.ndarray) -> list[int]:
+    """Ends (exclusive) of consecutive sample segments, each within LIFT_SEGMENT_ANGLE of its first sample."""
+    ends, first = [], 0
+    while first < len(rotations):
+        angle = so3.geodesic_angle(rotations[first], rotations[first:])
+        beyond = np.nonzero(angle > LIFT_SEGMENT_ANGLE)[0]
+        end = first + (int(beyond[0]) if len(beyond) else len(angle))
+        ends.append(max(end, first + 1))
+        first = ends[-1]
+    return ends
 
 
 DENSE_FIT_COLUMNS = 300  # fits over at most this many parameters (100 free poses) solve dense...

@@ -229,3 +229,17 @@ def test_small_fits_solve_dense_and_match_the_sparse_path():
 def so3_exp_path(t, rng):
     w = rng.normal(size=3)
     return so3.exp(np.outer(t, w) + 0.2 * np.sin(np.outer(t, [3.0, 5.0, 7.0])))
+
+
+@pytest.mark.parametrize("degree", [1, 3])
+def test_fit_follows_samples_over_more_than_half_a_turn(degree):
+    """A fit over samples that turn 1.5 times (about a tilted axis, with a wobble) follows them: the lift about one
+    offset rotation would wrap at half a turn from it."""
+    t = np.linspace(0.0, 3.0, 301)
+    axis = np.array([0.2, 1.0, 0.1]) / np.linalg.norm([0.2, 1.0, 0.1])
+    yaw = so3.exp(np.outer(3 * np.pi * t / 3.0, axis))
+    wobble = so3.exp(0.1 * np.stack([np.sin(2 * t), np.cos(3 * t), np.sin(t)], axis=1))
+    rots = yaw @ wobble
+    spline = SO3Spline.fit(degree, 0.05, t, rots)
+    err = so3.geodesic_angle(spline.evaluate(t[1:-1]), rots[1:-1])
+    assert err.max() < (1e-3 if degree == 3 else 5e-3)
