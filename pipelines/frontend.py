@@ -532,9 +532,18 @@ class AngularVelocityEstimator:
 
     @functools.cached_property
     def _lut(self) -> np.ndarray:
-        """The camera's per-pixel bearings (pixels, 4) in the workspace's float type (kernel ``pack`` reads it)."""
-        lut = self.camera.bearing_lut4
-        return lut if lut.dtype == self.ws.dtype else lut.astype(self.ws.dtype)
+        """The bearings kernel ``pack`` reads, in the workspace's float type: the camera's per-pixel table (pixels,
+        4), or for an undistorted camera its separable form (:meth:`IWEWorkspace.pack`): row i holds the x bearing of
+        column i, the y bearing of row i and 1, the numbers of the per-pixel table."""
+        cam = self.camera
+        if cam.has_distortion:
+            lut = cam.bearing_lut4
+            return lut if lut.dtype == self.ws.dtype else lut.astype(self.ws.dtype)
+        i = np.arange(max(cam.width, cam.height))
+        b = cam.unproject(i, i)
+        lut = np.zeros((len(i), 4), self.ws.dtype)
+        lut[:, :3] = b.astype(np.float32)
+        return lut
 
     def _load(self, events: Events, t_ref: float) -> tuple[int, float]:
         """Upload a packet, thinned (1 of k, k = ceil(n / frontend_max_packet_events), as :meth:`thin`), into the
@@ -548,7 +557,8 @@ class AngularVelocityEstimator:
         if n and not events.has_subpixel_coordinates:
             offset = self.dither.offset(n, t_ref) if self.dither is not None else 0
             return n, self.ws.pack(events.t, events.x, events.y, self._lut, self.camera.width, start, k, n, t_ref,
-                                   None if self.dither is None else self.dither.table, offset)
+                                   None if self.dither is None else self.dither.table, offset,
+                                   separable=not self.camera.has_distortion)
         events = self.thin(events)
         packed = self.camera.bearings(events.x, events.y, dtype=self.ws.dtype, columns=4)
         dts = packed[:, 3]
