@@ -17,7 +17,7 @@ kept at its width in sensor pixels.
 
 Cost per packet is bounded at any event rate: a packet above ``frontend_max_packet_events`` is thinned 1 of k (its
 span, hence the motion that makes omega measurable, is kept); so is the cost per input event: a packet stretched to
-the minimum span shares its events with the packets around it and keeps at most max(N, its event rate x dt)
+the minimum span shares its events with the packets around it and keeps at most max(2N, its event rate x dt)
 (:meth:`AngularVelocityEstimator.thinning_step`). The optimiser (``frontend_optimizer``: BFGS carrying
 its inverse Hessian from packet to packet, or the reference's Fletcher-Reeves CG) starts from the linear prediction
 2 omega_{j-1} - omega_{j-2} (``frontend_warm_start``), usually a fraction of a pixel from the optimum.
@@ -513,20 +513,22 @@ class AngularVelocityEstimator:
 
     def thinning_step(self, events: Events, packet: bool = False) -> int:
         """k of the 1-of-k thinning: k = ceil(n / m), m = ``frontend_max_packet_events`` (k = 1: no thinning; a cap
-        <= 0 never thins). A ``packet`` (the slicer's, not a lookback's) keeps at most m' = max(N, n dt / span)
-        events when fewer than m (N = ``num_events_per_packet``, dt = ``dt_ang_vel``): a packet of more than N
+        <= 0 never thins). A ``packet`` (the slicer's, not a lookback's) keeps at most m' = max(2N, n dt / span)
+        events when fewer than m (N = ``num_events_per_packet``, dt = ``dt_ang_vel``): a packet of more than 2N
         events spans the minimum span S (``frontend_min_packet_span``) and shares each event with S / dt packets,
         so m' keeps the events evaluated per second of data at the input rate, each input event evaluated about
-        once per evaluation round whatever S / dt (see ``sensor_defaults``, ``frontend_max_packet_events``)."""
+        once per evaluation round whatever S / dt; never fewer than the reference's thinning cap, 2N (see
+        ``sensor_defaults``, ``frontend_max_packet_events``)."""
         cfg = self.config
         cap = int(cfg.frontend_max_packet_events)
         n = len(events)
         if cap <= 0 or n <= 1:
             return 1
-        if packet and n > cfg.num_events_per_packet:
+        floor = 2 * int(cfg.num_events_per_packet)
+        if packet and n > floor:
             span = float(events.t[-1]) - float(events.t[0])
             if span > cfg.dt_ang_vel:
-                cap = min(cap, max(int(cfg.num_events_per_packet), int(np.ceil(n * cfg.dt_ang_vel / span))))
+                cap = min(cap, max(floor, int(np.ceil(n * cfg.dt_ang_vel / span))))
         return -(-n // cap) if n > cap else 1
 
     def thin(self, events: Events, packet: bool = False) -> Events:
