@@ -16,7 +16,9 @@ holds as many events per pixel on any sensor. On large sensors that image is coa
 kept at its width in sensor pixels.
 
 Cost per packet is bounded at any event rate: a packet above ``frontend_max_packet_events`` is thinned 1 of k (its
-span, hence the motion that makes omega measurable, is kept). The optimiser (``frontend_optimizer``: BFGS carrying
+span, hence the motion that makes omega measurable, is kept); so is the cost per input event: a packet stretched to
+the minimum span shares its events with the packets around it and keeps at most max(2N, its event rate x dt)
+(:meth:`AngularVelocityEstimator.thinning_step`). The optimiser (``frontend_optimizer``: BFGS carrying
 its inverse Hessian from packet to packet, or the reference's Fletcher-Reeves CG) starts from the linear prediction
 2 omega_{j-1} - omega_{j-2} (``frontend_warm_start``), usually a fraction of a pixel from the optimum.
 
@@ -509,15 +511,31 @@ class AngularVelocityEstimator:
         self.omega = np.zeros(3)
         self.omega_prev = None
 
-    def thin(self, events: Events) -> Events:
-        """Keep 1 of k events (k = ceil(n / frontend_max_packet_events)) so a packet holds at most that many;
-        uniform in the event index, so the span and the event density pattern are kept."""
-        cap = int(self.config.frontend_max_packet_events)
+    def thinning_step(self, events: Events, packet: bool = False) -> int:
+        """k of the 1-of-k thinning: k = ceil(n / m), m = ``frontend_max_packet_events`` (k = 1: no thinning; a cap
+        <= 0 never thins). A ``packet`` (the slicer's, not a lookback's) keeps at most m' = max(2N, n dt / span)
+        events when fewer than m (N = ``num_events_per_packet``, dt = ``dt_ang_vel``): a packet of more than 2N
+        events spans the minimum span S (``frontend_min_packet_span``) and shares each event with S / dt packets,
+        so m' keeps the events evaluated per second of data at the input rate, each input event evaluated about
+        once per evaluation round whatever S / dt; never fewer than the reference's thinning cap, 2N (see
+        ``sensor_defaults``, ``frontend_max_packet_events``)."""
+        cfg = self.config
+        cap = int(cfg.frontend_max_packet_events)
         n = len(events)
-        if cap <= 0 or n <= cap:
-            return events
-        k = -(-n // cap)
-        return events[(k // 2)::k]
+        if cap <= 0 or n <= 1:
+            return 1
+        floor = 2 * int(cfg.num_events_per_packet)
+        if packet and n > floor:
+            span = float(events.t[-1]) - float(events.t[0])
+            if span > cfg.dt_ang_vel:
+                cap = min(cap, max(floor, int(np.ceil(n * cfg.dt_ang_vel / span))))
+        return -(-n // cap) if n > cap else 1
+
+    def thin(self, events: Events, packet: bool = False) -> Events:
+        """Keep 1 of k events (:meth:`thinning_step`); uniform in the event index, so the span and the event density
+        pattern are kept."""
+        k = self.thinning_step(events, packet)
+        return events[(k // 2)::k] if k > 1 else events
 
     def warm_start(self) -> np.ndarray:
         if self.config.frontend_warm_start == "linear" and self.omega_prev is not None:
@@ -525,41 +543,53 @@ class AngularVelocityEstimator:
         return self.omega
 
     def compile(self) -> float:
-        """Compile (or load from the offline cache) the kernels; returns seconds spent."""
+        """Compile (or load from the offline cache) the kernels and build the bearing table ``pack`` reads (0.4 s for
+        a distorted HD camera: paid before the first packet, not by it); returns seconds spent."""
         t0 = time.perf_counter()
         self.ws.compile()
+        _ = self._lut
         return time.perf_counter() - t0
 
     @functools.cached_property
     def _lut(self) -> np.ndarray:
-        """The camera's per-pixel bearings (pixels, 4) in the workspace's float type (kernel ``pack`` reads it)."""
-        lut = self.camera.bearing_lut4
-        return lut if lut.dtype == self.ws.dtype else lut.astype(self.ws.dtype)
+        """The bearings kernel ``pack`` reads, in the workspace's float type: the camera's per-pixel table (pixels,
+        4), or for an undistorted camera its separable form (:meth:`IWEWorkspace.pack`): row i holds the x bearing of
+        column i, the y bearing of row i and 1, the numbers of the per-pixel table."""
+        cam = self.camera
+        if cam.has_distortion:
+            lut = cam.bearing_lut4
+            return lut if lut.dtype == self.ws.dtype else lut.astype(self.ws.dtype)
+        i = np.arange(max(cam.width, cam.height))
+        b = cam.unproject(i, i)
+        lut = np.zeros((len(i), 4), self.ws.dtype)
+        lut[:, :3] = b.astype(np.float32)
+        return lut
 
-    def _load(self, events: Events, t_ref: float) -> tuple[int, float]:
-        """Upload a packet, thinned (1 of k, k = ceil(n / frontend_max_packet_events), as :meth:`thin`), into the
-        workspace; returns (events loaded, max |t - t_ref|). Integer pixels go through kernel ``pack`` (table
-        bearings, dither and times read from the events' arrays in place); sub-pixel ones are undistorted here."""
-        cap = int(self.config.frontend_max_packet_events)
+    def _load(self, events: Events, t_ref: float, packet: bool = False) -> tuple[int, float]:
+        """Upload a packet, thinned (1 of k, :meth:`thinning_step`, as :meth:`thin`), into the workspace; returns
+        (events loaded, max |t - t_ref|). Integer pixels go through kernel ``pack`` (table bearings, dither and
+        times read from the events' arrays in place); sub-pixel ones are undistorted here."""
         total = len(events)
-        k = -(-total // cap) if 0 < cap < total else 1
+        k = self.thinning_step(events, packet)
         start = k // 2 if k > 1 else 0
         n = len(range(start, total, k))
         if n and not events.has_subpixel_coordinates:
             offset = self.dither.offset(n, t_ref) if self.dither is not None else 0
             return n, self.ws.pack(events.t, events.x, events.y, self._lut, self.camera.width, start, k, n, t_ref,
-                                   None if self.dither is None else self.dither.table, offset)
-        events = self.thin(events)
+                                   None if self.dither is None else self.dither.table, offset,
+                                   separable=not self.camera.has_distortion)
+        events = self.thin(events, packet)
         packed = self.camera.bearings(events.x, events.y, dtype=self.ws.dtype, columns=4)
         dts = packed[:, 3]
         np.subtract(events.t, t_ref, out=dts, casting="unsafe")
         self.ws.set_packed(packed)
         return n, float(np.max(np.abs(dts))) if n else 0.0
 
-    def _objective(self, events: Events, t_ref: float):
-        """Load a packet (thinned); returns (fun, s, n): fun(x) = normalised contrast and gradient at omega = x / s,
-        s = focal * max |t - t_ref| (pixels per rad/s, so optimiser steps are in pixels of motion blur)."""
-        n, span = self._load(events, t_ref)
+    def _objective(self, events: Events, t_ref: float, packet: bool = False):
+        """Load events (thinned; ``packet``: the slicer's packet, :meth:`thinning_step`); returns (fun, s, n): fun(x)
+        = normalised contrast and gradient at omega = x / s, s = focal * max |t - t_ref| (pixels per rad/s, so
+        optimiser steps are in pixels of motion blur)."""
+        n, span = self._load(events, t_ref, packet)
         self.events_evaluated += n
         s = self.focal * span if n else 0.0
         if not s > 0:
@@ -596,7 +626,7 @@ class AngularVelocityEstimator:
         rotation at omega; omega maximises the variance of their image (the IWE), starting from the warm start (or
         ``omega0``). The policies then say whether the events measure that motion (:meth:`_judge`): a flat packet
         takes omega = 0 and resets the warm start."""
-        fun, s, n = self._objective(events, t_ref)
+        fun, s, n = self._objective(events, t_ref, packet=True)
         x0 = (self.warm_start() if omega0 is None else np.asarray(omega0, float)) * s
         optimum = self._maximize(fun, x0)
         self.omega_prev, self.omega = self.omega, optimum.x / s
@@ -669,7 +699,7 @@ class AngularVelocityEstimator:
         """How well ``omega`` (another method's angular velocity) explains one packet: its contrast over the best
         contrast CG finds from the better of ``omega`` and the warm start (1: a local optimum; well below 1: the
         events say the motion differs). Returns (ratio, best omega); the best becomes the warm start."""
-        fun, s, n = self._objective(events, t_ref)
+        fun, s, n = self._objective(events, t_ref, packet=True)
         omega = np.asarray(omega, float)
         given = fun(omega * s)[0]
         warm = self.warm_start()

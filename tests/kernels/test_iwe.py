@@ -246,3 +246,28 @@ def test_pack_matches_numpy_twin(ti_runtime, dtype, start, step, dithered):
     ref.set_packet(want[:, :3], want[:, 3])
     om = (0.8, -1.5, 0.4)
     assert ws.evaluate(om, CAM.K)[0] == ref.evaluate(om, CAM.K)[0]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_separable_pack_is_the_per_pixel_pack(ti_runtime, dtype):
+    """An undistorted camera's bearings are separable ((x - cx) / fx, (y - cy) / fy, 1): kernel ``pack`` from the
+    table of max(width, height) rows gives the rows of the per-pixel table, bit for bit, as its numpy twin does."""
+    cam = Camera(width=346, height=260, fx=250.0, fy=251.0, cx=172.3, cy=129.6)
+    rng = np.random.default_rng(3)
+    total = 5000
+    t = np.sort(rng.uniform(1.0, 1.03, total))
+    x = rng.integers(0, cam.width, total).astype(np.uint16)
+    y = rng.integers(0, cam.height, total).astype(np.uint16)
+    i = np.arange(max(cam.width, cam.height))
+    table = np.zeros((len(i), 4), dtype)
+    table[:, :3] = cam.unproject(i, i).astype(np.float32)
+    dxy = rng.uniform(-0.01, 0.01, (total, 2)).astype(dtype)
+    n = len(range(1, total, 2))
+    ws = iwe.IWEWorkspace(cam.width, cam.height, dtype, capacity=n)
+    span = ws.pack(t, x, y, table, cam.width, 1, 2, n, 1.015, dxy, offset=3, separable=True)
+    want = iwe.pack_numpy(t, x, y, cam.bearing_lut4.astype(dtype), 1, 2, n, 1.015, dxy, offset=3, width=cam.width,
+                          dtype=dtype)
+    np.testing.assert_array_equal(ws._packed[:n], want)
+    np.testing.assert_array_equal(iwe.pack_numpy(t, x, y, table, 1, 2, n, 1.015, dxy, offset=3, dtype=dtype,
+                                                 separable=True), want)
+    assert span == pytest.approx(float(np.abs(want[:, 3]).max()), rel=1e-7)

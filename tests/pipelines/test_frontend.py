@@ -612,3 +612,22 @@ def test_runner_check_names_bad_timestamps_anywhere(where, bad, message):
     with pytest.raises(InputError, match=message):
         runner.check(Events(t, ev.x, ev.y, ev.p))
     runner.check(ev)  # a good chunk passes
+
+
+def test_packets_at_the_minimum_span_keep_one_step_of_events(ti_runtime):
+    """A packet of more than 2N events spans the minimum span S and shares its events with S / dt packets: it keeps
+    max(2N, n dt / span) of them (below the cap), so each input event is evaluated about once per round; a
+    lookback (not a packet) keeps the cap, and a packet of 2N events or fewer is never thinned below the cap."""
+    cfg = FrontendConfig(num_events_per_packet=1000, frontend_max_packet_events=20000, dt_ang_vel=0.01)
+    est = AngularVelocityEstimator(CAM, cfg)
+    ev = _synthetic_events(np.array([0.2, -0.4, 0.3]), 0.0, 0.04, 16000, seed=5)
+    want = max(2000, int(np.ceil(len(ev) * 0.01 / ev.duration)))
+    k = est.thinning_step(ev, packet=True)
+    assert k == -(-len(ev) // want) and k >= 3
+    assert len(est.thin(ev, packet=True)) <= want
+    assert est.thinning_step(ev) == 1  # a lookback: under the cap
+    assert est.thinning_step(ev[:2000], packet=True) == 1  # 2N events: not thinned
+    high = AngularVelocityEstimator(CAM, dataclasses.replace(cfg, num_events_per_packet=4000))
+    assert high.thinning_step(ev, packet=True) == 2  # 2N bounds it from below
+    est.estimate(ev, 0.02)
+    assert est.events_evaluated == len(est.thin(ev, packet=True))
