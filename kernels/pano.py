@@ -563,25 +563,32 @@ def column_selector(cols: np.ndarray):
 
 
 def _revote_axis(a: np.ndarray, start: int, d: int, axis: int, cyclic: bool = False) -> tuple[int, np.ndarray]:
-    """``revote`` along one axis: fine indices start + i (i < a.shape[axis]) onto coarse I with weights
-    (d - |start + i - d I|) / d. Returns (first coarse index, values); ``cyclic``: a whole cyclic axis (start 0, its
-    length a multiple of d), one value per coarse index."""
-    a = np.moveaxis(a, axis, 0)
-    n = a.shape[0]
+    """``revote`` along one axis of a 2-D array: fine indices start + i (i < a.shape[axis]) onto coarse I with
+    weights (d - |start + i - d I|) / d. Returns (first coarse index, values); ``cyclic``: a whole cyclic axis (start
+    0, its length a multiple of d), one value per coarse index."""
+    n = a.shape[axis]
+
+    def along(x, sl):  # x[sl] along ``axis``
+        return x[sl] if axis == 0 else x[:, sl]
+
     if cyclic:
         lo, count = 0, n // d
-        padded = np.concatenate([a[n - (d - 1):], a, a[:d - 1]]) if d > 1 else a
+        padded = np.concatenate([along(a, slice(n - (d - 1), n)), a, along(a, slice(0, d - 1))], axis=axis) \
+            if d > 1 else a
     else:
         lo = -((d - 1 - start) // d)  # ceil((start - d + 1) / d): the first coarse index a fine one reaches
-        hi = (start + n - 1 + d - 1) // d
-        count = hi - lo + 1
-        padded = np.zeros((count * d + 2 * (d - 1),) + a.shape[1:], a.dtype)
+        count = (start + n - 1 + d - 1) // d - lo + 1
+        shape = list(a.shape)
+        shape[axis] = count * d + 2 * (d - 1)
+        padded = np.zeros(shape, a.dtype)
         first = start - (lo * d - (d - 1))  # where fine index ``start`` goes in ``padded``
-        padded[first:first + n] = a
-    out = np.zeros((count,) + a.shape[1:], a.dtype)
-    for k in range(-(d - 1), d):
-        out += padded[d - 1 + k: d - 1 + k + count * d: d] * a.dtype.type((d - abs(k)) / d)
-    return lo, np.moveaxis(out, 0, axis)
+        along(padded, slice(first, first + n))[...] = a
+    out = along(padded, slice(d - 1, d - 1 + count * d, d)).copy()  # k = 0: weight 1
+    for k in range(1, d):
+        w = a.dtype.type((d - k) / d)
+        out += w * (along(padded, slice(d - 1 - k, d - 1 - k + count * d, d))
+                    + along(padded, slice(d - 1 + k, d - 1 + k + count * d, d)))
+    return lo, out
 
 
 def revote(votes: np.ndarray, r0: int, cols: np.ndarray, d: int, width: int, height: int):
@@ -597,8 +604,8 @@ def revote(votes: np.ndarray, r0: int, cols: np.ndarray, d: int, width: int, hei
         return slice(int(r0), int(r0) + len(votes)), np.asarray(cols), votes
     wc, hc = width // d, height // d
     cyclic = len(cols) == width
-    c_lo, out = _revote_axis(votes, 0 if cyclic else int(cols[0]), d, 1, cyclic)
-    r_lo, out = _revote_axis(out, int(r0), d, 0)
+    r_lo, out = _revote_axis(votes, int(r0), d, 0)  # rows first: the column pass then reads d times less
+    c_lo, out = _revote_axis(out, 0 if cyclic else int(cols[0]), d, 1, cyclic)
     top, bottom = max(r_lo, 0), min(r_lo + out.shape[0], hc)
     out = out[top - r_lo:bottom - r_lo]
     if not cyclic and out.shape[1] > wc:  # a run longer than the coarse width: fold it

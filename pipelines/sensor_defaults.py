@@ -219,6 +219,7 @@ def describe(values: dict) -> str:
     return ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in values.items())
 
 
-__all__ = ["iwe_downsample_for", "ba_downsample_for", "iwe_size", "resolve_config", "resolve_frontend", "resolve_backend",
+__all__ = ["iwe_downsample_for", "ba_downsample_for",
+           "iwe_size", "resolve_config", "resolve_frontend", "resolve_backend",
            "derived_frontend", "derived_backend", "derived_summary", "describe", "map_width_for", "pano_size",
            "derived_realtime", "derived_loop"]
