@@ -299,7 +299,8 @@ class BackendConfig(Params):
                                             "43200", unit="events/s", gt=0, zero="derived")
     # a window with more events is sampled evenly to this many for the BA (all events still go into the map)
     backend_max_window_events: int = param(0, "BA events per window at most (even sample); derived: 5 x pixels x "
-                                              "window / 0.2 s / d^2", unit="events", ge=200, zero="derived", off=-1)
+                                              "window / 0.2 s, on a coarser BA map at most 2.2 per BA-map pixel of "
+                                              "the sensor's view", unit="events", ge=200, zero="derived", off=-1)
     freeze_pixels: bool = param(False, "map pixels stop updating max_update_time after first seen")
     max_update_time: float = param(10.0, "time a map pixel stays updatable (with freeze_pixels)", unit="s", gt=0)
     lambda0: float = param(1.0, "weight of the event area in the map quality figures", gt=0)

@@ -19,8 +19,8 @@ HD = Camera(1280, 720, 1235.0, 1235.0, 639.5, 359.5)
     ("DVS128", 1, 10000, 20000, 3792.6, 1280, 82000, 1),   # smaller sensor: packets stay at the reference's size
     ("DAVIS240C", 1, 10000, 20000, 10000.0, 2048, 216000, 1),
     ("DAVIS346", 1, 21000, 42000, 20824.1, 2560, 450000, 1),  # at d = 2 its IWE would have fewer pixels than 43 200
-    ("DVXplorer", 2, 18000, 53000, 71111.1, 5120, 384000, 2),  # IWE 320 x 240; cap 3N; BA map 2560 x 1280
-    ("HD", 2, 53000, 160000, 213333.3, 8192, 1152000, 2),  # IWE 640 x 360; map width at its cap; BA map 4096 wide
+    ("DVXplorer", 2, 18000, 53000, 71111.1, 5120, 419000, 2),  # IWE 320 x 240; cap 3N; BA map 2560 x 1280
+    ("HD", 2, 53000, 160000, 213333.3, 8192, 571000, 2),  # IWE 640 x 360; map width at its cap; BA map 4096 wide
 ])
 def test_derived_values_follow_the_documented_rules(sensor, d, packet, cap, rate, map_w, window_cap, d_ba):
     from ti_cmax.simulate import sensor_camera
@@ -38,7 +38,7 @@ def test_derived_values_follow_the_documented_rules(sensor, d, packet, cap, rate
     assert b.backend_map_downsample == d_ba
     # the sensor's view on the BA map: at least a DAVIS240C's at the default scale, or d = 1
     assert d_ba == 1 or camera.width * camera.height * (ratio / d_ba) ** 2 >= 43200 * 1.5**2
-    assert cfg.realtime.realtime_min_window_events == round(camera.width * camera.height / d_ba**2, -3)
+    assert cfg.realtime.realtime_min_window_events == round(window_cap / 5, -3)  # a fifth of the cap
     assert resolve_config(cfg, camera) == cfg  # idempotent: resolved values are plain numbers
 
 
@@ -91,9 +91,12 @@ def test_ba_map_downsampling_follows_the_blur_and_the_view(camera, sigma, height
     b = derived_backend(camera, cfg)
     w, h = 2 * b["pano_height"], b["pano_height"]
     assert ba_downsample_for(camera, w, h, sigma) == b["backend_map_downsample"] == d
-    # the window's cap holds 5 events per sensor pixel on a full-resolution map, the same per BA-map pixel on one d
-    # times coarser
-    assert b["backend_max_window_events"] == round(5 * camera.width * camera.height / d**2, -3)
+    # the window's cap: 5 events per sensor pixel on the full-resolution map; on a coarser one 5 / 1.5^2 per BA-map
+    # pixel of the sensor's view, never more than 5 per sensor pixel
+    pixels = camera.width * camera.height
+    view = pixels * (w / (2 * np.pi * camera.fx) / d) ** 2
+    want = 5 * pixels if d == 1 else min(5 * pixels, 5 / 1.5**2 * view)
+    assert b["backend_max_window_events"] == pytest.approx(want, abs=500)
 
 
 def test_iwe_intrinsics_map_sensor_pixels_onto_blocks_of_the_iwe():
