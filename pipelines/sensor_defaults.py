@@ -75,6 +75,7 @@ import numpy as np
 
 from ti_cmax.camera import Camera
 from ti_cmax.config import BackendConfig, FrontendConfig, SlamConfig
+from ti_cmax.errors import InputError
 
 REFERENCE_PIXELS = 240 * 180  # DAVIS240C, the sensor the reference's defaults were tuned on
 REFERENCE_PACKET_EVENTS = 10_000
@@ -203,7 +204,13 @@ def resolve_frontend(config: FrontendConfig, camera: Camera) -> FrontendConfig:
 
 
 def resolve_backend(config: BackendConfig, camera: Camera) -> BackendConfig:
-    return _fill(config, derived_backend(camera, config))
+    """The back-end's config with its derived values; InputError when a set BA-map factor does not divide the map."""
+    resolved = _fill(config, derived_backend(camera, config))
+    (width, height), d = resolved.pano_size, resolved.backend_map_downsample
+    if width % d or height % d:
+        raise InputError(f"backend_map_downsample={d} must divide the map's size {width} x {height} (pano_width, "
+                         f"pano_height)")
+    return resolved
 
 
 def pano_size(config: BackendConfig, camera: Camera) -> tuple[int, int]:

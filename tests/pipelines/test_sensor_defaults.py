@@ -114,6 +114,16 @@ def test_iwe_intrinsics_map_sensor_pixels_onto_blocks_of_the_iwe():
     assert np.array_equal(iwe_intrinsics(HD.K, 1), HD.K)
 
 
+def test_a_ba_map_factor_that_does_not_divide_the_map_is_a_clear_error():
+    from ti_cmax.errors import InputError
+
+    cfg = load_config(SlamConfig, None, ["backend_map_downsample=3"])  # the derived 5120 x 2560 map
+    with pytest.raises(InputError, match="backend_map_downsample=3 must divide"):
+        resolve_config(cfg, VGA)
+    assert resolve_config(load_config(SlamConfig, None, ["backend_map_downsample=4"]), VGA).backend.pano_size == \
+        (5120, 2560)
+
+
 def test_unresolved_map_size_is_a_clear_error():
     with pytest.raises(ValueError, match="resolve"):
         SlamConfig().backend.pano_size
