@@ -37,8 +37,9 @@ With P the sensor's pixel count, s = P / 43200 (DAVIS240C = 1) and f = (fx + fy)
   a pixel of d x d map pixels spreads a vote by d / sqrt(6) map pixels (rms), no more than the blur. The BA's cost
   per evaluation follows the window's events and its area in BA-map pixels, both d^2 smaller (with the cap below);
   the output map keeps the full resolution, and the strides it settles are re-voted onto the BA's map
-  (kernels.pano.revote). Measured on a VGA (12.6 M events/s) and an HD (7 M events/s) sequence: abs 0.034 -> 0.027
-  and 0.034 -> 0.024 deg, for 3.5x and 2x less BA time.
+  (kernels.pano.revote). Measured with the cap below on a VGA (12.6 M events/s) and an HD (7 M events/s) sequence:
+  abs 0.034 -> 0.032 and 0.033 -> 0.026 deg, rel 0.031 -> 0.036 and 0.028 -> 0.029 deg/s, for 4x less BA time on
+  both (the blur at 0.5 BA-map pixels instead, its width kept in map pixels: abs 0.037, rel 0.034 on the VGA one).
 - ``backend_max_window_events`` = 5 * P * window / 0.2 s, rounded to 1000: a window with more events is sampled
   evenly (every n/cap-th event, so evenly in time and, in proportion, over the image) for the BA; every event still
   goes into the map. 5 events per sensor pixel per 0.2 s window is about 1.1 M events/s on a DAVIS240C and 7.7 M
