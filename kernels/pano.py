@@ -270,9 +270,11 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         uv_out: ti.types.ndarray(dtype=vec2, ndim=1),
         bbox: ti.types.ndarray(dtype=ti.i32, ndim=2),
         tasks: ti.i32,
+        with_grad: ti.template(),
     ):
         """Per batch: pose + Jacobians, (u, v) and (s, c, t) of the rotated bearings (project_basis), and the batch's
-        bounding box of touched pixels.
+        bounding box of touched pixels; without ``with_grad`` (votes only: the settled strides) the pose, (u, v) and
+        the box (the spline's Jacobians and the basis cost a fifth of the pass).
 
         Columns are tracked relative to the batch's first event, wrapped to (-w/2, w/2], so the box is a cyclic
         interval [bbox0, bbox1) (unwrapped integers, bbox1 - bbox0 <= w); rows [bbox2, bbox3] clamped to the map.
@@ -286,7 +288,11 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         for it in range(tasks):
             lo, hi = even_slice(it, nb, tasks)
             for b in range(lo, hi):
-                r = spl.pose_jacobians(ctrl, batch_s[b], batch_u[b], jac_out, b)
+                r = ti.Matrix.zero(dtype, 3, 3)
+                if ti.static(with_grad):
+                    r = spl.pose_jacobians(ctrl, batch_s[b], batch_u[b], jac_out, b)
+                else:
+                    r = spl.pose(ctrl, batch_s[b], batch_u[b])
                 e0 = b * batch_size
                 pu0, _ = pf.project(r @ bearings[ti.min(e0, n_ev - 1)], width, height, su, sv)
                 ref = ti.floor(pu0)  # columns relative to the batch's first event
@@ -296,7 +302,8 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
                 vmax = ti.cast(-1.0, dtype)
                 for e in range(e0, ti.min(e0 + batch_size, n_ev)):
                     pu, pv, q = pf.project_basis(r @ bearings[e], width, height, su, sv)
-                    basis_out[e] = q
+                    if ti.static(with_grad):
+                        basis_out[e] = q
                     uv_out[e] = vec2(pu, pv)
                     # float min/max and selects (branch-free; the integer form with branches cost more per event)
                     d = pu - ref
@@ -555,6 +562,59 @@ def column_selector(cols: np.ndarray):
     return cols
 
 
+def _revote_axis(a: np.ndarray, start: int, d: int, axis: int, cyclic: bool = False) -> tuple[int, np.ndarray]:
+    """``revote`` along one axis of a 2-D array: fine indices start + i (i < a.shape[axis]) onto coarse I with
+    weights (d - |start + i - d I|) / d. Returns (first coarse index, values); ``cyclic``: a whole cyclic axis (start
+    0, its length a multiple of d), one value per coarse index."""
+    n = a.shape[axis]
+
+    def along(x, sl):  # x[sl] along ``axis``
+        return x[sl] if axis == 0 else x[:, sl]
+
+    if cyclic:
+        lo, count = 0, n // d
+        padded = np.concatenate([along(a, slice(n - (d - 1), n)), a, along(a, slice(0, d - 1))], axis=axis) \
+            if d > 1 else a
+    else:
+        lo = -((d - 1 - start) // d)  # ceil((start - d + 1) / d): the first coarse index a fine one reaches
+        count = (start + n - 1 + d - 1) // d - lo + 1
+        shape = list(a.shape)
+        shape[axis] = count * d + 2 * (d - 1)
+        padded = np.zeros(shape, a.dtype)
+        first = start - (lo * d - (d - 1))  # where fine index ``start`` goes in ``padded``
+        along(padded, slice(first, first + n))[...] = a
+    out = along(padded, slice(d - 1, d - 1 + count * d, d)).copy()  # k = 0: weight 1
+    for k in range(1, d):
+        w = a.dtype.type((d - k) / d)
+        out += w * (along(padded, slice(d - 1 - k, d - 1 - k + count * d, d))
+                    + along(padded, slice(d - 1 + k, d - 1 + k + count * d, d)))
+    return lo, out
+
+
+def revote(votes: np.ndarray, r0: int, cols: np.ndarray, d: int, width: int, height: int):
+    """Votes of a map (``width`` x ``height``) on rows r0.. and columns ``cols`` (a cyclic run, or all of them) re-voted
+    onto the map d times coarser: each pixel's mass bilinearly at its centre's coarse position (u / d, v / d).
+
+    The coarse map is thereby centred like one voted directly at (u / d, v / d) and spreads a vote by the same rms
+    (d^2 / 6 fine px^2 per axis: the fine bilinear vote's 1/6 plus the re-vote's (d^2 - 1) / 6): the loop closer's
+    rebuild and the settled strides give the BA's coarse map without a second projection. Returns (rows slice,
+    column indices, votes) on the coarse map (rows beyond it dropped, columns modulo width / d)."""
+    votes = np.asarray(votes)
+    if d == 1:
+        return slice(int(r0), int(r0) + len(votes)), np.asarray(cols), votes
+    wc, hc = width // d, height // d
+    cyclic = len(cols) == width
+    r_lo, out = _revote_axis(votes, int(r0), d, 0)  # rows first: the column pass then reads d times less
+    c_lo, out = _revote_axis(out, 0 if cyclic else int(cols[0]), d, 1, cyclic)
+    top, bottom = max(r_lo, 0), min(r_lo + out.shape[0], hc)
+    out = out[top - r_lo:bottom - r_lo]
+    if not cyclic and out.shape[1] > wc:  # a run longer than the coarse width: fold it
+        folded = np.zeros((out.shape[0], wc), out.dtype)
+        np.add.at(folded.T, (c_lo + np.arange(out.shape[1])) % wc, out.T)
+        return slice(top, bottom), np.arange(wc), folded
+    return slice(top, bottom), (c_lo + np.arange(out.shape[1])) % wc, out
+
+
 def blur_region(raw: np.ndarray, blurred: np.ndarray, rows: slice, cols: np.ndarray, sigma: float) -> np.ndarray:
     """Recompute ``blurred`` = blur_map(raw) on rows x cols only (in place); returns the old values there.
 
@@ -648,11 +708,13 @@ class PanoIWE:
             self.gmap = np.zeros((1, 1), dtype=self.dtype)
         self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree, num_threads() == 1)
         n, order = len(self.bearings), self.degree + 1
-        self._jac = np.zeros((nb, order, 3, 3), dtype=self.dtype)
-        self._basis = np.zeros((n, 3), dtype=self.dtype)  # (s, c, t) per event: project_basis
-        self._uv = np.zeros((n, 2), dtype=self.dtype)
-        self._bbox = np.zeros((nb, 4), dtype=np.int32)
-        self._gb = np.zeros((nb, order, 3), dtype=self.dtype)
+        # written whole by the kernels before they are read (np.zeros of arrays this size is a memset per window,
+        # ~2 ms for a million events: the allocator reuses freed blocks rather than fresh zero pages)
+        self._jac = np.empty((nb, order, 3, 3), dtype=self.dtype)
+        self._basis = np.empty((n, 3), dtype=self.dtype)  # (s, c, t) per event: project_basis
+        self._uv = np.empty((n, 2), dtype=self.dtype)
+        self._bbox = np.empty((nb, 4), dtype=np.int32)
+        self._gb = np.empty((nb, order, 3), dtype=self.dtype)
         self.last_window = None  # (r0, c0, bh, bw, wrap) of the last evaluation, for inspection
         self._grad_bins = None  # (number of control poses, bincount index of each gradient term)
         self._density_ref = None  # (rho_g, lambda0) until alpha is set by the first evaluation
@@ -690,7 +752,7 @@ class PanoIWE:
         r1 = min(int(self._bbox[:, 3].max()) + r, self.height - 1)
         return r0, c0, r1 - r0 + 1, bw, wrap
 
-    def _vote(self, control_R, lambda0: float = -1.0):
+    def _vote(self, control_R, lambda0: float = -1.0, with_grad: bool = True):
         """Project the events at these control poses and vote I_L (unblurred) into the window buffer: (ctrl, window
         (r0, c0, bh, bw, wrap) or None, buffer (bh, bw), per-row stats (bh, 3): raw sum, event area when lambda0
         >= 0)."""
@@ -702,7 +764,7 @@ class PanoIWE:
             return ctrl, None, None, None
         k = self._k
         k["project"](ctrl, self.batch_s, self.batch_u, self.bearings, self.batch_size, self.width, self.height,
-                     self.su, self.sv, self._jac, self._basis, self._uv, self._bbox, self.parts * PART_TASK)
+                     self.su, self.sv, self._jac, self._basis, self._uv, self._bbox, self.parts * PART_TASK, with_grad)
         win = self._window()
         self.last_window = win
         if win is None:
@@ -718,7 +780,7 @@ class PanoIWE:
         """The raw local map I_L (bilinear votes, unblurred) of the events at these control poses on its window:
         (first row, column indices (modulo the width), votes (bh, bw)), None when no event lands in the map. The
         back-end settles each stride into the global map with it: the BA's own projection and vote."""
-        _, win, lmap, _ = self._vote(control_R)
+        _, win, lmap, _ = self._vote(control_R, with_grad=False)
         if win is None:
             return None
         r0, c0, _bh, bw, wrap = win

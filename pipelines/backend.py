@@ -29,7 +29,7 @@ import numpy as np
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
 from ti_cmax.kernels.pano import (
-    PanoIWE, batch_mid_times, blur_radius, blur_region, column_selector, touched_region, vote_map,
+    PanoIWE, batch_mid_times, blur_radius, blur_region, column_selector, revote, touched_region, vote_map,
 )
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
@@ -171,16 +171,31 @@ class GlobalMap:
     first observed (observation time only counts while the camera moves).
     """
 
-    def __init__(self, width: int, height: int, sigma: float, lambda0: float, max_update_time: float | None = None):
+    def __init__(self, width: int, height: int, sigma: float, lambda0: float, max_update_time: float | None = None,
+                 downsample: int = 1):
+        if width % downsample or height % downsample:
+            raise ValueError(f"a {width} x {height} map cannot be downsampled by {downsample}")
         self.width, self.height, self.sigma, self.lambda0 = width, height, sigma, lambda0
+        self.downsample = int(downsample)
         self.raw = np.zeros((height, width), np.float32)
-        self.blurred = np.zeros((height, width), np.float32)
+        self._ba_raw = None if downsample == 1 else np.zeros(self.ba_size[::-1], np.float32)
+        self.blurred = np.zeros(self.ba_size[::-1], np.float32)  # B(I_G) on the BA's map
         self.g_sum = self.g_sq = 0.0  # sums of B(I_G) and B(I_G)^2
-        self.n_events = self.area = 0.0  # sum of I_G and its event area sum(1 - exp(-I_G / lambda0))
+        self.n_events = self.area = 0.0  # sum of I_G and its event area sum(1 - exp(-I_G / lambda0)) (BA's map)
         self.max_update_time = max_update_time
         self.first_seen = None if max_update_time is None else np.full((height, width), np.inf, np.float32)
         self._scratch = np.zeros((height, width), np.float32)  # stays zero between calls
         self._occ = (np.zeros(width, np.int32), np.zeros(height, np.int32))
+
+    @property
+    def ba_size(self) -> tuple[int, int]:
+        """(width, height) of the map the BA reads: the output map's, ``downsample`` times coarser."""
+        return self.width // self.downsample, self.height // self.downsample
+
+    @property
+    def ba_raw(self) -> np.ndarray:
+        """I_G on the BA's map: the output map itself, or its re-voted coarse copy (kernels.pano.revote)."""
+        return self.raw if self._ba_raw is None else self._ba_raw
 
     @property
     def density(self) -> float:
@@ -222,28 +237,52 @@ class GlobalMap:
         self._accumulate(rows, cols, (rows, column_selector(cols)), votes, t_now, moving)
 
     def _accumulate(self, rows: slice, cols: np.ndarray, sel, votes: np.ndarray, t_now: float, moving: bool) -> None:
-        """I_G += votes on the region (rows, cols) = sel, then B(I_G), the sums and the event area there."""
-        contiguous = isinstance(sel[1], slice)
+        """I_G += votes on the region (rows, cols) = sel, then B(I_G), the sums and the event area there (on the BA's
+        map: the region re-voted onto it when it is coarser)."""
         if self.first_seen is not None:
             seen = self.first_seen[sel]
             if moving:
                 seen = np.minimum(seen, np.where(votes > 0, np.float32(t_now), np.float32(np.inf)))
                 self.first_seen[sel] = seen
             votes = np.where((t_now - seen) < self.max_update_time, votes, 0).astype(np.float32)
-        old_raw = self.raw[sel].copy() if contiguous else self.raw[sel]  # (a gather is a copy)
+        if self._ba_raw is not None:
+            self.raw[sel] += votes  # (columns of a region are distinct: a gathered += scatters once per pixel)
+            rows, cols, votes = self._coarse_region(rows, cols, votes)
+            sel = (rows, column_selector(cols))
+        self._accumulate_ba(rows, cols, sel, votes)
+
+    def _coarse_region(self, rows: slice, cols: np.ndarray, votes: np.ndarray):
+        """A region's votes re-voted onto the BA's coarser map, grown by its blur radius (B(I_G) changes there)."""
+        wc, hc = self.ba_size
+        r = blur_radius(self.sigma)
+        rr, cc, v = revote(votes, rows.start, cols, self.downsample, self.width, self.height)
+        top, bottom = max(rr.start - r, 0), min(rr.stop + r, hc)
+        if len(cc) + 2 * r >= wc:
+            out = np.zeros((bottom - top, wc), np.float32)
+            out[rr.start - top:rr.stop - top][:, cc] = v
+            return slice(top, bottom), np.arange(wc), out
+        out = np.zeros((bottom - top, len(cc) + 2 * r), np.float32)
+        out[rr.start - top:rr.stop - top, r:r + len(cc)] = v
+        return slice(top, bottom), (int(cc[0]) - r + np.arange(out.shape[1])) % wc, out
+
+    def _accumulate_ba(self, rows: slice, cols: np.ndarray, sel, votes: np.ndarray) -> None:
+        """I_G += votes on the BA's map, then B(I_G), the sums and the event area on the region."""
+        contiguous = isinstance(sel[1], slice)
+        raw = self.ba_raw
+        old_raw = raw[sel].copy() if contiguous else raw[sel]  # (a gather is a copy)
         if contiguous:
-            self.raw[sel] += votes
-            new_raw = self.raw[sel]
+            raw[sel] += votes
+            new_raw = raw[sel]
         else:
             new_raw = old_raw + votes
-            self.raw[sel] = new_raw
+            raw[sel] = new_raw
         self.n_events += float(votes.sum(dtype=np.float64))
         # event area: sum of exp(-old / lambda0) - exp(-new / lambda0) over the region (exactly 0 where no vote
         # landed), the exponentials in float32 (vectorised: far cheaper than gathering the voted pixels for float64
         # ones; the sum in float64)
         scale = np.float32(-1.0 / self.lambda0)
         self.area += float(np.sum(np.exp(old_raw * scale) - np.exp(new_raw * scale), dtype=np.float64))
-        old_sums = _sum_and_squares(blur_region(self.raw, self.blurred, rows, cols, self.sigma))
+        old_sums = _sum_and_squares(blur_region(raw, self.blurred, rows, cols, self.sigma))
         new_sums = _sum_and_squares(self.blurred[sel])
         self.g_sum += new_sums[0] - old_sums[0]
         self.g_sq += new_sums[1] - old_sums[1]
@@ -255,18 +294,21 @@ class GlobalMap:
         if self.first_seen is not None:
             raise ValueError("set_raw: not with pixel freezing (settle the strides in order instead)")
         self.raw = np.ascontiguousarray(raw, dtype=np.float32)
-        self.blurred = np.zeros_like(self.raw)
-        rows = np.flatnonzero(self.raw.any(axis=1))
+        if self._ba_raw is not None:
+            self._ba_raw = revote(self.raw, 0, np.arange(self.width), self.downsample, self.width, self.height)[2]
+        ba = self.ba_raw
+        self.blurred = np.zeros_like(ba)
+        rows = np.flatnonzero(ba.any(axis=1))
         self.g_sum = self.g_sq = self.n_events = self.area = 0.0
         if len(rows) == 0:
             return
         band = slice(max(int(rows[0]) - blur_radius(self.sigma), 0),
-                     min(int(rows[-1]) + blur_radius(self.sigma) + 1, self.height))
-        blur_region(self.raw, self.blurred, band, np.arange(self.width), self.sigma)
+                     min(int(rows[-1]) + blur_radius(self.sigma) + 1, ba.shape[0]))
+        blur_region(ba, self.blurred, band, np.arange(ba.shape[1]), self.sigma)
         blurred = self.blurred[band]  # sums in float64 without float64 copies of the band
         self.g_sum = float(np.sum(blurred, dtype=np.float64))
         self.g_sq = float(np.einsum("ij,ij->", blurred, blurred, dtype=np.float64))
-        voted = self.raw[rows]
+        voted = ba[rows]
         self.n_events = float(np.sum(voted, dtype=np.float64))
         voted = voted[voted != 0].astype(np.float64)  # a pixel without votes adds 1 - exp(0) = 0 to the area
         self.area = float(np.sum(1.0 - np.exp(voted / -self.lambda0)))
@@ -357,8 +399,8 @@ class SlidingWindowBackend:
         self.t_start = float(t_start)
         self.r_start = np.eye(3) if r_start is None else np.asarray(r_start, dtype=float)
         # the global map I_G; None while an observer rebuilds it (drop_map, refresh_map)
-        self.map: GlobalMap | None = GlobalMap(self.width, self.height, config.backend_blur_sigma, config.lambda0,
-                                               config.max_update_time if config.freeze_pixels else None)
+        self.map: GlobalMap | None = self.new_map()
+        self.ba_width = self.map.ba_size[0]  # the BA's map width (the reach of a vote in radians)
         self.spline: SO3Spline | None = None
         self.window_start = self.t_start
         self.events = _Buffer()
@@ -380,6 +422,13 @@ class SlidingWindowBackend:
         self._corrections_sent = 0  # corrections the last update covered (updates)
         self.observer = WindowObserver()
         self.clock = StageClock()  # per-stage CPU and wall seconds (fit, ba, settle, and the observer's)
+
+    def new_map(self) -> GlobalMap:
+        """An empty global map of this back-end's size, blur, BA-map downsampling (a config that sets the map's size
+        and the window cap but leaves the factor derived: the BA reads the map itself) and pixel freezing."""
+        cfg = self.cfg
+        return GlobalMap(self.width, self.height, cfg.backend_blur_sigma, cfg.lambda0,
+                         cfg.max_update_time if cfg.freeze_pixels else None, max(1, cfg.backend_map_downsample))
 
     def attach(self, observer: WindowObserver) -> None:
         """Notify ``observer`` around every window from now on (one observer)."""
@@ -685,7 +734,7 @@ class SlidingWindowBackend:
         # alpha from the event densities of the initial local map and the global map (Eq. 16-17): PanoIWE takes
         # rho(I_L) from its first evaluation, the optimiser's start at the initialization
         rho_g = self.map.density
-        problem = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=cfg.backend_blur_sigma,
+        problem = PanoIWE(ev_b, s, u, cfg.spline_degree, *self.map.ba_size, sigma=cfg.backend_blur_sigma,
                           alpha=0.0, batch_size=cfg.event_batch_size,
                           global_blurred=self.map.blurred, global_sums=(self.map.g_sum, self.map.g_sq),
                           alpha_from_density=(rho_g, self.map.lambda0) if rho_g > 0 else None)
@@ -737,12 +786,12 @@ class SlidingWindowBackend:
         (policy.refit_outcome): the first optimum confirmed, replaced by the refit's, or neither (report.false_maximum
         set and report.refitted False: the caller keeps the initialisation). Leaves the spline at the kept optimum;
         returns (it, the evaluations of both)."""
-        bound = policy.departure_bound(self.width, self.cfg.backend_blur_sigma, self._corrections)
+        bound = policy.departure_bound(self.ba_width, self.cfg.backend_blur_sigma, self._corrections)
         suspect = policy.departs(report.max_correction, bound)
         if suspect is None:
             return result, result.evaluations
         carried = self._inv_hessian
-        local = refit(policy.departure_bound(self.width, self.cfg.backend_blur_sigma))  # steps within a vote's reach
+        local = refit(policy.departure_bound(self.ba_width, self.cfg.backend_blur_sigma))  # steps within a vote's reach
         refitted = trajectory_at(local)
         outcome = policy.refit_outcome(_largest_angle(before, refitted), _largest_angle(after, refitted), bound)
         evaluations = result.evaluations + local.evaluations

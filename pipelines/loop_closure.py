@@ -196,8 +196,7 @@ class LoopCloser(WindowObserver):
         self.cfg, self.backend = config, backend
         freeze = backend.map.max_update_time
         self._freeze = freeze is not None  # pixel freezing: the rebuilt global map settles every stride in order
-        self._new_map = lambda: GlobalMap(backend.width, backend.height, backend.cfg.backend_blur_sigma,
-                                          backend.cfg.lambda0, freeze)
+        self._new_map = backend.new_map
         w, h = backend.width, backend.height
         self.age = np.full((-(-h // _CELL), -(-w // _CELL)), -np.inf)  # last observed (delayed); -inf: never
         self.visit = np.full_like(self.age, -np.inf)  # start of the last visit (observed after a loop_min_age gap)

@@ -117,6 +117,7 @@ def compile_backend(config: SlamConfig) -> float:
                       sigma=config.backend.backend_blur_sigma, batch_size=4,
                       global_blurred=np.ones((h, w), np.float32), global_sums=(float(w * h), float(w * h)), alpha=1.0)
     problem.cost_and_grad(ctrl)
+    problem.votes(ctrl)  # the settle's projection (votes only)
     vote_map(b, np.eye(3)[None], w, h, batch_size=4, occupancy=(np.zeros(w, np.int32), np.zeros(h, np.int32)))
     return time.perf_counter() - tic
 

@@ -36,11 +36,27 @@ With P the sensor's pixel count, s = P / 43200 (DAVIS240C = 1) and f = (fx + fy)
   2048 x 1024; DVS128, f = 110: 1280 x 640; VGA, f = 520: 5120 x 2560; HD, f = 1235: 8192 x 4096, the cap, about
   1.06 map pixels per sensor pixel, 400 MB of map state). The back-end's work per window depends on the field
   of view's area in map pixels (about P * ratio^2), not on the map size.
-- ``backend_max_window_events`` = 5 * P * window / 0.2 s, rounded to 1000: a window with more events is
-  sampled evenly (every n/cap-th event, so evenly in time and, in proportion, over the image) for the BA; every
-  event still goes into the map. 5 events per pixel per 0.2 s window is about 1.1 M events/s on a DAVIS240C and
-  7.7 M events/s on a VGA sensor; on a VGA sequence at 10.5 M events/s, sampling to it (66 % of the events) left
-  the abs error unchanged (0.032 deg) and halved the back-end's work.
+- ``backend_map_downsample``    d = the largest integer <= sqrt(6) sigma (sigma = ``backend_blur_sigma``, map pixels)
+  whose BA map (the output map d times coarser per axis, dividing its size) holds the sensor's view in at least
+  97 200 pixels, a DAVIS240C's view at the default 1.5 map pixels per sensor pixel (43 200 * 1.5^2); the view holds
+  V = P * (map width / (2 pi f))^2 / d^2 BA-map pixels. 1 up to DAVIS346, 2 on VGA and HD. As on the front-end's IWE,
+  a pixel of d x d map pixels spreads a vote by d / sqrt(6) map pixels (rms), no more than the blur. The BA's cost
+  per evaluation follows the window's events and its area in BA-map pixels, both d^2 smaller (with the cap below);
+  the output map keeps the full resolution, and the strides it settles are re-voted onto the BA's map
+  (kernels.pano.revote). Measured with the cap below on a VGA (12.6 M events/s) and an HD (7 M events/s) sequence:
+  abs 0.034 -> 0.032 and 0.033 -> 0.026 deg, rel 0.031 -> 0.036 and 0.028 -> 0.029 deg/s, for 4x less BA time on
+  both. With the blur at 0.5 BA-map pixels instead (its width kept in map pixels), a refinement of the VGA one's
+  front-end trajectory had abs 0.037 against 0.027 deg, rel 0.034 against 0.036 deg/s, and 30 % more evaluations.
+- ``backend_max_window_events`` = 5 * P * window / 0.2 s, rounded to 1000: a window with more events is sampled
+  evenly (every n/cap-th event, so evenly in time and, in proportion, over the image) for the BA; every event still
+  goes into the map. 5 events per sensor pixel per 0.2 s window is about 1.1 M events/s on a DAVIS240C and 7.7 M
+  events/s on a VGA sensor at d = 1; on a VGA sequence at 10.5 M events/s, sampling to it (66 % of the events) left
+  the abs error unchanged (0.032 deg) and halved the back-end's work. On a coarser BA map (d > 1) the cap is
+  expressed per BA-map pixel: at most 5 / 1.5^2 = 2.2 events per pixel of the sensor's view on it (V = P * (map
+  width / (2 pi f))^2 / d^2), as many per pixel as 5 per sensor pixel give at the default 1.5 map pixels per sensor
+  pixel (VGA, f = 520: 419 000; HD: 571 000, whose 8192-wide map has 1.06 map pixels per sensor pixel). On an HD
+  sequence (7 M events/s) a cap of 514 000 instead of 1 152 000 (5 P / d^2) kept the abs error (0.022 against
+  0.024 deg; 0.033 at d = 1) for 1.8x less BA time.
 - ``loop_registration_events``  = 20 000 * max(1, s), rounded to 1000: the recent events a loop verification
   registers hold as many events per map pixel as 20 000 on a DAVIS240C (maps have 1.5 map pixels per sensor
   pixel on every sensor below the 8192 cap). On a VGA pan (bay, 8 s, 2 turns) the first revisit registered with
@@ -54,8 +70,8 @@ With P the sensor's pixel count, s = P / 43200 (DAVIS240C = 1) and f = (fx + fy)
   turn less one field of view of rotation; the margin of a second field of view covers the wobble and the
   region's width, and swings back and forth over a field of view or two never add up to it while the region is
   out of view. A view of 180 deg or more gives -1 (the age alone).
-- ``realtime_min_window_events`` = 1 * P * window / 0.2 s, rounded to 1000: the floor below which the real-time
-  controller (pipelines/realtime.py) never samples a window's BA (a fifth of the cap above; fewer events per
+- ``realtime_min_window_events`` = a fifth of the cap above (P * window / 0.2 s at d = 1), rounded to 1000: the
+  floor below which the real-time controller (pipelines/realtime.py) never samples a window's BA (fewer events per
   pixel leave the panoramic IWE too sparse for its variance to mean much).
 """
 from __future__ import annotations
@@ -67,13 +83,16 @@ import numpy as np
 
 from ti_cmax.camera import Camera
 from ti_cmax.config import BackendConfig, FrontendConfig, SlamConfig
+from ti_cmax.errors import InputError
 
 REFERENCE_PIXELS = 240 * 180  # DAVIS240C, the sensor the reference's defaults were tuned on
 REFERENCE_PACKET_EVENTS = 10_000
 REFERENCE_MIN_EVENT_RATE = 10_000.0  # events/s
 REFERENCE_REGISTRATION_EVENTS = 20_000  # loop verification on a DAVIS240C
 WINDOW_EVENTS_PER_PIXEL = 5.0  # per 0.2 s window
-REALTIME_MIN_WINDOW_EVENTS_PER_PIXEL = 1.0  # per 0.2 s window
+REALTIME_MIN_WINDOW_FRACTION = 0.2  # of the window cap
+DEFAULT_MAP_SCALE = 1.5  # map pixels per sensor pixel (pano_pixels_per_sensor_pixel's default)
+REFERENCE_VIEW_PIXELS = REFERENCE_PIXELS * DEFAULT_MAP_SCALE**2  # a DAVIS240C's view at the default map scale
 MAP_WIDTH_MULTIPLE = 256
 MAX_MAP_WIDTH = 8192  # 8192 x 4096: 33 M pixels, about 400 MB of map state (raw, blurred, scratch; float32)
 
@@ -122,16 +141,45 @@ def map_width_for(camera: Camera, pixels_per_sensor_pixel: float) -> int:
     return min(width, MAX_MAP_WIDTH)
 
 
+def _view_scale(camera: Camera, width: int) -> float:
+    """Map pixels per sensor pixel at the image centre on a map ``width`` pixels around."""
+    return width / (2 * math.pi * 0.5 * (camera.fx + camera.fy))
+
+
+def ba_downsample_for(camera: Camera, width: int, height: int, blur_sigma: float = 1.0) -> int:
+    """The BA map's downsampling factor d of a ``width`` x ``height`` map for this camera and blur (map pixels; see
+    the module docstring): the largest d <= sqrt(6) sigma dividing the map's size whose BA map keeps the sensor's view
+    in at least REFERENCE_VIEW_PIXELS pixels."""
+    view = camera.width * camera.height * _view_scale(camera, width) ** 2
+    d = max(1, int(math.floor(math.sqrt(6.0) * float(blur_sigma) + 1e-9)))
+    while d > 1 and (width % d or height % d or view / (d * d) < REFERENCE_VIEW_PIXELS):
+        d -= 1
+    return d
+
+
+def window_cap_for(camera: Camera, width: int, d: int, window: float) -> float:
+    """backend_max_window_events before rounding (see the module docstring): 5 events per sensor pixel per 0.2 s;
+    on a coarser BA map (d > 1) at most as many per BA-map pixel of the sensor's view as that gives at the default
+    map scale."""
+    pixels = camera.width * camera.height
+    view = pixels * (_view_scale(camera, width) / d) ** 2
+    per_pixel = 1.0 if d == 1 else min(1.0, view / (pixels * DEFAULT_MAP_SCALE**2))
+    return WINDOW_EVENTS_PER_PIXEL * pixels * per_pixel * window / 0.2
+
+
 def derived_backend(camera: Camera, config: BackendConfig = BackendConfig()) -> dict:
-    """The back-end values the rules give for this camera (see the module docstring)."""
+    """The back-end values the rules give for this camera (see the module docstring); the BA map's factor and the
+    window cap follow the map's size and the factor the config sets, when it sets them."""
     pixels = camera.width * camera.height
     s = pixels / REFERENCE_PIXELS
-    width = map_width_for(camera, config.pano_pixels_per_sensor_pixel)
-    window = WINDOW_EVENTS_PER_PIXEL * pixels * config.backend_time_window_size / 0.2
+    height = config.pano_height or map_width_for(camera, config.pano_pixels_per_sensor_pixel) // 2
+    width = config.pano_width or 2 * height
+    d = config.backend_map_downsample or ba_downsample_for(camera, width, height, config.backend_blur_sigma)
     return {
-        "pano_height": width // 2,
+        "pano_height": height,
         "backend_min_ev_rate": round(REFERENCE_MIN_EVENT_RATE * s, 1),
-        "backend_max_window_events": _round_to(window, 1000),
+        "backend_map_downsample": d,
+        "backend_max_window_events": _round_to(window_cap_for(camera, width, d, config.backend_time_window_size), 1000),
     }
 
 
@@ -148,9 +196,10 @@ def derived_loop(camera: Camera) -> dict:
 
 def derived_realtime(camera: Camera, backend: BackendConfig = BackendConfig()) -> dict:
     """The real-time controller's values for this camera (see the module docstring)."""
-    pixels = camera.width * camera.height
-    window = REALTIME_MIN_WINDOW_EVENTS_PER_PIXEL * pixels * backend.backend_time_window_size / 0.2
-    return {"realtime_min_window_events": _round_to(window, 1000)}
+    b = derived_backend(camera, backend)
+    cap = window_cap_for(camera, 2 * b["pano_height"] if not backend.pano_width else backend.pano_width,
+                         b["backend_map_downsample"], backend.backend_time_window_size)
+    return {"realtime_min_window_events": _round_to(cap * REALTIME_MIN_WINDOW_FRACTION, 1000)}
 
 
 def _fill(section, values: dict):
@@ -163,7 +212,13 @@ def resolve_frontend(config: FrontendConfig, camera: Camera) -> FrontendConfig:
 
 
 def resolve_backend(config: BackendConfig, camera: Camera) -> BackendConfig:
-    return _fill(config, derived_backend(camera, config))
+    """The back-end's config with its derived values; InputError when a set BA-map factor does not divide the map."""
+    resolved = _fill(config, derived_backend(camera, config))
+    (width, height), d = resolved.pano_size, resolved.backend_map_downsample
+    if width % d or height % d:
+        raise InputError(f"backend_map_downsample={d} must divide the map's size {width} x {height} (pano_width, "
+                         f"pano_height)")
+    return resolved
 
 
 def pano_size(config: BackendConfig, camera: Camera) -> tuple[int, int]:
@@ -197,6 +252,7 @@ def describe(values: dict) -> str:
     return ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in values.items())
 
 
-__all__ = ["iwe_downsample_for", "iwe_size", "resolve_config", "resolve_frontend", "resolve_backend",
+__all__ = ["iwe_downsample_for", "ba_downsample_for",
+           "iwe_size", "resolve_config", "resolve_frontend", "resolve_backend",
            "derived_frontend", "derived_backend", "derived_summary", "describe", "map_width_for", "pano_size",
            "derived_realtime", "derived_loop"]

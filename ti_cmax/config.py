@@ -290,11 +290,17 @@ class BackendConfig(Params):
     pano_width: int = param(0, "panoramic map width", unit="px", ge=16, le=32768, zero="2 x pano_height")
     pano_pixels_per_sensor_pixel: float = param(1.5, "map pixels per sensor pixel at the image centre (derived size)",
                                                 gt=0)
+    # the BA's map: the output map d times coarser per axis (its blur sigma in the BA map's pixels); derived from the
+    # sensor's view on the map (pipelines/sensor_defaults.py)
+    backend_map_downsample: int = param(0, "BA map pixel = d x d map pixels; derived: the largest d <= sqrt(6) x "
+                                           "blur sigma keeping the sensor's view >= 97200 BA map pixels", ge=1, le=16,
+                                        zero="derived")
     backend_min_ev_rate: float = param(0.0, "below this rate the camera is still: no BA; derived: 10000 x pixels / "
                                             "43200", unit="events/s", gt=0, zero="derived")
     # a window with more events is sampled evenly to this many for the BA (all events still go into the map)
     backend_max_window_events: int = param(0, "BA events per window at most (even sample); derived: 5 x pixels x "
-                                              "window / 0.2 s", unit="events", ge=200, zero="derived", off=-1)
+                                              "window / 0.2 s, on a coarser BA map at most 2.2 per BA-map pixel of "
+                                              "the sensor's view", unit="events", ge=200, zero="derived", off=-1)
     freeze_pixels: bool = param(False, "map pixels stop updating max_update_time after first seen")
     max_update_time: float = param(10.0, "time a map pixel stays updatable (with freeze_pixels)", unit="s", gt=0)
     lambda0: float = param(1.0, "weight of the event area in the map quality figures", gt=0)

@@ -230,3 +230,43 @@ def test_f32_projection_matches_equirect_numpy(ti_runtime):
     u, v = pano.equirect_numpy(x.astype(np.float64), 2 * np.pi, np.pi)  # width 2 pi: u - pi = lon
     np.testing.assert_allclose(out[:, 0], u - np.pi, atol=2.5e-6, rtol=0)
     np.testing.assert_allclose(out[:, 1], v - np.pi / 2, atol=2.5e-6, rtol=0)
+
+
+def _revote_oracle(fine: np.ndarray, d: int) -> np.ndarray:
+    """Each fine pixel's mass voted bilinearly at (column / d, row / d) of the coarse map (numpy twin of revote)."""
+    from ti_cmax.kernels import bilinear
+
+    h, w = fine.shape
+    rows, cols = np.nonzero(fine)
+    out = np.zeros((h // d, w // d))
+    return bilinear.vote_numpy(out, cols / d, rows / d, weights=fine[rows, cols].astype(np.float64), wrap_u=True)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("r0, c0, bw", [(5, 17, 40), (0, 230, 40), (60, 3, 240), (7, 0, 240)])
+def test_revote_matches_bilinear_votes_of_the_pixels(r0, c0, bw, d):
+    """revote: a region's votes (a cyclic run of columns, across the seam, or every column) re-voted onto the map d
+    times coarser equal the bilinear votes of each fine pixel's mass at its centre / d; the mass stays where the map
+    holds it, and a pixel's re-vote is centred on it (first moments) with the rms of a coarse bilinear vote."""
+    from ti_cmax.kernels.pano import revote
+
+    w, h = 240, 72
+    rng = np.random.default_rng(d + r0)
+    votes = rng.uniform(0, 1, (min(12, h - r0), bw)).astype(np.float32) * (rng.uniform(size=(min(12, h - r0), bw)) < .3)
+    cols = (c0 + np.arange(bw)) % w if bw < w else np.arange(w)
+    fine = np.zeros((h, w), np.float32)
+    fine[r0:r0 + len(votes)][:, cols] = votes
+    rows, ccols, coarse = revote(votes, r0, cols, d, w, h)
+    got = np.zeros((h // d, w // d))
+    got[rows][:, ccols] += coarse
+    want = _revote_oracle(fine, d)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    assert got.sum() == pytest.approx(want.sum(), rel=1e-5)
+    # one pixel (away from the edges): centred at (c / d, r / d), variance (c mod d)(d - c mod d) fine px^2 per axis
+    # (on average over the pixels (d^2 - 1) / 6: with the fine vote's 1/6, a coarse bilinear vote's d^2 / 6)
+    one = np.zeros((1, 1), np.float32) + 1
+    rows, ccols, coarse = revote(one, 31, np.array([101]), d, w, h)
+    ys, xs = np.mgrid[rows, 0:len(ccols)]
+    us = ccols[xs] * d
+    assert np.sum(coarse * us) == pytest.approx(101, abs=1e-5) and np.sum(coarse * ys * d) == pytest.approx(31)
+    assert np.sum(coarse * (us - 101.0) ** 2) == pytest.approx((101 % d) * (d - 101 % d), abs=1e-5)

@@ -52,6 +52,43 @@ def test_global_map_takes_a_local_map_of_votes(ti_runtime):
         assert getattr(local, name) == pytest.approx(getattr(ref, name), rel=1e-4), name
 
 
+def test_global_map_keeps_the_ba_map_coarser(ti_runtime):
+    """With downsample d, GlobalMap keeps the output map I_G at full resolution and the BA's map (ba_raw, B(I_G), its
+    sums, N_e and the event area) d times coarser: the settled regions re-voted onto it, across the seam, equal to
+    re-voting the whole map at once (set_raw, the loop closer's rebuild) and to a from-scratch blur."""
+    from ti_cmax import so3
+    from ti_cmax.kernels.pano import PanoIWE, batch_mid_times, blur_map, event_area, revote
+    from ti_cmax.pipelines.backend import GlobalMap
+    from ti_cmax.spline import SO3Spline
+
+    rng = np.random.default_rng(6)
+    w, h, n, d = 256, 128, 4000, 2
+    b = np.column_stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.3, 0.3, n), np.ones(n)]).astype(np.float32)
+    full, coarse = GlobalMap(w, h, 1.0, 1.0), GlobalMap(w, h, 1.0, 1.0, downsample=d)
+    assert coarse.ba_size == (w // d, h // d) and coarse.blurred.shape == (h // d, w // d)
+    for yaw in (0.3, np.pi - 0.05, 0.4):  # the second stride straddles u = 0 / w
+        spline = SO3Spline(3, 0.0, 0.05, so3.exp(np.outer(yaw + 0.5 * np.arange(6) * 0.05, [0.1, 1.0, 0.0])))
+        start, end = spline.valid_time_range()
+        mids = batch_mid_times(np.linspace(start, end, n), 100)
+        local = PanoIWE(b, *spline.support(mids), 3, w, h).votes(spline.control_R)
+        full.add_votes(*local, t_now=0.0)
+        coarse.add_votes(*local, t_now=0.0)
+    np.testing.assert_array_equal(coarse.raw, full.raw)  # the output map at full resolution
+    want = revote(full.raw, 0, np.arange(w), d, w, h)[2]
+    np.testing.assert_allclose(coarse.ba_raw, want, atol=1e-5)
+    np.testing.assert_allclose(coarse.blurred, blur_map(want, 1.0), atol=1e-4)
+    at_once = GlobalMap(w, h, 1.0, 1.0, downsample=d)
+    at_once.set_raw(full.raw.copy())
+    np.testing.assert_allclose(at_once.blurred, coarse.blurred, atol=1e-4)
+    for gm in (coarse, at_once):
+        assert gm.n_events == pytest.approx(full.n_events, rel=1e-4)
+        assert gm.area == pytest.approx(event_area(want), rel=1e-4)
+        assert gm.g_sum == pytest.approx(coarse.blurred.sum(dtype=np.float64), rel=1e-4)
+        assert gm.g_sq == pytest.approx(np.sum(coarse.blurred.astype(np.float64) ** 2), rel=1e-4)
+    with pytest.raises(ValueError):
+        GlobalMap(250, 125, 1.0, 1.0, downsample=2)
+
+
 def test_window_initialization_reaches_beyond_the_window_end():
     """Source samples that coincide with the window end up to rounding (100 Hz poses, 0.1 s windows, a start
     time like 0.066265000000000004) must not count as the sample beyond it: the window's last control poses

@@ -15,14 +15,14 @@ VGA = Camera(640, 480, 520.0, 520.0, 319.5, 239.5)
 HD = Camera(1280, 720, 1235.0, 1235.0, 639.5, 359.5)
 
 
-@pytest.mark.parametrize("sensor, d, packet, cap, rate, map_w, window_cap", [
-    ("DVS128", 1, 10000, 20000, 3792.6, 1280, 82000),   # smaller sensor: packets stay at the reference's size
-    ("DAVIS240C", 1, 10000, 20000, 10000.0, 2048, 216000),
-    ("DAVIS346", 1, 21000, 42000, 20824.1, 2560, 450000),  # at d = 2 its IWE would have fewer pixels than 43 200
-    ("DVXplorer", 2, 18000, 53000, 71111.1, 5120, 1536000),  # IWE 320 x 240; cap 3N
-    ("HD", 2, 53000, 160000, 213333.3, 8192, 4608000),  # IWE 640 x 360; map width at its cap
+@pytest.mark.parametrize("sensor, d, packet, cap, rate, map_w, window_cap, d_ba", [
+    ("DVS128", 1, 10000, 20000, 3792.6, 1280, 82000, 1),   # smaller sensor: packets stay at the reference's size
+    ("DAVIS240C", 1, 10000, 20000, 10000.0, 2048, 216000, 1),
+    ("DAVIS346", 1, 21000, 42000, 20824.1, 2560, 450000, 1),  # at d = 2 its IWE would have fewer pixels than 43 200
+    ("DVXplorer", 2, 18000, 53000, 71111.1, 5120, 419000, 2),  # IWE 320 x 240; cap 3N; BA map 2560 x 1280
+    ("HD", 2, 53000, 160000, 213333.3, 8192, 571000, 2),  # IWE 640 x 360; map width at its cap; BA map 4096 wide
 ])
-def test_derived_values_follow_the_documented_rules(sensor, d, packet, cap, rate, map_w, window_cap):
+def test_derived_values_follow_the_documented_rules(sensor, d, packet, cap, rate, map_w, window_cap, d_ba):
     from ti_cmax.simulate import sensor_camera
 
     camera = sensor_camera(sensor)
@@ -35,6 +35,10 @@ def test_derived_values_follow_the_documented_rules(sensor, d, packet, cap, rate
     ratio = map_w / (2 * np.pi * 0.5 * (camera.fx + camera.fy))
     assert 1.5 <= ratio < 1.5 + 256 / (2 * np.pi * camera.fx) or (map_w == 8192 and ratio >= 1.0)
     assert b.backend_max_window_events == window_cap
+    assert b.backend_map_downsample == d_ba
+    # the sensor's view on the BA map: at least a DAVIS240C's at the default scale, or d = 1
+    assert d_ba == 1 or camera.width * camera.height * (ratio / d_ba) ** 2 >= 43200 * 1.5**2
+    assert cfg.realtime.realtime_min_window_events == round(window_cap / 5, -3)  # a fifth of the cap
     assert resolve_config(cfg, camera) == cfg  # idempotent: resolved values are plain numbers
 
 
@@ -72,6 +76,29 @@ def test_iwe_downsampling_follows_the_blur_and_the_pixel_count(camera, sigma, d)
     assert est.ws.blur_sigma == pytest.approx(sigma / d)
 
 
+@pytest.mark.parametrize("camera, sigma, height, d", [
+    (VGA, 1.0, 0, 2), (HD, 1.0, 0, 2), (DAVIS240C, 1.0, 0, 1), (DVS128, 1.0, 0, 1),
+    (HD, 0.3, 0, 1),  # a narrow blur: a BA pixel of 2 x 2 map pixels would spread the votes more than the blur
+    (HD, 2.0, 0, 2),  # d <= 4 by the blur; at 4 the view holds 64 000 pixels (under 97 200), 3 does not divide 8192
+    (VGA, 1.0, 1001, 1),  # a user's map size that 2 does not divide
+    (VGA, 1.0, 1024, 1),  # a coarse user map: the view holds 121 000 pixels at d = 1, 30 000 at d = 2
+])
+def test_ba_map_downsampling_follows_the_blur_and_the_view(camera, sigma, height, d):
+    from ti_cmax.config import BackendConfig
+    from ti_cmax.pipelines.sensor_defaults import ba_downsample_for, derived_backend
+
+    cfg = BackendConfig(backend_blur_sigma=sigma, pano_height=height)
+    b = derived_backend(camera, cfg)
+    w, h = 2 * b["pano_height"], b["pano_height"]
+    assert ba_downsample_for(camera, w, h, sigma) == b["backend_map_downsample"] == d
+    # the window's cap: 5 events per sensor pixel on the full-resolution map; on a coarser one 5 / 1.5^2 per BA-map
+    # pixel of the sensor's view, never more than 5 per sensor pixel
+    pixels = camera.width * camera.height
+    view = pixels * (w / (2 * np.pi * camera.fx) / d) ** 2
+    want = 5 * pixels if d == 1 else min(5 * pixels, 5 / 1.5**2 * view)
+    assert b["backend_max_window_events"] == pytest.approx(want, abs=500)
+
+
 def test_iwe_intrinsics_map_sensor_pixels_onto_blocks_of_the_iwe():
     """Sensor pixel i spans [i - 1/2, i + 1/2]; IWE pixel j of factor d covers sensor pixels d j .. d j + d - 1."""
     from ti_cmax.pipelines.frontend import iwe_intrinsics
@@ -85,6 +112,16 @@ def test_iwe_intrinsics_map_sensor_pixels_onto_blocks_of_the_iwe():
     np.testing.assert_allclose(p[:, 0], (u + 0.5) / d - 0.5, atol=1e-9)
     np.testing.assert_allclose(p[:, 1], (v + 0.5) / d - 0.5, atol=1e-9)
     assert np.array_equal(iwe_intrinsics(HD.K, 1), HD.K)
+
+
+def test_a_ba_map_factor_that_does_not_divide_the_map_is_a_clear_error():
+    from ti_cmax.errors import InputError
+
+    cfg = load_config(SlamConfig, None, ["backend_map_downsample=3"])  # the derived 5120 x 2560 map
+    with pytest.raises(InputError, match="backend_map_downsample=3 must divide"):
+        resolve_config(cfg, VGA)
+    assert resolve_config(load_config(SlamConfig, None, ["backend_map_downsample=4"]), VGA).backend.pano_size == \
+        (5120, 2560)
 
 
 def test_unresolved_map_size_is_a_clear_error():
