@@ -187,3 +187,48 @@ class Events:
         if len(self) == 0:
             return "Events(n=0)"
         return f"Events(n={len(self)}, t=[{self.t[0]:.6f}, {self.t[-1]:.6f}] s)"
+
+
+class EventBuffer:
+    """A run of time-ordered events that grows at its end and drops its head cheaply: the columns have spare room at
+    the end, ``push`` copies only the new events in (amortized doubling), ``drop`` moves a start index, and the live
+    events move to new arrays only when the room runs out. ``view()`` is an ``Events`` of views that stays valid: the
+    buffer never writes where a view can look. A stream slicer joining its chunks by concatenation copies its whole
+    buffer at each join instead; at high event rates that cost more than the rest of the slicing."""
+
+    FIELDS = ("t", "x", "y", "p")
+
+    def __init__(self):
+        self._cols: tuple | None = None
+        self._start = self._end = 0
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def push(self, events: Events) -> None:
+        n = len(events)
+        if not n:
+            return
+        new = [getattr(events, f) for f in self.FIELDS]
+        cols = self._cols
+        if cols is None or self._end + n > len(cols[0]) or cols[1].dtype != new[1].dtype:
+            live = len(self)
+            cap = max(2 * (live + n), 1024)
+            old = cols if cols is not None else [np.zeros(0, c.dtype) for c in new]
+            kinds = [np.result_type(o.dtype, c.dtype) for o, c in zip(old, new)]
+            cols = tuple(np.empty(cap, k) for k in kinds)
+            for dst, src in zip(cols, old):
+                dst[:live] = src[self._start:self._end]
+            self._cols, self._start, self._end = cols, 0, live
+        for dst, src in zip(cols, new):
+            dst[self._end:self._end + n] = src
+        self._end += n
+
+    def drop(self, k: int) -> None:
+        """Forget the first ``k`` events (at most all of them)."""
+        self._start = min(self._end, self._start + max(0, int(k)))
+
+    def view(self) -> Events:
+        if self._cols is None or not len(self):
+            return Events.empty()
+        return Events(*(c[self._start:self._end] for c in self._cols))
