@@ -499,6 +499,8 @@ def _realtime_block(online, ctl: RealtimeController, result, config: SlamConfig,
     fe_fraction = 1.0 - online.packets_skipped / packets
     input_fraction = handed / read if read else 1.0
     worker = result.report.get("backend_process")
+    other = max(0.0, cpu_total - fe_cpu - (be_cpu if worker is None else 0.0) - cpu_io)
+    handover = online.cpu_seconds["handover"]
     report = {
         "speed": speed, "target_lag_s": rt.realtime_target_lag, "max_lag_bound_s": rt.realtime_max_lag,
         "chunk_s": rt.realtime_chunk, "events_read": int(read), "events_handed_over": int(handed),
@@ -513,8 +515,12 @@ def _realtime_block(online, ctl: RealtimeController, result, config: SlamConfig,
         "cpu_seconds": {
             "frontend": fe_cpu, "backend": be_cpu if worker is None else online.backend_cpu_seconds,
             "io": cpu_io,
-            # this process: bearings, buffers, slicing, pickling to the worker, the controller
-            "other": max(0.0, cpu_total - fe_cpu - (be_cpu if worker is None else 0.0) - cpu_io),
+            # this process: bearings, buffers, slicing, the hand-over to the worker, the controller; of it "ingest"
+            # (checks, hot-pixel filter, slicing), "handover" (to the worker: ring writes and messages; in one
+            # process: bearings and the window buffer) and "replay" (the rest: due events, thinning, the controller)
+            "other": other,
+            "ingest": online.cpu_seconds["ingest"], "handover": handover,
+            "replay": max(0.0, other - online.cpu_seconds["ingest"] - handover),
             "main_process": cpu_total,
             **({"backend_process": worker["cpu_seconds"]} if worker is not None else {}),
         },

@@ -40,6 +40,9 @@ def test_realtime_cli_writes_sane_lag_fields(short_dataset, tmp_path, capsys):
     assert rt["wall_seconds"] >= 1.0  # 1.2 s of data replayed at sensor speed cannot end sooner
     cpu = rt["cpu_seconds"]
     assert cpu["frontend"] > 0 and cpu["backend"] > 0 and cpu["io"] >= 0
+    # the main process's rest, by part: ingest (checks, hot pixels, slicing), the back-end's input, the replay
+    assert cpu["ingest"] > 0 and cpu["handover"] > 0 and cpu["replay"] >= 0
+    assert cpu["ingest"] + cpu["handover"] + cpu["replay"] == pytest.approx(cpu["other"], abs=0.02)
     assert sum(rt["level_sensor_seconds"].values()) == pytest.approx(1.2, abs=0.15)
     assert rt["degradation_applied"] == (rt["degraded_fraction"] > 0 or rt["input_events_dropped"] > 0
                                          or rt["ba_windows_cut_short"] > 0)
