@@ -391,6 +391,7 @@ class PacketSlicer:
                 skip -= len(parts.pop(0))
             if parts and skip > 0:
                 parts[0] = parts[0][skip:]
+        self._buf = Events.empty()  # no view of the store left here: it may then reuse its arrays
         for part in parts:
             self._store.push(part)
         self._buf = self._store.view()

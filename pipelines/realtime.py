@@ -468,12 +468,17 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
 def _hand_over(online, ctl: RealtimeController, batch: Events, last: float, min_pause: float, counts: dict):
     """Push the due events (1 of the controller's q), yielding after each push. The event ending a pause goes in a
     push of its own, recorded with the front-end's progress before it."""
-    gaps = np.diff(batch.t, prepend=last if last > -math.inf else batch.t[0])
-    cuts = np.flatnonzero(gaps > min_pause)
+    first = last if last > -math.inf else batch.t[0]
+    if batch.t[-1] - first > min_pause:  # a pause may lie inside (a batch is a few ms at high rates: rarely)
+        gaps = np.diff(batch.t, prepend=first)
+        cuts = np.flatnonzero(gaps > min_pause)
+        pause_at = set(cuts.tolist())
+    else:
+        cuts, pause_at = np.zeros(0, np.int64), set()
     bounds = [0, *cuts[cuts > 0].tolist(), len(batch)]
     for i0, i1 in zip(bounds[:-1], bounds[1:]):
         part = batch[i0:i1]
-        if gaps[i0] > min_pause:
+        if i0 in pause_at:
             ctl.pauses.append((last if i0 == 0 else float(batch.t[i0 - 1]), float(part.t[0]), online.frontend_until))
         q = ctl.thinning
         if q > 1:

@@ -32,3 +32,18 @@ def test_pushes_drops_and_views_keep_the_stream_and_earlier_views():
     assert len(buf) == 0 and len(buf.view()) == 0
     buf.push(_events(t0, 3, subpixel=True))  # sub-pixel coordinates after integer ones: the columns widen
     assert buf.view().x.dtype == np.float32 and len(buf) == 3
+
+
+def test_without_views_the_buffer_reuses_its_arrays():
+    """A steady stream (push, drop the head, no view kept) moves its live events to the front of the same arrays
+    instead of allocating new ones; the events stay the stream's."""
+    buf, t0 = EventBuffer(), 0
+    buf.push(_events(t0, 4000))
+    t0 += 4000
+    arrays = buf._cols
+    for _ in range(50):
+        buf.push(_events(t0, 300))
+        t0 += 300
+        buf.drop(300)
+    assert buf._cols is arrays
+    np.testing.assert_array_equal(buf.view().t, np.arange(t0 - 4000, t0))
