@@ -544,10 +544,11 @@ def _realtime_block(online, ctl: RealtimeController, result, config: SlamConfig,
             "io": cpu_io,
             # this process: bearings, buffers, slicing, the hand-over to the worker, the controller; of it "ingest"
             # (checks, hot-pixel filter, slicing), "handover" (to the worker: ring writes and messages; in one
-            # process: bearings and the window buffer) and "replay" (the rest: due events, thinning, the controller)
+            # process: bearings and the window buffer), "close" (the end of the stream: the last packets and windows,
+            # the worker's outcome; once per run) and "replay" (the rest: due events, thinning, the controller)
             "other": other,
-            "ingest": online.cpu_seconds["ingest"], "handover": handover,
-            "replay": max(0.0, other - online.cpu_seconds["ingest"] - handover),
+            "ingest": online.cpu_seconds["ingest"], "handover": handover, "close": online.cpu_seconds["close"],
+            "replay": max(0.0, other - online.cpu_seconds["ingest"] - handover - online.cpu_seconds["close"]),
             "main_process": cpu_total,
             **({"backend_process": worker["cpu_seconds"]} if worker is not None else {}),
         },

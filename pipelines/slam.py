@@ -119,8 +119,9 @@ class OnlineSlam:
         self.packets_seen = self.packets_skipped = 0
         # CPU seconds of this process in push() beside the front-end's estimation: "ingest" (checks, hot-pixel filter,
         # slicing, pose integration), "handover" (the back-end's calls less its windows: to a worker, the ring writes
-        # and messages; in this process, bearings and the window buffer) and "callbacks" (on_window, on_packet)
-        self.cpu_seconds = {"ingest": 0.0, "handover": 0.0, "callbacks": 0.0}
+        # and messages; in this process, bearings and the window buffer), "callbacks" (on_window, on_packet) and
+        # "close" (close() less the estimation and windows: the last packets' slicing, a worker's outcome)
+        self.cpu_seconds = {"ingest": 0.0, "handover": 0.0, "callbacks": 0.0, "close": 0.0}
         self._result: SlamResult | None = None
 
     @property
@@ -143,22 +144,26 @@ class OnlineSlam:
         if len(events) == 0:
             return
         cpu = self.cpu_seconds
-        cpu0, fe0 = time.process_time(), self.runner.cpu_seconds + self.backend.cpu_seconds
+        cpu0, fe0 = time.process_time(), self.runner.cpu_seconds + self._window_cpu()
         other0 = cpu["handover"] + cpu["callbacks"]
         self.runner.check(events)  # times, pixels and pauses (one clear InputError)
         self.events_read += len(events)
         self.t_last = float(events.t[-1])
         for kept in self.hot_pixels.push(events):
             self._use(kept)
-        self._notify(self.backend.poll(self._t_used))
-        cpu["ingest"] += time.process_time() - cpu0 - (self.runner.cpu_seconds + self.backend.cpu_seconds - fe0) \
+        self._notify(self._backend_call(lambda: self.backend.poll(self._t_used)))
+        cpu["ingest"] += time.process_time() - cpu0 - (self.runner.cpu_seconds + self._window_cpu() - fe0) \
             - (cpu["handover"] + cpu["callbacks"] - other0)
+
+    def _window_cpu(self) -> float:
+        """CPU seconds of this process in the back-end's windows (a worker reports its own at the end: not ours)."""
+        return 0.0 if isinstance(self.backend, WorkerBackend) else self.backend.cpu_seconds
 
     def _backend_call(self, call):
         """``call()``, its CPU time counted as "handover" (the windows it runs in this process left out)."""
-        tic, windows = time.process_time(), self.backend.cpu_seconds
+        tic, windows = time.process_time(), self._window_cpu()
         out = call()
-        self.cpu_seconds["handover"] += time.process_time() - tic - (self.backend.cpu_seconds - windows)
+        self.cpu_seconds["handover"] += time.process_time() - tic - (self._window_cpu() - windows)
         return out
 
 
@@ -175,6 +180,14 @@ class OnlineSlam:
         """End of the stream: process the last packets and windows; the same result as ``run_slam``."""
         if self._result is not None:
             return self._result
+        cpu0, work0 = time.process_time(), self.runner.cpu_seconds + self._window_cpu()
+        try:
+            return self._close()
+        finally:  # the front-end's estimation and the windows in this process are theirs
+            work = self.runner.cpu_seconds + self._window_cpu() - work0
+            self.cpu_seconds["close"] += time.process_time() - cpu0 - work
+
+    def _close(self) -> SlamResult:
         for kept in self.hot_pixels.flush():
             self._use(kept)
         for packet in self.runner.slicer.flush():

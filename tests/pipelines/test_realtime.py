@@ -41,8 +41,8 @@ def test_realtime_cli_writes_sane_lag_fields(short_dataset, tmp_path, capsys):
     cpu = rt["cpu_seconds"]
     assert cpu["frontend"] > 0 and cpu["backend"] > 0 and cpu["io"] >= 0
     # the main process's rest, by part: ingest (checks, hot pixels, slicing), the back-end's input, the replay
-    assert cpu["ingest"] > 0 and cpu["handover"] > 0 and cpu["replay"] >= 0
-    assert cpu["ingest"] + cpu["handover"] + cpu["replay"] == pytest.approx(cpu["other"], abs=0.02)
+    assert cpu["ingest"] > 0 and cpu["handover"] > 0 and cpu["close"] > 0 and cpu["replay"] >= 0
+    assert cpu["ingest"] + cpu["handover"] + cpu["close"] + cpu["replay"] == pytest.approx(cpu["other"], abs=0.02)
     assert sum(rt["level_sensor_seconds"].values()) == pytest.approx(1.2, abs=0.15)
     assert rt["degradation_applied"] == (rt["degraded_fraction"] > 0 or rt["input_events_dropped"] > 0
                                          or rt["ba_windows_cut_short"] > 0)
