@@ -67,7 +67,8 @@ front-end column does not apply; the front-end's lag alone (the same escalating 
 ``FE_KEEPS`` (2, then 4), then thin the input (q doubles), beyond M at once to 1 of 4; the levels degrade only the BA
 and rise only on windows late while the front-end keeps up (a window waiting for a front-end that is behind would not
 come sooner with a cheaper BA: escalating then took the BA to level 4 and its events to none while the worker had
-room). Relaxing goes in the same order backwards: q halves, then the front-end skips half as many packets once its lag
+room). A front-end that waited for the worker (the backlog bound) since the last decision is late because of the BA:
+then its lag changes nothing and the windows' lag rules as without a worker. Relaxing goes in the same order backwards: q halves, then the front-end skips half as many packets once its lag
 is under T / 2 and the main process is predicted to cost under RELAX_HEADROOM with them, then the level falls.
 report.json's "realtime" block says how long each level was in force (in sensor seconds) and what it removed.
 """
@@ -141,6 +142,10 @@ class RealtimeController:
         # headroom (module docstring): per-window costs at the current level, the main process's idle time
         # (sleeping until events are due + waiting for the worker; set by run_realtime) and the BA's seconds/event
         self.idle_seconds = lambda: 0.0
+        # wall seconds the main process waited for the worker so far (set by run_realtime): a front-end held back by
+        # the worker (its backlog bound) is late because of the BA, not its own work
+        self.blocked_seconds = lambda: 0.0
+        self._blocked_at: dict[str, float] = {}  # blocked_seconds() at the last decision per source
         self._costs: list[dict] = []  # per window since the last change: {"worker", "main", "ba", "fe"}
         self._mark = None  # (time.monotonic, main idle, front-end seconds, front-end time, worker done_at)
         self._ba_recent: list[tuple[float, int]] = []  # (seconds, events) of the last RELAX_WINDOWS windows with a BA
@@ -312,7 +317,12 @@ class RealtimeController:
         change = lag - prev if prev is not None else 0.0  # per stride of sensor time (ticks come once per stride)
         self._prev_lag[source] = lag
         rising = lag > self.target and lag + DRAIN_WINDOWS * change > self.target
-        if self.worker and source == "frontend":
+        blocked = self.blocked_seconds()
+        held = blocked - self._blocked_at.get(source, 0.0) > 0.1 * self.stride / self.speed
+        self._blocked_at[source] = blocked
+        if self.worker and source == "frontend" and held:
+            pass  # the front-end waited for the worker's windows: their lag is the BA's, the window rule acts
+        elif self.worker and source == "frontend":
             # the front-end behind on its own core: only its work helps (its packets, then the input), not the BA's
             if lag > self.bound:
                 self.fe_level = len(FE_KEEPS) - 1
@@ -320,7 +330,8 @@ class RealtimeController:
                 self.fe_level += 1
             elif rising and prev is not None:
                 self.thinning = min(MAX_INPUT_THINNING, 2 * self.thinning)
-        elif self.worker and source == "window" and lag > self.target and (self._fe_lag or 0.0) > self.target:
+        elif self.worker and source == "window" and lag > self.target and (self._fe_lag or 0.0) > self.target \
+                and not held:
             pass  # the windows wait for a front-end that is behind: a cheaper BA would not bring them sooner
         elif lag > self.bound and self.level < MAX_LEVEL:
             self.level = MAX_LEVEL  # beyond the hard bound: the last level at once
@@ -429,6 +440,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     ctl.apply()  # level 0's BA budget
     idle = {"sleep": 0.0}
     ctl.idle_seconds = lambda: idle["sleep"] + online.backend.blocked_seconds
+    ctl.blocked_seconds = lambda: online.backend.blocked_seconds
     online.wait_ready()  # the sensor clock starts once both processes can work
     reader = iter(chunks)
     pending = Events.empty()

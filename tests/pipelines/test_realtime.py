@@ -309,6 +309,18 @@ def test_with_a_worker_a_late_front_end_degrades_its_own_work_not_the_ba():
         t += 0.1
     assert [s[0] for s in seen] == [1, 2, 3, 4, 4, 4] and [s[1] for s in seen] == [1, 1, 1, 1, 2, 4]
     assert all(s[2] == 1 for s in seen)
+    # a front-end late because it waited for the worker (the backlog bound): the BA's doing, the levels rise
+    held = R.RealtimeController(cfg, 1.0, worker=True)
+    held.online, held.idle_seconds, held.wall0, held.t0 = ctl.online, lambda: 0.0, 100.0, 0.0
+    waited = {"s": 0.0}
+    held.blocked_seconds = lambda: waited["s"]
+    t = 0.2
+    for k in range(4):
+        waited["s"] += 0.08
+        held.on_frontend(held.due(t) + 0.4 + 0.1 * k, t)
+        held.on_window(_report(t, 0.45 + 0.1 * k, held, busy=0.1, ba=0.09))
+        t += 0.1
+    assert held.level == 4 and held.fe_keep() == 1 and held.thinning == 1
 
 
 def test_replay_behind_schedule_hands_over_without_waiting():
