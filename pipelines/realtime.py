@@ -64,12 +64,13 @@ in time; an escalation it causes goes on to the next level that changes the fron
 skipped rather than thinned because their cost is mostly per evaluation. With a back-end worker the front-end has a
 core of its own, and the two processes fall behind for different reasons, so each degrades its own work: the levels'
 front-end column does not apply; the front-end's lag alone (the same escalating test) makes it skip packets, 1 of
-``FE_KEEPS`` (2, then 4), then thin the input (q doubles), beyond M at once to 1 of 4; the levels degrade only the BA
-and rise only on windows late while the front-end keeps up (a window waiting for a front-end that is behind would not
-come sooner with a cheaper BA: escalating then took the BA to level 4 and its events to none while the worker had
-room). A front-end that waited for the worker (the backlog bound) since the last decision is late because of the BA:
-then its lag changes nothing and the windows' lag rules as without a worker. Relaxing goes in the same order backwards: q halves, then the front-end skips half as many packets once its lag
-is under T / 2 and the main process is predicted to cost under RELAX_HEADROOM with them, then the level falls.
+``FE_KEEPS`` (2, then 4), then thin the input (q doubles), beyond M at once to 1 of 4; the levels degrade only the
+BA and rise only on windows late while the front-end keeps up (a window waiting for a front-end that is behind would
+not come sooner with a cheaper BA: escalating then took the BA to level 4 and its events to none while the worker
+had room). A front-end that waited for the worker (the backlog bound) since the last decision is late because of the
+BA: then its lag changes nothing and the windows' lag rules as without a worker. Relaxing goes in the same order
+backwards: q halves, then the front-end skips half as many packets once its lag is under T / 2 and the main process
+is predicted to cost under RELAX_HEADROOM with them, then the level falls.
 report.json's "realtime" block says how long each level was in force (in sensor seconds) and what it removed.
 """
 from __future__ import annotations
