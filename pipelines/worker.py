@@ -11,6 +11,7 @@ hold the GIL.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import sys
@@ -104,12 +105,23 @@ class EventRing:
 
     def take(self, position: int, n: int, subpixel: bool) -> Events:
         """Copies of the ``n`` events at ``position`` (in the order they were put); their room is free after."""
+        with self.borrow(position, n, subpixel) as events:
+            return Events(*(np.array(getattr(events, f)) for f in ("t", "x", "y", "p")))
+
+    @contextlib.contextmanager
+    def borrow(self, position: int, n: int, subpixel: bool):
+        """The ``n`` events at ``position`` for the ``with`` block: views of the ring (a copy where they wrap
+        around), freed for the writer at its end, so the block must keep no reference to them (the back-end's window
+        buffer copies what it keeps: one copy fewer per event than ``take``)."""
         if position != self.read:
             raise RuntimeError(f"ring read out of order: events at {position}, {self.read} read so far")
         spans = self._spans(position, n)
-        fields = [np.concatenate([column[r0:r1] for r0, r1, _, _ in spans]) for column in self._columns(subpixel)]
-        self._read[0] = position + n
-        return Events(*fields)
+        fields = [column[spans[0][0]:spans[0][1]] if len(spans) == 1 else
+                  np.concatenate([column[r0:r1] for r0, r1, _, _ in spans]) for column in self._columns(subpixel)]
+        try:
+            yield Events(*fields)
+        finally:
+            self._read[0] = position + n
 
 
 class RingWriter:
@@ -479,8 +491,8 @@ def _serve(runner: BackendRunner, inbox, outbox, start: dict, ring: EventRing) -
             kind, *args = _next_message(inbox)
         waited += time.perf_counter() - tic
         if kind == "events":
-            with clock("events"):
-                runner.push_events(ring.take(*args))
+            with clock("events"), ring.borrow(*args) as events:
+                runner.push_events(events)
             continue
         if kind == "map":  # OnlineSlam.map(): a copy of the map of the events settled so far
             outbox.put(("map", runner.map()))

@@ -43,7 +43,11 @@ def test_the_ring_returns_every_event_in_order_across_its_wrap_around():
         assert ring.free() == 1000 - n
         with pytest.raises(ValueError):
             ring.put(_events(ring.free() + 1))
-        back = ring.take(position, n, ev.has_subpixel_coordinates)
+        if k % 3:
+            back = ring.take(position, n, ev.has_subpixel_coordinates)
+        else:  # borrowed: the room is held until the block ends
+            with ring.borrow(position, n, ev.has_subpixel_coordinates) as back:
+                assert _same(back, ev) and ring.free() == 1000 - n
         assert _same(back, ev) and ring.free() == 1000
         sent.append(n)
     assert ring.written == sum(sent)
@@ -109,3 +113,26 @@ def test_a_writer_waiting_on_a_reader_that_ended_raises():
     writer.write(_events(80))
     with pytest.raises(RuntimeError, match="reader ended"):
         writer.write(_events(80))
+
+
+@pytest.mark.slow
+def test_a_small_ring_changes_nothing_in_slam(short_sequence, monkeypatch):
+    """The back-end worker fed through a ring of 8 192 events (it wraps around hundreds of times, and the writer waits
+    for the worker's windows): every event reaches the map, and the result is the one-process run's."""
+    from ti_cmax import so3
+    from ti_cmax.config import SlamConfig, load_config
+    from ti_cmax.pipelines import worker
+    from ti_cmax.pipelines.slam import OnlineSlam, run_slam
+
+    ev = short_sequence.events.slice_time(short_sequence.events.t[0], short_sequence.events.t[0] + 0.35)
+    cfg = load_config(SlamConfig, None, ["pano_height=256"])
+    reference = run_slam(ev, short_sequence.camera, cfg)
+    monkeypatch.setattr(worker, "ring_capacity", lambda camera: 8192)
+    online = OnlineSlam(short_sequence.camera, cfg, backend_process=True)
+    for i in range(0, len(ev), 15_000):
+        online.push(ev[i:i + 15_000])
+    result = online.close()
+    assert result.report["backend"]["events_settled"] == reference.report["backend"]["events_settled"] == len(ev)
+    np.testing.assert_allclose(result.map, reference.map, rtol=1e-4, atol=1e-4)
+    assert np.max(so3.geodesic_angle(result.trajectory.R, reference.trajectory.R)) < 1e-5
+    assert result.report["backend_process"]["push_blocked_seconds"] > 0
