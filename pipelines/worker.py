@@ -268,7 +268,10 @@ class WorkerBackend:
         self.seconds, self.cpu_seconds = done["seconds"], done["step_cpu_seconds"]
         outcome = done["outcome"]
         outcome.process = {"compile_seconds": done["compile_seconds"], "cpu_seconds": done["cpu_seconds"],
-                           "push_blocked_seconds": self._process.blocked_seconds, "peak_rss_mb": done["peak_rss_mb"],
+                           "push_blocked_seconds": self._process.blocked_seconds,
+                           # of it, waiting for room in the shared ring of events
+                           "ring_wait_seconds": self._process.writer.blocked_seconds,
+                           "ring_events": self._process.writer.ring.capacity, "peak_rss_mb": done["peak_rss_mb"],
                            "process_cpu_seconds": done["process_cpu_seconds"],
                            "start_method": self._process.start_method,
                            "timeline_seconds": done["timeline_seconds"]}

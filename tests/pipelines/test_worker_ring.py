@@ -135,4 +135,5 @@ def test_a_small_ring_changes_nothing_in_slam(short_sequence, monkeypatch):
     assert result.report["backend"]["events_settled"] == reference.report["backend"]["events_settled"] == len(ev)
     np.testing.assert_allclose(result.map, reference.map, rtol=1e-4, atol=1e-4)
     assert np.max(so3.geodesic_angle(result.trajectory.R, reference.trajectory.R)) < 1e-5
-    assert result.report["backend_process"]["push_blocked_seconds"] > 0
+    process = result.report["backend_process"]
+    assert process["push_blocked_seconds"] >= process["ring_wait_seconds"] > 0 and process["ring_events"] == 8192
