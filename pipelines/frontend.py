@@ -45,7 +45,7 @@ from ti_cmax import so3
 from ti_cmax.camera import Camera
 from ti_cmax.config import SLICING_RULES, FrontendConfig, config_to_dict
 from ti_cmax.errors import InputError
-from ti_cmax.events import Events
+from ti_cmax.events import EventBuffer, Events
 from ti_cmax.kernels.iwe import IWEWorkspace
 from ti_cmax.trajectory import Trajectory
 
@@ -336,6 +336,7 @@ class PacketSlicer:
         self.min_events = max(1, int(np.ceil(config.frontend_min_event_rate * self.window)))
         self.min_span = float(config.frontend_min_packet_span)
         self.events_read = 0
+        self._store = EventBuffer()  # the buffer's events; self._buf: a view of them
         self._buf = Events.empty()
         self._pending: list[Events] = []  # chunks pushed since the buffer was last joined (joined when a packet is due)
         self._t_last = -np.inf
@@ -362,7 +363,7 @@ class PacketSlicer:
         # copies the whole buffer); _known() on the parts equals it on the joined buffer
         if not self._known():
             return
-        self._join()
+        self._join(trim=True)
         while self._known():
             yield self._emit()
 
@@ -376,10 +377,27 @@ class PacketSlicer:
         while self.t_ref is not None and len(self._buf) and self.t_ref <= self._buf.t[-1]:
             yield self._emit()
 
-    def _join(self) -> None:
-        if self._pending:
-            self._buf = Events.concatenate([self._buf, *self._pending])
-            self._pending = []
+    def _join(self, trim: bool = False) -> None:
+        """Append the pending chunks to the buffer (``EventBuffer``: each event is copied once; packets are views).
+        ``trim`` (the packet at t_ref is final, it is emitted next): first leave out the events before its first one,
+        which ``_emit`` would drop after it anyway (at high event rates most events can fall between packets)."""
+        if not self._pending:
+            return
+        parts = self._pending
+        if trim:
+            before = lambda t: sum(int(e.index_at(t)) for e in (self._buf, *parts))  # noqa: E731 - events before t
+            skip = max(0, min(before(self.t_ref) - self.n // 2, before(self.t_ref - 0.5 * self.min_span)))
+            self._store.drop(skip)
+            skip -= len(self._buf)
+            while parts and skip >= len(parts[0]):
+                skip -= len(parts.pop(0))
+            if parts and skip > 0:
+                parts[0] = parts[0][skip:]
+        self._buf = Events.empty()  # no view of the store left here: it may then reuse its arrays
+        for part in parts:
+            self._store.push(part)
+        self._buf = self._store.view()
+        self._pending = []
 
     def _known(self) -> bool:
         """The packet around t_ref is final: N - N/2 events from the centre on, or events later than t_ref + W
@@ -421,7 +439,8 @@ class PacketSlicer:
         self.t_ref = t_ref + self.dt
         drop = max(0, min(int(buf.index_at(self.t_ref)) - half, int(buf.index_at(self.t_ref - 0.5 * self.min_span))))
         if drop > 0:
-            self._buf = buf[drop:]
+            self._store.drop(drop)
+            self._buf = self._store.view()
         self.packets_emitted += 1
         return Packet(t_ref, Events.empty() if sparse else packet, span, sparse)
 

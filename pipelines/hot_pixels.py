@@ -91,9 +91,14 @@ def isolated_pixels(counts: np.ndarray, factor: float, min_events: int,
     candidates = np.flatnonzero(flat >= min_events)
     if len(candidates) == 0:
         return candidates
-    rows, cols = np.divmod(candidates, counts.shape[1])
-    around = neighbourhood_max(counts, rows, cols, radius)
-    return candidates[flat[candidates] >= factor * (around.astype(np.float64) + 1.0)]
+    # the largest neighbour count only grows with the neighbourhood: a candidate that fails against its nearest 8
+    # neighbours fails against all of them, so the full neighbourhood is read only for those that pass (few: on a
+    # VGA sensor the test of every candidate cost more per event than the counting)
+    for r in sorted({min(1, radius), radius}):
+        rows, cols = np.divmod(candidates, counts.shape[1])
+        around = neighbourhood_max(counts, rows, cols, r)
+        candidates = candidates[flat[candidates] >= factor * (around.astype(np.float64) + 1.0)]
+    return candidates
 
 
 class HotPixelFilter:
@@ -118,7 +123,7 @@ class HotPixelFilter:
         self.block_events = BLOCK_EVENTS_PER_PIXEL * pixels
         self._batch = max(1, pixels // 8)  # pending events counted at once at most
         self.flagged = np.zeros(pixels, bool)
-        self._counts = np.zeros(pixels, np.int64)
+        self._counts = np.zeros(pixels, np.int32)  # a block's counts (at most a few events per pixel on average)
         self._in_block = 0  # events counted in the current block
         self._peak = 0  # the largest count in the current block
         self._pending: list[np.ndarray] = []  # pixel indices not counted yet
@@ -154,10 +159,9 @@ class HotPixelFilter:
                     and self._holding:
                 released, first_out = self._release(), i
             j = max(i + 1, min(i + self._batch - self._pending_n, int(np.searchsorted(t, self._t_due(), "left"))))
-            part = self._drop(chunk[i:j])
+            part, index, inside = self._drop(chunk[i:j])  # the pixel indices once, for the drop and the count
             dropped += j - i - len(part)
             if len(part):
-                index, inside = self._pixel_index(part)
                 self._pending.append(index if inside is None else index[inside])
                 self._pending_n += len(part)
                 if self._holding:  # a copy: a view would keep the caller's whole chunk alive
@@ -198,35 +202,40 @@ class HotPixelFilter:
         return min(due, self._t_first + self.hold_time) if self._holding else due
 
     def _pixel_index(self, chunk: Events) -> tuple[np.ndarray, np.ndarray | None]:
-        """Flat pixel index of each event, and which events fall on the sensor (None: all). Sub-pixel coordinates
-        (undistorted events) go to their nearest pixel; those off the sensor are neither counted nor dropped."""
+        """Flat pixel index of each event (int32: half the memory traffic of int64, which this per-event pass is
+        bound by), and which events fall on the sensor (None: all). Sub-pixel coordinates (undistorted events) go to
+        their nearest pixel; those off the sensor are neither counted nor dropped."""
         if not chunk.has_subpixel_coordinates:
-            return chunk.y.astype(np.int64) * self.width + chunk.x, None
-        x, y = np.rint(chunk.x).astype(np.int64), np.rint(chunk.y).astype(np.int64)
+            index = chunk.y.astype(np.int32)
+            index *= self.width
+            index += chunk.x
+            return index, None
+        x, y = np.rint(chunk.x).astype(np.int32), np.rint(chunk.y).astype(np.int32)
         inside = (x >= 0) & (x < self.width) & (y >= 0) & (y < self.height)
         return np.where(inside, y * self.width + x, 0), inside
 
-    def _drop(self, chunk: Events) -> Events:
-        """``chunk`` without the events of flagged pixels."""
-        if not self.found or len(chunk) == 0:
-            return chunk
+    def _drop(self, chunk: Events) -> tuple[Events, np.ndarray, np.ndarray | None]:
+        """``chunk`` without the events of flagged pixels, with their ``_pixel_index``."""
         index, inside = self._pixel_index(chunk)
+        if not self.found or len(chunk) == 0:
+            return chunk, index, inside
         hot = self.flagged[index] if inside is None else self.flagged[index] & inside
         if not hot.any():
-            return chunk
+            return chunk, index, inside
         self.events_dropped += int(np.count_nonzero(hot))
-        return chunk[~hot]
+        keep = ~hot
+        return chunk[keep], index[keep], None if inside is None else inside[keep]
 
     def _count(self, t: float, end: bool = False) -> bool:
         """Add the pending events to the block's counts (at sensor time t); test the block when it is done (and
         say whether it was)."""
         index = np.concatenate(self._pending) if len(self._pending) > 1 else \
-            (self._pending[0] if self._pending else np.zeros(0, np.int64))
+            (self._pending[0] if self._pending else np.zeros(0, np.int32))
         self._pending, self._pending_n = [], 0
         self._t_counted = t
         if len(index):
             if FAST_ADD_AT or len(index) * 64 < len(self._counts):  # a scatter-add (old numpy: of few events)
-                np.add.at(self._counts, index, 1)
+                np.add.at(self._counts, index, np.int32(1))  # an int32 one: a Python 1 takes a slow cast path
             else:
                 self._counts += np.bincount(index, minlength=len(self._counts))
             self._in_block += len(index)
@@ -267,7 +276,7 @@ class HotPixelFilter:
         self._holding = False
         self.released_at = self._t_counted
         held, self._held = self._held, []
-        kept = [part for part in (self._drop(part) for part in held) if len(part)]
+        kept = [part for part in (self._drop(part)[0] for part in held) if len(part)]
         return [Events.concatenate(kept)] if kept else []
 
     def all_dropped(self) -> str | None:

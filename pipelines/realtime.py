@@ -62,10 +62,16 @@ The front-end's lag (now - due(t) - dead(t), t the time of its last packet), tak
 is a second input to the escalating rules: when the front-end is the bottleneck, windows complete too rarely to react
 in time; an escalation it causes goes on to the next level that changes the front-end's work. Front-end packets are
 skipped rather than thinned because their cost is mostly per evaluation. With a back-end worker the front-end has a
-core of its own, so a level's front-end column applies only while the front-end itself falls behind (its lag above
-T); it takes every packet again once its lag is under T / 2 and the main process is predicted to cost under
-RELAX_HEADROOM with all of them. report.json's "realtime" block says how long each level was in force (in sensor
-seconds) and what it removed.
+core of its own, and the two processes fall behind for different reasons, so each degrades its own work: the levels'
+front-end column does not apply; the front-end's lag alone (the same escalating test) makes it skip packets, 1 of
+``FE_KEEPS`` (2, then 4), then thin the input (q doubles), beyond M at once to 1 of 4; the levels degrade only the
+BA and rise only on windows late while the front-end keeps up (a window waiting for a front-end that is behind would
+not come sooner with a cheaper BA: escalating then took the BA to level 4 and its events to none while the worker
+had room). A front-end that waited for the worker (the backlog bound) since the last decision is late because of the
+BA: then its lag changes nothing and the windows' lag rules as without a worker. Relaxing goes in the same order
+backwards: q halves, then the front-end skips half as many packets once its lag is under T / 2 and the main process
+is predicted to cost under RELAX_HEADROOM with them, then the level falls.
+report.json's "realtime" block says how long each level was in force (in sensor seconds) and what it removed.
 """
 from __future__ import annotations
 
@@ -101,6 +107,7 @@ TRACE_COLUMNS = ("t_start", "t_end", "lag_s", "level", "input_thinning", "events
 DRAIN_WINDOWS = 5  # a lag above target that falls back under it within this many windows needs no escalation
 # level -> (1 of k front-end packets, BA cap divisor (0: BA skipped), BA on 1 of m windows)
 LEVELS = {0: (1, 1, 1), 1: (1, 1, 1), 2: (1, 2, 1), 3: (2, 2, 2), 4: (4, 0, 1)}  # level 1: the BA budget only
+FE_KEEPS = (1, 2, 4)  # with a worker: the front-end's own steps (1 of k packets), taken on its lag alone
 
 
 class RealtimeController:
@@ -109,10 +116,10 @@ class RealtimeController:
 
     def __init__(self, config: SlamConfig, speed: float, worker: bool = False):
         rt, be = config.realtime, config.backend
-        # with a back-end worker the front-end has a core of its own: the level's front-end skipping (1 of k packets)
-        # applies only while the front-end itself falls behind (module docstring)
+        # with a back-end worker the front-end has a core of its own: its packets are skipped (1 of FE_KEEPS[fe_level])
+        # by a rule of its own, only while it falls behind, and the levels degrade the BA alone (module docstring)
         self.worker = worker
-        self.fe_skipping = not worker
+        self.fe_level = 0
         self.target, self.bound, self.speed = rt.realtime_target_lag, rt.realtime_max_lag, speed
         self.stride = be.backend_sliding_window_stride
         self.cap = be.backend_max_window_events  # -1: every event (then the divisors apply to the window's count)
@@ -136,6 +143,10 @@ class RealtimeController:
         # headroom (module docstring): per-window costs at the current level, the main process's idle time
         # (sleeping until events are due + waiting for the worker; set by run_realtime) and the BA's seconds/event
         self.idle_seconds = lambda: 0.0
+        # wall seconds the main process waited for the worker so far (set by run_realtime): a front-end held back by
+        # the worker (its backlog bound) is late because of the BA, not its own work
+        self.blocked_seconds = lambda: 0.0
+        self._blocked_at: dict[str, float] = {}  # blocked_seconds() at the last decision per source
         self._costs: list[dict] = []  # per window since the last change: {"worker", "main", "ba", "fe"}
         self._mark = None  # (time.monotonic, main idle, front-end seconds, front-end time, worker done_at)
         self._ba_recent: list[tuple[float, int]] = []  # (seconds, events) of the last RELAX_WINDOWS windows with a BA
@@ -163,17 +174,26 @@ class RealtimeController:
         base = self.cap if self.cap > 0 else (window_events or self.floor)
         return int(max(self.floor, base // divisor))
 
-    def fe_keep(self, level: int | None = None) -> int:
-        """1 of this many front-end packets is processed at ``level`` (default: the current one)."""
-        return LEVELS[self.level if level is None else level][0] if self.fe_skipping else 1
+    @property
+    def fe_skipping(self) -> bool:
+        """The front-end skips packets (with a worker: by its own rule)."""
+        return self.fe_keep() > 1
 
-    def _frontend_fits_unskipped(self) -> bool:
-        """The main process would cost under RELAX_HEADROOM with every front-end packet (its measured front-end
-        part scaled to all packets)."""
+    def fe_keep(self, level: int | None = None) -> int:
+        """1 of this many front-end packets is processed at ``level`` (default: the current one; with a worker the
+        front-end's own rule sets it, whatever the level)."""
+        if self.worker:
+            return FE_KEEPS[self.fe_level]
+        return LEVELS[self.level if level is None else level][0]
+
+    def _frontend_fits_less_skipped(self) -> bool:
+        """The main process would cost under RELAX_HEADROOM with the front-end skipping half as many packets (its
+        measured front-end part scaled to them)."""
         mean = self.mean_costs()
-        if mean is None:
+        if mean is None or self.fe_level == 0:
             return False
-        return mean["main"] + mean["fe"] * (self.fe_keep() - 1) < RELAX_HEADROOM
+        ratio = FE_KEEPS[self.fe_level] / FE_KEEPS[self.fe_level - 1]
+        return mean["main"] + mean["fe"] * (ratio - 1) < RELAX_HEADROOM
 
     def ba_budget(self) -> float:
         """Seconds a window's BA may take at the current level (module docstring): half the lag target at level 0,
@@ -292,12 +312,29 @@ class RealtimeController:
         self._control(self._fe_lag, "frontend")
 
     def _control(self, lag: float, source: str = "window") -> None:
-        old = (self.level, self.thinning, self.fe_skipping)
+        old = (self.level, self.thinning, self.fe_level)
         self._since_change += source == "window"
         prev = self._prev_lag.get(source)
         change = lag - prev if prev is not None else 0.0  # per stride of sensor time (ticks come once per stride)
         self._prev_lag[source] = lag
-        if lag > self.bound and self.level < MAX_LEVEL:
+        rising = lag > self.target and lag + DRAIN_WINDOWS * change > self.target
+        blocked = self.blocked_seconds()
+        held = blocked - self._blocked_at.get(source, 0.0) > 0.1 * self.stride / self.speed
+        self._blocked_at[source] = blocked
+        if self.worker and source == "frontend" and held:
+            pass  # the front-end waited for the worker's windows: their lag is the BA's, the window rule acts
+        elif self.worker and source == "frontend":
+            # the front-end behind on its own core: only its work helps (its packets, then the input), not the BA's
+            if lag > self.bound:
+                self.fe_level = len(FE_KEEPS) - 1
+            elif rising and self.fe_level < len(FE_KEEPS) - 1:
+                self.fe_level += 1
+            elif rising and prev is not None:
+                self.thinning = min(MAX_INPUT_THINNING, 2 * self.thinning)
+        elif self.worker and source == "window" and lag > self.target and (self._fe_lag or 0.0) > self.target \
+                and not held:
+            pass  # the windows wait for a front-end that is behind: a cheaper BA would not bring them sooner
+        elif lag > self.bound and self.level < MAX_LEVEL:
             self.level = MAX_LEVEL  # beyond the hard bound: the last level at once
         elif lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL:
             self.level += 1
@@ -313,19 +350,16 @@ class RealtimeController:
             if self.thinning > 1:
                 if lag < 0.5 * self.target:
                     self.thinning //= 2
+            elif self.worker and self.fe_level > 0:
+                if (self._fe_lag or 0.0) < 0.5 * self.target and self._frontend_fits_less_skipped():
+                    self.fe_level -= 1
             elif self.level > 0 and self._since_change >= RELAX_WINDOWS:
                 cost = self.predicted_cost()
                 if cost is not None and cost < RELAX_HEADROOM:
                     self.predicted.append(cost)
                     self.level -= 1
-        if self.worker:  # the front-end skips packets only while it is what falls behind
-            if not self.fe_skipping and source == "frontend" and lag > self.target:
-                self.fe_skipping = True
-            elif self.fe_skipping and source == "window" and (self._fe_lag or 0.0) < 0.5 * self.target \
-                    and self.level > 0 and self._frontend_fits_unskipped():
-                self.fe_skipping = False
         self.max_thinning = max(self.max_thinning, self.thinning)
-        if (self.level, self.thinning, self.fe_skipping) != old:
+        if (self.level, self.thinning, self.fe_level) != old:
             self._since_change = 0
             self._costs = []  # costs are measured afresh at the new level
             self.apply()
@@ -407,6 +441,7 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     ctl.apply()  # level 0's BA budget
     idle = {"sleep": 0.0}
     ctl.idle_seconds = lambda: idle["sleep"] + online.backend.blocked_seconds
+    ctl.blocked_seconds = lambda: online.backend.blocked_seconds
     online.wait_ready()  # the sensor clock starts once both processes can work
     reader = iter(chunks)
     pending = Events.empty()
@@ -468,12 +503,17 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
 def _hand_over(online, ctl: RealtimeController, batch: Events, last: float, min_pause: float, counts: dict):
     """Push the due events (1 of the controller's q), yielding after each push. The event ending a pause goes in a
     push of its own, recorded with the front-end's progress before it."""
-    gaps = np.diff(batch.t, prepend=last if last > -math.inf else batch.t[0])
-    cuts = np.flatnonzero(gaps > min_pause)
+    first = last if last > -math.inf else batch.t[0]
+    if batch.t[-1] - first > min_pause:  # a pause may lie inside (a batch is a few ms at high rates: rarely)
+        gaps = np.diff(batch.t, prepend=first)
+        cuts = np.flatnonzero(gaps > min_pause)
+        pause_at = set(cuts.tolist())
+    else:
+        cuts, pause_at = np.zeros(0, np.int64), set()
     bounds = [0, *cuts[cuts > 0].tolist(), len(batch)]
     for i0, i1 in zip(bounds[:-1], bounds[1:]):
         part = batch[i0:i1]
-        if gaps[i0] > min_pause:
+        if i0 in pause_at:
             ctl.pauses.append((last if i0 == 0 else float(batch.t[i0 - 1]), float(part.t[0]), online.frontend_until))
         q = ctl.thinning
         if q > 1:
@@ -499,6 +539,8 @@ def _realtime_block(online, ctl: RealtimeController, result, config: SlamConfig,
     fe_fraction = 1.0 - online.packets_skipped / packets
     input_fraction = handed / read if read else 1.0
     worker = result.report.get("backend_process")
+    other = max(0.0, cpu_total - fe_cpu - (be_cpu if worker is None else 0.0) - cpu_io)
+    handover = online.cpu_seconds["handover"]
     report = {
         "speed": speed, "target_lag_s": rt.realtime_target_lag, "max_lag_bound_s": rt.realtime_max_lag,
         "chunk_s": rt.realtime_chunk, "events_read": int(read), "events_handed_over": int(handed),
@@ -513,8 +555,13 @@ def _realtime_block(online, ctl: RealtimeController, result, config: SlamConfig,
         "cpu_seconds": {
             "frontend": fe_cpu, "backend": be_cpu if worker is None else online.backend_cpu_seconds,
             "io": cpu_io,
-            # this process: bearings, buffers, slicing, pickling to the worker, the controller
-            "other": max(0.0, cpu_total - fe_cpu - (be_cpu if worker is None else 0.0) - cpu_io),
+            # this process: bearings, buffers, slicing, the hand-over to the worker, the controller; of it "ingest"
+            # (checks, hot-pixel filter, slicing), "handover" (to the worker: ring writes and messages; in one
+            # process: bearings and the window buffer), "close" (the end of the stream: the last packets and windows,
+            # the worker's outcome; once per run) and "replay" (the rest: due events, thinning, the controller)
+            "other": other,
+            "ingest": online.cpu_seconds["ingest"], "handover": handover, "close": online.cpu_seconds["close"],
+            "replay": max(0.0, other - online.cpu_seconds["ingest"] - handover - online.cpu_seconds["close"]),
             "main_process": cpu_total,
             **({"backend_process": worker["cpu_seconds"]} if worker is not None else {}),
         },

@@ -117,6 +117,11 @@ class OnlineSlam:
         self.frontend_keep = 1
         self.budget = FULL_BUDGET
         self.packets_seen = self.packets_skipped = 0
+        # CPU seconds of this process in push() beside the front-end's estimation: "ingest" (checks, hot-pixel filter,
+        # slicing, pose integration), "handover" (the back-end's calls less its windows: to a worker, the ring writes
+        # and messages; in this process, bearings and the window buffer), "callbacks" (on_window, on_packet) and
+        # "close" (close() less the estimation and windows: the last packets' slicing, a worker's outcome)
+        self.cpu_seconds = {"ingest": 0.0, "handover": 0.0, "callbacks": 0.0, "close": 0.0}
         self._result: SlamResult | None = None
 
     @property
@@ -138,17 +143,34 @@ class OnlineSlam:
             raise InputError(f"expected Events chunks, got {type(events).__name__}")
         if len(events) == 0:
             return
+        cpu = self.cpu_seconds
+        cpu0, fe0 = time.process_time(), self.runner.cpu_seconds + self._window_cpu()
+        other0 = cpu["handover"] + cpu["callbacks"]
         self.runner.check(events)  # times, pixels and pauses (one clear InputError)
         self.events_read += len(events)
         self.t_last = float(events.t[-1])
         for kept in self.hot_pixels.push(events):
             self._use(kept)
-        self._notify(self.backend.poll(self._t_used))
+        self._notify(self._backend_call(lambda: self.backend.poll(self._t_used)))
+        cpu["ingest"] += time.process_time() - cpu0 - (self.runner.cpu_seconds + self._window_cpu() - fe0) \
+            - (cpu["handover"] + cpu["callbacks"] - other0)
+
+    def _window_cpu(self) -> float:
+        """CPU seconds of this process in the back-end's windows (a worker reports its own at the end: not ours)."""
+        return 0.0 if isinstance(self.backend, WorkerBackend) else self.backend.cpu_seconds
+
+    def _backend_call(self, call):
+        """``call()``, its CPU time counted as "handover" (the windows it runs in this process left out)."""
+        tic, windows = time.process_time(), self._window_cpu()
+        out = call()
+        self.cpu_seconds["handover"] += time.process_time() - tic - (self._window_cpu() - windows)
+        return out
+
 
     def _use(self, events: Events) -> None:
         """Events that passed the hot-pixel filter: to the back-end's window buffer and the front-end's slicer."""
         offset = self._events_used
-        self.backend.push_events(events)
+        self._backend_call(lambda: self.backend.push_events(events))
         self._events_used += len(events)
         self._t_used = float(events.t[-1])
         for packet in self.runner.slicer.push(every_qth(events, self._q_front, offset)):
@@ -158,6 +180,14 @@ class OnlineSlam:
         """End of the stream: process the last packets and windows; the same result as ``run_slam``."""
         if self._result is not None:
             return self._result
+        cpu0, work0 = time.process_time(), self.runner.cpu_seconds + self._window_cpu()
+        try:
+            return self._close()
+        finally:  # the front-end's estimation and the windows in this process are theirs
+            work = self.runner.cpu_seconds + self._window_cpu() - work0
+            self.cpu_seconds["close"] += time.process_time() - cpu0 - work
+
+    def _close(self) -> SlamResult:
         for kept in self.hot_pixels.flush():
             self._use(kept)
         for packet in self.runner.slicer.flush():
@@ -252,7 +282,9 @@ class OnlineSlam:
             self._r_src = self._r_src @ so3.exp(0.5 * (self._w_prev + omega) * (packet.t_ref - self._t_prev))
         self._t_prev, self._w_prev = packet.t_ref, omega
         if self.on_packet is not None:
+            tic = time.process_time()
             self.on_packet(packet, omega)
+            self.cpu_seconds["callbacks"] += time.process_time() - tic
         sample = (packet.t_ref, self._r_src, not row.motion.still)  # moving: windows over it get a BA
         if self._first is None:  # held until a second packet (sent as before) or the close (a one-packet stream)
             t_first = float(packet.events.t[0]) if len(packet.events) else packet.t_ref
@@ -267,9 +299,17 @@ class OnlineSlam:
             self._notify(self.backend.advance(t, rotation, moving, lambda: self.budget))
 
     def _notify(self, reports) -> None:
-        for report in reports:
+        """Hand each window's report to on_window as the back-end yields it (the callback may degrade the next
+        window); the back-end's own time counts as "handover" CPU, the callback's as the caller's."""
+        reports = iter(reports)
+        while True:
+            report = self._backend_call(lambda: next(reports, None))
+            if report is None:
+                return
             if self.on_window is not None:
+                tic = time.process_time()
                 self.on_window(report)
+                self.cpu_seconds["callbacks"] += time.process_time() - tic
 
     def _assemble(self, outcome: BackendOutcome) -> SlamResult:
         config, runner = self.config, self.runner

@@ -2,13 +2,16 @@
 
 ``WorkerBackend`` is the ``online_backend.OnlineBackend`` of ``OnlineSlam`` when the back-end runs beside it: it sends
 event chunks and source poses to a spawned process that runs a ``BackendRunner`` on them, in the same order as in one
-process, so the results are the same (bitwise with one Taichi thread per process). Each pose message carries the
-real-time budget in force when it was sent. A mirror back-end follows the worker's refined windows
+process, so the results are the same (bitwise with one Taichi thread per process). The events go through an
+``EventRing`` in shared memory (one copy in, one copy out; the message says where they are), not through pickles: at
+VGA rates a pickle, its pipe writes and the worker's unpickling cost more than the rest of the hand-over. Each pose
+message carries the real-time budget in force when it was sent. A mirror back-end follows the worker's refined windows
 (``SlidingWindowBackend.follow``) to answer pose queries at once. A thread would not help: Taichi kernel launches
 hold the GIL.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import sys
@@ -30,6 +33,136 @@ from .online_backend import BackendOutcome, BackendRunner, compile_backend
 
 # sensors up to this many pixels get a back-end worker by default (default_backend_process): VGA-class and below
 WORKER_MAX_SENSOR_PIXELS = 500_000
+# events the shared ring holds per sensor pixel, within these bounds: about 0.3 s of a VGA sensor at 12 M events/s (the
+# events sent while the worker runs a window's BA); 17 bytes per event
+RING_EVENTS_PER_PIXEL = 16
+RING_EVENTS_RANGE = (1 << 18, 1 << 22)
+RING_WAIT = 0.0005  # seconds between looks at the worker's progress while the ring is full
+
+
+def ring_capacity(camera: Camera) -> int:
+    """Events of the ``EventRing`` between this process and the worker, for ``camera``'s sensor."""
+    lo, hi = RING_EVENTS_RANGE
+    return int(min(hi, max(lo, RING_EVENTS_PER_PIXEL * camera.width * camera.height)))
+
+
+class EventRing:
+    """Events in a ring of shared memory, one writer (the main process) and one reader (the worker): the writer
+    copies a chunk in and sends its position in a message; the reader copies it out and then advances the shared
+    count of events read, which frees their room. Columns: t float64, x and y (uint16, or float32 for sub-pixel
+    coordinates: 4 bytes each, the message says which), p int8. ``buffer``: shared memory of ``nbytes(capacity)``
+    bytes (``multiprocessing.RawArray``: it passes to a forked or a spawned worker and is freed with both)."""
+
+    HEADER = 64  # the count of events read (int64), alone on its cache line
+
+    def __init__(self, buffer, capacity: int):
+        self.capacity = int(capacity)
+        raw = np.frombuffer(buffer, np.uint8)
+        if len(raw) < self.nbytes(capacity):
+            raise ValueError(f"ring buffer of {len(raw)} bytes, {self.nbytes(capacity)} needed")
+        cap, h = self.capacity, self.HEADER
+        self._read = raw[:8].view(np.int64)
+        self.t = raw[h:h + 8 * cap].view(np.float64)
+        self._xy = raw[h + 8 * cap:h + 16 * cap]  # x then y, 4 bytes per event each
+        self.p = raw[h + 16 * cap:h + 17 * cap].view(np.int8)
+        self.written = 0  # events written (the writer's count)
+
+    @classmethod
+    def nbytes(cls, capacity: int) -> int:
+        return cls.HEADER + 17 * int(capacity)
+
+    @property
+    def read(self) -> int:
+        """Events the reader has copied out (shared)."""
+        return int(self._read[0])
+
+    def free(self) -> int:
+        return self.capacity - (self.written - self.read)
+
+    def _columns(self, subpixel: bool):
+        kind = np.float32 if subpixel else np.uint16
+        half = 4 * self.capacity
+        return (self.t, self._xy[:half].view(kind)[:self.capacity], self._xy[half:].view(kind)[:self.capacity],
+                self.p)
+
+    def _spans(self, position: int, n: int):
+        start = position % self.capacity
+        first = min(n, self.capacity - start)
+        return ((start, start + first, 0, first),) + (((0, n - first, first, n),) if first < n else ())
+
+    def put(self, events: Events) -> int:
+        """Copy ``events`` in (the caller made room: ``free() >= len(events)``); return their position."""
+        n = len(events)
+        if n > self.free():
+            raise ValueError(f"{n} events do not fit the ring ({self.free()} free)")
+        position = self.written
+        columns = self._columns(events.has_subpixel_coordinates)
+        for (r0, r1, e0, e1) in self._spans(position, n):
+            for ring, field in zip(columns, (events.t, events.x, events.y, events.p)):
+                ring[r0:r1] = field[e0:e1]
+        self.written += n
+        return position
+
+    def take(self, position: int, n: int, subpixel: bool) -> Events:
+        """Copies of the ``n`` events at ``position`` (in the order they were put); their room is free after."""
+        with self.borrow(position, n, subpixel) as events:
+            return Events(*(np.array(getattr(events, f)) for f in ("t", "x", "y", "p")))
+
+    @contextlib.contextmanager
+    def borrow(self, position: int, n: int, subpixel: bool):
+        """The ``n`` events at ``position`` for the ``with`` block: views of the ring (a copy where they wrap
+        around), freed for the writer at its end, so the block must keep no reference to them (the back-end's window
+        buffer copies what it keeps: one copy fewer per event than ``take``)."""
+        if position != self.read:
+            raise RuntimeError(f"ring read out of order: events at {position}, {self.read} read so far")
+        spans = self._spans(position, n)
+        fields = [column[spans[0][0]:spans[0][1]] if len(spans) == 1 else
+                  np.concatenate([column[r0:r1] for r0, r1, _, _ in spans]) for column in self._columns(subpixel)]
+        try:
+            yield Events(*fields)
+        finally:
+            self._read[0] = position + n
+
+
+class RingWriter:
+    """The writing end of an ``EventRing``: ``write`` copies events in (in pieces of at most half the ring), waiting
+    while it lacks room; ``flush`` announces the events written since the last announcement in one message,
+    ("events", position, count, sub-pixel), through ``send``. Before waiting it announces what it wrote (the reader
+    frees room only for events it knows of); ``check_alive()`` raises when the reader has ended."""
+
+    def __init__(self, ring: EventRing, send: Callable[[tuple], None], check_alive: Callable[[], None]):
+        self.ring, self.send, self.check_alive = ring, send, check_alive
+        self._unsent: list | None = None  # [position, count, sub-pixel] of events written, not announced yet
+        self.blocked_seconds = 0.0
+
+    def write(self, events: Events) -> None:
+        ring, subpixel = self.ring, events.has_subpixel_coordinates
+        piece = max(1, ring.capacity // 2)
+        for i in range(0, len(events), piece):
+            part = events[i:i + piece] if len(events) > piece else events
+            if self._unsent is not None and self._unsent[2] != subpixel:
+                self.flush()
+            if ring.free() < len(part):
+                self.flush()
+                self._wait_for_room(len(part))
+            position = ring.put(part)
+            if self._unsent is None:
+                self._unsent = [position, 0, subpixel]
+            self._unsent[1] += len(part)
+
+    def flush(self) -> None:
+        if self._unsent is not None:
+            position, n, subpixel = self._unsent
+            self._unsent = None
+            self.send(("events", position, n, subpixel))
+
+    def _wait_for_room(self, n: int) -> None:
+        """Short sleeps until the reader has taken enough (it takes every event announced before its next window)."""
+        tic = time.perf_counter()
+        while self.ring.free() < n:
+            self.check_alive()
+            time.sleep(RING_WAIT)
+        self.blocked_seconds += time.perf_counter() - tic
 
 
 def default_backend_process(camera: Camera) -> bool:
@@ -64,9 +197,8 @@ class WorkerBackend:
 
         runtime.share_cores(2)  # the worker runs beside this process: half the cores each (unless chosen)
         self.config, self.max_backlog = config, max_backlog
-        self._process = _BackendProcess(camera, config, queue_size, loop_slice_seconds, threads)
+        self._process = _BackendProcess(camera, config, queue_size, loop_slice_seconds, threads, ring_capacity(camera))
         self.mirror: SlidingWindowBackend | None = None  # follows the worker's windows (follow), for pose()
-        self._to_send: list[Events] = []  # chunks not sent yet (see _send_events)
         self._reports: list[WindowReport] = []  # windows followed, not handed to the caller yet
         self.seconds = 0.0
 
@@ -87,7 +219,7 @@ class WorkerBackend:
             return
         if self.mirror is None:
             self.mirror = SlidingWindowBackend(self.config.backend, float(chunk.t[0]), np.eye(3))
-        self._to_send.append(chunk)  # sent with the next pose (or before waiting): fewer, larger messages
+        self._process.write(chunk)  # into the ring now; announced with the next pose (or before waiting)
 
     def advance(self, t: float, rotation: np.ndarray, moving: bool,
                 budget: Callable[[], WindowBudget]) -> Iterator[WindowReport]:
@@ -107,7 +239,7 @@ class WorkerBackend:
             self._send_events()
             tic = time.perf_counter()
             self._receive(until="window")
-            self._process.blocked_seconds += time.perf_counter() - tic
+            self._process.waited_seconds += time.perf_counter() - tic
         reports, self._reports = self._reports, []
         return iter(reports)
 
@@ -136,7 +268,10 @@ class WorkerBackend:
         self.seconds, self.cpu_seconds = done["seconds"], done["step_cpu_seconds"]
         outcome = done["outcome"]
         outcome.process = {"compile_seconds": done["compile_seconds"], "cpu_seconds": done["cpu_seconds"],
-                           "push_blocked_seconds": self._process.blocked_seconds, "peak_rss_mb": done["peak_rss_mb"],
+                           "push_blocked_seconds": self._process.blocked_seconds,
+                           # of it, waiting for room in the shared ring of events
+                           "ring_wait_seconds": self._process.writer.blocked_seconds,
+                           "ring_events": self._process.writer.ring.capacity, "peak_rss_mb": done["peak_rss_mb"],
                            "process_cpu_seconds": done["process_cpu_seconds"],
                            "start_method": self._process.start_method,
                            "timeline_seconds": done["timeline_seconds"]}
@@ -152,11 +287,9 @@ class WorkerBackend:
         self._process.cancel()
 
     def _send_events(self) -> None:
-        """Hand the chunks pushed since the last message to the worker as one (each message costs a pickle, a pipe
-        write and a wake-up of the worker; a live source pushes many small chunks)."""
-        if self._to_send:
-            chunks, self._to_send = self._to_send, []
-            self._process.send(("events", Events.concatenate(chunks)))
+        """Announce the events written to the ring since the last message, as one message (each costs a pipe write
+        and a wake-up of the worker; a live source pushes many small chunks)."""
+        self._process.flush()
 
     def _receive(self, until: str | None = None):
         """Follow the worker's windows in the mirror (their reports wait for ``poll`` or ``finish``); with ``until``
@@ -194,7 +327,8 @@ class _BackendProcess:
     (``send`` blocks while it is full: back-pressure, nothing dropped) and a queue of results."""
 
     def __init__(self, camera: Camera, config: SlamConfig, queue_size: int, loop_slice_seconds: float | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, ring_events: int = RING_EVENTS_RANGE[0]):
+        import ctypes
         import multiprocessing as mp
         import signal
 
@@ -205,9 +339,12 @@ class _BackendProcess:
         ctx = mp.get_context(self.start_method)
         self.inbox, self.outbox = ctx.Queue(max(1, queue_size)), ctx.Queue()
         self.inbox.cancel_join_thread()  # never hang at exit on a worker that stopped reading (it failed)
+        self.waited_seconds = 0.0  # for a full inbox, or the worker's windows
+        buffer = ctx.RawArray(ctypes.c_uint8, EventRing.nbytes(ring_events))
+        self.writer = RingWriter(EventRing(buffer, ring_events), self.send, self._check_alive)
         self.proc = ctx.Process(target=_backend_worker, daemon=True,
                                 args=(camera, config, threads or runtime.num_threads(), self.inbox, self.outbox,
-                                      loop_slice_seconds))
+                                      loop_slice_seconds, (buffer, ring_events)))
         # Ctrl-C is this process's to handle (the CLI: one line, exit 130), but a terminal sends it to the whole
         # process group. Blocked while the worker is spawned, SIGINT stays blocked in it from its first instruction
         # (the mask survives fork and exec), so it prints no traceback; a Ctrl-C meanwhile reaches this process when
@@ -220,8 +357,25 @@ class _BackendProcess:
         finally:
             if mask is not None:
                 signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-        self.blocked_seconds = 0.0
         self.ready = False  # the worker has prepared its kernels
+
+    @property
+    def blocked_seconds(self) -> float:
+        """Wall seconds this process waited for the worker: a full inbox or ring, or its windows (``waited``)."""
+        return self.waited_seconds + self.writer.blocked_seconds
+
+    def write(self, events: Events) -> None:
+        self.writer.write(events)
+
+    def flush(self) -> None:
+        self.writer.flush()
+
+    def _check_alive(self) -> None:
+        """Raise WorkerLost (or the worker's own error) when the worker has ended."""
+        if not self.proc.is_alive():
+            for _ in self.messages(None):  # raises the worker's error, if it sent one
+                pass
+            raise WorkerLost(self._ended(""))
 
     def send(self, message) -> None:
         """Put a message on the inbox, waiting while it is full (1 s timeouts, to notice a worker that ended)."""
@@ -235,7 +389,7 @@ class _BackendProcess:
                     for _ in self.messages(None):  # raises the worker's error, if it sent one
                         pass
                     raise WorkerLost(self._ended("")) from None
-        self.blocked_seconds += time.perf_counter() - tic
+        self.waited_seconds += time.perf_counter() - tic
 
     def _ended(self, what: str) -> str:
         """Why the worker is gone, in one line."""
@@ -291,9 +445,10 @@ def _next_message(inbox, poll: float = 1.0):
 
 
 def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, outbox,
-                    loop_slice_seconds: float | None = None) -> None:
-    """The worker process: a ``BackendRunner`` on messages ("events", chunk), ("pose", t, R, moving, budget),
-    ("map",) (send a copy of the map) and ("finish", budget). While no message waits it advances the loop closer's
+                    loop_slice_seconds: float | None = None, ring: tuple | None = None) -> None:
+    """The worker process: a ``BackendRunner`` on messages ("events", position, count, sub-pixel: where they are in
+    the ``EventRing`` ``ring`` = (buffer, capacity)), ("pose", t, R, moving, budget), ("map",) (send a copy of the
+    map) and ("finish", budget). While no message waits it advances the loop closer's
     verification in flight (sliced in real time)."""
     import signal
 
@@ -316,16 +471,17 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
         timeline.mark("ready")
         outbox.put(("ready", compile_s))
         _serve(BackendRunner(camera, config, loop_slice_seconds=loop_slice_seconds), inbox, outbox,
-               {"compile_seconds": compile_s, "cpu0": cpu0})
+               {"compile_seconds": compile_s, "cpu0": cpu0}, EventRing(*ring))
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
         return
     runtime.shutdown()  # the kernels compiled here go to the offline cache (the worker ends with os._exit)
 
 
-def _serve(runner: BackendRunner, inbox, outbox, start: dict) -> None:
-    """The worker's message loop. Per-stage costs beside the back-end's own: receive (waiting for input and
-    unpickling it), events (bearings and the window buffer), send (the window messages)."""
+def _serve(runner: BackendRunner, inbox, outbox, start: dict, ring: EventRing) -> None:
+    """The worker's message loop. Per-stage costs beside the back-end's own: receive (waiting for messages and
+    unpickling them), events (the copy out of the ring, bearings and the window buffer), send (the window
+    messages)."""
     clock = StageClock()
     last_done, waited = time.perf_counter(), 0.0  # busy_seconds of a window: wall since the last one - waited
     while True:
@@ -338,8 +494,8 @@ def _serve(runner: BackendRunner, inbox, outbox, start: dict) -> None:
             kind, *args = _next_message(inbox)
         waited += time.perf_counter() - tic
         if kind == "events":
-            with clock("events"):
-                runner.push_events(args[0])
+            with clock("events"), ring.borrow(*args) as events:
+                runner.push_events(events)
             continue
         if kind == "map":  # OnlineSlam.map(): a copy of the map of the events settled so far
             outbox.put(("map", runner.map()))

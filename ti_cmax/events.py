@@ -5,11 +5,15 @@ datasets that ship undistorted sub-pixel coordinates); p: polarity as int8 in {-
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import InputError
+
+
+_XY_DTYPES = (np.dtype(np.uint16), np.dtype(np.float32))
 
 
 def _as(a, dtype) -> np.ndarray:
@@ -85,6 +89,12 @@ class Events:
     p: np.ndarray
 
     def __post_init__(self):
+        t, x, y, p = self.t, self.x, self.y, self.p
+        if type(t) is np.ndarray and type(x) is np.ndarray and type(y) is np.ndarray and type(p) is np.ndarray \
+                and t.dtype == np.float64 and p.dtype == np.int8 and x.dtype == y.dtype \
+                and x.dtype in _XY_DTYPES and t.ndim == 1 and len(x) == len(y) == len(p) == len(t) \
+                and t.flags.c_contiguous and x.flags.c_contiguous and y.flags.c_contiguous and p.flags.c_contiguous:
+            return  # already the columns of an Events (a slice, a view of a buffer): the checks below cost ~10 us
         n = len(self.t)
         if not (len(self.x) == len(self.y) == len(self.p) == n):
             raise InputError("events arrays t, x, y, p must have the same length")
@@ -187,3 +197,60 @@ class Events:
         if len(self) == 0:
             return "Events(n=0)"
         return f"Events(n={len(self)}, t=[{self.t[0]:.6f}, {self.t[-1]:.6f}] s)"
+
+
+class EventBuffer:
+    """A run of time-ordered events that grows at its end and drops its head cheaply: the columns have spare room at
+    the end, ``push`` copies only the new events in (amortized growth), ``drop`` moves a start index, and when the
+    room runs out the live events move to the front of the same arrays if no view of them is alive, else to new
+    arrays. ``view()`` is an ``Events`` of views that stays valid: the buffer never writes where a view can look. A stream slicer joining its chunks by concatenation copies its whole
+    buffer at each join instead; at high event rates that cost more than the rest of the slicing."""
+
+    FIELDS = ("t", "x", "y", "p")
+
+    def __init__(self):
+        self._cols: tuple | None = None
+        self._start = self._end = 0
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def push(self, events: Events) -> None:
+        n = len(events)
+        if not n:
+            return
+        new = [getattr(events, f) for f in self.FIELDS]
+        cols = self._cols
+        if cols is not None and self._end + n > len(cols[0]) and cols[1].dtype == new[1].dtype \
+                and 2 * (len(self) + n) <= len(cols[0]) and not self._viewed():
+            # nothing looks at the columns: move the live events to the front (fresh arrays cost a page fault per
+            # 4 kB, more than the copy); they do not overlap the live part's new place (it is at most half)
+            live = len(self)
+            for c in cols:
+                c[:live] = c[self._start:self._end]
+            self._start, self._end = 0, live
+        if cols is None or self._end + n > len(cols[0]) or cols[1].dtype != new[1].dtype:
+            live = len(self)
+            cap = max(3 * (live + n), 1024)  # room to move the live events to the front later (see above)
+            old = cols if cols is not None else [np.zeros(0, c.dtype) for c in new]
+            kinds = [np.result_type(o.dtype, c.dtype) for o, c in zip(old, new)]
+            cols = tuple(np.empty(cap, k) for k in kinds)
+            for dst, src in zip(cols, old):
+                dst[:live] = src[self._start:self._end]
+            self._cols, self._start, self._end = cols, 0, live
+        for dst, src in zip(cols, new):
+            dst[self._end:self._end + n] = src
+        self._end += n
+
+    def _viewed(self) -> bool:
+        """Whether a view of the columns is alive (one more reference than the buffer's own and this call's)."""
+        return any(sys.getrefcount(c) > 3 for c in self._cols)
+
+    def drop(self, k: int) -> None:
+        """Forget the first ``k`` events (at most all of them)."""
+        self._start = min(self._end, self._start + max(0, int(k)))
+
+    def view(self) -> Events:
+        if self._cols is None or not len(self):
+            return Events.empty()
+        return Events(*(c[self._start:self._end] for c in self._cols))

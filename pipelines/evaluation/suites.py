@@ -46,8 +46,9 @@ SUITES = {
         SequenceSpec("hd", "HD", "city", 1.5, 0, options=(("max_angular_velocity", 3.0),)),
     ),
     # real-time replay (``ti-cmax benchmark --realtime``, pipelines/evaluation/bench_realtime.py): steady random motion from the
-    # start (random_ramp_start 1) at about 1, 2 and 5 M events/s on a DAVIS240C and 12 M events/s on a VGA sensor
-    # (the motion's peak and the 5 M case's contrast threshold scaled from trial simulations of these seeds)
+    # start (random_ramp_start 1) at about 1, 2 and 5 M events/s on a DAVIS240C, 12 M events/s on a VGA sensor and 7 M
+    # events/s on an HD sensor (the motion's peak and the 5 M case's contrast threshold scaled from trial simulations of
+    # these seeds)
     "realtime": make_suite(
         SequenceSpec("davis240c-1m", "DAVIS240C", "city", 4.0, 21,
                      options=(("max_angular_velocity", 1.43), ("random_ramp_start", 1.0))),
@@ -58,6 +59,8 @@ SUITES = {
                               ("contrast_threshold", 0.15))),
         SequenceSpec("vga-12m", "VGA", "city", 2.0, 24,
                      options=(("max_angular_velocity", 1.48), ("random_ramp_start", 1.0))),
+        SequenceSpec("hd-7m", "HD", "city", 2.0, 25,
+                     options=(("max_angular_velocity", 0.75), ("random_ramp_start", 1.0))),
     ),
     # held-out sequences for the SMT baselines: DAVIS240C (and two DVS128, where the slow-drift test's contrast
     # optimum is noisiest) with the simulator defaults (random motion up to 5 rad/s), 3 s each (DVS128: 2.5 s). Each

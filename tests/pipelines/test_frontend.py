@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from ti_cmax import Camera, Events, FrontendConfig, so3
+from ti_cmax.events import EventBuffer
 from ti_cmax.config import replace
 from ti_cmax.pipelines.frontend import AngularVelocityEstimator, PacketSlicer, estimate_angular_velocity
 from ti_cmax.pipelines.motion import Motion
@@ -330,6 +331,30 @@ def test_slicer_packets_do_not_depend_on_chunk_size_and_join_lazily(min_span, mo
     small = packets([ev[a:b] for a, b in zip(edges, list(edges[1:]) + [n])])
     assert small == whole and len(whole) >= 15
     assert len(joins) <= len(whole) + 2 < len(edges) / 2
+
+
+def test_slicer_copies_only_the_events_its_packets_take(monkeypatch):
+    """At a rate where packets are far apart (5 M ev/s, N = 2 000 events every dt), the 2 ms chunks of a live source
+    are joined into the buffer without the events before the packet at hand: the packets are those of one array,
+    and the events copied are a small part of the stream (joining everything copied each event once)."""
+    rng = np.random.default_rng(5)
+    n = 1_000_000
+    t = np.sort(rng.uniform(0.0, 0.2, n))
+    ev = Events(t, rng.integers(0, 240, n), rng.integers(0, 180, n), rng.choice([-1, 1], n))
+    cfg = resolve_frontend(FrontendConfig(num_events_per_packet=2000, frontend_min_packet_span=0.0), CAM)
+
+    def packets(chunks):
+        return [(p.t_ref, p.sparse, p.events.t.tobytes()) for p in PacketSlicer(cfg)(chunks)]
+
+    whole = packets([ev])
+    copied = []
+    original, push = Events.concatenate, EventBuffer.push
+    monkeypatch.setattr(Events, "concatenate", classmethod(
+        lambda cls, parts: copied.append(sum(map(len, parts)) if len(parts) > 1 else 0) or original(parts)))
+    monkeypatch.setattr(EventBuffer, "push", lambda self, events: copied.append(len(events)) or push(self, events))
+    edges = np.searchsorted(t, np.arange(0.0, 0.2, 0.002))
+    assert packets([ev[a:b] for a, b in zip(edges, list(edges[1:]) + [n])]) == whole and len(whole) >= 15
+    assert sum(copied) < 0.25 * n, sum(copied)
 
 
 def _integer_pixels_with_noise(omega, seed, n=20000, noise=10000):

@@ -40,6 +40,9 @@ def test_realtime_cli_writes_sane_lag_fields(short_dataset, tmp_path, capsys):
     assert rt["wall_seconds"] >= 1.0  # 1.2 s of data replayed at sensor speed cannot end sooner
     cpu = rt["cpu_seconds"]
     assert cpu["frontend"] > 0 and cpu["backend"] > 0 and cpu["io"] >= 0
+    # the main process's rest, by part: ingest (checks, hot pixels, slicing), the back-end's input, the replay
+    assert cpu["ingest"] > 0 and cpu["handover"] > 0 and cpu["close"] > 0 and cpu["replay"] >= 0
+    assert cpu["ingest"] + cpu["handover"] + cpu["close"] + cpu["replay"] == pytest.approx(cpu["other"], abs=0.02)
     assert sum(rt["level_sensor_seconds"].values()) == pytest.approx(1.2, abs=0.15)
     assert rt["degradation_applied"] == (rt["degraded_fraction"] > 0 or rt["input_events_dropped"] > 0
                                          or rt["ba_windows_cut_short"] > 0)
@@ -251,9 +254,9 @@ def test_controller_jumps_past_the_bound_and_hears_a_slow_front_end():
 
 
 def test_with_a_worker_the_front_end_skips_packets_only_while_it_falls_behind():
-    """With a back-end worker the front-end has its own core: the levels degrade the BA, and the front-end's packets
-    are skipped (the level's 1 of k) only once its own lag exceeds the target; it takes every packet again when its
-    lag is under half the target and the main process would cost under RELAX_HEADROOM with all of them."""
+    """With a back-end worker the front-end has its own core: the levels degrade the BA alone, and the front-end's
+    packets are skipped (1 of 2, then 4) only on its own lag; it takes every packet again once its lag is under half
+    the target and the main process would cost under RELAX_HEADROOM with them."""
     cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
     ctl = R.RealtimeController(cfg, 1.0, worker=True)
     calls = []
@@ -266,13 +269,58 @@ def test_with_a_worker_the_front_end_skips_packets_only_while_it_falls_behind():
         ctl.on_window(_report(t, lag, ctl, busy=0.08, ba=0.05))
         t += 0.1
     assert ctl.level == 3 and [c[0] for c in calls] == [1, 1, 1]
-    ctl.on_frontend(ctl.due(t) + 0.4, t)  # now the front-end is 0.4 s behind: level 4, and its packets are skipped
-    assert ctl.level == 4 and calls[-1][0] == 4
+    ctl.on_frontend(ctl.due(t) + 0.4, t)  # now the front-end is 0.4 s behind: its packets are skipped, the BA as was
+    assert ctl.level == 3 and calls[-1][0] == 2
     ctl._fe_lag = 0.0  # caught up; the main process is nearly idle (its costs: run the windows with no main work)
     for _ in range(4):
         ctl.on_window(_report(t, 0.1, ctl))
         t += 0.1
     assert not ctl.fe_skipping and calls[-1][0] == 1
+
+
+def test_with_a_worker_a_late_front_end_degrades_its_own_work_not_the_ba():
+    """A front-end that falls behind on its core makes the windows late too; they wait for it, so a cheaper BA would
+    not help: the front-end skips packets (1 of 2, then 4), then the input is thinned, while the BA keeps level 0 and
+    every event (the report's events used stays that of the input). A worker late alone goes through levels 1-4
+    before anything is thinned."""
+    cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
+    ctl = R.RealtimeController(cfg, 1.0, worker=True)
+    ctl.online = SimpleNamespace(degrade=lambda *a, **k: None, frontend_until=0.1, runner=SimpleNamespace(seconds=0.0))
+    ctl.idle_seconds = lambda: 0.0
+    ctl.wall0, ctl.t0 = 100.0, 0.0
+    t, keeps = 0.2, []
+    for k in range(5):
+        lag = 0.4 + 0.1 * k
+        ctl.on_frontend(ctl.due(t) + lag, t)
+        ctl.on_window(_report(t, lag + 0.05, ctl, busy=0.05, ba=0.03))
+        keeps.append((ctl.fe_keep(), ctl.thinning, ctl.level))
+        t += 0.1
+    assert [k[:2] for k in keeps] == [(2, 1), (4, 1), (4, 2), (4, 4), (4, 8)]
+    assert all(level == 0 for _, _, level in keeps)
+    ba_only = R.RealtimeController(cfg, 1.0, worker=True)
+    ba_only.online = ctl.online
+    ba_only.idle_seconds = lambda: 0.0
+    ba_only.wall0, ba_only.t0 = 100.0, 0.0
+    t, seen = 0.2, []
+    for k in range(6):
+        ba_only.on_frontend(ba_only.due(t) + 0.05, t)  # the front-end keeps up
+        ba_only.on_window(_report(t, 0.4 + 0.1 * k, ba_only, busy=0.15, ba=0.1))
+        seen.append((ba_only.level, ba_only.thinning, ba_only.fe_keep()))
+        t += 0.1
+    assert [s[0] for s in seen] == [1, 2, 3, 4, 4, 4] and [s[1] for s in seen] == [1, 1, 1, 1, 2, 4]
+    assert all(s[2] == 1 for s in seen)
+    # a front-end late because it waited for the worker (the backlog bound): the BA's doing, the levels rise
+    held = R.RealtimeController(cfg, 1.0, worker=True)
+    held.online, held.idle_seconds, held.wall0, held.t0 = ctl.online, lambda: 0.0, 100.0, 0.0
+    waited = {"s": 0.0}
+    held.blocked_seconds = lambda: waited["s"]
+    t = 0.2
+    for k in range(4):
+        waited["s"] += 0.08
+        held.on_frontend(held.due(t) + 0.4 + 0.1 * k, t)
+        held.on_window(_report(t, 0.45 + 0.1 * k, held, busy=0.1, ba=0.09))
+        t += 0.1
+    assert held.level == 4 and held.fe_keep() == 1 and held.thinning == 1
 
 
 def test_replay_behind_schedule_hands_over_without_waiting():

@@ -194,13 +194,21 @@ def validated_chunks(
             i0 = int(np.searchsorted(ev.t, t_start, "left")) if t_start is not None else 0
             i1 = int(np.searchsorted(ev.t, t_end, "left")) if t_end is not None else len(ev)
             ev = ev[i0:i1]
-        pending.append(ev)
-        n_pending += len(ev)
-        while n_pending >= chunk_size:
-            allev = Events.concatenate(pending)
-            yield allev[:chunk_size]
-            rest = allev[chunk_size:]
-            pending, n_pending = [rest], len(rest)
+        # only a chunk that straddles two blocks is a copy; the others are views of their block
+        if n_pending:
+            take = min(chunk_size - n_pending, len(ev))
+            pending.append(ev[:take])
+            n_pending += take
+            ev = ev[take:]
+            if n_pending == chunk_size:
+                yield Events.concatenate(pending)
+                pending, n_pending = [], 0
+        if not n_pending:
+            whole = len(ev) - len(ev) % chunk_size
+            for i in range(0, whole, chunk_size):
+                yield ev[i:i + chunk_size]
+            if whole < len(ev):
+                pending, n_pending = [ev[whole:]], len(ev) - whole
         if done:
             break
     if n_pending:
