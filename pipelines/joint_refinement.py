@@ -11,9 +11,10 @@ in time in between: the window BA leaves errors that vary slowly (the drift a tu
 every pose with only local gradients would take many iterations to reach.
 
 The cost is bounded: at most ``max_events`` stored events (an even sample of each stride in proportion to the events
-it stands for), batches spanning the time of the back-end's batches, a map of at most 2048 columns (a coarser level
-of larger panoramas), ``iterations`` L-BFGS iterations with every increment bounded by ``max_step`` (a pose that
-events barely constrain cannot run off).
+it stands for), in batches (one rotation each) of as many sampled events as arrive while the camera moves half a
+map pixel (:func:`batch_size`: an evaluation costs about one spline evaluation per batch), a map of at most 2048
+columns (a coarser level of larger panoramas), ``iterations`` L-BFGS iterations with every increment bounded by
+``max_step`` (a pose that events barely constrain cannot run off).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from ti_cmax import so3
 from ti_cmax.kernels.pano import PanoIWE, batch_mid_times
 
 MAX_COLUMNS = 2048  # map columns of the joint refinement's IWE (larger panoramas: a coarser level)
+BATCH_PX = 0.5  # map pixels the camera moves at most within a batch of sampled events (at its fastest rotation)
 
 
 def sample_chunks(chunks, max_events: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -44,6 +46,22 @@ def sample_chunks(chunks, max_events: int) -> tuple[np.ndarray, np.ndarray, floa
         return np.zeros(0), np.zeros((0, 3), np.float32), 0.0
     t, b = np.concatenate(ts), np.concatenate(bs)
     return t, b, len(t) / total
+
+
+def batch_size(spline, first: int, last: int, times: np.ndarray, columns: int, least: float,
+               motion_px: float = BATCH_PX) -> int:
+    """Sampled events per batch (one rotation each): as many as arrive while the camera moves ``motion_px`` map
+    pixels at its fastest rotation over poses first..last (the 99th percentile of the control poses' steps: one
+    outlying step does not set it), and at least ``least`` (the back-end's batch span at the sampled rate). The
+    cost of an evaluation grows with the number of batches (a spline evaluation with its Jacobians each), while the
+    motion within a batch blurs the map only by a fraction of its blur."""
+    ctrl = spline.control_R[first:last + 2]
+    if len(times) < 2 or len(ctrl) < 2 or times[-1] <= times[0]:
+        return max(1, int(round(least)))
+    speed = float(np.percentile(so3.geodesic_angle(ctrl[:-1], ctrl[1:]), 99)) / spline.dt  # rad/s
+    rate = len(times) / float(times[-1] - times[0])  # sampled events per second
+    span = motion_px * 2 * np.pi / columns / speed if speed > 0 else float(times[-1] - times[0])
+    return max(1, int(round(least)), int(span * rate))
 
 
 def map_level(width: int, height: int) -> int:
@@ -70,11 +88,11 @@ def refine_jointly(spline, chunks, first: int, last: int, backend_cfg, width: in
     info = {"events": int(len(t)), "poses": int(m), "evaluations": 0, "gain": 1.0, "max_change_deg": 0.0}
     if len(t) == 0 or m <= 0:
         return np.zeros((max(m, 0), 3)), info
-    # batches spanning the time of the back-end's (its batch size at the sampled rate)
-    batch = max(1, int(round(backend_cfg.event_batch_size * frac)))
+    f = map_level(width, height)
+    batch = batch_size(spline, first, last, t, width // f, backend_cfg.event_batch_size * frac)
+    info["batch"] = batch
     start, end = spline.valid_time_range()
     s, u = spline.support(np.clip(batch_mid_times(t, batch), start, end))
-    f = map_level(width, height)
     problem = PanoIWE(b, s, u, spline.degree, width // f, height // f, sigma=backend_cfg.backend_blur_sigma,
                       alpha=0.0, batch_size=batch)
     base = spline.control_R.copy()
