@@ -74,13 +74,16 @@ def map_level(width: int, height: int) -> int:
 
 def refine_jointly(spline, chunks, first: int, last: int, backend_cfg, width: int, height: int, *,
                    max_events: int, iterations: int, max_step: float, coarse_spacing: float,
-                   fine_iterations: int = 0, slice_point=lambda: None):
+                   fine_iterations: int = 0, slice_point=lambda: None, hold_mean: bool = False):
     """Left increments x (last - first + 1, 3) of the control poses first..last of ``spline`` (later poses follow
     the last one rigidly, earlier ones stay) maximizing the variance of the IWE of the stored strides ``chunks``:
     ``iterations`` L-BFGS iterations on increments interpolated between nodes every ``coarse_spacing`` seconds
     (zero at pose ``first``), then ``fine_iterations`` on every pose; and a summary (events, evaluations, variance
     gain, largest change in degrees). ``slice_point`` is called before every cost evaluation (the loop closer's
-    sliced execution in real time)."""
+    sliced execution in real time). ``hold_mean``: the nodes' increments are kept at zero mean (the rotation common
+    to them projected out): when no fixed pose but the first holds the world frame, the stored events of the first
+    instants (a camera starting slowly gives few) tie that common rotation only weakly, so the refinement
+    redistributes the errors along the trajectory and leaves its mean orientation to the window BA."""
     from scipy.optimize import minimize  # here: ~0.3 CPU s of import that a run without a verified revisit skips
 
     t, b, frac = sample_chunks(chunks, max_events)
@@ -119,6 +122,8 @@ def refine_jointly(spline, chunks, first: int, last: int, backend_cfg, width: in
     # (the drift a turn builds up), which these few unknowns reach in a few iterations
     interp = _interpolation(spline.knot_times()[first:last + 1], coarse_spacing)
     x = np.zeros((m, 3))
+    if interp is not None and hold_mean and interp.shape[1] > 1:  # x = interp (I - 11^T / k) z: zero node mean
+        interp = interp - interp.mean(axis=1, keepdims=True)
     if interp is not None:
         def coarse(z):
             f, g = objective((interp @ z.reshape(-1, 3)).reshape(-1))

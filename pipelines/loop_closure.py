@@ -800,7 +800,8 @@ class LoopCloser(WindowObserver):
         control poses from the first stored stride on (every visit the store holds; the first pose anchors the
         world frame) with the stored strides, coarse: increments interpolated between nodes every 5 window lengths
         (the window BA fixes the motion within a window, the errors it leaves vary over many; every pose free
-        would also fit the noise of the sampled events between the nodes); returns the
+        would also fit the noise of the sampled events between the nodes), at zero mean over the nodes (only the
+        first pose holds the world frame: the refinement redistributes the errors, ``hold_mean``); returns the
         correction in the same form (poses first..last get theirs, later ones the last one's) and fills ``info``."""
         tic, paused0 = time.perf_counter(), self._paused()
         i0, i1, spread, corr = correction
@@ -816,7 +817,7 @@ class LoopCloser(WindowObserver):
                                     self.backend.height, max_events=cfg.loop_joint_events,
                                     iterations=cfg.loop_joint_iterations,
                                     coarse_spacing=5 * bcfg.backend_time_window_size,
-                                    max_step=cfg.loop_max_correction, slice_point=self._slice_point)
+                                    max_step=cfg.loop_max_correction, slice_point=self._slice_point, hold_mean=True)
         eye = np.broadcast_to(np.eye(3), (i0 - first, 3, 3))
         chain = np.concatenate([eye, spread, np.broadcast_to(corr, (max(last - i1, 0), 3, 3))])[:last - first + 1]
         info.update(summary, seconds=time.perf_counter() - tic - (self._paused() - paused0))
