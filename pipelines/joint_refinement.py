@@ -11,9 +11,10 @@ in time in between: the window BA leaves errors that vary slowly (the drift a tu
 every pose with only local gradients would take many iterations to reach.
 
 The cost is bounded: at most ``max_events`` stored events (an even sample of each stride in proportion to the events
-it stands for), batches spanning the time of the back-end's batches, a map of at most 2048 columns (a coarser level
-of larger panoramas), ``iterations`` L-BFGS iterations with every increment bounded by ``max_step`` (a pose that
-events barely constrain cannot run off).
+it stands for), in batches (one rotation each) of as many sampled events as arrive while the camera moves half a
+map pixel (:func:`batch_size`: an evaluation costs about one spline evaluation per batch), a map of at most 2048
+columns (a coarser level of larger panoramas), ``iterations`` L-BFGS iterations with every increment bounded by
+``max_step`` (a pose that events barely constrain cannot run off).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from ti_cmax import so3
 from ti_cmax.kernels.pano import PanoIWE, batch_mid_times
 
 MAX_COLUMNS = 2048  # map columns of the joint refinement's IWE (larger panoramas: a coarser level)
+BATCH_PX = 0.5  # map pixels the camera moves at most within a batch of sampled events (at its fastest rotation)
 
 
 def sample_chunks(chunks, max_events: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -46,6 +48,22 @@ def sample_chunks(chunks, max_events: int) -> tuple[np.ndarray, np.ndarray, floa
     return t, b, len(t) / total
 
 
+def batch_size(spline, first: int, last: int, times: np.ndarray, columns: int, least: float,
+               motion_px: float = BATCH_PX) -> int:
+    """Sampled events per batch (one rotation each): as many as arrive while the camera moves ``motion_px`` map
+    pixels at its fastest rotation over poses first..last (the 99th percentile of the control poses' steps: one
+    outlying step does not set it), and at least ``least`` (the back-end's batch span at the sampled rate). The
+    cost of an evaluation grows with the number of batches (a spline evaluation with its Jacobians each), while the
+    motion within a batch blurs the map only by a fraction of its blur."""
+    ctrl = spline.control_R[first:last + 2]
+    if len(times) < 2 or len(ctrl) < 2 or times[-1] <= times[0]:
+        return max(1, int(round(least)))
+    speed = float(np.percentile(so3.geodesic_angle(ctrl[:-1], ctrl[1:]), 99)) / spline.dt  # rad/s
+    rate = len(times) / float(times[-1] - times[0])  # sampled events per second
+    span = motion_px * 2 * np.pi / columns / speed if speed > 0 else float(times[-1] - times[0])
+    return max(1, int(round(least)), int(span * rate))
+
+
 def map_level(width: int, height: int) -> int:
     """The power-of-two factor that brings the map to at most MAX_COLUMNS columns (dividing both sides)."""
     f = 1
@@ -56,13 +74,16 @@ def map_level(width: int, height: int) -> int:
 
 def refine_jointly(spline, chunks, first: int, last: int, backend_cfg, width: int, height: int, *,
                    max_events: int, iterations: int, max_step: float, coarse_spacing: float,
-                   fine_iterations: int = 0, slice_point=lambda: None):
+                   fine_iterations: int = 0, slice_point=lambda: None, hold_mean: bool = False):
     """Left increments x (last - first + 1, 3) of the control poses first..last of ``spline`` (later poses follow
     the last one rigidly, earlier ones stay) maximizing the variance of the IWE of the stored strides ``chunks``:
     ``iterations`` L-BFGS iterations on increments interpolated between nodes every ``coarse_spacing`` seconds
     (zero at pose ``first``), then ``fine_iterations`` on every pose; and a summary (events, evaluations, variance
     gain, largest change in degrees). ``slice_point`` is called before every cost evaluation (the loop closer's
-    sliced execution in real time)."""
+    sliced execution in real time). ``hold_mean``: the nodes' increments are kept at zero mean (the rotation common
+    to them projected out): when no fixed pose but the first holds the world frame, the stored events of the first
+    instants (a camera starting slowly gives few) tie that common rotation only weakly, so the refinement
+    redistributes the errors along the trajectory and leaves its mean orientation to the window BA."""
     from scipy.optimize import minimize  # here: ~0.3 CPU s of import that a run without a verified revisit skips
 
     t, b, frac = sample_chunks(chunks, max_events)
@@ -70,11 +91,11 @@ def refine_jointly(spline, chunks, first: int, last: int, backend_cfg, width: in
     info = {"events": int(len(t)), "poses": int(m), "evaluations": 0, "gain": 1.0, "max_change_deg": 0.0}
     if len(t) == 0 or m <= 0:
         return np.zeros((max(m, 0), 3)), info
-    # batches spanning the time of the back-end's (its batch size at the sampled rate)
-    batch = max(1, int(round(backend_cfg.event_batch_size * frac)))
+    f = map_level(width, height)
+    batch = batch_size(spline, first, last, t, width // f, backend_cfg.event_batch_size * frac)
+    info["batch"] = batch
     start, end = spline.valid_time_range()
     s, u = spline.support(np.clip(batch_mid_times(t, batch), start, end))
-    f = map_level(width, height)
     problem = PanoIWE(b, s, u, spline.degree, width // f, height // f, sigma=backend_cfg.backend_blur_sigma,
                       alpha=0.0, batch_size=batch)
     base = spline.control_R.copy()
@@ -101,6 +122,8 @@ def refine_jointly(spline, chunks, first: int, last: int, backend_cfg, width: in
     # (the drift a turn builds up), which these few unknowns reach in a few iterations
     interp = _interpolation(spline.knot_times()[first:last + 1], coarse_spacing)
     x = np.zeros((m, 3))
+    if interp is not None and hold_mean and interp.shape[1] > 1:  # x = interp (I - 11^T / k) z: zero node mean
+        interp = interp - interp.mean(axis=1, keepdims=True)
     if interp is not None:
         def coarse(z):
             f, g = objective((interp @ z.reshape(-1, 3)).reshape(-1))

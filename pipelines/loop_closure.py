@@ -39,10 +39,11 @@ through ``correct_poses`` and ``drop_map``:
    while the BA is skipped (real-time level 4) several loops cost one rebuild and the strides settled meanwhile are
    not voted into a map about to be replaced. The old map and the age map restart from the checkpoint the last
    rebuild left when the correction left its strides' poses unchanged, so a rebuild votes the strides aged since,
-   not every stride since the start (bitwise the same maps). At most once per full turn of rotation travelled an
-   accepted revisit is applied whatever its size, with a joint refinement of the poses since the old visit
-   (``_joint_refine``, ``joint_refinement.refine_jointly``: a BA of all stored events) before the rebuild: the
-   window BA's pull to the map makes later visits copy the first one's errors, the joint BA averages the visits;
+   not every stride since the start (bitwise the same maps). At most once per turn (a full turn of rotation
+   travelled, and most of the map's columns observed again since the last one) an accepted revisit is applied
+   whatever its size, with a joint refinement of the poses since the old visit (``_joint_refine``,
+   ``joint_refinement.refine_jointly``: a BA of all stored events) before the rebuild: the window BA's pull to the
+   map makes later visits copy the first one's errors, the joint BA averages the visits;
 5. real time (``slice_seconds``, set by ``ti-cmax slam --realtime``): the verification and the rebuild after it run
    (with the joint refinement) in slices (a helper thread run as a coroutine, strictly alternating with the back-end: one cost evaluation, map
    step or stored stride per slice) for at most ``slice_seconds`` before each window and in the back-end worker's
@@ -78,6 +79,7 @@ _RING = (4.0, 8.0)  # map pixels: distances of the uniqueness test's shifts from
 _ITERS = 10  # BFGS iterations per pyramid level: 3 unknowns, started near the optimum by the coarser level
 _STEP_TOL = 0.05  # level pixels: BFGS stops when its next step would move the map less (1/20 of the blur)
 _TEXTURE = 3  # map pixels: scale of the local texture normalization of the confidence test
+_JOINT_COVERAGE = 0.9  # observed columns seen again since the last joint refinement for the next one (a turn)
 
 
 def _blur_rows(raw: np.ndarray, r0: int, r1: int, sigma: float) -> tuple[np.ndarray, tuple[float, float]]:
@@ -219,6 +221,7 @@ class LoopCloser(WindowObserver):
         self._ref = -np.inf  # reference time of the last applied loop (its poses got the whole correction)
         self._drift_rate = 0.0  # rad/s: the drift the last applied loop closed, over the time it built up in
         self._joint_travel = 0.0  # rotation travelled (rad, cumulative) at the last joint refinement
+        self._joint_time = -np.inf  # time of the last joint refinement
         self.joint_refinements = 0
         self.loops: list[dict] = []
         self._inv_hessian: dict[int, np.ndarray] = {}  # per pyramid level: the last registration's (verify)
@@ -742,8 +745,9 @@ class LoopCloser(WindowObserver):
         correction = (i0, i1, so3.spread_correction(steps, phi), corr)
         joint_info = None
         if joint:
-            joint_info = {}
             self._joint_travel = float(self._travel_rec[1, self._n_travel - 1])
+            joint_info = {"coverage": self._coverage_since(self._joint_time) if self.joint_refinements else 1.0}
+            self._joint_time = float(t_now)
             self.joint_refinements += 1
         if self.slice_seconds is None:
             if joint:
@@ -775,19 +779,28 @@ class LoopCloser(WindowObserver):
         return out
 
     def _joint_due(self) -> bool:
-        """A joint refinement at most once per full turn of rotation travelled: a revisit after it sees regions the
-        last refinement did not hold, while a pan's wobble (rotation travelled, not turns) or a slow revisit that goes
-        on for seconds does not repeat the refinement (each costs some 50 evaluations of every stored event)."""
+        """A joint refinement at most once per full turn: after 360 deg of rotation travelled and once the camera
+        observed again at least ``_JOINT_COVERAGE`` of the map's observed columns since the last refinement (a pan's
+        wobble adds rotation travelled, not turns; before the camera comes round again the stored events hold little
+        the last refinement did not, and a slow revisit that goes on for seconds does not repeat it)."""
         if not self.cfg.loop_joint_refinement:
             return False
-        return float(self._travel_rec[1, self._n_travel - 1]) - self._joint_travel >= 2 * math.pi
+        if float(self._travel_rec[1, self._n_travel - 1]) - self._joint_travel < 2 * math.pi:
+            return False
+        return self.joint_refinements == 0 or self._coverage_since(self._joint_time) >= _JOINT_COVERAGE
+
+    def _coverage_since(self, t: float) -> float:
+        """The fraction of the map's observed columns (of age cells) observed again at or after time t."""
+        seen = np.count_nonzero((self.age > -np.inf).any(axis=0))
+        return np.count_nonzero((self.age >= t).any(axis=0)) / seen if seen else 0.0
 
     def _joint_refine(self, correction, info: dict):
         """The loop's correction refined jointly (``joint_refinement.refine_jointly``): from the chain spread, the
         control poses from the first stored stride on (every visit the store holds; the first pose anchors the
         world frame) with the stored strides, coarse: increments interpolated between nodes every 5 window lengths
         (the window BA fixes the motion within a window, the errors it leaves vary over many; every pose free
-        would also fit the noise of the sampled events between the nodes); returns the
+        would also fit the noise of the sampled events between the nodes), at zero mean over the nodes (only the
+        first pose holds the world frame: the refinement redistributes the errors, ``hold_mean``); returns the
         correction in the same form (poses first..last get theirs, later ones the last one's) and fills ``info``."""
         tic, paused0 = time.perf_counter(), self._paused()
         i0, i1, spread, corr = correction
@@ -803,7 +816,7 @@ class LoopCloser(WindowObserver):
                                     self.backend.height, max_events=cfg.loop_joint_events,
                                     iterations=cfg.loop_joint_iterations,
                                     coarse_spacing=5 * bcfg.backend_time_window_size,
-                                    max_step=cfg.loop_max_correction, slice_point=self._slice_point)
+                                    max_step=cfg.loop_max_correction, slice_point=self._slice_point, hold_mean=True)
         eye = np.broadcast_to(np.eye(3), (i0 - first, 3, 3))
         chain = np.concatenate([eye, spread, np.broadcast_to(corr, (max(last - i1, 0), 3, 3))])[:last - first + 1]
         info.update(summary, seconds=time.perf_counter() - tic - (self._paused() - paused0))

@@ -387,12 +387,13 @@ class LoopClosureConfig(Params):
                                           unit="events/s", gt=0)
     loop_max_stored_events: int = param(4000000, "stored events at most (all strides thinned by 2 beyond)",
                                         unit="events", ge=1000)
-    loop_joint_refinement: bool = param(True, "at a verified revisit (at most once per 360 deg of rotation travelled), "
-                                              "refine the control poses since the first stored stride jointly with the stored "
+    loop_joint_refinement: bool = param(True, "at a verified revisit (at most once per turn: 360 deg of rotation "
+                                              "travelled and the map seen again since the last one), refine the "
+                                              "control poses since the first stored stride jointly with the stored "
                                               "events (a BA of the map over the visits) before the map is rebuilt")
     loop_joint_events: int = param(500000, "stored events the joint refinement uses at most (an even sample)",
                                    unit="events", ge=1000)
-    loop_joint_iterations: int = param(40, "L-BFGS iterations of the joint refinement", ge=1)
+    loop_joint_iterations: int = param(20, "L-BFGS iterations of the joint refinement", ge=1)
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,8 @@ import pytest
 
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
-from ti_cmax.pipelines.joint_refinement import map_level, refine_jointly, sample_chunks
+from ti_cmax.spline import SO3Spline
+from ti_cmax.pipelines.joint_refinement import _interpolation, batch_size, map_level, refine_jointly, sample_chunks
 
 from test_loop_closure import _events, _pan, _spline
 
@@ -72,3 +73,38 @@ def test_a_later_visit_is_pulled_onto_the_earlier_visits_map(ti_runtime):
     assert before.max() > 0.9 and after.max() < 0.3 * before.max(), (before.max(), after.max())
     # the first turn's poses stayed: they anchor the world frame
     assert np.all(np.abs(x) <= 0.1 + 1e-12)
+
+
+def test_a_batch_spans_half_a_map_pixel_of_motion_at_the_fastest_rotation():
+    """Sampled events per batch: those arriving while the fastest rotation moves the map half a pixel (an evaluation
+    costs about one spline evaluation per batch), never fewer than the back-end's batch span at the sampled rate."""
+    speed, dt = 2.0, 0.05  # rad/s of a pan, knot spacing
+    spline = SO3Spline(3, -dt, dt, so3.exp(np.outer(speed * dt * np.arange(84), [0.0, 1.0, 0.0])))
+    times = np.linspace(0.0, 4.0, 40_001)  # 10 000 sampled events per second
+    expected = int(0.5 * 2 * np.pi / 1024 / speed * 10_000)
+    last = spline.num_control - 1
+    assert expected == 15 and batch_size(spline, 0, last, times, 1024, least=1.0) == expected
+    assert batch_size(spline, 0, last, times, 256, least=1.0) == int(4 * 0.5 * 2 * np.pi / 1024 / speed * 10_000)
+    assert batch_size(spline, 0, last, times, 1024, least=40.0) == 40
+    still = SO3Spline(3, -dt, dt, np.broadcast_to(np.eye(3), (84, 3, 3)).copy())
+    assert batch_size(still, 0, last, times, 1024, least=3.0) == len(times)  # no motion: one batch
+
+
+def test_held_mean_redistributes_the_errors_without_turning_the_span(ti_runtime):
+    """``hold_mean``: the increments at the nodes average zero (the rotation common to them is left to the window
+    BA: with only the first pose fixed, the first instants' few events tie it weakly); free, the same second-turn
+    error is undone partly by a common turn of its nodes."""
+    t, b = _events(seed=4, duration=DURATION, turns=TURNS, rate=20_000)
+    spline = _spline(_bumped, duration=DURATION)
+    cfg = BackendConfig(pano_height=256)
+    knots = spline.knot_times()
+    first, last = int(np.searchsorted(knots, DURATION / TURNS)), spline.num_control - 1
+    interp = _interpolation(knots[first:last + 1], 0.5)  # poses from the nodes' increments
+
+    def node_mean(hold):
+        x, _ = refine_jointly(spline, _chunks(t, b), first, last, cfg, 512, 256, max_events=60_000, iterations=8,
+                              coarse_spacing=0.5, max_step=0.1, hold_mean=hold)
+        return np.degrees(np.linalg.lstsq(interp, x, rcond=None)[0].mean(axis=0))
+
+    held, free = node_mean(True), node_mean(False)
+    assert np.linalg.norm(held) < 1e-6 and np.dot(free, BUMP_AXIS) < -0.2, (held, free)  # free: undoes the bump

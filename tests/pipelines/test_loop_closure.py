@@ -594,3 +594,25 @@ def test_a_revisit_after_a_full_turn_refines_the_visits_jointly(ti_runtime):
     assert all(e["time"] >= duration / 2.3 for e in runs)  # a full turn travelled first
     ts = np.linspace(0.1, duration - 0.3, 300)
     assert _error(joint, ts, duration, 2.3).mean() < 1.1 * _error(alone, ts, duration, 2.3).mean()
+
+
+def test_a_joint_refinement_waits_for_a_full_turn_and_the_map_seen_again():
+    """The next joint refinement needs a full turn of rotation travelled since the last one and most of the map's
+    observed columns observed again since (a pan's wobble adds rotation travelled, not turns)."""
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+    from ti_cmax.pipelines.loop_closure import LoopCloser
+
+    be = SlidingWindowBackend(BackendConfig(pano_height=256, backend_min_ev_rate=10000.0, backend_max_window_events=-1),
+                              0.0)
+    lc = LoopCloser(LOOP, be)
+    lc._travel_rec[:, 1], lc._n_travel = (20.0, 7.0), 2  # 7 rad travelled by t = 20 s
+    assert lc._joint_due()  # the first one: a full turn travelled
+    lc._joint_travel, lc._joint_time, lc.joint_refinements = 0.5, 10.0, 1  # one ran at t = 10 s after 0.5 rad
+    cols = lc.age.shape[1]
+    lc.age[5, :] = 8.0  # every column observed before it
+    lc.age[6, : int(0.6 * cols)] = 15.0  # 60 % of them again since
+    assert lc._coverage_since(10.0) == pytest.approx(0.6, abs=0.01) and not lc._joint_due()
+    lc.age[6, :] = 15.0  # all of them
+    assert lc._joint_due()
+    lc._travel_rec[1, 1] = 6.5  # but less than a full turn travelled since the last one
+    assert not lc._joint_due()
