@@ -202,6 +202,16 @@ _WINDOW_STATES = (  # (WindowReport flag, label, colour) in order of precedence
 )
 
 
+def window_states(windows: Sequence) -> list:
+    """What the run figure reads of each back-end window (span, largest correction, the _WINDOW_STATES flags), as
+    plain values: WindowReports themselves unpickle only with the back-end's modules (and the kernel engine)."""
+    from types import SimpleNamespace
+
+    return [SimpleNamespace(t_start=float(w.t_start), t_end=float(w.t_end), max_correction=float(w.max_correction),
+                            **{flag: bool(getattr(w, flag, False)) for flag, _, _ in _WINDOW_STATES})
+            for w in windows]
+
+
 def _aligned_run(trajectory: Trajectory, groundtruth: Trajectory | None):
     """(trajectory aligned to the ground truth at the start of their overlap, the ground truth over that overlap,
     the errors); (trajectory, None, None) without ground truth or with too short an overlap to evaluate."""
@@ -395,6 +405,6 @@ def plot_maps(path: str | os.PathLike, maps: Mapping[str, np.ndarray] | Sequence
     _save(fig, path)
 
 
-__all__ = ["plot_run", "angular_velocity_from_trajectory", "plot_angular_velocity", "plot_trajectories",
-           "plot_errors_over_time", "plot_error_distributions", "plot_maps", "map_display", "observed_window",
-           "METRICS_CAPTION"]
+__all__ = ["plot_run", "window_states", "angular_velocity_from_trajectory", "plot_angular_velocity",
+           "plot_trajectories", "plot_errors_over_time", "plot_error_distributions", "plot_maps", "map_display",
+           "observed_window", "METRICS_CAPTION"]

@@ -118,7 +118,9 @@ def test_every_process_of_a_run_writes_its_kernels_to_the_offline_cache_and_the_
         reports[mode] = json.loads((out / "report.json").read_text())
     assert cached["--parallel"] == cached["--sequential"] and len(cached["--parallel"]) > 2
 
+    forks = LINUX and len(os.sched_getaffinity(0)) >= 2  # run.png and map.png drawn in a figure process
     for mode, report in reports.items():
+        assert ("figure_process" in report) == forks
         points = report["timeline_seconds"]
         assert list(points) == ["command", "imported", "ready", "frontend_done", "closed", "outputs"]
         walls = [wall for wall, _ in points.values()]
