@@ -25,6 +25,7 @@ import functools
 import importlib
 import os
 import sys
+import types
 
 import numpy as np
 
@@ -60,7 +61,41 @@ def _stdout_to_stderr(discard: bool = False):
             os.close(target)
 
 
-with _stdout_to_stderr():
+class _OnFirstUse(types.ModuleType):
+    """Stands for a module in the engine's import; the module itself is imported on first use of an attribute."""
+
+    def __getattr__(self, name):
+        if sys.modules.get(self.__name__) is self:
+            del sys.modules[self.__name__]
+        return getattr(importlib.import_module(self.__name__), name)
+
+
+@contextlib.contextmanager
+def _unused_engine_imports_deferred():
+    """Taichi imports two modules that a run does not use, ~0.05 CPU s of every command's start-up: its version
+    check (urllib, http, ssl, email), which TI_SKIP_VERSION_CHECK=ON turns off, and dill (it reads the source of
+    kernels typed into an interactive shell). With the check off its module is its no-op; dill is imported on first
+    use (only Taichi's own module holds the stand-in: any other import of dill gets dill)."""
+    if os.environ.get("TI_SKIP_VERSION_CHECK") == "ON" and "taichi._version_check" not in sys.modules:
+        check = types.ModuleType("taichi._version_check", "the version check, off (TI_SKIP_VERSION_CHECK=ON)")
+        check.start_version_check_thread = lambda: None
+        sys.modules[check.__name__] = check
+    stand_in, spec = None, None
+    if "dill" not in sys.modules:
+        from importlib.util import find_spec
+
+        spec = find_spec("dill")  # where it is, without importing it
+    if spec is not None and spec.origin:
+        stand_in = sys.modules["dill"] = _OnFirstUse("dill")
+        stand_in.__file__ = spec.origin  # what inspect reads of every module in sys.modules (Taichi calls it)
+    try:
+        yield
+    finally:
+        if stand_in is not None and sys.modules.get("dill") is stand_in:
+            del sys.modules["dill"]
+
+
+with _stdout_to_stderr(), (_unused_engine_imports_deferred() if ENGINE == "taichi" else contextlib.nullcontext()):
     try:
         ti = importlib.import_module(ENGINE)
     except ImportError as exc:

@@ -26,6 +26,23 @@ def test_a_slam_process_imports_neither_scipy_nor_matplotlib_before_its_outputs(
     assert proc.stdout.split() == ["[]"], proc.stderr
 
 
+def test_the_engine_import_leaves_out_its_version_check_and_dill_until_used():
+    """Taichi's version check (off: urllib, http, ssl) and dill (interactive-shell sources) are not imported with
+    it; dill is there on first use, for Taichi and for anyone else; hdf5plugin only for a file that needs it."""
+    code = ("import sys\n"
+            "import ti_cmax.cli, ti_cmax.commands.slam, ti_cmax.io, ti_cmax.pipelines.slam\n"
+            "from ti_cmax.kernels import runtime\n"
+            "print(sorted({'urllib.request', 'http.client', 'ssl', 'dill', 'hdf5plugin'} & set(sys.modules)))\n"
+            "if runtime.ENGINE == 'taichi':\n"
+            "    from taichi.lang import _wrap_inspect\n"
+            "    import dill\n"
+            "    assert _wrap_inspect.dill.source is dill.source\n"
+            "runtime.ensure_init()\n"
+            "print('initialized')\n")
+    proc = _python(code)
+    assert proc.stdout.split() == ["[]", "initialized"], proc.stderr
+
+
 @pytest.mark.skipif(not LINUX, reason="the worker is forked on Linux only")
 def test_the_worker_is_forked_from_a_single_threaded_process_before_the_engine_starts():
     """Forked, the worker inherits the imports (about 0.4 CPU s that a spawned one repeats before its kernels);
