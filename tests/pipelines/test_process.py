@@ -43,6 +43,43 @@ def test_the_engine_import_leaves_out_its_version_check_and_dill_until_used():
     assert proc.stdout.split() == ["[]", "initialized"], proc.stderr
 
 
+def test_kernels_in_a_class_body_and_at_module_level_are_told_apart_as_taichi_does(tmp_path):
+    """runtime._patch_class_check answers Taichi's "is this decorator in a class body?" from the frame's source line
+    without inspect's scan of every module: a data-oriented class's kernel takes its instance, a module's does not."""
+    script = tmp_path / "kernels_here.py"
+    script.write_text(
+        "import numpy as np\n"
+        "from ti_cmax.kernels.runtime import ensure_init, ti\n"
+        "import taichi.lang.kernel_impl as kernel_impl\n"
+        "\n"
+        "@ti.data_oriented\n"
+        "class Scaled:\n"
+        "    def __init__(self, k):\n"
+        "        self.k = k\n"
+        "\n"
+        "    @ti.kernel\n"
+        "    def apply(self, a: ti.types.ndarray(dtype=ti.f64, ndim=1)):\n"
+        "        for i in a:\n"
+        "            a[i] *= self.k\n"
+        "\n"
+        "@ti.kernel\n"
+        "def double(a: ti.types.ndarray(dtype=ti.f64, ndim=1)):\n"
+        "    for i in a:\n"
+        "        a[i] *= 2\n"
+        "\n"
+        "ensure_init()\n"
+        "a = np.ones(4)\n"
+        "Scaled(3.0).apply(a)\n"
+        "double(a)\n"
+        "print(a.tolist(), kernel_impl._inside_class.__module__)\n")
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    from ti_cmax.kernels.runtime import ENGINE
+
+    assert proc.stdout.split() == ["[6.0,", "6.0,", "6.0,", "6.0]",
+                                   "ti_cmax.kernels.runtime" if ENGINE == "taichi" else "quadrants.lang.kernel_impl"]
+
+
 @pytest.mark.skipif(not LINUX, reason="the worker is forked on Linux only")
 def test_the_worker_is_forked_from_a_single_threaded_process_before_the_engine_starts():
     """Forked, the worker inherits the imports (about 0.4 CPU s that a spawned one repeats before its kernels);
