@@ -96,6 +96,27 @@ def test_the_worker_is_forked_from_a_single_threaded_process_before_the_engine_s
     assert proc.stdout.split() == ["fork", "spawn", "spawn"], proc.stderr
 
 
+@pytest.mark.skipif(not LINUX, reason="the worker is forked on Linux only")
+def test_a_forked_worker_hands_the_final_map_over_in_shared_memory():
+    """SharedMap: what the worker puts there the main process reads (no 8 MB result message); a map of another
+    shape or type is not put (it goes in the message, as from a spawned worker)."""
+    import multiprocessing as mp
+
+    import numpy as np
+
+    from ti_cmax.config import SlamConfig, load_config
+    from ti_cmax.pipelines.worker import SharedMap
+
+    shared = SharedMap.create(load_config(SlamConfig, None, ["pano_height=64"]))
+    assert shared.shape == (64, 128)
+    image = np.arange(64 * 128, dtype=np.float32).reshape(64, 128)
+    child = mp.get_context("fork").Process(target=shared.put, args=(image,))
+    child.start()
+    child.join()
+    assert child.exitcode == 0 and np.array_equal(shared.array(), image)
+    assert not shared.put(image.astype(np.float64)) and not shared.put(image[:32])
+
+
 def test_progress_bars_start_no_thread():
     """tqdm's monitor thread would make every `slam` spawn its worker instead of forking it."""
     code = ("import threading\n"
