@@ -15,8 +15,8 @@ from __future__ import annotations
 import os
 import sys
 
-# imported by the figure process at once (what plots.plot_run and imageio's PNG writer load on first use)
-MODULES = ("numpy", "matplotlib.figure", "matplotlib.backends.backend_agg", "imageio.v3", "imageio.plugins.pillow",
+# imported by the figure process at once (what plots.plot_run and the PNG writer load on first use)
+MODULES = ("numpy", "matplotlib.figure", "matplotlib.backends.backend_agg", "PIL.Image", "PIL.PngImagePlugin",
            "ti_cmax.plots")
 
 
