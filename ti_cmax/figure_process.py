@@ -1,6 +1,6 @@
-"""A command's PNG figures drawn in a forked process beside it (``ti-cmax slam``: run.png and map.png).
+"""A command's figures drawn in a forked process beside it (``ti-cmax slam``: run.png).
 
-matplotlib and the PNG writer cost about 0.5 CPU s to import and run.png about 0.3 s to draw. In the command's own
+matplotlib costs about 0.5 CPU s to import and run.png about 0.25 s to draw. In the command's own
 process both were on its critical path: the imports in a thread beside the front-end (one GIL), the drawing after
 the last window. Forked at the command's start, this process imports them while the command imports its pipeline
 (on another core), then waits; at the end it draws while the command writes its other outputs.

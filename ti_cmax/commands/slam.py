@@ -42,8 +42,7 @@ def write_result(out: Path, result, cfg, camera=None, events_range=None, full_sp
     region unless ``full_sphere``: pipelines/panorama.map_image; and raw .npy), the run figure (run.png, with the
     error over time when ``groundtruth`` is given), report, config. The report gets the run's status and reasons
     (ti_cmax.status; ``events_range``: the input's time range, which the trajectory should cover) and is returned.
-    ``figures``: a ti_cmax.figure_process.FigureProcess that draws run.png and encodes map.png meanwhile (default:
-    here)."""
+    ``figures``: a ti_cmax.figure_process.FigureProcess that draws run.png meanwhile (default: here)."""
     import numpy as np
 
     from .. import timeline
@@ -62,13 +61,13 @@ def write_result(out: Path, result, cfg, camera=None, events_range=None, full_sp
         from ..figure_process import FigureProcess
 
         figures = FigureProcess(None, None)  # jobs run here, when submitted
-    # the figures first: a figure process draws them while this one writes the rest
+    # the run figure first: a figure process draws it while this one writes the rest
     figures.submit(plot_run, out / "run.png", result.trajectory,
                    **run_figure_inputs(result.frontend, getattr(result, "windows", None), groundtruth,
                                        title or result.report.get("method")))
     intensity = getattr(result, "map_kind", "events") == "intensity"
     png, shown = map_image(result.map, cfg.output.gamma, full_sphere=full_sphere, intensity=intensity)
-    figures.submit(write_png, out / "map.png", png)
+    write_png(out / "map.png", png)  # here: the figure process's run.png takes longer than all the rest
     write_tum(out / "trajectory.txt", result.trajectory)
     if result.frontend is not None and len(result.frontend):
         write_angular_velocity(out / "angular_velocity.txt", result.frontend.t, result.frontend.omega)
@@ -187,7 +186,7 @@ def run(args) -> int:
     from ..figure_process import FigureProcess
 
     # forked first, while this process has one thread and little memory: it imports the figure modules while this
-    # one imports the pipeline, and draws run.png and map.png at the end while this one writes the rest
+    # one imports the pipeline, and draws run.png at the end while this one writes the rest
     with FigureProcess.start() as figures:
         return _run(args, figures)
 
