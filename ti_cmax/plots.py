@@ -47,7 +47,8 @@ def _stacked(fig, rows: int, *, title: bool, left: float = 1.05, right: float = 
 def _save(fig, path, compress_level: int | None = None) -> None:
     """The figure as PNG; ``compress_level`` (zlib's 0-9; Pillow's default 6): lower is faster, the file larger."""
     with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png", pil_kwargs=None if compress_level is None else {"compress_level": compress_level})
+        fig.savefig(tmp, format="png",
+                    pil_kwargs=None if compress_level is None else {"compress_level": compress_level})
 
 
 def _angles_deg(traj: Trajectory, representation: str) -> tuple[np.ndarray, list[str]]:
