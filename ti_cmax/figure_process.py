@@ -15,9 +15,10 @@ from __future__ import annotations
 import os
 import sys
 
-# imported by the figure process at once (what plots.plot_run and the PNG writer load on first use)
-MODULES = ("numpy", "matplotlib.figure", "matplotlib.backends.backend_agg", "PIL.Image", "PIL.PngImagePlugin",
-           "ti_cmax.plots")
+# imported before the fork (the command needs them too: imported once, inherited), then by the figure process at
+# once (what plots.plot_run and the PNG writer load on first use)
+SHARED = ("numpy", "ti_cmax.plots")
+MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg", "PIL.Image", "PIL.PngImagePlugin")
 
 
 def draw(job) -> None:
@@ -55,6 +56,10 @@ class FigureProcess:
 
     @classmethod
     def start(cls) -> FigureProcess:
+        import importlib
+
+        for name in SHARED:
+            importlib.import_module(name)
         if not usable():
             return cls(None, None)
         import multiprocessing as mp
