@@ -83,6 +83,10 @@ def write_result(out: Path, result, cfg, camera=None, events_range=None, full_sp
     if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
         write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
     save_config(cfg, out / "config.yaml")
+    if figures.forked:  # the report's engine version (importlib.metadata, ~0.02 s) while the figure is drawn
+        from ..kernels.engine import engine_info
+
+        engine_info()
     drawn = figures.wait()
     if drawn:
         report["figure_process"] = drawn
