@@ -28,8 +28,10 @@ def draw(job) -> None:
 
 
 def usable() -> bool:
-    """Whether a figure process may start now: fork on Linux, 2 or more cores, no other thread in this process."""
-    if not sys.platform.startswith("linux"):
+    """Whether a figure process may start now: fork on Linux, 2 or more cores, no other thread in this process, and
+    not turned off (``TI_CMAX_FIGURE_PROCESS=0``: on a machine whose cores are all busy with other work the process
+    only moves CPU time around, and its imports then compete with the command's start-up)."""
+    if not sys.platform.startswith("linux") or os.environ.get("TI_CMAX_FIGURE_PROCESS", "") == "0":
         return False
     try:
         return len(os.sched_getaffinity(0)) >= 2 and len(os.listdir("/proc/self/task")) == 1

@@ -99,7 +99,14 @@ with FigureProcess.start() as figures:
 
 
 def test_without_fork_the_jobs_run_here(tmp_path):
-    """A process with another thread running forks nothing (a fork copies the locks other threads hold)."""
+    """A process with another thread running forks nothing (a fork copies the locks other threads hold); nor one
+    where TI_CMAX_FIGURE_PROCESS=0."""
+    code = ("from ti_cmax.figure_process import FigureProcess\n"
+            "with FigureProcess.start() as figures:\n"
+            "    print(figures.forked)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "TI_CMAX_FIGURE_PROCESS": "0"})
+    assert proc.stdout.split() == ["False"], proc.stderr
     code = """
 import sys, threading, time
 import numpy as np
