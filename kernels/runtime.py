@@ -25,6 +25,7 @@ import functools
 import importlib
 import os
 import sys
+import types
 
 import numpy as np
 
@@ -60,7 +61,92 @@ def _stdout_to_stderr(discard: bool = False):
             os.close(target)
 
 
-with _stdout_to_stderr():
+class _OnFirstUse(types.ModuleType):
+    """Stands for a module in the engine's import; the module itself is imported on first use of an attribute."""
+
+    def __getattr__(self, name):
+        if sys.modules.get(self.__name__) is self:
+            del sys.modules[self.__name__]
+        return getattr(importlib.import_module(self.__name__), name)
+
+
+@contextlib.contextmanager
+def _engine_import_trimmed():
+    """Taichi's import, less what a run does not use. Its version check (urllib, http, ssl, email), which
+    TI_SKIP_VERSION_CHECK=ON turns off, and dill (it reads the source of kernels typed into an interactive shell):
+    ~0.05 CPU s of every command's start-up. With the check off its module is its no-op; dill is imported on first
+    use (only Taichi's own module holds the stand-in: any other import of dill gets dill). And its check of every
+    decorator for a class body, done without a scan of all loaded modules (_patch_class_check)."""
+    if os.environ.get("TI_SKIP_VERSION_CHECK") == "ON" and "taichi._version_check" not in sys.modules:
+        check = types.ModuleType("taichi._version_check", "the version check, off (TI_SKIP_VERSION_CHECK=ON)")
+        check.start_version_check_thread = lambda: None
+        sys.modules[check.__name__] = check
+    finder = _PatchedOnImport("taichi.lang.kernel_impl", _patch_class_check)
+    sys.meta_path.insert(0, finder)
+    stand_in, spec = None, None
+    if "dill" not in sys.modules:
+        from importlib.util import find_spec
+
+        spec = find_spec("dill")  # where it is, without importing it
+    if spec is not None and spec.origin:
+        stand_in = sys.modules["dill"] = _OnFirstUse("dill")
+        stand_in.__file__ = spec.origin  # what inspect reads of every module in sys.modules (Taichi calls it)
+    try:
+        yield
+    finally:
+        if finder in sys.meta_path:
+            sys.meta_path.remove(finder)
+        if stand_in is not None and sys.modules.get("dill") is stand_in:
+            del sys.modules["dill"]
+
+
+class _PatchedOnImport:
+    """A meta path finder: the module ``name``, found as usual, gets ``patch(module)`` right after it executes (before
+    the rest of its package's import uses it)."""
+
+    def __init__(self, name: str, patch):
+        self.name, self.patch = name, patch
+
+    def find_spec(self, name, path, target=None):
+        if name != self.name:
+            return None
+        from importlib.machinery import PathFinder
+
+        sys.meta_path.remove(self)
+        spec = PathFinder.find_spec(name, path, target)
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        execute, patch = spec.loader.exec_module, self.patch
+
+        def exec_module(module):
+            execute(module)
+            patch(module)
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
+def _patch_class_check(kernel_impl) -> None:
+    """Taichi asks, for every ti.func and ti.kernel it decorates, whether the decorator runs in a class body: it
+    reads the source line of the frame there with inspect.getframeinfo, whose inspect.getmodule scans every loaded
+    module each time (95 decorators of Taichi's and ours in a `slam` start-up: a fifth of its import time,
+    measured). The same line, read from linecache directly, answers the same."""
+    import linecache
+
+    patterns = kernel_impl._KERNEL_CLASS_STACKFRAME_STMT_RES
+
+    def _inside_class(level_of_class_stackframe):
+        try:
+            frame = sys._getframe(level_of_class_stackframe)
+            line = linecache.getline(frame.f_code.co_filename, frame.f_lineno, frame.f_globals).strip()
+        except ValueError:  # no frame that deep
+            return False
+        return any(pattern.match(line) for pattern in patterns)
+
+    kernel_impl._inside_class = _inside_class
+
+
+with _stdout_to_stderr(), (_engine_import_trimmed() if ENGINE == "taichi" else contextlib.nullcontext()):
     try:
         ti = importlib.import_module(ENGINE)
     except ImportError as exc:

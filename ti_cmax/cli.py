@@ -39,8 +39,13 @@ COMMANDS = {
 }
 
 
-def _available_commands():
+def _available_commands(only: str | None = None):
+    """(name, module) of each subcommand; with ``only`` (a subcommand's name) that one's module alone, the others'
+    None (not imported: some 0.03 CPU s of every command's start-up)."""
     for name, module in COMMANDS.items():
+        if only is not None and name != only:
+            yield name, None
+            continue
         try:
             yield name, importlib.import_module(f"ti_cmax.commands.{module}")
         except ModuleNotFoundError as exc:
@@ -75,16 +80,20 @@ class _VersionAction(argparse.Action):
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The command line. With ``command`` (the one being run) only that subcommand's arguments are built: some
-    import what their choices come from (``benchmark``: the suites and baselines, ``simulate``: scipy), ~0.5 s of
-    start-up that every other command paid (the other subcommands are still listed, with their help line)."""
+    """The command line. With ``command`` (the one being run, one of COMMANDS) only that subcommand's module is
+    imported and its arguments built: some import what their choices come from (``benchmark``: the suites and
+    baselines, ``simulate``: scipy), ~0.5 s of start-up that every other command paid. Without (``--help``, an
+    unknown command) every subcommand is listed with its help line."""
     parser = argparse.ArgumentParser(
         prog="ti-cmax", description="CMax-SLAM: rotational motion estimation for event cameras (Taichi CPU)."
     )
     parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for name, module in _available_commands():
+    for name, module in _available_commands(command if command in COMMANDS else None):
+        if module is None:  # not the command being run: listed only
+            sub.add_parser(name)
+            continue
         p = sub.add_parser(name, help=module.HELP, description=module.HELP)
         if name != command:  # --version, --help: no subcommand builds its arguments (kernel imports)
             continue
@@ -145,6 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     clear_interrupt()
     # Ctrl-C or SIGTERM from here on, also while the command modules, Taichi and the pipelines import (it printed a
     # traceback), is the interruption of a running command: one line, exit 130 (143), outputs removed
+    if argv[:1] == ["--version"]:  # what argparse does first with it (exits), without building the command line
+        _VersionAction(["--version"])(argparse.ArgumentParser(prog="ti-cmax"), None, None)
     try:
         import signal
         import threading

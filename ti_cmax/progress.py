@@ -10,10 +10,9 @@ Bars in seconds of data (``unit="s"``) show rounded figures and the speed agains
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import sys
-
-from tqdm import tqdm
 
 _QUIET = {"value": os.environ.get("TI_CMAX_NO_PROGRESS", "") not in ("", "0")}
 
@@ -29,44 +28,93 @@ def is_quiet() -> bool:
     return _QUIET["value"]
 
 
-class Bar(tqdm):
-    """tqdm without its monitor thread (it only adjusts bars that update too rarely, and ours update with the
-    data): a process with one thread can fork a back-end worker (pipelines/worker.worker_start_method)."""
+@functools.lru_cache(maxsize=None)
+def bar_classes() -> tuple[type, type]:
+    """(Bar, DataBar), the tqdm bars; tqdm is imported on the first bar shown (~0.03 CPU s of start-up)."""
+    from tqdm import tqdm
 
-    monitor_interval = 0
+    class Bar(tqdm):
+        """tqdm without its monitor thread (it only adjusts bars that update too rarely, and ours update with the
+        data): a process with one thread can fork a back-end worker (pipelines/worker.worker_start_method)."""
+
+        monitor_interval = 0
+
+    class DataBar(Bar):
+        """A bar over seconds of data: rounded totals, speed as a multiple of real time. ``at(seconds)`` moves it
+        to that many seconds from the start of the data; ``done()`` to its total (the last chunk's work counted)."""
+
+        def at(self, seconds: float) -> None:
+            limit = self.total if self.total else float("inf")
+            step = min(max(float(seconds), 0.0), limit) - self.n
+            if step > 0:
+                self.update(step)
+
+        def done(self) -> None:
+            if self.total:
+                self.at(self.total)
+
+        @property
+        def format_dict(self):
+            d = super().format_dict
+            rate = d.get("rate") or (d["n"] / d["elapsed"] if d.get("elapsed") else None)
+            d["speed"] = f"{rate:.2f}x real time" if rate else "? x real time"
+            return d
+
+    return Bar, DataBar
 
 
-class DataBar(Bar):
-    """A bar over seconds of data: rounded totals, speed as a multiple of real time. ``at(seconds)`` moves it to
-    that many seconds from the start of the data; ``done()`` to its total (the last chunk's work counted)."""
+class QuietBar:
+    """A bar while quiet: what a disabled tqdm bar does (nothing counted, nothing shown) without importing tqdm.
+    Anything else asked of it is asked of a disabled tqdm bar made then."""
+
+    def __init__(self, data: bool, **kw):
+        self.n, self.total = 0, kw.get("total")
+        self._data, self._kw = data, kw
+
+    def update(self, n=1) -> None:
+        pass
 
     def at(self, seconds: float) -> None:
-        limit = self.total if self.total else float("inf")
-        step = min(max(float(seconds), 0.0), limit) - self.n
-        if step > 0:
-            self.update(step)
+        pass
 
     def done(self) -> None:
-        if self.total:
-            self.at(self.total)
+        pass
 
-    @property
-    def format_dict(self):
-        d = super().format_dict
-        rate = d.get("rate") or (d["n"] / d["elapsed"] if d.get("elapsed") else None)
-        d["speed"] = f"{rate:.2f}x real time" if rate else "? x real time"
-        return d
+    def refresh(self, *args, **kwargs) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def __getattr__(self, name):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        disabled = bar_classes()[1 if self._data else 0](**self._kw)
+        return getattr(disabled, name)
 
 
-def progress(total=None, desc: str = "", unit: str = "it", **kw) -> tqdm:
+def _bar(data: bool = False, **kw):
+    """A tqdm bar (DataBar if ``data``), or a QuietBar while quiet."""
+    if kw.get("disable"):
+        return QuietBar(data, **kw)
+    return bar_classes()[1 if data else 0](**kw)
+
+
+def progress(total=None, desc: str = "", unit: str = "it", **kw):
     """A tqdm bar on stderr; ``bar.update(n)`` as work advances. ``unit="s"``: seconds of data."""
     common = dict(desc=desc, file=sys.stderr, disable=_QUIET["value"], dynamic_ncols=True,
                   leave=kw.pop("leave", False))
     if unit == "s":
         total = None if total is None or not 0 < total < float("inf") else float(total)  # NaN/inf: open bar
-        return DataBar(total=total, unit="s", bar_format=_DATA_BAR if total else _DATA_OPEN, **common, **kw)
+        return _bar(True, total=total, unit="s", bar_format=_DATA_BAR if total else _DATA_OPEN, **common, **kw)
     kw.setdefault("unit_scale", True)
-    return Bar(total=total, unit=unit, **common, **kw)
+    return _bar(total=total, unit=unit, **common, **kw)
 
 
 _STAGE_BAR = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}]"
@@ -76,7 +124,7 @@ _STAGE_BAR = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}]"
 def stage(desc: str = "start-up and compile"):
     """A bar for one step of unknown length (Taichi's start-up, kernel compilation): 0 % while it runs, 100 % when
     it is done; it stays on screen."""
-    bar = Bar(total=1, desc=desc, file=sys.stderr, disable=_QUIET["value"], dynamic_ncols=True, leave=True,
+    bar = _bar(total=1, desc=desc, file=sys.stderr, disable=_QUIET["value"], dynamic_ncols=True, leave=True,
                bar_format=_STAGE_BAR)
     try:
         yield bar

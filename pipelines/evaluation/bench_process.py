@@ -7,7 +7,8 @@ once into DIR/sequences, reused when simulation.json matches) run as the C++ ref
 15 000-event packets (``--spline linear --set num_events_per_packet=15000``), otherwise the command's defaults (a
 back-end worker process on 2+ cores). Each round runs ``ti-cmax slam`` in a child process, after one warm-up run
 that is not counted (it fills Taichi's offline cache after a code change). Per run: the wall time from launch to
-exit, the CPU seconds of the process and its worker (rusage of the children), and the stages lined up from
+exit, the CPU seconds of the process, its worker and its figure process (rusage of the children; the figure
+process draws run.png and map.png, ti_cmax/figure_process.py), and the stages lined up from
 report.json's ``timeline_seconds`` (ti_cmax/timeline.py) with the launch:
 
 - start-up: the interpreter, the command line, the pipeline's imports, then the dataset, the worker's start and
@@ -86,11 +87,14 @@ def run_once(seq: Path, out: Path, threads: int | None, flags: tuple = (), overr
     total_cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     worker = report.get("backend_process", {})
     worker_cpu = worker.get("process_cpu_seconds", 0.0)
-    points["exit"] = [end, total_cpu - worker_cpu]  # the main process's CPU: the children's less the worker's
+    figures_cpu = report.get("figure_process", {}).get("cpu_seconds", 0.0)
+    # the main process's CPU: the children's less the worker's and the figure process's
+    points["exit"] = [end, total_cpu - worker_cpu - figures_cpu]
     stages = {label: {"wall": points[b][0] - points[a][0], "cpu": points[b][1] - points[a][1]}
               for label, a, b in STAGES if a in points and b in points}
     wpoints = {k: v for k, v in worker.get("timeline_seconds", {}).items() if k in WORKER_POINTS}
-    return {"report": report, "wall": end - launch, "cpu": total_cpu, "worker_cpu": worker_cpu, "stages": stages,
+    return {"report": report, "wall": end - launch, "cpu": total_cpu, "worker_cpu": worker_cpu,
+            "figures_cpu": figures_cpu, "stages": stages,
             "worker": {k: {"at": v[0] - launch, "cpu": v[1]} for k, v in wpoints.items()}, "load": load}
 
 
@@ -102,6 +106,7 @@ def summarize(runs: list[dict], events: int) -> dict:
     return {
         "wall": med(r["wall"] for r in runs), "cpu": med(r["cpu"] for r in runs),
         "worker_cpu": med(r["worker_cpu"] for r in runs),
+        "figures_cpu": med(r.get("figures_cpu", 0.0) for r in runs),
         "stages": {label: {k: med(r["stages"][label][k] for r in runs) for k in ("wall", "cpu")}
                    for label, _, _ in STAGES if all(label in r["stages"] for r in runs)},
         "worker": {p: {k: med(r["worker"][p][k] for r in runs) for k in ("at", "cpu")}
@@ -117,8 +122,10 @@ def summarize(runs: list[dict], events: int) -> dict:
 def format_table(s: dict, runs: list[dict], accuracy, events: int) -> str:
     lines = ["| stage | wall s | CPU s (main) |", "|---|---|---|"]
     lines += [f"| {label} | {v['wall']:.2f} | {v['cpu']:.2f} |" for label, v in s["stages"].items()]
-    cpu = f"{s['cpu'] - s['worker_cpu']:.2f} (+ worker {s['worker_cpu']:.2f})" if s["worker_cpu"] else \
-        f"{s['cpu']:.2f} (with its worker, if any)"
+    helpers = [f"{name} {s[key]:.2f}" for name, key in (("worker", "worker_cpu"), ("figure process", "figures_cpu"))
+               if s.get(key)]
+    main = s["cpu"] - s["worker_cpu"] - s.get("figures_cpu", 0.0)
+    cpu = f"{main:.2f} (+ {', '.join(helpers)})" if helpers else f"{main:.2f} (with its worker, if any)"
     lines.append(f"| **whole process** | **{s['wall']:.2f}** | {cpu} |")
     if s["worker"]:
         lines += ["", "| back-end worker (" + (s["start_method"] or "-") + ") | at s (from launch) | its CPU s |",
@@ -127,7 +134,7 @@ def format_table(s: dict, runs: list[dict], accuracy, events: int) -> str:
         lines += [f"| {labels[p]} | {v['at']:.2f} | {v['cpu']:.2f} |" for p, v in s["worker"].items()]
     walls = ", ".join(f"{r['wall']:.2f}" for r in runs)
     lines += ["", f"{events / 1e6:.2f} M events; medians of {len(runs)} rounds (wall s per round: {walls}); "
-              f"CPU of the main process and its worker together {s['cpu']:.2f} s. Steady state (us per event x "
+              f"CPU of the main process and its helpers together {s['cpu']:.2f} s. Steady state (us per event x "
               f"events): front-end {s['steady']['frontend']:.2f} s, back-end {s['steady']['backend']:.2f} s; "
               f"kernel preparation (wall) main {s['compile']['main']:.2f} s, worker {s['compile']['worker']:.2f} s. "
               f"CMax-SLAM abs {accuracy.abs_rmse_deg:.3f} deg, rel {accuracy.rel_rmse_deg_per_s:.3f} deg/s. "

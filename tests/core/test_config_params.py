@@ -149,6 +149,18 @@ def test_version_imports_no_kernel_and_is_fast():
     assert out.stdout.startswith("ti-cmax ") and elapsed < 1.0, elapsed
 
 
+def test_a_command_imports_its_own_module_alone_and_version_none():
+    """The command being run is the one subcommand module imported (the others are listed by name); --version
+    imports none (what it prints comes from the installed metadata)."""
+    code = ("import sys\nfrom ti_cmax.cli import build_parser, main\n"
+            "names = lambda: sorted(m for m in sys.modules if m.startswith('ti_cmax.commands.'))\n"
+            "try:\n    main(['--version'])\nexcept SystemExit as exc:\n    print(exc.code, names())\n"
+            "parser = build_parser('evaluate')\n"
+            "print(names(), parser.parse_args(['evaluate', '--groundtruth', 'a', '--estimate', 'b']).command)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.stdout.splitlines()[-2:] == ["0 []", "['ti_cmax.commands.evaluate'] evaluate"], out.stderr
+
+
 @pytest.mark.slow
 def test_closed_output_pipe_ends_quietly():
     proc = subprocess.Popen([sys.executable, "-m", "ti_cmax.cli", "params", "smt"], stdout=subprocess.PIPE,

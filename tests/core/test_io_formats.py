@@ -223,6 +223,29 @@ def test_h5_compressed_with_hdf5plugin(tmp_path):
     assert_same(open_dataset(tmp_path / "z.h5", 240, 180, allow_default_calibration=True).read_events(), ev, atol=0)
 
 
+def test_h5_filter_plugins_are_imported_only_for_a_file_that_needs_them(tmp_path):
+    """hdf5plugin (~0.05 s of start-up) is imported when a file uses a filter HDF5 lacks, not for every file."""
+    hdf5plugin = pytest.importorskip("hdf5plugin")
+    import subprocess
+    import sys
+
+    import h5py
+
+    ev = random_events(300)
+    for name, kw in (("plain.h5", {}), ("zstd.h5", hdf5plugin.Zstd())):
+        with h5py.File(tmp_path / name, "w") as f:
+            for k, v in (("t", ev.t), ("x", ev.x), ("y", ev.y), ("p", (ev.p > 0).astype(np.uint8))):
+                f.create_dataset(f"events/{k}", data=v, **kw)
+    code = ("import sys\n"
+            "from ti_cmax.io import open_dataset\n"
+            "n = len(open_dataset(sys.argv[1], 240, 180, allow_default_calibration=True).read_events())\n"
+            "print(n, 'hdf5plugin' in sys.modules)\n")
+    for name, imported in (("plain.h5", "False"), ("zstd.h5", "True")):
+        proc = subprocess.run([sys.executable, "-c", code, str(tmp_path / name)], capture_output=True, text=True,
+                              timeout=120)
+        assert proc.stdout.split() == [str(len(ev)), imported], proc.stderr
+
+
 # ROS1 bag -----------------------------------------------------------------------------------------
 def test_bag_round_trip(tmp_path, write_ros1_bag):
     ev = random_events(3000)

@@ -298,6 +298,19 @@ def test_frontend_on_a_full_disk_is_one_line_and_keeps_the_previous_outputs(tmp_
     assert _listing(out) == {"trajectory.txt": "previous"}
 
 
+def test_slam_whose_run_figure_meets_a_full_disk_is_one_line_and_keeps_the_previous_outputs(tmp_path):
+    """run.png is written by the figure process (ti_cmax/figure_process.py): its error is the command's one line,
+    and nothing of the run is left (the other outputs, smaller than the limit, were written)."""
+    seq = _small_sequence(tmp_path / "seq")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "trajectory.txt").write_text("previous")
+    res = _run_with_file_size_limit(["slam", seq, "--out", out, "--quiet", "--set", "pano_height=64"], 60_000)
+    assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
+    _one_error_line(res.stderr, "ti-cmax slam: error:", str(out), "File too large")
+    assert _listing(out) == {"trajectory.txt": "previous"}
+
+
 def test_any_os_error_of_a_command_is_one_line(monkeypatch, capsys):
     """A file that vanishes while a command reads it (or any other OS failure) ended in a traceback."""
     from ti_cmax.commands import info

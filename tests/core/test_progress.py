@@ -128,3 +128,19 @@ def short_slice(ti_runtime):
 
     seq = simulate_sequence(SimulatorConfig(scene="bay", duration=0.3, max_angular_velocity=3.0, seed=3))
     return seq.events.slice_time(0.1, 0.3), seq.camera
+
+
+def test_quiet_bars_import_no_tqdm_and_count_nothing_as_disabled_tqdm_bars():
+    """While quiet a bar is a QuietBar (tqdm, ~0.03 s of start-up, is not imported); it counts nothing, as a disabled
+    tqdm bar, and what else is asked of it a disabled tqdm bar answers."""
+    code = ("import sys\n"
+            "from ti_cmax import progress\n"
+            "progress.set_quiet(True)\n"
+            "with progress.stage('x'):\n"
+            "    bar = progress.progress(total=3.0, desc='y', unit='s'); bar.update(1.0); bar.at(2.0); bar.done()\n"
+            "    with progress.progress(total=10, desc='z', unit='ev') as count:\n"
+            "        count.update(4)\n"
+            "print(bar.n, count.n, 'tqdm' in sys.modules)\n"
+            "print(bar.disable, 'tqdm' in sys.modules)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.stdout.split() == ["0", "0", "False", "True", "True"], proc.stderr

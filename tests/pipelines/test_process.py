@@ -26,6 +26,60 @@ def test_a_slam_process_imports_neither_scipy_nor_matplotlib_before_its_outputs(
     assert proc.stdout.split() == ["[]"], proc.stderr
 
 
+def test_the_engine_import_leaves_out_its_version_check_and_dill_until_used():
+    """Taichi's version check (off: urllib, http, ssl) and dill (interactive-shell sources) are not imported with
+    it; dill is there on first use, for Taichi and for anyone else; hdf5plugin only for a file that needs it."""
+    code = ("import sys\n"
+            "import ti_cmax.cli, ti_cmax.commands.slam, ti_cmax.io, ti_cmax.pipelines.slam\n"
+            "from ti_cmax.kernels import runtime\n"
+            "print(sorted({'urllib.request', 'http.client', 'ssl', 'dill', 'hdf5plugin'} & set(sys.modules)))\n"
+            "if runtime.ENGINE == 'taichi':\n"
+            "    from taichi.lang import _wrap_inspect\n"
+            "    import dill\n"
+            "    assert _wrap_inspect.dill.source is dill.source\n"
+            "runtime.ensure_init()\n"
+            "print('initialized')\n")
+    proc = _python(code)
+    assert proc.stdout.split() == ["[]", "initialized"], proc.stderr
+
+
+def test_kernels_in_a_class_body_and_at_module_level_are_told_apart_as_taichi_does(tmp_path):
+    """runtime._patch_class_check answers Taichi's "is this decorator in a class body?" from the frame's source line
+    without inspect's scan of every module: a data-oriented class's kernel takes its instance, a module's does not."""
+    script = tmp_path / "kernels_here.py"
+    script.write_text(
+        "import numpy as np\n"
+        "from ti_cmax.kernels.runtime import ensure_init, ti\n"
+        "import taichi.lang.kernel_impl as kernel_impl\n"
+        "\n"
+        "@ti.data_oriented\n"
+        "class Scaled:\n"
+        "    def __init__(self, k):\n"
+        "        self.k = k\n"
+        "\n"
+        "    @ti.kernel\n"
+        "    def apply(self, a: ti.types.ndarray(dtype=ti.f64, ndim=1)):\n"
+        "        for i in a:\n"
+        "            a[i] *= self.k\n"
+        "\n"
+        "@ti.kernel\n"
+        "def double(a: ti.types.ndarray(dtype=ti.f64, ndim=1)):\n"
+        "    for i in a:\n"
+        "        a[i] *= 2\n"
+        "\n"
+        "ensure_init()\n"
+        "a = np.ones(4)\n"
+        "Scaled(3.0).apply(a)\n"
+        "double(a)\n"
+        "print(a.tolist(), kernel_impl._inside_class.__module__)\n")
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    from ti_cmax.kernels.runtime import ENGINE
+
+    assert proc.stdout.split() == ["[6.0,", "6.0,", "6.0,", "6.0]",
+                                   "ti_cmax.kernels.runtime" if ENGINE == "taichi" else "quadrants.lang.kernel_impl"]
+
+
 @pytest.mark.skipif(not LINUX, reason="the worker is forked on Linux only")
 def test_the_worker_is_forked_from_a_single_threaded_process_before_the_engine_starts():
     """Forked, the worker inherits the imports (about 0.4 CPU s that a spawned one repeats before its kernels);
@@ -40,6 +94,27 @@ def test_the_worker_is_forked_from_a_single_threaded_process_before_the_engine_s
             "print(worker_start_method())\n")
     proc = _python(code)
     assert proc.stdout.split() == ["fork", "spawn", "spawn"], proc.stderr
+
+
+@pytest.mark.skipif(not LINUX, reason="the worker is forked on Linux only")
+def test_a_forked_worker_hands_the_final_map_over_in_shared_memory():
+    """SharedMap: what the worker puts there the main process reads (no 8 MB result message); a map of another
+    shape or type is not put (it goes in the message, as from a spawned worker)."""
+    import multiprocessing as mp
+
+    import numpy as np
+
+    from ti_cmax.config import SlamConfig, load_config
+    from ti_cmax.pipelines.worker import SharedMap
+
+    shared = SharedMap.create(load_config(SlamConfig, None, ["pano_height=64"]))
+    assert shared.shape == (64, 128)
+    image = np.arange(64 * 128, dtype=np.float32).reshape(64, 128)
+    child = mp.get_context("fork").Process(target=shared.put, args=(image,))
+    child.start()
+    child.join()
+    assert child.exitcode == 0 and np.array_equal(shared.array(), image)
+    assert not shared.put(image.astype(np.float64)) and not shared.put(image[:32])
 
 
 def test_progress_bars_start_no_thread():
@@ -118,7 +193,9 @@ def test_every_process_of_a_run_writes_its_kernels_to_the_offline_cache_and_the_
         reports[mode] = json.loads((out / "report.json").read_text())
     assert cached["--parallel"] == cached["--sequential"] and len(cached["--parallel"]) > 2
 
+    forks = LINUX and len(os.sched_getaffinity(0)) >= 2  # run.png and map.png drawn in a figure process
     for mode, report in reports.items():
+        assert ("figure_process" in report) == forks
         points = report["timeline_seconds"]
         assert list(points) == ["command", "imported", "ready", "frontend_done", "closed", "outputs"]
         walls = [wall for wall, _ in points.values()]

@@ -37,12 +37,12 @@ def spline_override(args) -> list[str]:
 
 
 def write_result(out: Path, result, cfg, camera=None, events_range=None, full_sphere: bool = False,
-                 groundtruth=None, title: str | None = None) -> dict:
+                 groundtruth=None, title: str | None = None, figures=None) -> dict:
     """Files common to slam, refine and the baselines: trajectory (TUM), map (PNG, gamma, cropped to the observed
     region unless ``full_sphere``: pipelines/panorama.map_image; and raw .npy), the run figure (run.png, with the
     error over time when ``groundtruth`` is given), report, config. The report gets the run's status and reasons
-    (ti_cmax.status; ``events_range``: the input's time range, which the trajectory should cover) and is returned."""
-    import imageio.v3 as iio
+    (ti_cmax.status; ``events_range``: the input's time range, which the trajectory should cover) and is returned.
+    ``figures``: a ti_cmax.figure_process.FigureProcess that draws run.png meanwhile (default: here)."""
     import numpy as np
 
     from .. import timeline
@@ -51,34 +51,50 @@ def write_result(out: Path, result, cfg, camera=None, events_range=None, full_sp
     from ..outputs import peak_rss_mb, write_report
     from ..pipelines.panorama import PanoramaResult, map_image
     from ..pipelines.sensor_defaults import resolve_config
+    from ..plots import plot_run
     from ..status import apply_status
 
     if isinstance(cfg, SlamConfig) and camera is not None:
         cfg = resolve_config(cfg, camera)  # derived values are written as numbers: a rerun with it is exact
 
+    if figures is None:
+        from ..figure_process import FigureProcess
+
+        figures = FigureProcess(None, None)  # jobs run here, when submitted
+    # the run figure first: a figure process draws it while this one writes the rest
+    figures.submit(plot_run, out / "run.png", result.trajectory,
+                   **run_figure_inputs(result.frontend, getattr(result, "windows", None), groundtruth,
+                                       title or result.report.get("method")))
+    intensity = getattr(result, "map_kind", "events") == "intensity"
+    png, shown = map_image(result.map, cfg.output.gamma, full_sphere=full_sphere, intensity=intensity)
+    write_png(out / "map.png", png)  # here: the figure process's run.png takes longer than all the rest
     write_tum(out / "trajectory.txt", result.trajectory)
     if result.frontend is not None and len(result.frontend):
         write_angular_velocity(out / "angular_velocity.txt", result.frontend.t, result.frontend.omega)
     np.save(out / "map.npy", result.map)
-    intensity = getattr(result, "map_kind", "events") == "intensity"
-    png, shown = map_image(result.map, cfg.output.gamma, full_sphere=full_sphere, intensity=intensity)
-    iio.imwrite(out / "map.png", png, extension=".png")
     report = dict(result.report)
     report["map"] = PanoramaResult(result.map, int(round(float(result.map.sum())))).figures(cfg.backend.lambda0)
     report["map"]["png"] = shown
     if camera is not None:
         report["camera"] = camera.to_dict()
-    # of the whole process so far; with a back-end worker (--parallel) plus the worker's own peak: the sum of the two
-    # peaks, an upper bound of their total at any moment (the main process alone was half of it on a VGA run)
-    report["peak_rss_mb"] = peak_rss_mb() + report.get("backend_process", {}).get("peak_rss_mb", 0.0)
     traj = result.trajectory
     apply_status(report, events_range=events_range,
                  trajectory_range=(traj.t_start, traj.t_end) if len(traj) else None)
-    write_run_figure(out / "run.png", result.trajectory, result.frontend, getattr(result, "windows", None),
-                     groundtruth, title=title or report.get("method"))
     if getattr(result, "realtime_trace", None):  # a real-time replay (baselines and refine have none)
         write_realtime_trace(out / "realtime_windows.csv", result.realtime_trace)
     save_config(cfg, out / "config.yaml")
+    if figures.forked:  # the report's engine version (importlib.metadata, ~0.02 s) while the figure is drawn
+        from ..kernels.engine import engine_info
+
+        engine_info()
+    drawn = figures.wait()
+    if drawn:
+        report["figure_process"] = drawn
+    # of the whole process so far; with a back-end worker (--parallel) plus the worker's own peak, and a figure
+    # process's: the sum of the peaks, an upper bound of their total at any moment (the main process alone was half
+    # of it on a VGA run)
+    report["peak_rss_mb"] = (peak_rss_mb() + report.get("backend_process", {}).get("peak_rss_mb", 0.0)
+                             + drawn.get("peak_rss_mb", 0.0))
     timeline.mark("outputs")  # the report is the last output: it holds the points of this process so far
     report["timeline_seconds"] = timeline.points()
     write_report(out, report)
@@ -86,12 +102,12 @@ def write_result(out: Path, result, cfg, camera=None, events_range=None, full_sp
 
 
 class OutputPreload:
-    """Imports what ``write_result`` needs (matplotlib, the PNG writer: about 0.4 CPU s) in a thread, started once a
+    """Imports what ``write_result`` needs (matplotlib, Pillow: about 0.4 CPU s) in a thread, started once a
     run's back-end worker is up: this process then mostly waits for the worker, so the imports leave the run's
     critical path. ``join()`` before writing the outputs: the main thread never imports beside it (it imports
     nothing between the start of the run and its outputs)."""
 
-    MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg", "imageio.v3", "imageio.plugins.pillow",
+    MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg", "PIL.Image", "PIL.PngImagePlugin",
                "ti_cmax.plots")
 
     def __init__(self):
@@ -120,9 +136,17 @@ class OutputPreload:
 def write_run_figure(path: Path, trajectory, frontend=None, windows=None, groundtruth=None, title=None) -> None:
     """run.png (plots.plot_run): orientation, angular velocity (the front-end's when there is one), the back-end's
     windows, events per second of the front-end's packets, and the error over time with ground truth."""
+    from ..plots import plot_run
+
+    plot_run(path, trajectory, **run_figure_inputs(frontend, windows, groundtruth, title))
+
+
+def run_figure_inputs(frontend=None, windows=None, groundtruth=None, title=None) -> dict:
+    """plots.plot_run's keyword arguments of a run: the front-end's angular velocity and event rate, the windows'
+    states (plain values: a figure process unpickles them without the back-end's modules)."""
     import numpy as np
 
-    from ..plots import plot_run
+    from ..plots import window_states
 
     omega = rate = None
     if frontend is not None and len(frontend.t):
@@ -130,7 +154,15 @@ def write_run_figure(path: Path, trajectory, frontend=None, windows=None, ground
         if getattr(frontend, "num_events", None) is not None and getattr(frontend, "span", None) is not None:
             ok = (np.asarray(frontend.span) > 0) & (np.asarray(frontend.num_events) > 0)
             rate = (frontend.t[ok], np.asarray(frontend.num_events)[ok] / np.asarray(frontend.span)[ok])
-    plot_run(path, trajectory, omega=omega, windows=windows, event_rate=rate, groundtruth=groundtruth, title=title)
+    return {"omega": omega, "windows": window_states(windows) if windows else windows, "event_rate": rate,
+            "groundtruth": groundtruth, "title": title}
+
+
+def write_png(path: Path, image) -> None:
+    """An 8-bit image (map.png) as PNG, by Pillow (imageio's own first call costs some 0.03 s more; same file)."""
+    from PIL import Image
+
+    Image.fromarray(image).save(path, format="png")
 
 
 def write_realtime_trace(path: Path, rows: list) -> None:
@@ -155,6 +187,15 @@ def print_derived(report: dict) -> None:
 
 
 def run(args) -> int:
+    from ..figure_process import FigureProcess
+
+    # forked first, while this process has one thread and little memory: it imports the figure modules while this
+    # one imports the pipeline, and draws run.png at the end while this one writes the rest
+    with FigureProcess.start() as figures:
+        return _run(args, figures)
+
+
+def _run(args, figures) -> int:
     from ..config import SlamConfig, check_workload, load_config
     from ..io import open_dataset_from_config
     from ..outputs import OutputDir
@@ -188,15 +229,17 @@ def run(args) -> int:
                 from ..viewer import RerunViewer
 
                 viewer = RerunViewer(camera, cfg, spawn=args.viewer, save=args.save_recording)
-            preload = OutputPreload()
+            preload = OutputPreload()  # with no figure process: its imports here, while the worker works
             result = run_slam(dataset.iter_events(cfg.dataset.chunk_size), camera, cfg, progress_total=t1 - t0,
                               backend_process=parallel, observer=viewer,
-                              on_start=preload.start if parallel and viewer is None else None)
+                              on_start=preload.start if parallel and viewer is None and not figures.forked else None)
             preload.join()
             if viewer is not None:
                 viewer.finish(result)
         report = write_result(out, result, cfg, camera, events_range=(t0, t1), full_sphere=args.full_sphere,
-                              groundtruth=dataset.groundtruth, title=f"CMax-SLAM: {Path(args.dataset).name}")
+                              groundtruth=dataset.groundtruth, title=f"CMax-SLAM: {Path(args.dataset).name}",
+                              figures=figures)
+    figures.close()
     us = result.report["us_per_event"]
     print_derived(result.report)
     print(f"CMax-SLAM: {result.report['events_processed']} events, {len(result.trajectory)} poses, "

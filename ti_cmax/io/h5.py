@@ -18,7 +18,8 @@ Layouts read (first match wins):
 Sensor size comes from attributes ``width``/``height`` (root or ``events`` group), ``sensor_resolution`` or
 ``geometry``.
 Intrinsics (``fx fy cx cy dist``), when our writer stored them, become the dataset's camera.
-Data is always read in slices; ``import hdf5plugin`` is attempted so Blosc/ZSTD-compressed files open.
+Data is always read in slices; a file compressed with a filter HDF5 lacks (Blosc, ZSTD, ...) gets ``import
+hdf5plugin``, when installed, which registers them.
 """
 from __future__ import annotations
 
@@ -35,11 +36,6 @@ from ..camera import Camera
 from ..errors import InputError
 from ..events import Events, polarity_signs
 from ._common import Block, check_time_span
-
-try:  # registers compression filters (Blosc, ZSTD, ...) with HDF5 when installed
-    import hdf5plugin  # noqa: F401
-except ImportError:  # pragma: no cover
-    hdf5plugin = None
 
 import h5py
 
@@ -65,6 +61,19 @@ def _open(path) -> h5py.File:
         raise InputError("file not found", source=str(path)) from None
     except OSError as exc:
         raise InputError(f"cannot open as HDF5 (truncated or not an HDF5 file): {exc}", source=str(path)) from None
+
+
+def _need_filters(datasets) -> None:
+    """Register hdf5plugin's compression filters (Blosc, ZSTD, LZ4, ...) with HDF5 when a dataset uses one that
+    HDF5 lacks and hdf5plugin is installed. Imported only then: it costs ~0.05 s of every command's start-up."""
+    for ds in datasets:
+        plist = ds.id.get_create_plist()
+        if not all(h5py.h5z.filter_avail(plist.get_filter(i)[0]) for i in range(plist.get_nfilters())):
+            try:
+                import hdf5plugin  # noqa: F401 - registers its filters
+            except ImportError:  # reading fails with the advice to install it (H5Events._read_errors)
+                pass
+            return
 
 
 def _geometry(value, source: str) -> tuple[int, int]:
@@ -137,6 +146,7 @@ class H5Events:
             raise InputError("no events found: expected datasets events/{t,x,y,p}, events/{ts,xs,ys,ps} "
                              "or t,x,y,p at the root", source=self.source)
         dsets = self._columns(f)
+        _need_filters([f[METAVISION_EVENTS]] if self.compound else dsets)
         lengths = {d.shape[0] if d.shape else -1 for d in dsets}
         if len(lengths) != 1 or any(len(d.shape) != 1 for d in dsets):
             raise InputError(f"event datasets {self._names} must be 1-D and of the same length", source=self.source)
