@@ -362,41 +362,25 @@ def test_a_pause_of_the_stream_is_not_lag():
     assert slow.lags == pytest.approx([3.2]) and slow.level == R.MAX_LEVEL
 
 
-class _ProcessClock:
-    """A replay clock for one-process runs: this process's CPU time plus its sleeps. Other jobs on the machine then
-    do not make the replay late (on a loaded 2-core machine they did: events used 0.8), while the replay's own work
-    still takes time as on an idle core."""
-
-    def __init__(self):
-        self.slept = 0.0
-        self.__dict__.update({k: getattr(time, k) for k in ("perf_counter", "process_time", "time")})
-
-    def monotonic(self) -> float:
-        return time.process_time() + self.slept
-
-    def sleep(self, seconds: float) -> None:
-        self.slept += max(0.0, float(seconds))
-
-
-def test_a_replay_with_a_pause_keeps_every_event(short_sequence, monkeypatch):
-    """A stream with a pause (0.8 s of sensor time without events, 1.6 s of wall time at speed 0.5: longer than the
+def test_a_replay_with_a_pause_keeps_every_event(short_sequence):
+    """A stream with a pause (0.8 s of sensor time without events, 3.2 s of wall time at speed 0.25: longer than the
     lag bound): the replay records it and the windows that waited through it are not late; every event is used.
-    (Counting the pause as lag gave lag max 1.64-1.66 s, level 4, events used 0.4-0.6.)"""
-    monkeypatch.setattr(R, "time", _ProcessClock())
+    (Counting the pause as lag gave lag max 1.64-1.66 s at speed 0.5, level 4, events used 0.4-0.6.) A quarter of
+    real time leaves room for a machine shared with other jobs (at half speed it degraded there)."""
     ev = short_sequence.events
     t0 = float(ev.t[0])
-    ev = ev.slice_time(t0, t0 + 0.5).downsample(4)  # ~0.6 M ev/s: kept up with on a loaded 2-core machine
+    ev = ev.slice_time(t0, t0 + 0.5).downsample(4)
     t = ev.t.copy()
     t[t > t0 + 0.3] += 0.8
     paused = Events(t, ev.x, ev.y, ev.p)
-    cfg = load_config(SlamConfig, None, ["pano_height=256", "realtime_speed=0.5", "realtime_target_lag=0.8",
+    cfg = load_config(SlamConfig, None, ["pano_height=256", "realtime_speed=0.25", "realtime_target_lag=0.8",
                                          "realtime_max_lag=1.2"])
     result = R.run_realtime(iter([paused[i:i + 50_000] for i in range(0, len(paused), 50_000)]),
                             short_sequence.camera, cfg)
     rt = result.report["realtime"]
     assert rt["events_used_fraction"] == 1.0 and rt["input_events_dropped"] == 0
     assert not rt["degradation_applied"] or rt["ba_windows_cut_short"] > 0  # at most the cold window's budget
-    # under the target, far below the pause's 1.6 s of wall time (measured 0.31-0.33 s: the catch-up after it)
+    # under the target, far below the pause's 3.2 s of wall time
     assert rt["max_lag_s"] < 0.8
     in_pause = [row[2] for row in result.realtime_trace if t0 + 0.3 < row[1] < t0 + 1.1]
     assert len(in_pause) >= 6 and max(in_pause) < 0.8
