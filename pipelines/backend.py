@@ -19,10 +19,12 @@ For every window [T, T + backend_time_window_size] (T advancing by backend_slidi
 """
 from __future__ import annotations
 
+import sys
 import time
 from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -108,8 +110,9 @@ class StageClock:
 class _Buffer:
     """Growing column buffer (times + bearings) that drops its settled head cheaply: the columns live in arrays with
     spare room at the end, a push copies only its own events in (amortized doubling), and dropping the head moves a
-    start index; the live part is moved to the front only when the spare room runs out. Reads are views, so a
-    window's read costs nothing in proportion to the buffer."""
+    start index; the live part is moved to the front only when the spare room runs out (in place when no view of
+    the arrays is held, else into new ones). Reads are views, so a window's read costs nothing in proportion to the
+    buffer."""
 
     def __init__(self):
         self._tt, self._bb = np.zeros(0), np.zeros((0, 3), np.float32)
@@ -128,14 +131,32 @@ class _Buffer:
         n = len(t)
         if not n:
             return
+        tt, bb, row = self.reserve(n)
+        tt[row:row + n], bb[row:row + n] = t, b
+        self.commit(n)
+
+    def reserve(self, n: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """Room for ``n`` events past the end: (the whole time and bearing arrays, the row where they go), for a
+        writer that fills them in place; ``commit`` then counts them in."""
         live = self._end - self._start
+        if self._end + n > len(self._tt) and 2 * (live + n) <= len(self._tt) and live <= self._start \
+                and sys.getrefcount(self._tt) == sys.getrefcount(self._bb) == 2:
+            # room enough once the settled head is gone, and no view of the arrays outside (only this attribute
+            # and the call's argument refer to them, as ndarray.resize checks): the live part moves to the front
+            # in place (no overlap), without new memory to fault in
+            self._tt[:live], self._bb[:live] = self.t, self.b
+            self._start, self._end = 0, live
         if self._end + n > len(self._tt):
             cap = max(2 * (live + n), 1024)
             tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
             tt[:live], bb[:live] = self.t, self.b
             self._tt, self._bb, self._start, self._end = tt, bb, 0, live
-        self._tt[self._end:self._end + n] = t
-        self._bb[self._end:self._end + n] = b
+        return self._tt, self._bb, self._end
+
+    def commit(self, n: int) -> None:
+        """Count in the ``n`` events written at the row ``reserve`` gave."""
+        if self._end + n > len(self._tt):
+            raise ValueError(f"{n} events committed past the reserved room")
         self._end += n
 
     def drop_before(self, t: float) -> None:
@@ -466,6 +487,16 @@ class SlidingWindowBackend:
             self.events_until = max(self.events_until, float(complete_until))
         elif len(t):
             self.events_until = max(self.events_until, float(t[-1]))
+
+    def push_written(self, n: int, write: Callable[[np.ndarray, np.ndarray, int], None],
+                     complete_until: float) -> None:
+        """Append ``n`` events (as ``push_events``) that ``write(times, bearings, row)`` puts in place: rows
+        row..row + n - 1 of the buffer's float64 time and (m, 3) float32 bearing arrays (no intermediate copy)."""
+        if n:
+            times, bearings, row = self.events.reserve(n)
+            write(times, bearings, row)
+            self.events.commit(n)
+        self.events_until = max(self.events_until, float(complete_until))
 
     def push_source_poses(self, times: np.ndarray, rotations: np.ndarray, moving=None) -> None:
         """Append samples of the initializing trajectory (only relative rotations are used). ``moving`` (one bool

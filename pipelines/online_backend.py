@@ -107,6 +107,7 @@ def backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
 
 def compile_backend(config: SlamConfig) -> float:
     """Compile the back-end kernels on a tiny problem so that steady-state timing excludes compilation."""
+    from ti_cmax.kernels.gather import BearingGather
     from ti_cmax.kernels.pano import PanoIWE, vote_map
 
     tic = time.perf_counter()
@@ -118,6 +119,8 @@ def compile_backend(config: SlamConfig) -> float:
                       global_blurred=np.ones((h, w), np.float32), global_sums=(float(w * h), float(w * h)), alpha=1.0)
     problem.cost_and_grad(ctrl)
     problem.votes(ctrl)  # the settle's projection (votes only)
+    BearingGather(b, 1)(np.zeros(1), np.zeros(1, np.uint16), np.zeros(1, np.uint16), 0, 1, 1, np.zeros(1),
+                        np.zeros((1, 3), np.float32), 0)  # the events' way into the window buffer
     vote_map(b, np.eye(3)[None], w, h, batch_size=4, occupancy=(np.zeros(w, np.int32), np.zeros(h, np.int32)))
     return time.perf_counter() - tic
 
@@ -136,6 +139,7 @@ class BackendRunner:
         self.loop_slice_seconds = loop_slice_seconds
         self.backend: SlidingWindowBackend | None = None
         self.events_read = 0
+        self._gather = None  # BearingGather, bound at the first events
         self.seconds = self.cpu_seconds = 0.0
 
     @property
@@ -143,20 +147,66 @@ class BackendRunner:
         return self.backend is not None
 
     def compile(self) -> float:
-        return compile_backend(self.config)
+        """Compile the kernels and build the camera's bearing table (before the events: a table takes 0.2-0.3 s on
+        a distorted HD sensor)."""
+        seconds = compile_backend(self.config)
+        tic = time.perf_counter()
+        self._bearing_gather()
+        return seconds + time.perf_counter() - tic
 
     def push_events(self, chunk: Events) -> None:
         """Feed a chunk (downsampled by backend_event_sample_rate, as bearings); the first creates the back-end."""
         if len(chunk) == 0:
             return
-        if self.backend is None:
-            t0 = float(chunk.t[0])
-            self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0))
-            if self.config.loop.loop_closure:  # loop closure on revisits (pipelines/loop_closure.py)
-                self.backend.attach(LoopCloser(self.config.loop, self.backend, self.loop_slice_seconds))
+        if not chunk.has_subpixel_coordinates:
+            self._push_pixels(chunk.t, chunk.x, chunk.y, 0, len(chunk))
+            return
+        self._start(float(chunk.t[0]))
         sub = every_qth(chunk, int(self.config.backend.backend_event_sample_rate), self.events_read)
         self.events_read += len(chunk)
         self.backend.push_events(sub.t, self.camera.bearings(sub.x, sub.y), complete_until=float(chunk.t[-1]))
+
+    def push_ring(self, ring, position: int, n: int, subpixel: bool) -> None:
+        """``push_events`` of the ``n`` events at ``position`` of an ``EventRing`` (worker.py), read in place."""
+        if subpixel or n == 0:
+            with ring.borrow(position, n, subpixel) as chunk:
+                self.push_events(chunk)
+            return
+        with ring.reading(position, n):
+            t, x, y, _ = ring.columns(False)
+            self._push_pixels(t, x, y, position % ring.capacity, n)
+
+    def _start(self, t0: float) -> None:
+        """Create the back-end at the first event (time ``t0``)."""
+        if self.backend is None:
+            self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0))
+            if self.config.loop.loop_closure:  # loop closure on revisits (pipelines/loop_closure.py)
+                self.backend.attach(LoopCloser(self.config.loop, self.backend, self.loop_slice_seconds))
+
+    def _bearing_gather(self):
+        """The kernel that writes events into the back-end's buffer (``kernels/gather.py``), bound to the camera's
+        bearing table (its separable form for an undistorted camera)."""
+        if self._gather is None:
+            from ti_cmax.kernels.gather import BearingGather, separable_table  # loaded with the back-end
+
+            cam = self.camera
+            self._gather = BearingGather(cam.bearing_lut, cam.width) if cam.has_distortion else \
+                BearingGather(separable_table(cam.bearing_lut, cam.width, cam.height), cam.width, separable=True)
+        return self._gather
+
+    def _push_pixels(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, start: int, n: int) -> None:
+        """``push_events`` of the ``n`` (> 0) integer-pixel events from row ``start`` of the columns t, x, y (rows
+        wrap around at their end): every q-th by its index in the stream (as ``every_qth``), gathered by one kernel
+        into the back-end's buffer."""
+        rows = len(t)
+        self._start(float(t[start % rows]))
+        q = int(self.config.backend.backend_event_sample_rate)
+        first = (-self.events_read) % q
+        count = max(0, -(-(n - first) // q))
+        self.events_read += n
+        gather = self._bearing_gather()
+        self.backend.push_written(count, lambda times, bearings, row: gather(
+            t, x, y, start + first, q, count, times, bearings, row), complete_until=float(t[(start + n - 1) % rows]))
 
     def feed(self, chunks: Iterable[Events]) -> Iterator[Events]:
         """Pass chunks through unchanged while pushing them (the offline refinement's reading loop)."""

@@ -29,7 +29,7 @@ from ti_cmax.outputs import peak_rss_mb
 
 from .backend import SlidingWindowBackend, StageClock, WindowReport
 from .backend_policies import WindowBudget
-from .online_backend import BackendOutcome, BackendRunner, compile_backend
+from .online_backend import BackendOutcome, BackendRunner
 
 # sensors up to this many pixels get a back-end worker by default (default_backend_process): VGA-class and below
 WORKER_MAX_SENSOR_PIXELS = 500_000
@@ -113,15 +113,26 @@ class EventRing:
         """The ``n`` events at ``position`` for the ``with`` block: views of the ring (a copy where they wrap
         around), freed for the writer at its end, so the block must keep no reference to them (the back-end's window
         buffer copies what it keeps: one copy fewer per event than ``take``)."""
+        spans = self._spans(position, n)
+        with self.reading(position, n):
+            yield Events(*[column[spans[0][0]:spans[0][1]] if len(spans) == 1 else
+                           np.concatenate([column[r0:r1] for r0, r1, _, _ in spans])
+                           for column in self._columns(subpixel)])
+
+    @contextlib.contextmanager
+    def reading(self, position: int, n: int):
+        """The ``with`` block reads the ``n`` events at ``position`` in place (``columns``, from row ``position``
+        modulo the capacity, wrapping around); their room is freed for the writer at its end."""
         if position != self.read:
             raise RuntimeError(f"ring read out of order: events at {position}, {self.read} read so far")
-        spans = self._spans(position, n)
-        fields = [column[spans[0][0]:spans[0][1]] if len(spans) == 1 else
-                  np.concatenate([column[r0:r1] for r0, r1, _, _ in spans]) for column in self._columns(subpixel)]
         try:
-            yield Events(*fields)
+            yield
         finally:
             self._read[0] = position + n
+
+    def columns(self, subpixel: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The ring's t, x, y, p arrays (``capacity`` rows each; x and y float32 for sub-pixel coordinates)."""
+        return self._columns(subpixel)
 
 
 class RingWriter:
@@ -498,11 +509,11 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
         progress.set_quiet(True)  # no bars here, nor Taichi's start-up line (the main process shows its own)
         runtime.set_num_threads(threads)
         cpu0 = time.process_time()
-        compile_s = compile_backend(config)
+        runner = BackendRunner(camera, config, loop_slice_seconds=loop_slice_seconds)
+        compile_s = runner.compile()
         timeline.mark("ready")
         outbox.put(("ready", compile_s))
-        _serve(BackendRunner(camera, config, loop_slice_seconds=loop_slice_seconds), inbox, outbox,
-               {"compile_seconds": compile_s, "cpu0": cpu0}, EventRing(*ring), map_buffer)
+        _serve(runner, inbox, outbox, {"compile_seconds": compile_s, "cpu0": cpu0}, EventRing(*ring), map_buffer)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
         return
@@ -512,7 +523,7 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
 def _serve(runner: BackendRunner, inbox, outbox, start: dict, ring: EventRing,
            map_buffer: SharedMap | None = None) -> None:
     """The worker's message loop. Per-stage costs beside the back-end's own: receive (waiting for messages and
-    unpickling them), events (the copy out of the ring, bearings and the window buffer), send (the window
+    unpickling them), events (from the ring to the window buffer as times and bearings), send (the window
     messages)."""
     clock = StageClock()
     last_done, waited = time.perf_counter(), 0.0  # busy_seconds of a window: wall since the last one - waited
@@ -526,8 +537,8 @@ def _serve(runner: BackendRunner, inbox, outbox, start: dict, ring: EventRing,
             kind, *args = _next_message(inbox)
         waited += time.perf_counter() - tic
         if kind == "events":
-            with clock("events"), ring.borrow(*args) as events:
-                runner.push_events(events)
+            with clock("events"):
+                runner.push_ring(ring, *args)
             continue
         if kind == "map":  # OnlineSlam.map(): a copy of the map of the events settled so far
             outbox.put(("map", runner.map()))

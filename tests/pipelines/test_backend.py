@@ -237,6 +237,34 @@ def test_event_buffer_ranges_drops_and_views_stay_valid():
     assert np.array_equal(vt, expected)
 
 
+@pytest.mark.parametrize("hold_view", [False, True])
+def test_event_buffer_moves_its_live_part_in_place_when_no_view_is_held(hold_view):
+    """When the spare room runs out and the settled head left room enough, the buffer moves its live part to the
+    front of the same arrays (no new memory to fault in) while no view of them is held, and to new arrays while one
+    is (the view keeps showing its events); ``reserve`` / ``commit`` (a writer filling rows in place) append as
+    ``push`` does."""
+    from ti_cmax.pipelines.backend import _Buffer
+
+    t_all = np.arange(3000) * 1e-4
+    b_all = np.random.default_rng(1).random((3000, 3)).astype(np.float32)
+    buf = _Buffer()
+    buf.push(t_all[:1024], b_all[:1024])
+    buf.push(t_all[1024:2024], b_all[1024:2024])
+    address = buf._tt.ctypes.data  # (a reference to the array would count as a view)
+    assert len(buf._tt) == 2048
+    buf.drop_before(t_all[1900])
+    view = buf.range(t_all[1900], t_all[2000]) if hold_view else None
+    tt, bb, row = buf.reserve(100)
+    tt[row:row + 100], bb[row:row + 100] = t_all[2024:2124], b_all[2024:2124]
+    buf.commit(100)
+    assert (buf._tt.ctypes.data == address and len(buf._tt) == 2048) == (not hold_view)
+    assert np.array_equal(buf.t, t_all[1900:2124]) and np.array_equal(buf.b, b_all[1900:2124])
+    if hold_view:
+        assert np.array_equal(view[0], t_all[1900:2000]) and np.array_equal(view[1], b_all[1900:2000])
+    with pytest.raises(ValueError):
+        buf.commit(len(buf._tt))
+
+
 @pytest.mark.parametrize("flags", ["given", "none", "off"])
 def test_windows_over_which_the_source_measured_no_motion_get_no_ba(ti_runtime, flags):
     """Noise events seen by a still camera: a BA would fit its poses to them. Windows over which the source measured

@@ -137,3 +137,35 @@ def test_a_small_ring_changes_nothing_in_slam(short_sequence, monkeypatch):
     assert np.max(so3.geodesic_angle(result.trajectory.R, reference.trajectory.R)) < 1e-5
     process = result.report["backend_process"]
     assert process["push_blocked_seconds"] >= process["ring_wait_seconds"] > 0 and process["ring_events"] == 8192
+
+
+@pytest.mark.parametrize("q", [1, 3])
+@pytest.mark.parametrize("distorted", [False, True])
+def test_the_backend_reads_the_ring_in_place_as_it_would_read_copies(ti_runtime, q, distorted):
+    """Events pushed from the ring (read in place, across its wrap-around, integer or sub-pixel) or as chunks reach
+    the back-end's buffer as every q-th event of the stream (backend_event_sample_rate) with its float32 bearing,
+    bit for bit as Camera.bearings of the downsampled stream, and the ring's room is freed after each."""
+    from ti_cmax import Camera
+    from ti_cmax.config import SlamConfig, load_config
+    from ti_cmax.pipelines.online_backend import BackendRunner
+    from ti_cmax.pipelines.sensor_defaults import resolve_config
+
+    cam = Camera(640, 480, 400.0, 401.0, 319.2, 240.7, (-0.1, 0.02, 0.001, -0.002, 0.0) if distorted else (0.0,))
+    config = resolve_config(load_config(SlamConfig, None, [f"backend_event_sample_rate={q}"]), cam)
+    _, ring = _ring(1000)
+    runner, stream, t0 = BackendRunner(cam, config), [], 0.0
+    for k, n in enumerate([300, 600, 999, 1, 450, 1000, 7, 2, 640]):
+        ev = _events(n, t0, subpixel=k == 4, seed=k)
+        t0 = float(ev.t[-1]) + 1e-6
+        stream.append(ev)
+        if k == 6:  # a chunk handed over directly (the back-end in the main process)
+            runner.push_events(ev)
+            continue
+        position = ring.put(ev)
+        runner.push_ring(ring, position, n, ev.has_subpixel_coordinates)
+        assert ring.free() == 1000
+    every = Events.concatenate(stream)[::q]
+    buffer = runner.backend.events
+    assert np.array_equal(buffer.t, every.t)
+    assert buffer.b.dtype == np.float32 and np.array_equal(buffer.b, cam.bearings(every.x, every.y))
+    assert runner.backend.events_until == stream[-1].t[-1] and runner.events_read == sum(len(e) for e in stream)
