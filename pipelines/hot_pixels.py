@@ -71,6 +71,16 @@ def neighbourhood_max(counts: np.ndarray, rows: np.ndarray, cols: np.ndarray, ra
     (pixels off the image count 0)."""
     height, width = counts.shape
     out = np.zeros(len(rows), counts.dtype)
+    # pixels at least ``radius`` from the border (nearly all): neighbours read at flat offsets, no clipping
+    inner = (rows >= radius) & (rows < height - radius) & (cols >= radius) & (cols < width - radius)
+    flat, base = counts.ravel(), rows[inner] * width + cols[inner]
+    part = out[inner]
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if dx or dy:
+                np.maximum(part, flat[base + (dy * width + dx)], out=part)
+    out[inner] = part
+    rows, cols, border = rows[~inner], cols[~inner], np.zeros(np.count_nonzero(~inner), counts.dtype)
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
             if dx == 0 and dy == 0:
@@ -78,7 +88,8 @@ def neighbourhood_max(counts: np.ndarray, rows: np.ndarray, cols: np.ndarray, ra
             r, c = rows + dy, cols + dx
             inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
             values = counts[np.clip(r, 0, height - 1), np.clip(c, 0, width - 1)]
-            np.maximum(out, np.where(inside, values, 0), out=out)
+            np.maximum(border, np.where(inside, values, 0), out=border)
+    out[~inner] = border
     return out
 
 

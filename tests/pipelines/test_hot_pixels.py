@@ -353,3 +353,18 @@ def test_integer_pixels_off_the_sensor_are_one_clear_error():
                  np.array([1, -1], np.int8))
     with pytest.raises(InputError, match="x=16, outside the sensor"):
         filt.push(bad)
+
+
+@pytest.mark.parametrize("shape", [(48, 64), (3, 4), (5, 5), (1, 7)])
+def test_neighbourhood_max_is_the_max_over_the_zero_padded_neighbourhood(shape):
+    rng = np.random.default_rng(sum(shape))
+    counts = rng.poisson(3, shape).astype(np.int32)
+    rows, cols = np.divmod(np.arange(counts.size), shape[1])
+    for radius in (1, 2):
+        padded = np.pad(counts, radius)
+        expected = np.zeros(counts.size, np.int32)
+        for dy in range(-radius, radius + 1):
+            for dx in range(-radius, radius + 1):
+                if dx or dy:
+                    expected = np.maximum(expected, padded[rows + radius + dy, cols + radius + dx])
+        np.testing.assert_array_equal(hp.neighbourhood_max(counts, rows, cols, radius), expected)
