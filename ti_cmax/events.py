@@ -204,8 +204,9 @@ class EventBuffer:
     the end, ``push`` copies only the new events in (amortized growth), ``drop`` moves a start index, and when the
     room runs out the live events move to the front of the same arrays if no view of them is alive, else to new
     arrays. It keeps the arrays it used before as spares (twice the memory), reused once their views are gone.
-    ``view()`` is an ``Events`` of views that stays valid: the buffer never writes where a view can look. A stream slicer joining its chunks by concatenation copies its whole
-    buffer at each join instead; at high event rates that cost more than the rest of the slicing."""
+    ``view()`` is an ``Events`` of views that stays valid: the buffer never writes where a view can look. A stream
+    slicer joining its chunks by concatenation copies its whole buffer at each join instead; at high event rates
+    that cost more than the rest of the slicing."""
 
     FIELDS = ("t", "x", "y", "p")
 
