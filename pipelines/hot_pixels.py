@@ -35,7 +35,7 @@ image's variance. Then the rule runs and the counts restart. So blocks are short
 low ones, where a slow hot pixel needs time to stand out, and a pixel that turns hot later is flagged at the end of
 the block in which it does. Flagged pixels stay flagged: their later events are dropped before anything else sees
 them. Events are counted as they come (one serial kernel pass drops the flagged pixels' events and counts the
-others, ~2 ns per event); the block is checked once the events counted since the last check are an eighth of the
+others, a few ns per event); the block is checked once the events counted since the last check are an eighth of the
 pixel count or span ``COUNT_INTERVAL`` s, so a block ends at most that late.
 
 Start: the events are held back until the first test, which comes once the busiest pixel fired
@@ -62,7 +62,7 @@ BLOCK_PEAK_FACTOR = 4  # a block ends when its busiest pixel fired this x hot_pi
 BLOCK_EVENTS_PER_PIXEL = 4  # ... or holds this many events per sensor pixel
 START_PEAK_FACTOR = 2  # the held start is tested when its busiest pixel fired this x hot_pixel_min_events
 START_EVENTS_PER_PIXEL = 1  # ... or it holds this many events per sensor pixel
-COUNT_INTERVAL = 0.02  # s of events at most between two counts of the pending events
+COUNT_INTERVAL = 0.02  # s of events at most between two checks of the block
 REPORTED_PIXELS = 40  # coordinates listed in report.json at most
 
 
