@@ -444,14 +444,12 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     ctl.blocked_seconds = lambda: online.backend.blocked_seconds
     online.wait_ready()  # the sensor clock starts once both processes can work
     reader = iter(chunks)
-    pending = Events.empty()
-    eof = False
+    pending, eof = Events.empty(), False
     counts = {"read": 0, "handed": 0, "dropped": 0}
     cpu_io = sleep_s = 0.0
     handed_until = -math.inf  # sensor time up to which events were handed over
     cpu0 = time.process_time()
-    bar = progress(total=progress_total, desc="slam (real time)", unit="s")
-    shown = None
+    bar, shown = progress(total=progress_total, desc="slam (real time)", unit="s"), None
     try:
         while True:
             if len(pending) == 0 and not eof:
