@@ -34,8 +34,9 @@ of the block's sum of squared counts (P pixels: 0.6 % on a DAVIS240C, 1.6 % on a
 image's variance. Then the rule runs and the counts restart. So blocks are short at high event rates and long at
 low ones, where a slow hot pixel needs time to stand out, and a pixel that turns hot later is flagged at the end of
 the block in which it does. Flagged pixels stay flagged: their later events are dropped before anything else sees
-them. Counting is batched (numpy's bincount, a few ns per event): pending events are counted once they are an
-eighth of the pixel count or span ``COUNT_INTERVAL`` s, so a block ends at most that late.
+them. Events are counted as they come (one serial kernel pass drops the flagged pixels' events and counts the
+others, a few ns per event); the block is checked once the events counted since the last check are an eighth of the
+pixel count or span ``COUNT_INTERVAL`` s, so a block ends at most that late.
 
 Start: the events are held back until the first test, which comes once the busiest pixel fired
 ``START_PEAK_FACTOR`` (2) x hot_pixel_min_events (hot pixels of similar rates then have hot_pixel_min_events each,
@@ -54,17 +55,15 @@ import numpy as np
 
 from ti_cmax.config import FrontendConfig
 from ti_cmax.events import Events
+from ti_cmax.kernels.pixel_count import PixelCounter
 
 NEIGHBOURHOOD_RADIUS = 2  # neighbours up to 2 pixels away in x and y: 24 of them
 BLOCK_PEAK_FACTOR = 4  # a block ends when its busiest pixel fired this x hot_pixel_min_events
 BLOCK_EVENTS_PER_PIXEL = 4  # ... or holds this many events per sensor pixel
 START_PEAK_FACTOR = 2  # the held start is tested when its busiest pixel fired this x hot_pixel_min_events
 START_EVENTS_PER_PIXEL = 1  # ... or it holds this many events per sensor pixel
-COUNT_INTERVAL = 0.02  # s of events at most between two counts of the pending events
+COUNT_INTERVAL = 0.02  # s of events at most between two checks of the block
 REPORTED_PIXELS = 40  # coordinates listed in report.json at most
-# numpy >= 1.25 scatter-adds with ufunc.at in a few ns per event (3 ns per event on a VGA sensor's batch of P / 8
-# events against 11.5 for bincount plus the add of its P counts); older releases took tens of ns per event
-FAST_ADD_AT = np.lib.NumpyVersion(np.__version__) >= "1.25.0"
 
 
 def neighbourhood_max(counts: np.ndarray, rows: np.ndarray, cols: np.ndarray, radius: int) -> np.ndarray:
@@ -72,6 +71,16 @@ def neighbourhood_max(counts: np.ndarray, rows: np.ndarray, cols: np.ndarray, ra
     (pixels off the image count 0)."""
     height, width = counts.shape
     out = np.zeros(len(rows), counts.dtype)
+    # pixels at least ``radius`` from the border (nearly all): neighbours read at flat offsets, no clipping
+    inner = (rows >= radius) & (rows < height - radius) & (cols >= radius) & (cols < width - radius)
+    flat, base = counts.ravel(), rows[inner] * width + cols[inner]
+    part = out[inner]
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if dx or dy:
+                np.maximum(part, flat[base + (dy * width + dx)], out=part)
+    out[inner] = part
+    rows, cols, border = rows[~inner], cols[~inner], np.zeros(np.count_nonzero(~inner), counts.dtype)
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
             if dx == 0 and dy == 0:
@@ -79,7 +88,8 @@ def neighbourhood_max(counts: np.ndarray, rows: np.ndarray, cols: np.ndarray, ra
             r, c = rows + dy, cols + dx
             inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
             values = counts[np.clip(r, 0, height - 1), np.clip(c, 0, width - 1)]
-            np.maximum(out, np.where(inside, values, 0), out=out)
+            np.maximum(border, np.where(inside, values, 0), out=border)
+    out[~inner] = border
     return out
 
 
@@ -121,13 +131,14 @@ class HotPixelFilter:
         self.start_peak = START_PEAK_FACTOR * self.min_events
         self.start_events = START_EVENTS_PER_PIXEL * pixels
         self.block_events = BLOCK_EVENTS_PER_PIXEL * pixels
-        self._batch = max(1, pixels // 8)  # pending events counted at once at most
-        self.flagged = np.zeros(pixels, bool)
+        self._batch = max(1, pixels // 8)  # events counted between two checks of the block at most
+        self.flagged = np.zeros(pixels, np.int8)  # nonzero: flagged (int8: the counting kernel's type)
         self._counts = np.zeros(pixels, np.int32)  # a block's counts (at most a few events per pixel on average)
+        self._counter = PixelCounter(self.width, self.height, self._counts, self.flagged, self._batch) \
+            if self.enabled else None
         self._in_block = 0  # events counted in the current block
         self._peak = 0  # the largest count in the current block
-        self._pending: list[np.ndarray] = []  # pixel indices not counted yet
-        self._pending_n = 0
+        self._pending_n = 0  # events counted since the last check of the block
         self._t_counted: float | None = None  # time of the last count
         self._holding = self.enabled
         self._suspects: set[int] = set()  # pixels near the edge that passed the rule in the last block
@@ -159,10 +170,9 @@ class HotPixelFilter:
                     and self._holding:
                 released, first_out = self._release(), i
             j = max(i + 1, min(i + self._batch - self._pending_n, int(np.searchsorted(t, self._t_due(), "left"))))
-            part, index, inside = self._drop(chunk[i:j])  # the pixel indices once, for the drop and the count
+            part = self._drop_and_count(chunk[i:j])
             dropped += j - i - len(part)
             if len(part):
-                self._pending.append(index if inside is None else index[inside])
                 self._pending_n += len(part)
                 if self._holding:  # a copy: a view would keep the caller's whole chunk alive
                     self._held.append(Events(*(np.array(getattr(part, f)) for f in ("t", "x", "y", "p"))))
@@ -219,27 +229,41 @@ class HotPixelFilter:
         index, inside = self._pixel_index(chunk)
         if not self.found or len(chunk) == 0:
             return chunk, index, inside
-        hot = self.flagged[index] if inside is None else self.flagged[index] & inside
+        hot = self.flagged[index].view(bool) if inside is None else self.flagged[index].view(bool) & inside
         if not hot.any():
             return chunk, index, inside
         self.events_dropped += int(np.count_nonzero(hot))
         keep = ~hot
         return chunk[keep], index[keep], None if inside is None else inside[keep]
 
-    def _count(self, t: float, end: bool = False) -> bool:
-        """Add the pending events to the block's counts (at sensor time t); test the block when it is done (and
-        say whether it was)."""
-        index = np.concatenate(self._pending) if len(self._pending) > 1 else \
-            (self._pending[0] if self._pending else np.zeros(0, np.int32))
-        self._pending, self._pending_n = [], 0
-        self._t_counted = t
-        if len(index):
-            if FAST_ADD_AT or len(index) * 64 < len(self._counts):  # a scatter-add (old numpy: of few events)
+    def _drop_and_count(self, chunk: Events) -> Events:
+        """``chunk`` without the events of flagged pixels; the others added to the block's counts (events off the
+        sensor, of sub-pixel coordinates, neither counted nor dropped)."""
+        if chunk.has_subpixel_coordinates:
+            chunk, index, inside = self._drop(chunk)
+            index = index if inside is None else index[inside]
+            if len(index):
                 np.add.at(self._counts, index, np.int32(1))  # an int32 one: a Python 1 takes a slow cast path
-            else:
-                self._counts += np.bincount(index, minlength=len(self._counts))
-            self._in_block += len(index)
-            self._peak = max(self._peak, int(self._counts[index].max()))
+                self._peak = max(self._peak, int(self._counts[index].max()))
+                self._in_block += len(index)
+            return chunk
+        try:
+            keep, peak, dropped = self._counter(chunk.x, chunk.y, bool(self.found))
+        except ValueError:  # pixels off the sensor: the first one named
+            chunk.validate(self.width, self.height, source="events")
+            raise
+        self._peak = max(self._peak, peak)
+        self._in_block += len(chunk) - dropped
+        if dropped:
+            self.events_dropped += dropped
+            return chunk[keep]
+        return chunk
+
+    def _count(self, t: float, end: bool = False) -> bool:
+        """Check the block at sensor time t (its counts are up to date): test it when it is done (and say whether
+        it was)."""
+        self._pending_n = 0
+        self._t_counted = t
         if end:
             return False
         if self._holding:
@@ -266,7 +290,7 @@ class HotPixelFilter:
         for i in hot:
             y, x = divmod(int(i), self.width)
             self.found.append((x, y, t, int(self._counts[i])))
-        self.flagged[hot] = True
+        self.flagged[hot] = 1
         self.blocks += 1
         self._counts[:] = 0
         self._in_block = self._peak = 0

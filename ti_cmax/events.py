@@ -203,13 +203,16 @@ class EventBuffer:
     """A run of time-ordered events that grows at its end and drops its head cheaply: the columns have spare room at
     the end, ``push`` copies only the new events in (amortized growth), ``drop`` moves a start index, and when the
     room runs out the live events move to the front of the same arrays if no view of them is alive, else to new
-    arrays. ``view()`` is an ``Events`` of views that stays valid: the buffer never writes where a view can look. A stream slicer joining its chunks by concatenation copies its whole
-    buffer at each join instead; at high event rates that cost more than the rest of the slicing."""
+    arrays. It keeps the arrays it used before as spares (twice the memory), reused once their views are gone.
+    ``view()`` is an ``Events`` of views that stays valid: the buffer never writes where a view can look. A stream
+    slicer joining its chunks by concatenation copies its whole buffer at each join instead; at high event rates
+    that cost more than the rest of the slicing."""
 
     FIELDS = ("t", "x", "y", "p")
 
     def __init__(self):
         self._cols: tuple | None = None
+        self._spare: tuple | None = None  # the columns used before the current ones (reused once no view is left)
         self._start = self._end = 0
 
     def __len__(self) -> int:
@@ -221,14 +224,21 @@ class EventBuffer:
             return
         new = [getattr(events, f) for f in self.FIELDS]
         cols = self._cols
-        if cols is not None and self._end + n > len(cols[0]) and cols[1].dtype == new[1].dtype \
-                and 2 * (len(self) + n) <= len(cols[0]) and not self._viewed():
-            # nothing looks at the columns: move the live events to the front (fresh arrays cost a page fault per
-            # 4 kB, more than the copy); they do not overlap the live part's new place (it is at most half)
+        if cols is not None and self._end + n > len(cols[0]) and cols[1].dtype == new[1].dtype:
+            # room to make: the live events move to the front of arrays no view looks at, the same ones or the
+            # spare ones (fresh arrays cost a page fault per 4 kB, more than the copy: a slicer whose last packet
+            # is still looked at when the room runs out would otherwise allocate at every turn)
             live = len(self)
-            for c in cols:
-                c[:live] = c[self._start:self._end]
-            self._start, self._end = 0, live
+            for target in (cols, self._spare):
+                if target is not None and target[1].dtype == cols[1].dtype and 2 * (live + n) <= len(target[0]) \
+                        and not self._viewed(target):
+                    for dst, src in zip(target, cols):  # the live part is at most half: no overlap in place
+                        dst[:live] = src[self._start:self._end]
+                    if target is not cols:
+                        self._spare = cols
+                    self._cols, self._start, self._end = target, 0, live
+                    cols = target
+                    break
         if cols is None or self._end + n > len(cols[0]) or cols[1].dtype != new[1].dtype:
             live = len(self)
             cap = max(3 * (live + n), 1024)  # room to move the live events to the front later (see above)
@@ -237,14 +247,16 @@ class EventBuffer:
             cols = tuple(np.empty(cap, k) for k in kinds)
             for dst, src in zip(cols, old):
                 dst[:live] = src[self._start:self._end]
+            self._spare = old if self._cols is not None else None
             self._cols, self._start, self._end = cols, 0, live
         for dst, src in zip(cols, new):
             dst[self._end:self._end + n] = src
         self._end += n
 
-    def _viewed(self) -> bool:
-        """Whether a view of the columns is alive (one more reference than the buffer's own and this call's)."""
-        return any(sys.getrefcount(c) > 3 for c in self._cols)
+    @staticmethod
+    def _viewed(cols: tuple) -> bool:
+        """Whether a view of ``cols`` is alive (one more reference than the buffer's own and this call's)."""
+        return any(sys.getrefcount(c) > 3 for c in cols)
 
     def drop(self, k: int) -> None:
         """Forget the first ``k`` events (at most all of them)."""

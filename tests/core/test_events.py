@@ -47,3 +47,23 @@ def test_without_views_the_buffer_reuses_its_arrays():
         buf.drop(300)
     assert buf._cols is arrays
     np.testing.assert_array_equal(buf.view().t, np.arange(t0 - 4000, t0))
+
+
+def test_with_the_last_view_kept_the_buffer_alternates_between_two_sets_of_arrays():
+    """A consumer that still holds the previous view when the room runs out (a slicer's last packet): the live
+    events go to the spare arrays, whose views are gone, instead of new ones; every view keeps what it held."""
+    buf, t0 = EventBuffer(), 0
+    buf.push(_events(t0, 4000))
+    t0 += 4000
+    seen, last = set(), None
+    for _ in range(200):
+        buf.push(_events(t0, 300))
+        t0 += 300
+        buf.drop(300)
+        if last is not None:
+            np.testing.assert_array_equal(last[0].t, last[1])
+        view = buf.view()
+        last = (view, view.t.copy())
+        seen.add(id(buf._cols))
+        np.testing.assert_array_equal(view.t, np.arange(t0 - 4000, t0))
+    assert len(seen) == 2

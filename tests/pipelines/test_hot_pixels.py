@@ -9,6 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ti_cmax.config import FrontendConfig
+from ti_cmax.errors import InputError
 from ti_cmax.events import Events
 from ti_cmax.pipelines import hot_pixels as hp
 from ti_cmax.pipelines.hot_pixels import HotPixelFilter, isolated_pixels
@@ -313,3 +314,57 @@ def test_a_stream_of_hot_pixels_alone_is_one_clear_error(ti_runtime):
     lone = Events(np.linspace(0.0, 0.5, n), np.full(n, 100), np.full(n, 90), np.ones(n))
     with pytest.raises(InputError, match=r"all 400 events came from 1 hot pixel\(s\).*\(100, 90\)"):
         run_slam(lone, camera, SlamConfig())
+
+
+def test_the_counting_kernel_decides_as_its_numpy_twin(monkeypatch):
+    """The filter with its counting kernel and with the kernel's numpy twin in its place: the same pixels flagged at
+    the same times, the same events passed on (hot pixels, a held start, chunks across the count checks)."""
+    from ti_cmax.kernels.pixel_count import count_pixels_numpy
+
+    rng = np.random.default_rng(11)
+    width, height = 64, 48
+    t, pix = _scene_events(rng, width, height, np.array([25.0, -10.0]), 1.5,
+                           [(np.array([0.6, 0.8]), -20.0, 3)], [(np.array([30.0, 9.0]), 8)],
+                           rng.uniform(0.7, 1.3, width * height))
+    for p in (130, 2000, 3070):  # 3070 sits at the bottom edge: flagged after two blocks
+        th, ph = _hot_events(rng, p, 400.0, 1.5, p == 2000)
+        t, pix = np.concatenate([t, th]), np.concatenate([pix, ph])
+    events = _as_events(t, pix, width)
+    chunks = list(_random_chunks(events, rng, 700))
+    results = []
+    for twin in (False, True):
+        filt = HotPixelFilter(width, height, FrontendConfig())
+        if twin:
+            def counted(x, y, any_flagged=True, filt=filt):
+                keep, peak, dropped = count_pixels_numpy(x, y, width, filt.flagged, filt._counts)
+                return (keep if dropped else None), peak, dropped
+            monkeypatch.setattr(filt, "_counter", counted)
+        kept = Events.concatenate(list(filt.filter(chunks)))
+        results.append((filt.summary(), kept))
+    (summary, kept), (summary_twin, kept_twin) = results
+    assert summary == summary_twin and summary["count"] >= 2 and summary["events_dropped"] > 0
+    for f in ("t", "x", "y", "p"):
+        np.testing.assert_array_equal(getattr(kept, f), getattr(kept_twin, f))
+
+
+def test_integer_pixels_off_the_sensor_are_one_clear_error():
+    filt = HotPixelFilter(16, 8, FrontendConfig())
+    bad = Events(np.array([0.0, 0.1]), np.array([3, 16], np.uint16), np.array([1, 2], np.uint16),
+                 np.array([1, -1], np.int8))
+    with pytest.raises(InputError, match="x=16, outside the sensor"):
+        filt.push(bad)
+
+
+@pytest.mark.parametrize("shape", [(48, 64), (3, 4), (5, 5), (1, 7)])
+def test_neighbourhood_max_is_the_max_over_the_zero_padded_neighbourhood(shape):
+    rng = np.random.default_rng(sum(shape))
+    counts = rng.poisson(3, shape).astype(np.int32)
+    rows, cols = np.divmod(np.arange(counts.size), shape[1])
+    for radius in (1, 2):
+        padded = np.pad(counts, radius)
+        expected = np.zeros(counts.size, np.int32)
+        for dy in range(-radius, radius + 1):
+            for dx in range(-radius, radius + 1):
+                if dx or dy:
+                    expected = np.maximum(expected, padded[rows + radius + dy, cols + radius + dx])
+        np.testing.assert_array_equal(hp.neighbourhood_max(counts, rows, cols, radius), expected)
