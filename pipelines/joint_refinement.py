@@ -86,7 +86,11 @@ def refine_jointly(spline, chunks, first: int, last: int, backend_cfg, width: in
     redistributes the errors along the trajectory and leaves its mean orientation to the window BA."""
     from scipy.optimize import minimize  # here: ~0.3 CPU s of import that a run without a verified revisit skips
 
+    # the setup pauses too (sampling, the batches' supports, the problem's arrays): in real time each step of it
+    # runs in its own slice, between the windows
+    slice_point()
     t, b, frac = sample_chunks(chunks, max_events)
+    slice_point()
     m = last - first + 1
     info = {"events": int(len(t)), "poses": int(m), "evaluations": 0, "gain": 1.0, "max_change_deg": 0.0}
     if len(t) == 0 or m <= 0:
@@ -96,6 +100,7 @@ def refine_jointly(spline, chunks, first: int, last: int, backend_cfg, width: in
     info["batch"] = batch
     start, end = spline.valid_time_range()
     s, u = spline.support(np.clip(batch_mid_times(t, batch), start, end))
+    slice_point()
     problem = PanoIWE(b, s, u, spline.degree, width // f, height // f, sigma=backend_cfg.backend_blur_sigma,
                       alpha=0.0, batch_size=batch)
     base = spline.control_R.copy()

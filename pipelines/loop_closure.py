@@ -230,6 +230,10 @@ class LoopCloser(WindowObserver):
         # wall seconds before each window, and in the back-end worker's idle time (idle_slice), and its result is
         # applied before the window after it ended
         self.slice_seconds = slice_seconds
+        if slice_seconds is not None and config.loop_joint_refinement:
+            # the joint refinement's optimizer, imported now: its import (~0.3 s) would hold the back-end in
+            # one piece at the first refinement
+            import scipy.optimize  # noqa: F401
         self._task: _Slices | None = None  # the verification or map rebuild in flight
         self._pending: dict | None = None  # what its conclusion needs (_conclude_task)
         self._task_spline = None  # a sliced rebuild's corrected copy of the spline (the back-end's gets it at the end)

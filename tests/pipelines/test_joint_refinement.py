@@ -108,3 +108,22 @@ def test_held_mean_redistributes_the_errors_without_turning_the_span(ti_runtime)
 
     held, free = node_mean(True), node_mean(False)
     assert np.linalg.norm(held) < 1e-6 and np.dot(free, BUMP_AXIS) < -0.2, (held, free)  # free: undoes the bump
+
+
+def test_the_setup_pauses_between_its_steps(ti_runtime, monkeypatch):
+    """Sliced (real time), the refinement pauses before sampling the stored events, before building its problem and
+    before every evaluation: no step of it holds the back-end longer than one of them."""
+    import ti_cmax.pipelines.joint_refinement as J
+
+    t, b = _events(seed=5, duration=DURATION, turns=TURNS, rate=5_000)
+    spline = _spline(_bumped, duration=DURATION)
+    steps = []
+    sample, problem = J.sample_chunks, J.PanoIWE
+    monkeypatch.setattr(J, "sample_chunks", lambda *a, **k: steps.append("sample") or sample(*a, **k))
+    monkeypatch.setattr(J, "PanoIWE", lambda *a, **k: steps.append("problem") or problem(*a, **k))
+    first = int(np.searchsorted(spline.knot_times(), DURATION / TURNS))
+    refine_jointly(spline, _chunks(t, b), first, spline.num_control - 1, BackendConfig(pano_height=256), 512, 256,
+                   max_events=20_000, iterations=2, coarse_spacing=0.5, max_step=0.1,
+                   slice_point=lambda: steps.append("pause"))
+    assert steps[:2] == ["pause", "sample"] and steps[steps.index("problem") - 1] == "pause", steps
+    assert steps.index("sample") + 1 < steps.index("problem") and steps[steps.index("problem") + 1] == "pause", steps
