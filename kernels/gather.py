@@ -51,15 +51,6 @@ def gather_numpy(t, x, y, lut, width: int, start: int, step: int, count: int, se
     return t[i].copy(), lut[yi * width + xi]
 
 
-def separable_table(lut: np.ndarray, width: int, height: int) -> np.ndarray:
-    """The separable form of an undistorted camera's per-pixel table ``lut`` ((height width, 3)): row i holds the x
-    bearing of column i, the y and z bearings of row i, the table's own numbers."""
-    out = np.zeros((max(width, height), 3), lut.dtype)
-    out[:width, 0] = lut[:width, 0]
-    out[:height, 1:] = lut[::width][:height, 1:]
-    return out
-
-
 class BearingGather:
     """The kernel bound to a camera's table (``lut``, float32, C-contiguous: (height width, 3), or its separable form
     when ``separable``); a call rebinds only the arrays that moved (a bound launch costs ~2 us, a plain call ~100 us

@@ -575,14 +575,8 @@ class AngularVelocityEstimator:
         4), or for an undistorted camera its separable form (:meth:`IWEWorkspace.pack`): row i holds the x bearing of
         column i, the y bearing of row i and 1, the numbers of the per-pixel table."""
         cam = self.camera
-        if cam.has_distortion:
-            lut = cam.bearing_lut4
-            return lut if lut.dtype == self.ws.dtype else lut.astype(self.ws.dtype)
-        i = np.arange(max(cam.width, cam.height))
-        b = cam.unproject(i, i)
-        lut = np.zeros((len(i), 4), self.ws.dtype)
-        lut[:, :3] = b.astype(np.float32)
-        return lut
+        lut = cam.bearing_lut4 if cam.has_distortion else cam.separable_bearing_lut4
+        return lut if lut.dtype == self.ws.dtype else lut.astype(self.ws.dtype)
 
     def _load(self, events: Events, t_ref: float, packet: bool = False) -> tuple[int, float]:
         """Upload a packet, thinned (1 of k, :meth:`thinning_step`, as :meth:`thin`), into the workspace; returns

@@ -187,11 +187,11 @@ class BackendRunner:
         """The kernel that writes events into the back-end's buffer (``kernels/gather.py``), bound to the camera's
         bearing table (its separable form for an undistorted camera)."""
         if self._gather is None:
-            from ti_cmax.kernels.gather import BearingGather, separable_table  # loaded with the back-end
+            from ti_cmax.kernels.gather import BearingGather  # loaded with the back-end
 
             cam = self.camera
             self._gather = BearingGather(cam.bearing_lut, cam.width) if cam.has_distortion else \
-                BearingGather(separable_table(cam.bearing_lut, cam.width, cam.height), cam.width, separable=True)
+                BearingGather(cam.separable_bearing_lut, cam.width, separable=True)
         return self._gather
 
     def _push_pixels(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, start: int, n: int) -> None:

@@ -117,7 +117,8 @@ class Camera:
         """Pickle the intrinsics only, not the bearing tables (rebuilt on first use): a camera sent to a spawned
         worker stays a few hundred bytes instead of 1.2 MB (DAVIS240C) to 44 MB (HD). A payload over a pipe's 64 KB
         also hung the parent for good when the worker died while starting (multiprocessing writes it whole)."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("bearing_lut", "bearing_lut4")}
+        return {k: v for k, v in self.__dict__.items()
+                if k not in ("bearing_lut", "bearing_lut4", "separable_bearing_lut", "separable_bearing_lut4")}
 
     @cached_property
     def bearing_lut(self) -> np.ndarray:
@@ -131,6 +132,24 @@ class Camera:
         lut = np.zeros((self.height * self.width, 4), np.float32)
         lut[:, :3] = self._checked_unprojection(xs.ravel(), ys.ravel())
         return lut
+
+    @cached_property
+    def separable_bearing_lut4(self) -> np.ndarray:
+        """An undistorted camera's bearings in separable form, (max(width, height), 4) float32: row i holds the x
+        bearing of column i, the y bearing and z (1) of row i, then 0. Without distortion a bearing's x depends on
+        its column alone and its y on its row alone, so these few KB hold the per-pixel table's numbers and stay in
+        the cache where the per-pixel table (MBs on VGA and HD) is read at random."""
+        if self.has_distortion:
+            raise ValueError("a distorted camera's bearings have no separable table")
+        i = np.arange(max(self.width, self.height))
+        lut = np.zeros((len(i), 4), np.float32)
+        lut[:, :3] = self.unproject(i, i)
+        return lut
+
+    @cached_property
+    def separable_bearing_lut(self) -> np.ndarray:
+        """``separable_bearing_lut4``'s first 3 columns, (max(width, height), 3) float32."""
+        return np.ascontiguousarray(self.separable_bearing_lut4[:, :3])
 
     def _checked_unprojection(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """``unproject`` of every sensor pixel, checked: each bearing must project back onto its pixel (within 0.01

@@ -80,6 +80,20 @@ def test_camera_roundtrip_with_distortion():
     ys, xs = np.mgrid[0:180, 0:240]
     assert 240 * 180 > UNPROJECT_BLOCK
     np.testing.assert_array_equal(lut, cam.unproject(xs.ravel(), ys.ravel()).astype(np.float32))
+    with pytest.raises(ValueError, match="separable"):
+        cam.separable_bearing_lut4
+
+
+@pytest.mark.parametrize("size", [(240, 180), (128, 128), (180, 240)])
+def test_an_undistorted_cameras_separable_table_holds_the_per_pixel_tables_numbers(size):
+    w, h = size
+    cam = Camera(w, h, 199.1, 198.9, 0.55 * w, 0.45 * h)
+    sep, lut = cam.separable_bearing_lut4, cam.bearing_lut4
+    assert sep.shape == (max(w, h), 4) and sep.dtype == np.float32 and not sep[:, 3].any()
+    ys, xs = np.mgrid[0:h, 0:w]
+    rows = np.stack([sep[xs.ravel(), 0], sep[ys.ravel(), 1], sep[ys.ravel(), 2], sep[ys.ravel(), 3]], axis=1)
+    np.testing.assert_array_equal(rows, lut)
+    np.testing.assert_array_equal(cam.separable_bearing_lut, sep[:, :3])
 
 
 def test_config_yaml_and_overrides(tmp_path):

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from ti_cmax import Camera
-from ti_cmax.kernels.gather import BearingGather, gather_numpy, separable_table
+from ti_cmax.kernels.gather import BearingGather, gather_numpy
 
 DISTORTED = Camera(64, 48, 50.0, 51.0, 31.7, 23.2, (-0.2, 0.05, 0.001, -0.002, 0.0))
 UNDISTORTED = Camera(64, 48, 50.0, 51.0, 31.7, 23.2)
@@ -22,7 +22,7 @@ def test_gather_matches_its_twin_and_the_camera_bearings(ti_runtime, cam, separa
     """Rows offset.. of the outputs: the times and the float32 bearings of events start + j step (wrapping at the
     end of the columns, as in the worker's ring), bit for bit as Camera.bearings; no other row is written."""
     t, x, y = _columns(500, cam)
-    lut = separable_table(cam.bearing_lut, cam.width, cam.height) if separable else cam.bearing_lut
+    lut = cam.separable_bearing_lut if separable else cam.bearing_lut
     out_t, out_b = np.full(600, -1.0), np.full((600, 3), -1.0, np.float32)
     BearingGather(lut, cam.width, separable)(t, x, y, start, step, count, out_t, out_b, offset)
     want_t, want_b = gather_numpy(t, x, y, lut, cam.width, start, step, count, separable)
