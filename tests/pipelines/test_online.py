@@ -244,3 +244,19 @@ def test_the_window_budget_reaches_the_backend_wherever_it_runs(half_second, bac
     assert first and all(w.skipped and not w.optimized for w in first)
     assert any(w.optimized for w in result.windows)
     assert [w.t_start for w in windows] == [w.t_start for w in result.windows]
+
+
+@pytest.mark.parametrize("slice_seconds", [0.02, None])
+def test_a_sliced_loop_closers_optimizer_is_imported_before_the_clock_starts(slice_seconds):
+    """Real time (loop verifications in slices): the back-end's start-up imports the joint refinement's optimizer, so
+    its import does not hold the first window; offline it stays unimported until a revisit needs it."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom ti_cmax.camera import Camera\nfrom ti_cmax.config import SlamConfig\n"
+            "from ti_cmax.pipelines.online_backend import BackendRunner\n"
+            "cam = Camera.ideal(64, 48)\n"
+            f"BackendRunner(cam, SlamConfig(), loop_slice_seconds={slice_seconds!r}).compile()\n"
+            "print('scipy.optimize' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[-1] == str(slice_seconds is not None)
