@@ -367,8 +367,9 @@ class WindowObserver:
     stage: str | None = None  # the StageClock stage its calls are timed under (None: untimed)
     loops: list | None = None  # what it reports (report.json "loops"), if anything
 
-    def before_window(self, t0: float, t1: float, final: bool = False) -> None:
-        """The window [t0, t1] has its control poses initialised; its BA comes next."""
+    def before_window(self, t0: float, t1: float, final: bool = False, idle_only: bool = False) -> None:
+        """The window [t0, t1] has its control poses initialised; its BA comes next. ``idle_only``: the back-end is
+        behind its input (the real-time budget): work that can wait waits for idle time."""
 
     def settled(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
         """The events of the stride starting at t0 went into the global map."""
@@ -538,7 +539,7 @@ class SlidingWindowBackend:
             with self.clock("fit"):
                 self._initialize_until(window.t1, refit_past=report.no_ba is not None)
         with self.clock(self.observer.stage):
-            self.observer.before_window(window.t0, window.t1, window.final)
+            self.observer.before_window(window.t0, window.t1, window.final, budget.loop_idle_only)
         if report.no_ba is None:  # 3. maximise the contrast over the window's free control poses
             self._adjust(ev_t, ev_b, window, report, moving_from, budget)
         with self.clock("settle"):  # 4. update the map with the first stride's events

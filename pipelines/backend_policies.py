@@ -49,6 +49,7 @@ class WindowBudget:
     ba_cap: int | None = None  # BA events at most (None: backend_max_window_events); 0 skips the BA
     ba_every: int = 1  # the BA runs on 1 of ba_every windows; the others keep their initialisation, as ba_cap = 0
     ba_budget: float | None = None  # wall seconds after which the BA starts no iteration (None: no limit)
+    loop_idle_only: bool = False  # the loop closer's work in flight waits for the worker's idle time (no slice per window)
 
     def __post_init__(self):
         if int(self.ba_every) != self.ba_every or self.ba_every < 1:
@@ -60,6 +61,7 @@ class WindowBudget:
         object.__setattr__(self, "ba_cap", None if self.ba_cap is None else int(self.ba_cap))
         object.__setattr__(self, "ba_every", int(self.ba_every))
         object.__setattr__(self, "ba_budget", None if self.ba_budget is None else float(self.ba_budget))
+        object.__setattr__(self, "loop_idle_only", bool(self.loop_idle_only))
 
 
 FULL_BUDGET = WindowBudget()

@@ -230,6 +230,7 @@ class LoopCloser(WindowObserver):
         # wall seconds before each window, and in the back-end worker's idle time (idle_slice), and its result is
         # applied before the window after it ended
         self.slice_seconds = slice_seconds
+        self._idle_only = False  # the current window's budget says the back-end is behind (before_window)
         if slice_seconds is not None and config.loop_joint_refinement:
             # the joint refinement's optimizer, imported now: its import (~0.3 s) would hold the back-end in
             # one piece at the first refinement
@@ -312,15 +313,17 @@ class LoopCloser(WindowObserver):
                 before = max(before, min(float(times[i]), t_now - cfg.loop_recent_time))
         return before
 
-    def before_window(self, t0: float, t1: float, final: bool = False) -> None:
+    def before_window(self, t0: float, t1: float, final: bool = False, idle_only: bool = False) -> None:
         """Before the BA of window [t0, t1] (its control poses initialized): look for a revisit in the recent
         events plus the window's, and close it. The window's events are still at their initialized poses: the
         BA has not pulled them to the old map yet (that pull, spread over the windows that enter the old
         regions, is the jump at a loop, and it hides the loop's error from a later check). ``final``: the last
-        window of the stream (``_last_chance``)."""
+        window of the stream (``_last_chance``). ``idle_only`` (sliced: the back-end is behind its input): a task
+        in flight gets no slice before this window, only the worker's idle time."""
+        self._idle_only = idle_only and self.slice_seconds is not None
         if self._task is not None:  # a sliced verification or rebuild in flight: its slices, no new check meanwhile
             tic, cpu = time.perf_counter(), time.process_time()
-            self._advance(self.slice_seconds)
+            self._window_slice()
             if self._task.done:
                 self._conclude_task()
             self._spent(tic, cpu)
@@ -443,7 +446,7 @@ class LoopCloser(WindowObserver):
             # among them) must not make the old visit look recent (_apply)
             self._pending = {"kind": "verify", "entry": entry, "args": (t, b, old_cells, t_now), "seconds": 0.0,
                              "ages": (self.age.copy(), self.visit.copy())}
-            self._advance(self.slice_seconds)
+            self._window_slice()
             if self._task.done:
                 self._conclude_task()
             return
@@ -462,6 +465,11 @@ class LoopCloser(WindowObserver):
             if budget is not None and time.perf_counter() - tic >= budget:
                 break
         self._count(time.perf_counter() - tic)
+
+    def _window_slice(self) -> None:
+        """The task's slice before a window (none while the back-end is behind: then only idle time advances it)."""
+        if not self._idle_only:
+            self._advance(self.slice_seconds)
 
     def _count(self, spent: float) -> None:
         self._pending["seconds"] += spent
@@ -771,7 +779,7 @@ class LoopCloser(WindowObserver):
                 return self._rebuild_in_slices(n_old, n_chunks)
 
             self._task, self._pending = _Slices(refine_and_rebuild), pending
-            self._advance(self.slice_seconds)
+            self._window_slice()
         self._closed_until = float(t[-1])
         # the drift since the old visit or the last loop's reference time (from which the poses carried its whole
         # correction): its rate schedules the next check (_conclude)

@@ -26,7 +26,9 @@ and the back-end's ``WindowBudget``):
 
     l | front-end packets | BA events per window (cap c: backend_max_window_events; floor: realtime_min_window_events)
     0 | all               | c on every window (the offline computation; the BA budget T / 2, below)
-    1 | all               | c on every window, with the BA's time budget (below)
+    1 | all               | c on every window, with the BA's time budget (below); from level 1 on, the loop
+      |                   |   closer's work in flight (a verification, a map rebuild) gets no slice before each
+      |                   |   window, only the worker's idle time (a loop closed a few seconds later costs no event)
     2 | all               | c / 2 on every window
     3 | 1 of 2            | c / 2 on 1 of 2 windows
     4 | 1 of 4            | BA skipped (the window keeps the integrated front-end's poses; its events still go
@@ -368,7 +370,7 @@ class RealtimeController:
         """Set OnlineSlam's degradation to the current level and thinning."""
         if self.online is not None:
             self.online.degrade(self.fe_keep(), self.ba_cap(self.level, self._window_events),
-                                LEVELS[self.level][2], self.ba_budget(), self.thinning)
+                                LEVELS[self.level][2], self.ba_budget(), self.thinning, loop_idle_only=self.level > 0)
 
     def summary(self) -> dict:
         lags = np.asarray(self.lags) if self.lags else np.zeros(1)

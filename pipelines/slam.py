@@ -210,18 +210,19 @@ class OnlineSlam:
         return self._result
 
     def degrade(self, frontend_keep: int = 1, ba_cap: int | None = None, ba_every: int = 1,
-                ba_budget: float | None = None, input_thinning: int = 1) -> None:
+                ba_budget: float | None = None, input_thinning: int = 1, loop_idle_only: bool = False) -> None:
         """Real-time degradation (pipelines/realtime.py): from now on the front-end processes 1 of
         ``frontend_keep`` packets and the back-end's windows get the budget (``WindowBudget``: at most ``ba_cap``
         BA events, 0 skipping the BA; the BA on 1 of ``ba_every`` windows; no BFGS iteration started after
         ``ba_budget`` seconds). ``input_thinning`` q: the caller hands over 1 of q events, so a packet takes N / q of
-        them (the same time span: the front-end's cost falls with the input). ``degrade()`` restores the full
+        them (the same time span: the front-end's cost falls with the input). ``loop_idle_only``: the loop closer's
+        work in flight waits for the back-end's idle time (no slice before each window). ``degrade()`` restores the full
         computation. Values out of these ranges raise ValueError."""
         for name, value in {"frontend_keep": frontend_keep, "input_thinning": input_thinning}.items():
             if int(value) != value or value < 1:
                 raise ValueError(f"degrade: {name} must be an integer >= 1, got {value!r}")
         try:
-            budget = WindowBudget(ba_cap, ba_every, ba_budget)
+            budget = WindowBudget(ba_cap, ba_every, ba_budget, loop_idle_only)
         except ValueError as exc:
             raise ValueError(f"degrade: {exc}") from None
         self.frontend_keep = int(frontend_keep)

@@ -438,7 +438,7 @@ def test_an_observer_is_notified_around_every_window_and_the_budget_skips_the_ba
         def __init__(self):
             self.calls = []
 
-        def before_window(self, t0, t1, final=False):
+        def before_window(self, t0, t1, final=False, idle_only=False):
             self.calls.append(("before", t0))
 
         def settled(self, ev_t, ev_b, t0, moving):

@@ -389,9 +389,8 @@ def test_sliced_verification_registers_as_at_once_and_still_closes_the_loop(ti_r
     loop_closure._Slices.resume = resume
     old_init = loop_closure.LoopCloser.__init__
 
-    def init(self, *a, **k):
-        old_init(self, *a, **k)
-        self.slice_seconds = 0.0
+    def init(self, *a, **k):  # sliced as in real time (built so: its optimizer is imported then, not in a slice)
+        old_init(self, *a, **{**k, "slice_seconds": 0.0})
 
     loop_closure.LoopCloser.__init__ = init
     try:
@@ -616,3 +615,24 @@ def test_a_joint_refinement_waits_for_a_full_turn_and_the_map_seen_again():
     assert lc._joint_due()
     lc._travel_rec[1, 1] = 6.5  # but less than a full turn travelled since the last one
     assert not lc._joint_due()
+
+
+def test_a_task_in_flight_waits_for_idle_time_while_the_back_end_is_behind():
+    """Real time: before_window gives a sliced task in flight its slice, except when the budget says the back-end is
+    behind (idle_only); the worker's idle slices still advance it."""
+    from ti_cmax.pipelines import loop_closure
+    from ti_cmax.pipelines.backend import SlidingWindowBackend
+
+    steps = []
+    task = loop_closure._Slices(lambda: [steps.append(k) or lc._slice_point() for k in range(10)])
+    cfg = BackendConfig(pano_height=256, backend_min_ev_rate=10000.0, backend_max_window_events=-1)
+    lc = loop_closure.LoopCloser(LOOP, SlidingWindowBackend(cfg, 0.0), slice_seconds=0.0)
+    lc._task, lc._pending = task, {"kind": "verify", "seconds": 0.0}
+    lc.before_window(0.0, 0.2, idle_only=True)
+    assert steps == []
+    lc.idle_slice()
+    assert len(steps) == 1
+    lc.before_window(0.1, 0.3)  # a budget of 0 s still runs one slice when not behind
+    assert len(steps) == 2
+    lc.before_window(0.2, 0.4, idle_only=True)
+    assert len(steps) == 2

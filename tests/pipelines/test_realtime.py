@@ -90,8 +90,13 @@ def test_controller_rule():
     to cost under RELAX_HEADROOM of the wall time, at least 3 windows after the last change."""
     cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
     ctl = R.RealtimeController(cfg, 1.0)
-    calls = []
-    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every, budget, thinning=1: calls.append((keep, cap, every, budget)),
+    calls, idle_only = [], []
+
+    def degrade(keep, cap, every, budget, thinning=1, loop_idle_only=False):
+        calls.append((keep, cap, every, budget))
+        idle_only.append(loop_idle_only)
+
+    ctl.online = SimpleNamespace(degrade=degrade,
                                  frontend_until=0.1,
                                  runner=SimpleNamespace(seconds=0.0))
     ctl.wall0, ctl.t0 = 100.0, 0.0
@@ -109,6 +114,8 @@ def test_controller_rule():
     # from level 1 on, a window's BA has one stride of wall time (0.1 s at speed 1)
     # (level 1: the budget alone; 2: half the events; 3: half the BA windows and packets; 4: no BA)
     assert calls == [(1, None, 1, 0.1), (1, 100_000, 1, 0.1), (2, 100_000, 2, 0.1), (4, 0, 1, 0.1)]
+    # from level 1 on, the loop closer's work in flight waits for the worker's idle time
+    assert idle_only == [False, True, True, True, True]
     ctl.on_window(_report(t, 1.5, ctl))  # beyond the hard bound and rising: hand over 1 of 2 events
     t += 0.1
     assert ctl.thinning == 2
@@ -260,7 +267,7 @@ def test_with_a_worker_the_front_end_skips_packets_only_while_it_falls_behind():
     cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
     ctl = R.RealtimeController(cfg, 1.0, worker=True)
     calls = []
-    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every, budget, thinning=1: calls.append((keep, cap, every)),
+    ctl.online = SimpleNamespace(degrade=lambda keep, cap, every, budget, thinning=1, **_: calls.append((keep, cap, every)),
                                  frontend_until=0.1, runner=SimpleNamespace(seconds=0.0))
     ctl.idle_seconds = lambda: 0.0
     ctl.wall0, ctl.t0 = 100.0, 0.0
