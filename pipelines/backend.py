@@ -109,12 +109,19 @@ class StageClock:
 
 class _Buffer:
     """Growing column buffer (times + bearings) that drops its settled head cheaply: the columns live in arrays with
-    spare room at the end, a push copies only its own events in (amortized doubling), and dropping the head moves a
-    start index; the live part is moved to the front only when the spare room runs out (in place when no view of
-    the arrays is held, else into new ones). Reads are views, so a window's read costs nothing in proportion to the
-    buffer."""
+    room past the end, a push writes only its own events in, and dropping the head moves a start index. Once the
+    settled head is twice the live part, the live part moves to the front (in place when no view of the arrays is
+    held, else into new ones): at most half a copy per event pushed, and the rows ever written stay within about
+    three live parts. Arrays are sized at their first growth past a millisecond of events for ``GROWTH_SPANS``
+    ``horizon``s (seconds: the span the buffer typically holds) at the event rate seen, so they rarely grow again:
+    a new array costs a page fault per 4 kB written and a copy of the live part, np.empty's untouched rows nothing.
+    Reads are views, so a window's read costs nothing in proportion to the buffer."""
 
-    def __init__(self):
+    GROWTH_SPANS = 4
+    MIN_RATE_SPAN = 1e-3  # seconds of events before their rate sizes the arrays
+
+    def __init__(self, horizon: float = 0.0):
+        self.horizon = float(horizon)
         self._tt, self._bb = np.zeros(0), np.zeros((0, 3), np.float32)
         self._start = self._end = 0
 
@@ -139,15 +146,19 @@ class _Buffer:
         """Room for ``n`` events past the end: (the whole time and bearing arrays, the row where they go), for a
         writer that fills them in place; ``commit`` then counts them in."""
         live = self._end - self._start
-        if self._end + n > len(self._tt) and 2 * (live + n) <= len(self._tt) and live <= self._start \
+        if self._start >= 2 * live and self._start and live + n <= len(self._tt) \
                 and sys.getrefcount(self._tt) == sys.getrefcount(self._bb) == 2:
-            # room enough once the settled head is gone, and no view of the arrays outside (only this attribute
-            # and the call's argument refer to them, as ndarray.resize checks): the live part moves to the front
-            # in place (no overlap), without new memory to fault in
+            # no view of the arrays outside (only this attribute and the call's argument refer to them, as
+            # ndarray.resize checks): the live part moves to the front in place (no overlap), into rows already
+            # faulted in
             self._tt[:live], self._bb[:live] = self.t, self.b
             self._start, self._end = 0, live
         if self._end + n > len(self._tt):
             cap = max(2 * (live + n), 1024)
+            span = float(self._tt[self._end - 1] - self._tt[self._start]) if live > 1 else 0.0
+            if self.horizon > 0 and span >= self.MIN_RATE_SPAN:
+                cap = max(cap, int(self.GROWTH_SPANS * self.horizon * live / span))
+            cap = max(min(cap, 2 ** 31 - 1), live + n)  # (the gather kernel's rows are 32-bit)
             tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
             tt[:live], bb[:live] = self.t, self.b
             self._tt, self._bb, self._start, self._end = tt, bb, 0, live
@@ -424,7 +435,7 @@ class SlidingWindowBackend:
         self.ba_width = self.map.ba_size[0]  # the BA's map width (the reach of a vote in radians)
         self.spline: SO3Spline | None = None
         self.window_start = self.t_start
-        self.events = _Buffer()
+        self.events = _Buffer(config.backend_time_window_size + config.backend_sliding_window_stride)
         self.events_until = -np.inf  # all events with t < events_until have been pushed
         self._src_t = np.zeros(0)
         self._src_R = np.zeros((0, 3, 3))
