@@ -110,14 +110,14 @@ class StageClock:
 class _Buffer:
     """Growing column buffer (times + bearings) that drops its settled head cheaply: the columns live in arrays with
     room past the end, a push writes only its own events in, and dropping the head moves a start index. Once the
-    settled head is twice the live part, the live part moves to the front (in place when no view of the arrays is
-    held, else into new ones): at most half a copy per event pushed, and the rows ever written stay within about
-    three live parts. Arrays are sized at their first growth past a millisecond of events for ``GROWTH_SPANS``
-    ``horizon``s (seconds: the span the buffer typically holds) at the event rate seen, so they rarely grow again:
-    a new array costs a page fault per 4 kB written and a copy of the live part, np.empty's untouched rows nothing.
-    Reads are views, so a window's read costs nothing in proportion to the buffer."""
+    settled head is as large as the live part, the live part moves to the front (in place when no view of the arrays
+    is held, else into new ones): at most one copy per event pushed, and the rows ever written stay within two live
+    parts (memory written for the first time costs 0.2-3 ns per byte, a copy 0.25). Arrays are sized at their first
+    growth past a millisecond of events for ``GROWTH_SPANS`` ``horizon``s (seconds: the span the buffer typically
+    holds) at the event rate seen, so they rarely grow again: np.empty's rows cost nothing until written. Reads are
+    views, so a window's read costs nothing in proportion to the buffer."""
 
-    GROWTH_SPANS = 4
+    GROWTH_SPANS = 8
     MIN_RATE_SPAN = 1e-3  # seconds of events before their rate sizes the arrays
 
     def __init__(self, horizon: float = 0.0):
@@ -146,7 +146,7 @@ class _Buffer:
         """Room for ``n`` events past the end: (the whole time and bearing arrays, the row where they go), for a
         writer that fills them in place; ``commit`` then counts them in."""
         live = self._end - self._start
-        if self._start >= 2 * live and self._start and live + n <= len(self._tt) \
+        if self._start >= live and self._start and live + n <= len(self._tt) \
                 and sys.getrefcount(self._tt) == sys.getrefcount(self._bb) == 2:
             # no view of the arrays outside (only this attribute and the call's argument refer to them, as
             # ndarray.resize checks): the live part moves to the front in place (no overlap), into rows already
