@@ -584,10 +584,12 @@ def _revote_axis(a: np.ndarray, start: int, d: int, axis: int, cyclic: bool = Fa
         first = start - (lo * d - (d - 1))  # where fine index ``start`` goes in ``padded``
         along(padded, slice(first, first + n))[...] = a
     out = along(padded, slice(d - 1, d - 1 + count * d, d)).copy()  # k = 0: weight 1
+    pair = np.empty_like(out)  # (one scratch array for every k: a settled stride's region is megabytes)
     for k in range(1, d):
-        w = a.dtype.type((d - k) / d)
-        out += w * (along(padded, slice(d - 1 - k, d - 1 - k + count * d, d))
-                    + along(padded, slice(d - 1 + k, d - 1 + k + count * d, d)))
+        np.add(along(padded, slice(d - 1 - k, d - 1 - k + count * d, d)),
+               along(padded, slice(d - 1 + k, d - 1 + k + count * d, d)), out=pair)
+        pair *= a.dtype.type((d - k) / d)
+        out += pair
     return lo, out
 
 
