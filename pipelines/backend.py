@@ -159,7 +159,11 @@ class _Buffer:
             if self.horizon > 0 and span >= self.MIN_RATE_SPAN:
                 cap = max(cap, int(self.GROWTH_SPANS * self.horizon * live / span))
             cap = max(min(cap, 2 ** 31 - 1), live + n)  # (the gather kernel's rows are 32-bit)
-            tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
+            try:
+                tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
+            except MemoryError:  # a rate estimate beyond what the system maps: room for twice what is needed
+                cap = 2 * (live + n)
+                tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
             tt[:live], bb[:live] = self.t, self.b
             self._tt, self._bb, self._start, self._end = tt, bb, 0, live
         return self._tt, self._bb, self._end

@@ -262,6 +262,26 @@ def test_event_buffer_sizes_its_arrays_from_the_event_rate_and_reuses_their_fron
     assert highest <= 2 * most + chunk
 
 
+def test_event_buffer_falls_back_to_doubling_when_its_rate_sized_arrays_cannot_be_mapped(monkeypatch):
+    """A rate estimate that asks for more memory than the system maps (a burst in the first millisecond) does not
+    fail the run: the buffer takes twice the room it needs instead."""
+    from ti_cmax.pipelines import backend
+
+    real_empty = np.empty
+
+    def empty(shape, *args, **kwargs):
+        if (shape if isinstance(shape, int) else shape[0]) > 10_000:
+            raise MemoryError("cannot map")
+        return real_empty(shape, *args, **kwargs)
+
+    buf = backend._Buffer(horizon=1000.0)  # 8000 s of events at the rate seen: more than this system "maps"
+    t_all = np.arange(4000) * 1e-6
+    monkeypatch.setattr(backend.np, "empty", empty)
+    for i0 in range(0, 4000, 1000):
+        buf.push(t_all[i0:i0 + 1000], np.zeros((1000, 3), np.float32))
+    assert np.array_equal(buf.t, t_all) and len(buf._tt) <= 2 * 4000
+
+
 @pytest.mark.parametrize("hold_view", [False, True])
 def test_event_buffer_moves_its_live_part_in_place_when_no_view_is_held(hold_view):
     """When the spare room runs out and the settled head left room enough, the buffer moves its live part to the
