@@ -699,8 +699,7 @@ class PanoIWE:
     def __init__(self, bearings, batch_s, batch_u, degree: int, width: int, height: int, sigma: float = 1.0,
                  global_map=None, alpha: float = 1.0, batch_size: int = 100, dtype=np.float32,
                  global_blurred=None, global_sums: tuple[float, float] | None = None, parts: int | None = None,
-                 alpha_from_density: tuple[float, float] | None = None, work: VoteWork | None = None,
-                 serial: bool | None = None):
+                 alpha_from_density: tuple[float, float] | None = None, work: VoteWork | None = None):
         ensure_init()
         self.dtype = np.dtype(dtype)
         self.degree, self.width, self.height = int(degree), int(width), int(height)
@@ -730,9 +729,7 @@ class PanoIWE:
         else:
             self.alpha, self.g_sum, self.g_sq = 0.0, 0.0, 0.0
             self.gmap = np.zeros((1, 1), dtype=self.dtype)
-        # ``serial``: every loop on the calling thread whatever the thread count (the same parts, so the same sums:
-        # bitwise the same result, for less CPU time and more wall time); None: with one thread
-        self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree, num_threads() == 1 if serial is None else serial)
+        self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree, num_threads() == 1)
         n, order = len(self.bearings), self.degree + 1
         # written whole by the kernels before they are read (np.zeros of arrays this size is a memset per window,
         # ~2 ms for a million events: the allocator reuses freed blocks rather than fresh zero pages); from ``work``

@@ -426,11 +426,8 @@ class WindowUpdate:
 class SlidingWindowBackend:
     """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""
 
-    def __init__(self, config: BackendConfig, t_start: float, r_start: np.ndarray | None = None,
-                 serial_settle: bool = False):
-        """``config`` must be resolved for the camera (``sensor_defaults.resolve_backend``): no derived 0s.
-        ``serial_settle``: the settled strides' projection and vote on the calling thread whatever the thread count
-        (the same result; less CPU time, more wall time: a worker process whose CPU time is the budget)."""
+    def __init__(self, config: BackendConfig, t_start: float, r_start: np.ndarray | None = None):
+        """``config`` must be resolved for the camera (``sensor_defaults.resolve_backend``): no derived 0s."""
         if config.pano_height <= 0 or config.backend_max_window_events == 0 or config.backend_min_ev_rate <= 0:
             raise ValueError("the back-end needs a config resolved for the camera (sensor_defaults.resolve_backend)")
         self.cfg = config
@@ -444,7 +441,6 @@ class SlidingWindowBackend:
         self.window_start = self.t_start
         self.events = _Buffer(config.backend_time_window_size + config.backend_sliding_window_stride)
         self._settle_work = VoteWork()  # the settle's projection and vote arrays, kept between strides
-        self.serial_settle = serial_settle
         self.events_until = -np.inf  # all events with t < events_until have been pushed
         self._src_t = np.zeros(0)
         self._src_R = np.zeros((0, 3, 3))
@@ -934,13 +930,14 @@ class SlidingWindowBackend:
             mids = np.clip(batch_mid_times(ev_t, cfg.event_batch_size), start, end)
             if self.map is not None:
                 # the BA's projection and vote (PanoIWE: the spline evaluated per batch in the kernel); its window
-                # holds the votes plus the radius of I_G's blur, the region B(I_G) changes on. Voted in one part
-                # whatever the thread count (a part per thread costs a copy of the window each and their sum), so
-                # that the map is the same with a serial settle and a parallel one
+                # holds the votes plus the radius of I_G's blur, the region B(I_G) changes on. In one part whatever
+                # the thread count: the projection and the vote then run on one thread (a part's loop of PART_TASK
+                # iterations is one Taichi task), which costs less CPU time than two (measured on a loaded machine;
+                # the settle, unlike the BA, holds a window for a few ms only), and no copy of the window per part
                 s, u = self.spline.support(mids)
                 local = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=self.map.sigma,
-                                alpha=0.0, batch_size=cfg.event_batch_size, parts=1, work=self._settle_work,
-                                serial=self.serial_settle or None).votes(self.spline.control_R)
+                                alpha=0.0, batch_size=cfg.event_batch_size, parts=1,
+                                work=self._settle_work).votes(self.spline.control_R)
                 if local is not None:
                     self.map.add_votes(*local, t0, moving=moving)
             self.events_settled += len(ev_t)

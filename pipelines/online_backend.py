@@ -105,9 +105,8 @@ def backend_report(backend: SlidingWindowBackend, wall: float) -> dict:
     }
 
 
-def compile_backend(config: SlamConfig, serial_settle: bool = False) -> float:
-    """Compile the back-end kernels on a tiny problem so that steady-state timing excludes compilation (the settle's
-    on the calling thread with ``serial_settle``, as SlidingWindowBackend's)."""
+def compile_backend(config: SlamConfig) -> float:
+    """Compile the back-end kernels on a tiny problem so that steady-state timing excludes compilation."""
     from ti_cmax.kernels.gather import BearingGather
     from ti_cmax.kernels.pano import PanoIWE, vote_map
 
@@ -120,9 +119,6 @@ def compile_backend(config: SlamConfig, serial_settle: bool = False) -> float:
                       global_blurred=np.ones((h, w), np.float32), global_sums=(float(w * h), float(w * h)), alpha=1.0)
     problem.cost_and_grad(ctrl)
     problem.votes(ctrl)  # the settle's projection (votes only)
-    if serial_settle:
-        PanoIWE(b, np.zeros(1, np.int32), np.zeros(1), config.backend.spline_degree, w, h, batch_size=4, parts=1,
-                serial=True).votes(ctrl)
     BearingGather(b, 1)(np.zeros(1), np.zeros(1, np.uint16), np.zeros(1, np.uint16), 0, 1, 1, np.zeros(1),
                         np.zeros((1, 3), np.float32), 0)  # the events' way into the window buffer
     vote_map(b, np.eye(3)[None], w, h, batch_size=4, occupancy=(np.zeros(w, np.int32), np.zeros(h, np.int32)))
@@ -132,15 +128,13 @@ def compile_backend(config: SlamConfig, serial_settle: bool = False) -> float:
 class BackendRunner:
     """The back-end in this process (``OnlineBackend``). ``r_start_of(t0)``: the first pose, given the first event's
     time (the identity online; a given trajectory's pose when refining). ``loop_slice_seconds``: loop verifications in
-    slices of at most this many wall seconds per window (LoopCloser; the real-time replay), None: at once.
-    ``serial_settle``: SlidingWindowBackend's (a worker process, whose CPU time is the budget)."""
+    slices of at most this many wall seconds per window (LoopCloser; the real-time replay), None: at once."""
 
     blocked_seconds = 0.0
 
     def __init__(self, camera: Camera, config: SlamConfig, r_start_of=None,
-                 loop_slice_seconds: float | None = None, serial_settle: bool = False):
+                 loop_slice_seconds: float | None = None):
         self.camera, self.config = camera, config
-        self.serial_settle = serial_settle
         self.r_start_of = r_start_of or (lambda t0: np.eye(3))
         self.loop_slice_seconds = loop_slice_seconds
         self.backend: SlidingWindowBackend | None = None
@@ -155,7 +149,7 @@ class BackendRunner:
     def compile(self) -> float:
         """Compile the kernels and build the camera's bearing table (before the events: a table takes 0.2-0.3 s on
         a distorted HD sensor)."""
-        seconds = compile_backend(self.config, self.serial_settle)
+        seconds = compile_backend(self.config)
         tic = time.perf_counter()
         # bound once here (a first call binds the kernel to its arrays: ~10 ms)
         self._bearing_gather()(np.zeros(1), np.zeros(1, np.uint16), np.zeros(1, np.uint16), 0, 1, 1, np.zeros(1),
@@ -192,7 +186,7 @@ class BackendRunner:
     def _start(self, t0: float) -> None:
         """Create the back-end at the first event (time ``t0``)."""
         if self.backend is None:
-            self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0), self.serial_settle)
+            self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0))
             if self.config.loop.loop_closure:  # loop closure on revisits (pipelines/loop_closure.py)
                 self.backend.attach(LoopCloser(self.config.loop, self.backend, self.loop_slice_seconds))
 

@@ -509,7 +509,7 @@ def _backend_worker(camera: Camera, config: SlamConfig, threads: int, inbox, out
         progress.set_quiet(True)  # no bars here, nor Taichi's start-up line (the main process shows its own)
         runtime.set_num_threads(threads)
         cpu0 = time.process_time()
-        runner = BackendRunner(camera, config, loop_slice_seconds=loop_slice_seconds, serial_settle=True)
+        runner = BackendRunner(camera, config, loop_slice_seconds=loop_slice_seconds)
         compile_s = runner.compile()
         timeline.mark("ready")
         outbox.put(("ready", compile_s))

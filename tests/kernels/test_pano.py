@@ -136,10 +136,9 @@ def test_raw_votes_match_the_vote_map_twin(ti_runtime, yaw0, yaw_rate):
     assert pano.PanoIWE(bearings[:0], s[:0], u[:0], 3, W, H).votes(spline.control_R) is None
 
 
-def test_votes_on_kept_work_arrays_and_serial_loops_are_the_same_votes(ti_runtime):
-    """The settle's PanoIWE on a VoteWork (arrays kept from one stride to the next) and with its loops on the calling
-    thread gives bitwise the votes of a fresh parallel one, in the same parts; a smaller stride reuses the arrays a
-    larger one made (no new memory), a larger one grows them."""
+def test_votes_on_kept_work_arrays_are_the_same_votes(ti_runtime):
+    """The settle's PanoIWE on a VoteWork (arrays kept from one stride to the next) gives bitwise the votes of a
+    fresh one; a smaller stride reuses the arrays a larger one made (no new memory), a larger one grows them."""
     from ti_cmax.kernels import pano
 
     spline, bearings, s, u, _ = window_case(3, 2.9, 1.0)
@@ -148,7 +147,7 @@ def test_votes_on_kept_work_arrays_and_serial_loops_are_the_same_votes(ti_runtim
         b, ss, uu = bearings[:n], s[:-(-n // 100)], u[:-(-n // 100)]
         fresh = pano.PanoIWE(b, ss, uu, 3, W, H, parts=1).votes(spline.control_R)
         addresses = {k: a.ctypes.data for k, a in work._arrays.items()}
-        kept = pano.PanoIWE(b, ss, uu, 3, W, H, parts=1, work=work, serial=True).votes(spline.control_R)
+        kept = pano.PanoIWE(b, ss, uu, 3, W, H, parts=1, work=work).votes(spline.control_R)
         assert kept[0] == fresh[0] and np.array_equal(kept[1], fresh[1]) and np.array_equal(kept[2], fresh[2])
         if n < len(bearings):
             assert addresses == {k: a.ctypes.data for k, a in work._arrays.items()}
