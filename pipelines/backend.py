@@ -112,10 +112,10 @@ class _Buffer:
     room past the end, a push writes only its own events in, and dropping the head moves a start index. Once the
     settled head is as large as the live part, the live part moves to the front (in place when no view of the arrays
     is held, else into new ones): at most one copy per event pushed, and the rows ever written stay within two live
-    parts (memory written for the first time costs 0.2-3 ns per byte, a copy 0.25). Arrays are sized at their first
-    growth past a millisecond of events for ``GROWTH_SPANS`` ``horizon``s (seconds: the span the buffer typically
-    holds) at the event rate seen, so they rarely grow again: np.empty's rows cost nothing until written. Reads are
-    views, so a window's read costs nothing in proportion to the buffer."""
+    parts (a row written for the first time costs a page fault and the zeroing of its page: more than a copy). Arrays
+    are sized at their first growth past a millisecond of events for ``GROWTH_SPANS`` ``horizon``s (seconds: the
+    span the buffer typically holds) at the event rate seen, so they rarely grow again: np.empty's rows cost nothing
+    until written. Reads are views, so a window's read costs nothing in proportion to the buffer."""
 
     GROWTH_SPANS = 8
     MIN_RATE_SPAN = 1e-3  # seconds of events before their rate sizes the arrays
@@ -932,8 +932,9 @@ class SlidingWindowBackend:
                 # the BA's projection and vote (PanoIWE: the spline evaluated per batch in the kernel); its window
                 # holds the votes plus the radius of I_G's blur, the region B(I_G) changes on. In one part whatever
                 # the thread count: the projection and the vote then run on one thread (a part's loop of PART_TASK
-                # iterations is one Taichi task), which costs less CPU time than two (measured on a loaded machine;
-                # the settle, unlike the BA, holds a window for a few ms only), and no copy of the window per part
+                # iterations is one Taichi task), which costs less CPU time than two (no second thread to wake, join
+                # and wait for; the settle, unlike the BA, holds a window for a few ms only), and no copy of the
+                # window per part
                 s, u = self.spline.support(mids)
                 local = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=self.map.sigma,
                                 alpha=0.0, batch_size=cfg.event_batch_size, parts=1,
