@@ -27,6 +27,9 @@ def _gather_kernel(t: _F64_1, x: _U16_1, y: _U16_1, lut: _F32_2, prm: _I64_1, ou
     start, step, count = ti.cast(prm[0], ti.i32), ti.cast(prm[1], ti.i32), ti.cast(prm[2], ti.i32)
     width, offset, separable = ti.cast(prm[3], ti.i32), ti.cast(prm[4], ti.i32), ti.cast(prm[5], ti.i32)
     capacity = t.shape[0]
+    # on the calling thread: the loop is bound by memory, and a second thread adds more CPU time (waking and joining
+    # it, contending for the same bandwidth: 6.2 against 4.4 ns per event for 25 000 events) than it saves
+    ti.loop_config(serialize=True)
     for j in range(count):
         i = start + j * step
         if i >= capacity:

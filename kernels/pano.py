@@ -584,10 +584,12 @@ def _revote_axis(a: np.ndarray, start: int, d: int, axis: int, cyclic: bool = Fa
         first = start - (lo * d - (d - 1))  # where fine index ``start`` goes in ``padded``
         along(padded, slice(first, first + n))[...] = a
     out = along(padded, slice(d - 1, d - 1 + count * d, d)).copy()  # k = 0: weight 1
+    pair = np.empty_like(out)  # (one scratch array for every k: a settled stride's region is megabytes)
     for k in range(1, d):
-        w = a.dtype.type((d - k) / d)
-        out += w * (along(padded, slice(d - 1 - k, d - 1 - k + count * d, d))
-                    + along(padded, slice(d - 1 + k, d - 1 + k + count * d, d)))
+        np.add(along(padded, slice(d - 1 - k, d - 1 - k + count * d, d)),
+               along(padded, slice(d - 1 + k, d - 1 + k + count * d, d)), out=pair)
+        pair *= a.dtype.type((d - k) / d)
+        out += pair
     return lo, out
 
 
@@ -659,6 +661,27 @@ def render_map(bearings, times, pose_fn, width: int, height: int, batch_size: in
     return vote_map(bearings, rot, width, height, batch_size=batch_size, out=out, dtype=dtype)
 
 
+class VoteWork:
+    """Work arrays kept from one ``PanoIWE`` to the next (the back-end's settled strides): a new array of a stride's
+    size costs a page fault per 4 kB written (about as much as the vote itself), a reused one none. Each name holds
+    one flat array that only grows; ``take`` gives a C-contiguous view of its first rows, valid until the next
+    ``take`` of that name (the caller is done with a stride's votes before the next stride)."""
+
+    def __init__(self):
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def take(self, name: str, shape: tuple, dtype, zero: bool = False) -> np.ndarray:
+        size = math.prod(shape)
+        flat = self._arrays.get(name)
+        if flat is None or flat.dtype != np.dtype(dtype) or len(flat) < size:
+            # room to grow: strides vary with the event rate (twice the size: a handful of new arrays per run)
+            flat = self._arrays[name] = np.empty(max(2 * size, 1024), dtype)
+        out = flat[:size].reshape(shape)
+        if zero:
+            out.fill(0)
+        return out
+
+
 class PanoIWE:
     """Var(B(I_L) + alpha B(I_G)) of one window's events and its gradient w.r.t. the spline's control poses.
 
@@ -676,7 +699,7 @@ class PanoIWE:
     def __init__(self, bearings, batch_s, batch_u, degree: int, width: int, height: int, sigma: float = 1.0,
                  global_map=None, alpha: float = 1.0, batch_size: int = 100, dtype=np.float32,
                  global_blurred=None, global_sums: tuple[float, float] | None = None, parts: int | None = None,
-                 alpha_from_density: tuple[float, float] | None = None):
+                 alpha_from_density: tuple[float, float] | None = None, work: VoteWork | None = None):
         ensure_init()
         self.dtype = np.dtype(dtype)
         self.degree, self.width, self.height = int(degree), int(width), int(height)
@@ -709,12 +732,15 @@ class PanoIWE:
         self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree, num_threads() == 1)
         n, order = len(self.bearings), self.degree + 1
         # written whole by the kernels before they are read (np.zeros of arrays this size is a memset per window,
-        # ~2 ms for a million events: the allocator reuses freed blocks rather than fresh zero pages)
-        self._jac = np.empty((nb, order, 3, 3), dtype=self.dtype)
-        self._basis = np.empty((n, 3), dtype=self.dtype)  # (s, c, t) per event: project_basis
-        self._uv = np.empty((n, 2), dtype=self.dtype)
-        self._bbox = np.empty((nb, 4), dtype=np.int32)
-        self._gb = np.empty((nb, order, 3), dtype=self.dtype)
+        # ~2 ms for a million events: the allocator reuses freed blocks rather than fresh zero pages); from ``work``
+        # when given (VoteWork: kept between instances)
+        self._work = work
+        take = work.take if work is not None else (lambda name, shape, dtype: np.empty(shape, dtype))
+        self._jac = take("jac", (nb, order, 3, 3), self.dtype)
+        self._basis = take("basis", (n, 3), self.dtype)  # (s, c, t) per event: project_basis
+        self._uv = take("uv", (n, 2), self.dtype)
+        self._bbox = take("bbox", (nb, 4), np.int32)
+        self._gb = take("gb", (nb, order, 3), self.dtype)
         self.last_window = None  # (r0, c0, bh, bw, wrap) of the last evaluation, for inspection
         self._grad_bins = None  # (number of control poses, bincount index of each gradient term)
         self._density_ref = None  # (rho_g, lambda0) until alpha is set by the first evaluation
@@ -770,8 +796,12 @@ class PanoIWE:
         if win is None:
             return ctrl, None, None, None
         r0, c0, bh, bw, wrap = win
-        votes = np.zeros((self.parts * bh, bw), dtype=self.dtype)  # calloc: zero pages, no pass over memory
-        lmap = votes if self.parts == 1 else np.empty((bh, bw), dtype=self.dtype)  # one part: voted in place
+        if self._work is None:
+            votes = np.zeros((self.parts * bh, bw), dtype=self.dtype)  # calloc: zero pages, no pass over memory
+            lmap = votes if self.parts == 1 else np.empty((bh, bw), dtype=self.dtype)  # one part: voted in place
+        else:  # (a memset of rows already faulted in: cheaper than fresh zero pages)
+            votes = self._work.take("votes", (self.parts * bh, bw), self.dtype, zero=True)
+            lmap = votes if self.parts == 1 else self._work.take("lmap", (bh, bw), self.dtype)
         stats = np.empty((bh, 3))
         k["local_map"](self._uv, c0, r0, self.width, lambda0, votes, lmap, stats)
         return ctrl, win, lmap, stats
@@ -779,7 +809,8 @@ class PanoIWE:
     def votes(self, control_R):
         """The raw local map I_L (bilinear votes, unblurred) of the events at these control poses on its window:
         (first row, column indices (modulo the width), votes (bh, bw)), None when no event lands in the map. The
-        back-end settles each stride into the global map with it: the BA's own projection and vote."""
+        back-end settles each stride into the global map with it: the BA's own projection and vote. With ``work``
+        the votes are a view of its arrays (valid until the next instance on it votes)."""
         _, win, lmap, _ = self._vote(control_R, with_grad=False)
         if win is None:
             return None

@@ -31,7 +31,7 @@ import numpy as np
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
 from ti_cmax.kernels.pano import (
-    PanoIWE, batch_mid_times, blur_radius, blur_region, column_selector, revote, touched_region, vote_map,
+    PanoIWE, VoteWork, batch_mid_times, blur_radius, blur_region, column_selector, revote, touched_region, vote_map,
 )
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
@@ -109,12 +109,19 @@ class StageClock:
 
 class _Buffer:
     """Growing column buffer (times + bearings) that drops its settled head cheaply: the columns live in arrays with
-    spare room at the end, a push copies only its own events in (amortized doubling), and dropping the head moves a
-    start index; the live part is moved to the front only when the spare room runs out (in place when no view of
-    the arrays is held, else into new ones). Reads are views, so a window's read costs nothing in proportion to the
-    buffer."""
+    room past the end, a push writes only its own events in, and dropping the head moves a start index. Once the
+    settled head is as large as the live part, the live part moves to the front (in place when no view of the arrays
+    is held, else into new ones): at most one copy per event pushed, and the rows ever written stay within two live
+    parts (a row written for the first time costs a page fault and the zeroing of its page: more than a copy). Arrays
+    are sized at their first growth past a millisecond of events for ``GROWTH_SPANS`` ``horizon``s (seconds: the
+    span the buffer typically holds) at the event rate seen, so they rarely grow again: np.empty's rows cost nothing
+    until written. Reads are views, so a window's read costs nothing in proportion to the buffer."""
 
-    def __init__(self):
+    GROWTH_SPANS = 8
+    MIN_RATE_SPAN = 1e-3  # seconds of events before their rate sizes the arrays
+
+    def __init__(self, horizon: float = 0.0):
+        self.horizon = float(horizon)
         self._tt, self._bb = np.zeros(0), np.zeros((0, 3), np.float32)
         self._start = self._end = 0
 
@@ -139,16 +146,24 @@ class _Buffer:
         """Room for ``n`` events past the end: (the whole time and bearing arrays, the row where they go), for a
         writer that fills them in place; ``commit`` then counts them in."""
         live = self._end - self._start
-        if self._end + n > len(self._tt) and 2 * (live + n) <= len(self._tt) and live <= self._start \
+        if self._start >= live and self._start and live + n <= len(self._tt) \
                 and sys.getrefcount(self._tt) == sys.getrefcount(self._bb) == 2:
-            # room enough once the settled head is gone, and no view of the arrays outside (only this attribute
-            # and the call's argument refer to them, as ndarray.resize checks): the live part moves to the front
-            # in place (no overlap), without new memory to fault in
+            # no view of the arrays outside (only this attribute and the call's argument refer to them, as
+            # ndarray.resize checks): the live part moves to the front in place (no overlap), into rows already
+            # faulted in
             self._tt[:live], self._bb[:live] = self.t, self.b
             self._start, self._end = 0, live
         if self._end + n > len(self._tt):
             cap = max(2 * (live + n), 1024)
-            tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
+            span = float(self._tt[self._end - 1] - self._tt[self._start]) if live > 1 else 0.0
+            if self.horizon > 0 and span >= self.MIN_RATE_SPAN:
+                cap = max(cap, int(self.GROWTH_SPANS * self.horizon * live / span))
+            cap = max(min(cap, 2 ** 31 - 1), live + n)  # (the gather kernel's rows are 32-bit)
+            try:
+                tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
+            except MemoryError:  # a rate estimate beyond what the system maps: room for twice what is needed
+                cap = 2 * (live + n)
+                tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
             tt[:live], bb[:live] = self.t, self.b
             self._tt, self._bb, self._start, self._end = tt, bb, 0, live
         return self._tt, self._bb, self._end
@@ -425,7 +440,8 @@ class SlidingWindowBackend:
         self.ba_width = self.map.ba_size[0]  # the BA's map width (the reach of a vote in radians)
         self.spline: SO3Spline | None = None
         self.window_start = self.t_start
-        self.events = _Buffer()
+        self.events = _Buffer(config.backend_time_window_size + config.backend_sliding_window_stride)
+        self._settle_work = VoteWork()  # the settle's projection and vote arrays, kept between strides
         self.events_until = -np.inf  # all events with t < events_until have been pushed
         self._src_t = np.zeros(0)
         self._src_R = np.zeros((0, 3, 3))
@@ -915,10 +931,15 @@ class SlidingWindowBackend:
             mids = np.clip(batch_mid_times(ev_t, cfg.event_batch_size), start, end)
             if self.map is not None:
                 # the BA's projection and vote (PanoIWE: the spline evaluated per batch in the kernel); its window
-                # holds the votes plus the radius of I_G's blur, the region B(I_G) changes on
+                # holds the votes plus the radius of I_G's blur, the region B(I_G) changes on. In one part whatever
+                # the thread count: the projection and the vote then run on one thread (a part's loop of PART_TASK
+                # iterations is one Taichi task), which costs less CPU time than two (no second thread to wake, join
+                # and wait for; the settle, unlike the BA, holds a window for a few ms only), and no copy of the
+                # window per part
                 s, u = self.spline.support(mids)
                 local = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=self.map.sigma,
-                                alpha=0.0, batch_size=cfg.event_batch_size).votes(self.spline.control_R)
+                                alpha=0.0, batch_size=cfg.event_batch_size, parts=1,
+                                work=self._settle_work).votes(self.spline.control_R)
                 if local is not None:
                     self.map.add_votes(*local, t0, moving=moving)
             self.events_settled += len(ev_t)

@@ -151,11 +151,13 @@ class BackendRunner:
         a distorted HD sensor)."""
         seconds = compile_backend(self.config)
         tic = time.perf_counter()
-        self._bearing_gather()
+        # bound once here (a first call binds the kernel to its arrays: ~10 ms)
+        self._bearing_gather()(np.zeros(1), np.zeros(1, np.uint16), np.zeros(1, np.uint16), 0, 1, 1, np.zeros(1),
+                               np.zeros((1, 3), np.float32), 0)
         loop = self.config.loop
-        if self.loop_slice_seconds is not None and loop.loop_closure and loop.loop_joint_refinement:
-            # the sliced loop closer's optimizer (LoopCloser imports it when built, at the first events): imported
-            # here, its ~0.3 s fall before the real-time clock starts instead of into the first window's lag
+        if loop.loop_closure and self.loop_slice_seconds is not None and loop.loop_joint_refinement:
+            # the sliced loop closer's optimizer (LoopCloser imports it when the back-end starts, at the first events:
+            # ~0.3 CPU s there, here before them)
             import scipy.optimize  # noqa: F401
         return seconds + time.perf_counter() - tic
 

@@ -136,6 +136,27 @@ def test_raw_votes_match_the_vote_map_twin(ti_runtime, yaw0, yaw_rate):
     assert pano.PanoIWE(bearings[:0], s[:0], u[:0], 3, W, H).votes(spline.control_R) is None
 
 
+def test_votes_on_kept_work_arrays_are_the_same_votes(ti_runtime):
+    """The settle's PanoIWE on a VoteWork (arrays kept from one stride to the next) gives bitwise the votes of a
+    fresh one; a smaller stride reuses the arrays a larger one made (no new memory), a larger one grows them."""
+    from ti_cmax.kernels import pano
+
+    spline, bearings, s, u, _ = window_case(3, 2.9, 1.0)
+    work = pano.VoteWork()
+    for n in (len(bearings), len(bearings) // 2, len(bearings)):  # batches of 100: whole ones
+        b, ss, uu = bearings[:n], s[:-(-n // 100)], u[:-(-n // 100)]
+        fresh = pano.PanoIWE(b, ss, uu, 3, W, H, parts=1).votes(spline.control_R)
+        addresses = {k: a.ctypes.data for k, a in work._arrays.items()}
+        kept = pano.PanoIWE(b, ss, uu, 3, W, H, parts=1, work=work).votes(spline.control_R)
+        assert kept[0] == fresh[0] and np.array_equal(kept[1], fresh[1]) and np.array_equal(kept[2], fresh[2])
+        if n < len(bearings):
+            assert addresses == {k: a.ctypes.data for k, a in work._arrays.items()}
+    assert np.shares_memory(kept[2], work._arrays["votes"])
+    grown = work.take("uv", (10 * len(bearings), 2), np.float32)
+    assert grown.shape == (10 * len(bearings), 2) and len(work._arrays["uv"]) >= 20 * len(bearings)
+    assert not work.take("votes", (3, 5), np.float32, zero=True).any()
+
+
 @pytest.mark.parametrize("degree", [1, 3])
 def test_gradient_matches_central_differences(ti_runtime, degree):
     from ti_cmax.kernels import pano

@@ -237,6 +237,51 @@ def test_event_buffer_ranges_drops_and_views_stay_valid():
     assert np.array_equal(vt, expected)
 
 
+def test_event_buffer_sizes_its_arrays_from_the_event_rate_and_reuses_their_front():
+    """A buffer told its horizon (the span of events it holds) sizes its arrays at the first growth past a
+    millisecond of events for GROWTH_SPANS horizons at the rate seen, so a steady stream never grows them again, and
+    moves its live part to the front once the settled head is as large: the rows ever written stay within two live
+    parts plus a chunk, whatever the length of the stream."""
+    from ti_cmax.pipelines.backend import _Buffer
+
+    rate, horizon, chunk = 1e6, 0.03, 2000  # events/s, s, events per push
+    buf = _Buffer(horizon)
+    t_all = np.arange(600_000) / rate
+    b_all = np.zeros((len(t_all), 3), np.float32)
+    arrays, most, highest = set(), 0, 0
+    for i0 in range(0, len(t_all), chunk):
+        buf.push(t_all[i0:i0 + chunk], b_all[i0:i0 + chunk])
+        arrays.add(buf._tt.ctypes.data)
+        highest = max(highest, buf._end)
+        if i0 % (5 * chunk) == 0:  # settle: keep the last horizon of events
+            buf.drop_before(t_all[i0 + chunk - 1] - horizon)
+        most = max(most, len(buf.t))
+        assert np.array_equal(buf.t, t_all[int(np.searchsorted(t_all, buf.t[0])):i0 + chunk])
+    assert len(arrays) <= 3  # 1024 rows, the doubling up to a millisecond, the rate's size
+    assert len(buf._tt) >= _Buffer.GROWTH_SPANS * horizon * rate * 0.9
+    assert highest <= 2 * most + chunk
+
+
+def test_event_buffer_falls_back_to_doubling_when_its_rate_sized_arrays_cannot_be_mapped(monkeypatch):
+    """A rate estimate that asks for more memory than the system maps (a burst in the first millisecond) does not
+    fail the run: the buffer takes twice the room it needs instead."""
+    from ti_cmax.pipelines import backend
+
+    real_empty = np.empty
+
+    def empty(shape, *args, **kwargs):
+        if (shape if isinstance(shape, int) else shape[0]) > 10_000:
+            raise MemoryError("cannot map")
+        return real_empty(shape, *args, **kwargs)
+
+    buf = backend._Buffer(horizon=1000.0)  # 8000 s of events at the rate seen: more than this system "maps"
+    t_all = np.arange(4000) * 1e-6
+    monkeypatch.setattr(backend.np, "empty", empty)
+    for i0 in range(0, 4000, 1000):
+        buf.push(t_all[i0:i0 + 1000], np.zeros((1000, 3), np.float32))
+    assert np.array_equal(buf.t, t_all) and len(buf._tt) <= 2 * 4000
+
+
 @pytest.mark.parametrize("hold_view", [False, True])
 def test_event_buffer_moves_its_live_part_in_place_when_no_view_is_held(hold_view):
     """When the spare room runs out and the settled head left room enough, the buffer moves its live part to the
