@@ -377,6 +377,7 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         n_ev = bt.shape[1]
         nb = rot.shape[0]
         one = ti.cast(1.0, dtype)
+        zero = ti.cast(0.0, dtype)
         if ti.static(serial):
             ti.loop_config(serialize=True)
         for it in range(parts * PART_TASK):
@@ -387,15 +388,36 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
                 end = ti.min(c + batch_size, n_ev)
                 while c < end:
                     m = ti.min(CHUNK, end - c)
-                    us = ti.Vector([0.0] * CHUNK, dt=dtype)
-                    vs = ti.Vector([0.0] * CHUNK, dt=dtype)
-                    for i in range(m):  # stores to local arrays only: vectorized
-                        pu, pv = pf.project(r @ bearing(bt, c + i), width, height, su, sv)
-                        us[i] = pu
-                        vs[i] = pv
+                    # per event (vectorized: stores to local arrays only): the buffer rows and columns of its four
+                    # corners, clamped into the buffer, and their weights, 0 for a corner outside it
+                    ra = ti.Vector([0] * CHUNK, dt=ti.i32)
+                    rb = ti.Vector([0] * CHUNK, dt=ti.i32)
+                    ca = ti.Vector([0] * CHUNK, dt=ti.i32)
+                    cb = ti.Vector([0] * CHUNK, dt=ti.i32)
+                    w00 = ti.Vector([0.0] * CHUNK, dt=dtype)
+                    w01 = ti.Vector([0.0] * CHUNK, dt=dtype)
+                    w10 = ti.Vector([0.0] * CHUNK, dt=dtype)
+                    w11 = ti.Vector([0.0] * CHUNK, dt=dtype)
                     for i in range(m):
-                        ia, ib, ja, oka, okb, _, _, fu, fv = buffer_corner(us[i], vs[i], c0, r0, width, bw, bh)
-                        bl.scatter(votes, part * bh, bh, ja, ia, ib, oka, okb, fu, fv, one, ADD)
+                        pu, pv = pf.project(r @ bearing(bt, c + i), width, height, su, sv)
+                        ia, ib, ja, oka, okb, okr, oks, fu, fv = buffer_corner(pu, pv, c0, r0, width, bw, bh)
+                        ra[i] = part * bh + ti.select(okr, ja, 0)
+                        rb[i] = part * bh + ti.select(oks, ja + 1, 0)
+                        ca[i] = ti.select(oka, ia, 0)
+                        cb[i] = ti.select(okb, ib, 0)
+                        top = ti.select(okr, one - fv, zero)
+                        bottom = ti.select(oks, fv, zero)
+                        left = ti.select(oka, one - fu, zero)
+                        right = ti.select(okb, fu, zero)
+                        w00[i] = top * left
+                        w01[i] = top * right
+                        w10[i] = bottom * left
+                        w11[i] = bottom * right
+                    for i in range(m):  # plain load/add/store; a dropped corner adds 0 inside the buffer
+                        votes[ra[i], ca[i]] += w00[i]
+                        votes[ra[i], cb[i]] += w01[i]
+                        votes[rb[i], ca[i]] += w10[i]
+                        votes[rb[i], cb[i]] += w11[i]
                     c += CHUNK
         # per row: the branches outside the pixel loops (inside, with the loop over the parts, they cost ~40
         # instructions per buffer pixel, about as much as the voting per event: ~0.9 buffer pixels per event)
