@@ -452,12 +452,10 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         alpha: dtype,
         r0: ti.i32,
         c0: ti.i32,
-        comb: ti.types.ndarray(dtype=dtype, ndim=2),
         stats: ti.types.ndarray(dtype=ti.f64, ndim=2),
         tasks: ti.i32,
     ):
-        """Per-row float64 sums of L = B(I_L), L^2 and L G over the window, and comb = L + alpha G there (the
-        gradient's image before its mean is taken out)."""
+        """Per-row float64 sums of L = B(I_L), L^2 and L G over the window (reductions only: vectorized)."""
         bh, bw = lmap.shape[0], lmap.shape[1]
         gw = gmap.shape[1]
         if ti.static(serial):
@@ -473,20 +471,15 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
                     n1 = ti.min(bw, gw - c0)
                     for seam in ti.static(range(2)):  # buffer columns [0, n1), then [n1, bw) shifted by -gw
                         for j in range(n1 * seam, n1 + (bw - n1) * seam):
-                            lv = lmap[i, j]
-                            val = ti.cast(lv, ti.f64)
+                            val = ti.cast(lmap[i, j], ti.f64)
                             s1 += val
                             s2 += val * val
-                            g = gmap[gi, c0 + j - gw * seam]
-                            s3 += val * ti.cast(g, ti.f64)
-                            comb[i, j] = lv + alpha * g
+                            s3 += val * ti.cast(gmap[gi, c0 + j - gw * seam], ti.f64)
                 else:
                     for j in range(bw):
-                        lv = lmap[i, j]
-                        val = ti.cast(lv, ti.f64)
+                        val = ti.cast(lmap[i, j], ti.f64)
                         s1 += val
                         s2 += val * val
-                        comb[i, j] = lv
                 stats[i, 0] = s1
                 stats[i, 1] = s2
                 stats[i, 2] = s3
@@ -879,14 +872,28 @@ class PanoIWE:
             self.alpha = float(raw / area / rho_g) if area > 0 else 0.0
             self._density_ref = None
         separable_blur(lmap, self.taps, wrap_cols=bool(wrap), out=lmap)
-        comb = np.empty_like(lmap)  # L + alpha G, for the gradient
-        self._k["stats"](lmap, self.gmap, self.alpha, r0, c0, comb, stats, self.parts * PART_TASK)
+        self._k["stats"](lmap, self.gmap, self.alpha, r0, c0, stats, self.parts * PART_TASK)
         s_l, s_ll, s_lg = stats.sum(axis=0)
         mu = (s_l + self.alpha * self.g_sum) / self.n_px
         # sum over all px of (L + aG - mu)^2 = sum (aG - mu)^2 + sum_buf (L^2 + 2 L (aG - mu))
         base = self.alpha**2 * self.g_sq - 2 * self.alpha * mu * self.g_sum + self.n_px * mu * mu
         var = (base + s_ll + 2 * self.alpha * s_lg - 2 * mu * s_l) / self.n_px
-        return ctrl, (r0, c0, bh, bw, wrap), (lmap, comb, mu), float(var)
+        return ctrl, (r0, c0, bh, bw, wrap), (lmap, mu), float(var)
+
+    def _centred(self, lmap: np.ndarray, mu: float, r0: int, c0: int) -> np.ndarray:
+        """L + alpha G - mu on the window (a new array; vectorized numpy passes over the buffer)."""
+        out = np.empty_like(lmap)
+        if self.alpha != 0:
+            bh, bw = lmap.shape
+            n1 = min(bw, self.gmap.shape[1] - c0)  # buffer columns before the seam, then from map column 0
+            rows = self.gmap[r0:r0 + bh]
+            np.multiply(rows[:, c0:c0 + n1], self.dtype.type(self.alpha), out=out[:, :n1])
+            np.multiply(rows[:, :bw - n1], self.dtype.type(self.alpha), out=out[:, n1:])
+            out += lmap
+        else:
+            out[...] = lmap
+        out -= self.dtype.type(mu)
+        return out
 
     def _constant_var(self):
         """Variance without local votes (no events, or none in the map)."""
@@ -907,9 +914,8 @@ class PanoIWE:
         if win is None:
             return var, grad
         r0, c0, bh, bw, wrap = win
-        _, comb, mu = maps
-        comb -= self.dtype.type(mu)
-        wmap = separable_blur(comb, self.taps, wrap_cols=bool(wrap), out=comb)  # W = B(L + alpha G - mu)
+        wmap = self._centred(*maps, r0, c0)
+        wmap = separable_blur(wmap, self.taps, wrap_cols=bool(wrap), out=wmap)  # W = B(L + alpha G - mu)
         self._k["gradient"](wmap, r0, c0, self._rot, self.bearings_t, self._jac, self.batch_size, self.width,
                             self.height, self.su, self.sv, self._gb, self.parts * PART_TASK)
         # out[b, k] adds to control pose batch_s[b] + k: one bincount over (pose, axis) bins
