@@ -294,6 +294,10 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         height: ti.i32,
         su: dtype,
         sv: dtype,
+        seg_lo: ti.i32,
+        seg_hi: ti.i32,
+        om: ti.types.ndarray(dtype=vec3, ndim=1),
+        nm: ti.types.ndarray(dtype=mat3, ndim=1),
         rot_out: ti.types.ndarray(dtype=mat3, ndim=1),
         jac_out: ti.types.ndarray(dtype=mat3, ndim=2),
         bbox: ti.types.ndarray(dtype=ti.i32, ndim=2),
@@ -301,7 +305,8 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         with_grad: ti.template(),
     ):
         """Per batch: its pose (and, ``with_grad``, the spline's Jacobians) and the bounding box of the pixels its
-        rotated bearings (``bt``: (3, n)) touch.
+        rotated bearings (``bt``: (3, n)) touch. First the knot intervals [seg_lo, seg_hi) the batches reach, once
+        (spline ``segment``: om, nm).
 
         Columns are tracked relative to the batch's first event, wrapped to (-w/2, w/2], so the box is a cyclic
         interval [bbox0, bbox1) (unwrapped integers, bbox1 - bbox0 <= w); rows [bbox2, bbox3] clamped to the map.
@@ -309,17 +314,20 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         n_ev = bt.shape[1]
         half = ti.cast(width // 2, dtype)
         fw = ti.cast(width, dtype)
+        nb = batch_s.shape[0]
+        ti.loop_config(serialize=True)  # a few intervals: not worth a parallel launch
+        for k in range(seg_lo, seg_hi):
+            om[k], nm[k] = spl.segment(ctrl, k)
         if ti.static(serial):
             ti.loop_config(serialize=True)
-        nb = batch_s.shape[0]
         for it in range(tasks):
             lo, hi = even_slice(it, nb, tasks)
             for b in range(lo, hi):
                 r = ti.Matrix.zero(dtype, 3, 3)
                 if ti.static(with_grad):
-                    r = spl.pose_jacobians(ctrl, batch_s[b], batch_u[b], jac_out, b)
+                    r = spl.pose_jacobians(ctrl, om, nm, batch_s[b], batch_u[b], jac_out, b)
                 else:
-                    r = spl.pose(ctrl, batch_s[b], batch_u[b])
+                    r = spl.pose_from_segments(ctrl, om, batch_s[b], batch_u[b])
                 rot_out[b] = r
                 e0 = b * batch_size
                 pu0, _ = pf.project(r @ bearing(bt, ti.min(e0, n_ev - 1)), width, height, su, sv)
@@ -786,6 +794,10 @@ class PanoIWE:
         # written whole by the kernels before they are read
         self._jac = np.empty((nb, order, 3, 3), dtype=self.dtype)
         self._rot = np.empty((nb, 3, 3), dtype=self.dtype)  # the batches' poses
+        # the knot intervals the batches reach, [lo, hi), and their spline segments (Omega_k, N_k) by control pose
+        hi = int(self.batch_s.max()) + self.degree + 1 if nb else 1
+        self._segments = (int(self.batch_s.min()) + 1 if nb else 1, hi, np.empty((hi, 3), dtype=self.dtype),
+                          np.empty((hi, 3, 3), dtype=self.dtype))
         self._bbox = np.empty((nb, 4), dtype=np.int32)
         self._gb = np.empty((nb, order, 3), dtype=self.dtype)
         self.last_window = None  # (r0, c0, bh, bw, wrap) of the last evaluation, for inspection
@@ -837,7 +849,8 @@ class PanoIWE:
             return ctrl, None, None, None
         k = self._k
         k["poses"](ctrl, self.batch_s, self.batch_u, self.bearings_t, self.batch_size, self.width, self.height,
-                   self.su, self.sv, self._rot, self._jac, self._bbox, self.parts * PART_TASK, with_grad)
+                   self.su, self.sv, *self._segments, self._rot, self._jac, self._bbox, self.parts * PART_TASK,
+                   with_grad)
         win = self._window()
         self.last_window = win
         if win is None:
