@@ -421,11 +421,13 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
                         w01[i] = top * right
                         w10[i] = bottom * left
                         w11[i] = bottom * right
-                    for i in range(m):  # plain load/add/store; a dropped corner adds 0 inside the buffer
-                        votes[ra[i], ca[i]] += w00[i]
-                        votes[ra[i], cb[i]] += w01[i]
-                        votes[rb[i], ca[i]] += w10[i]
-                        votes[rb[i], cb[i]] += w11[i]
+                    # plain load/add/store (``+=`` would be an atomic add in a parallel loop); a dropped corner adds 0
+                    # inside the buffer
+                    for i in range(m):
+                        votes[ra[i], ca[i]] = votes[ra[i], ca[i]] + w00[i]
+                        votes[ra[i], cb[i]] = votes[ra[i], cb[i]] + w01[i]
+                        votes[rb[i], ca[i]] = votes[rb[i], ca[i]] + w10[i]
+                        votes[rb[i], cb[i]] = votes[rb[i], cb[i]] + w11[i]
                     c += CHUNK
         # per row: the branches outside the pixel loops (inside, with the loop over the parts, they cost ~40
         # instructions per buffer pixel, about as much as the voting per event: ~0.9 buffer pixels per event)
