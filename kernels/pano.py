@@ -237,7 +237,7 @@ def _proj_all(dtype) -> SimpleNamespace:
 
 
 # events per batch projected at once into local arrays before they are voted (see _iwe_kernels)
-CHUNK = 128
+CHUNK = 32
 
 
 @functools.cache
