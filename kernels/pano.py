@@ -67,12 +67,16 @@ def event_density(img: np.ndarray, lambda0: float = 1.0) -> float:
     return float(np.sum(img, dtype=np.float64) / area) if area > 0 else 0.0
 
 
-def batch_mid_times(times: np.ndarray, batch_size: int) -> np.ndarray:
-    """Mid-time (t_first + t_last) / 2 of each batch of ``batch_size`` consecutive events (last batch partial)."""
+def batch_mid_times(times: np.ndarray, batch_size: int, index: np.ndarray | None = None) -> np.ndarray:
+    """Mid-time (t_first + t_last) / 2 of each batch of ``batch_size`` consecutive events (last batch partial); of
+    the events times[index] when ``index`` is given (a sample: only its batches' first and last times are read)."""
     times = np.asarray(times, dtype=np.float64).reshape(-1)
-    first = times[::batch_size]
-    last = times[np.minimum(np.arange(len(first)) * batch_size + batch_size - 1, len(times) - 1)]
-    return 0.5 * (first + last)
+    n = len(times) if index is None else len(index)
+    first = np.arange(0, n, batch_size)
+    last = np.minimum(first + batch_size - 1, n - 1)
+    if index is not None:
+        first, last = index[first], index[last]
+    return 0.5 * (times[first] + times[last])
 
 
 def equirect_numpy(xw: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
