@@ -306,9 +306,9 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         jac_out: ti.types.ndarray(dtype=mat3, ndim=2),
         bbox: ti.types.ndarray(dtype=ti.i32, ndim=2),
         tasks: ti.i32,
-        with_grad: ti.template(),
+        with_grad: ti.i32,
     ):
-        """Per batch: its pose (and, ``with_grad``, the spline's Jacobians) and the bounding box of the pixels its
+        """Per batch: its pose (and, ``with_grad`` != 0, the spline's Jacobians) and the bounding box of the pixels its
         rotated bearings (``bt``: (3, n)) touch. First the knot intervals [seg_lo, seg_hi) the batches reach, once
         (spline ``segment``: om, nm).
 
@@ -328,7 +328,7 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
             lo, hi = even_slice(it, nb, tasks)
             for b in range(lo, hi):
                 r = ti.Matrix.zero(dtype, 3, 3)
-                if ti.static(with_grad):
+                if with_grad:  # a branch per batch, not a template: one compiled kernel for the BA and the settle
                     r = spl.pose_jacobians(ctrl, om, nm, batch_s[b], batch_u[b], jac_out, b)
                 else:
                     r = spl.pose_from_segments(ctrl, om, batch_s[b], batch_u[b])
@@ -856,7 +856,7 @@ class PanoIWE:
         k = self._k
         k["poses"](ctrl, self.batch_s, self.batch_u, self.bearings_t, self.batch_size, self.width, self.height,
                    self.su, self.sv, *self._segments, self._rot, self._jac, self._bbox, self.parts * PART_TASK,
-                   with_grad)
+                   int(with_grad))
         win = self._window()
         self.last_window = win
         if win is None:
