@@ -81,10 +81,11 @@ def spline_funcs(dtype, degree: int) -> SimpleNamespace:
 
     @ti.func
     def pose_from_segments(ctrl: ti.template(), om: ti.template(), s, u):
-        """R(s, u) from the control poses and their intervals' Omega_k (``segment``)."""
+        """R(s, u) from the control poses and their intervals' Omega_k (``segment``); a loop, as in
+        ``pose_jacobians``."""
         b = basis(u)
         r = ctrl[s]
-        for j in ti.static(range(1, n + 1)):
+        for j in range(1, n + 1):
             r = r @ g.exp(b[j] * om[s + j])
         return r
 
