@@ -86,7 +86,8 @@ def sample_numpy(img, u, v, wrap_u=False, clamp_v=False):
 # ----------------------------------------------------------------------------------------------------------------
 @functools.cache
 def bilinear_funcs(dtype) -> SimpleNamespace:
-    """ti.funcs (split, wrap_cols, col_ok, scatter, gather, interp, vote, vote_wrap, sample) for one float dtype."""
+    """ti.funcs (split, wrap_cols, col_ok, in_range, scatter, gather, interp, vote, vote_wrap, sample) for one float
+    dtype."""
     vec4 = ti.types.vector(4, dtype)
 
     @ti.func
@@ -200,8 +201,8 @@ def bilinear_funcs(dtype) -> SimpleNamespace:
         a = gather(img, 0, img.shape[0], j0, i0, i0 + 1, oka, okb, -1)
         return interp(a, fu, fv)
 
-    return SimpleNamespace(split=split, wrap_cols=wrap_cols, col_ok=col_ok, scatter=scatter, gather=gather, interp=interp,
-                           vote=vote, vote_wrap=vote_wrap, sample=sample)
+    return SimpleNamespace(split=split, wrap_cols=wrap_cols, col_ok=col_ok, in_range=in_range, scatter=scatter,
+                           gather=gather, interp=interp, vote=vote, vote_wrap=vote_wrap, sample=sample)
 
 
 __all__ = ["ADD", "ATOMIC", "CLEAR", "bilinear_funcs", "split_numpy", "corners_numpy", "vote_numpy", "sample_numpy"]

@@ -67,12 +67,16 @@ def event_density(img: np.ndarray, lambda0: float = 1.0) -> float:
     return float(np.sum(img, dtype=np.float64) / area) if area > 0 else 0.0
 
 
-def batch_mid_times(times: np.ndarray, batch_size: int) -> np.ndarray:
-    """Mid-time (t_first + t_last) / 2 of each batch of ``batch_size`` consecutive events (last batch partial)."""
+def batch_mid_times(times: np.ndarray, batch_size: int, index: np.ndarray | None = None) -> np.ndarray:
+    """Mid-time (t_first + t_last) / 2 of each batch of ``batch_size`` consecutive events (last batch partial); of
+    the events times[index] when ``index`` is given (a sample: only its batches' first and last times are read)."""
     times = np.asarray(times, dtype=np.float64).reshape(-1)
-    first = times[::batch_size]
-    last = times[np.minimum(np.arange(len(first)) * batch_size + batch_size - 1, len(times) - 1)]
-    return 0.5 * (first + last)
+    n = len(times) if index is None else len(index)
+    first = np.arange(0, n, batch_size)
+    last = np.minimum(first + batch_size - 1, n - 1)
+    if index is not None:
+        first, last = index[first], index[last]
+    return 0.5 * (times[first] + times[last])
 
 
 def equirect_numpy(xw: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -236,95 +240,136 @@ def _proj_all(dtype) -> SimpleNamespace:
                            cross_gradient=cross_gradient, fmin=fmin, fmax=fmax)
 
 
+# events per batch projected at once into local arrays before they are voted (see _iwe_kernels)
+CHUNK = 32
+
+
 @functools.cache
 def _iwe_kernels(dtype, degree: int, serial: bool = False):
     """Kernels of one cost/gradient evaluation for one dtype and spline degree (the blurs run in OpenCV between
     them: kernels/blur.py). ``serial`` (one thread): every loop runs on the calling thread; a parallel loop
     costs 65-100 us per launch even with one thread (measured, 2 loops of 100 iterations: 145-217 us against
-    24-33 us serialized), 5 of them per evaluation. With several threads each loop runs over ``tasks`` = P x
-    PART_TASK iterations (P the vote parts, the thread count) that spread the batches, parts or rows evenly: Taichi
-    makes a loop of N iterations tasks of max(512, N / threads) (kernels/runtime.py), so a loop over the 2 parts,
-    the few hundred buffer rows or fewer than 1024 batches (~100 000 events) ran on one thread (2 threads, 2 M ev/s:
-    local map 0.53 / 0.71 -> 0.41 / 0.53 s, stats 0.15 / 0.21 -> 0.13 / 0.15 s; bitwise the same sums)."""
+    24-33 us serialized). With several threads each loop runs over ``tasks`` = P x PART_TASK iterations (P the vote
+    parts, the thread count) that spread the batches or rows evenly: Taichi makes a loop of N iterations tasks of
+    max(512, N / threads) (kernels/runtime.py), so a loop over the 2 parts or the few hundred buffer rows ran on one
+    thread.
+
+    Every per-event loop that does not vote stores nothing to memory (the bounding boxes and the gradient are
+    reductions in registers): Taichi reloads an ndarray's address from the argument buffer after every store, which
+    keeps LLVM from vectorizing a loop that stores, so these loops recompute the projection from the bearings (one
+    array per coordinate) instead of storing and reloading (u, v) per event, and run 8 events per instruction (the
+    projection costs ~2.5 instead of ~13 ns per event). The vote projects ``CHUNK`` events into local arrays (not
+    ndarrays: no reload) and then votes them one by one."""
     spl = spline_funcs(dtype, degree)
     bl = bilinear_funcs(dtype)
     pf = _proj_all(dtype)
     mat3 = ti.types.matrix(3, 3, dtype)
     vec3 = ti.types.vector(3, dtype)
-    vec2 = ti.types.vector(2, dtype)  # (u, v) per event: a constant stride (an (n, 2) ndarray reloads its shape)
     order = degree + 1
 
+    @ti.func
+    def bearing(bt: ti.template(), e):
+        return vec3(bt[0, e], bt[1, e], bt[2, e])
+
+    @ti.func
+    def buffer_corner(u, v, c0, r0, width, bw, bh):
+        """Window-buffer corner of the point (u, v) and its fractions, branch-free (vectorizable): (buffer columns
+        ia, ib of map columns floor(u), floor(u) + 1 modulo the width, buffer row ja of floor(v), whether ia, ib,
+        ja, ja + 1 lie in the buffer, fu, fv). u in [-w, 2w) as the projection gives it; outside it (a non-finite
+        point) every corner is out of the buffer."""
+        i0, j0, fu, fv = bl.split(u, v)
+        ia = i0 - c0
+        ia = ti.select(ia < 0, ia + width, ia)
+        ia = ti.select(ia >= width, ia - width, ia)
+        ib = ia + 1
+        ib = ti.select(ib >= width, ib - width, ib)
+        ja = j0 - r0
+        return (ia, ib, ja, bl.in_range(ia, bw), bl.in_range(ib, bw), bl.in_range(ja, bh), bl.in_range(ja + 1, bh),
+                fu, fv)
+
     @ti.kernel
-    def k_project(
+    def k_poses(
         ctrl: ti.types.ndarray(dtype=mat3, ndim=1),
         batch_s: ti.types.ndarray(dtype=ti.i32, ndim=1),
         batch_u: ti.types.ndarray(dtype=dtype, ndim=1),
-        bearings: ti.types.ndarray(dtype=vec3, ndim=1),
+        bt: ti.types.ndarray(dtype=dtype, ndim=2),
         batch_size: ti.i32,
         width: ti.i32,
         height: ti.i32,
         su: dtype,
         sv: dtype,
+        seg_lo: ti.i32,
+        seg_hi: ti.i32,
+        om: ti.types.ndarray(dtype=vec3, ndim=1),
+        nm: ti.types.ndarray(dtype=mat3, ndim=1),
+        rot_out: ti.types.ndarray(dtype=mat3, ndim=1),
         jac_out: ti.types.ndarray(dtype=mat3, ndim=2),
-        basis_out: ti.types.ndarray(dtype=vec3, ndim=1),
-        uv_out: ti.types.ndarray(dtype=vec2, ndim=1),
         bbox: ti.types.ndarray(dtype=ti.i32, ndim=2),
         tasks: ti.i32,
-        with_grad: ti.template(),
+        with_grad: ti.i32,
     ):
-        """Per batch: pose + Jacobians, (u, v) and (s, c, t) of the rotated bearings (project_basis), and the batch's
-        bounding box of touched pixels; without ``with_grad`` (votes only: the settled strides) the pose, (u, v) and
-        the box (the spline's Jacobians and the basis cost a fifth of the pass).
+        """Per batch: its pose (and, ``with_grad`` != 0, the spline's Jacobians) and the bounding box of the pixels its
+        rotated bearings (``bt``: (3, n)) touch. First the knot intervals [seg_lo, seg_hi) the batches reach, once
+        (spline ``segment``: om, nm).
 
         Columns are tracked relative to the batch's first event, wrapped to (-w/2, w/2], so the box is a cyclic
         interval [bbox0, bbox1) (unwrapped integers, bbox1 - bbox0 <= w); rows [bbox2, bbox3] clamped to the map.
         """
-        n_ev = bearings.shape[0]
+        n_ev = bt.shape[1]
         half = ti.cast(width // 2, dtype)
         fw = ti.cast(width, dtype)
+        nb = batch_s.shape[0]
+        ti.loop_config(serialize=True)  # a few intervals: not worth a parallel launch
+        for k in range(seg_lo, seg_hi):
+            om[k], nm[k] = spl.segment(ctrl, k)
         if ti.static(serial):
             ti.loop_config(serialize=True)
-        nb = batch_s.shape[0]
         for it in range(tasks):
             lo, hi = even_slice(it, nb, tasks)
             for b in range(lo, hi):
                 r = ti.Matrix.zero(dtype, 3, 3)
-                if ti.static(with_grad):
-                    r = spl.pose_jacobians(ctrl, batch_s[b], batch_u[b], jac_out, b)
+                if with_grad:  # a branch per batch, not a template: one compiled kernel for the BA and the settle
+                    r = spl.pose_jacobians(ctrl, om, nm, batch_s[b], batch_u[b], jac_out, b)
                 else:
-                    r = spl.pose(ctrl, batch_s[b], batch_u[b])
+                    r = spl.pose_from_segments(ctrl, om, batch_s[b], batch_u[b])
+                rot_out[b] = r
                 e0 = b * batch_size
-                pu0, _ = pf.project(r @ bearings[ti.min(e0, n_ev - 1)], width, height, su, sv)
+                pu0, _ = pf.project(r @ bearing(bt, ti.min(e0, n_ev - 1)), width, height, su, sv)
                 ref = ti.floor(pu0)  # columns relative to the batch's first event
-                dmin = ti.cast(0.0, dtype)
-                dmax = ti.cast(0.0, dtype)
-                vmin = ti.cast(height, dtype)
-                vmax = ti.cast(-1.0, dtype)
-                for e in range(e0, ti.min(e0 + batch_size, n_ev)):
-                    pu, pv, q = pf.project_basis(r @ bearings[e], width, height, su, sv)
-                    if ti.static(with_grad):
-                        basis_out[e] = q
-                    uv_out[e] = vec2(pu, pv)
-                    # float min/max and selects (branch-free; the integer form with branches cost more per event)
+                # integer reductions of the floors (floor is monotonic: the floor of the extreme): LLVM vectorizes
+                # integer min/max, not float ones without a no-NaN guarantee
+                dmin = 0
+                dmax = 0
+                vmin = height
+                vmax = -1
+                for e in range(e0, ti.min(e0 + batch_size, n_ev)):  # reductions only: vectorized
+                    pu, pv = pf.project(r @ bearing(bt, e), width, height, su, sv)
                     d = pu - ref
                     d = ti.select(d > half, d - fw, d)
                     d = ti.select(d <= -half, d + fw, d)
-                    dmin = pf.fmin(dmin, d)
-                    dmax = pf.fmax(dmax, d)
-                    vmin = pf.fmin(vmin, pv)
-                    vmax = pf.fmax(vmax, pv)
+                    fd = ti.cast(ti.floor(d), ti.i32)
+                    fv = ti.cast(ti.floor(pv), ti.i32)
+                    dmin = ti.min(dmin, fd)
+                    dmax = ti.max(dmax, fd)
+                    vmin = ti.min(vmin, fv)
+                    vmax = ti.max(vmax, fv)
                 iref = ti.cast(ref, ti.i32)
-                bbox[b, 0] = iref + ti.cast(ti.floor(dmin), ti.i32)
-                bbox[b, 1] = iref + ti.cast(ti.floor(dmax), ti.i32) + 2  # the right neighbour column is touched too
-                bbox[b, 2] = ti.max(ti.cast(ti.floor(vmin), ti.i32), 0)
-                bbox[b, 3] = ti.min(ti.cast(ti.floor(vmax), ti.i32) + 1, height - 1)
+                bbox[b, 0] = iref + dmin
+                bbox[b, 1] = iref + dmax + 2  # the right neighbour column is touched too
+                bbox[b, 2] = ti.max(vmin, 0)
+                bbox[b, 3] = ti.min(vmax + 1, height - 1)
 
     @ti.kernel
-    def k_local_map(
-        uv: ti.types.ndarray(dtype=vec2, ndim=1),
+    def k_vote(
+        rot: ti.types.ndarray(dtype=mat3, ndim=1),
+        bt: ti.types.ndarray(dtype=dtype, ndim=2),
+        batch_size: ti.i32,
+        width: ti.i32,
+        height: ti.i32,
+        su: dtype,
+        sv: dtype,
         c0: ti.i32,
         r0: ti.i32,
-        width: ti.i32,
         lambda0: dtype,
         votes: ti.types.ndarray(dtype=dtype, ndim=2),
         buf: ti.types.ndarray(dtype=dtype, ndim=2),
@@ -334,22 +379,60 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         area 1 - exp(-I / lambda0) (float64; they give the density of I_L for alpha; the area only when lambda0 >= 0,
         i.e. when the caller needs it (-1 otherwise): an exp per buffer pixel).
 
-        ``votes`` holds P = rows / bh copies of the buffer: part p votes events [p n/P, (p+1) n/P) into copy p with
-        plain load/add/store, then the copies are summed in a fixed order (no float atomics, which were measured
-        2x slower than serial voting here, and bit-reproducible for a given P; the vote's tasks hold whole parts).
-        With P = 1 the caller passes the same array as ``votes`` and ``buf``: the votes are the buffer.
+        ``votes`` holds P = rows / bh copies of the buffer: part p votes the events of batches [p nb/P, (p+1) nb/P)
+        into copy p with plain load/add/store, then the copies are summed in a fixed order (no float atomics, which
+        were measured 2x slower than serial voting here, and bit-reproducible for a given P; the vote's tasks hold
+        whole parts). With P = 1 the caller passes the same array as ``votes`` and ``buf``: the votes are the buffer.
         """
         bh, bw = buf.shape[0], buf.shape[1]
         parts = votes.shape[0] // bh  # votes arrives zeroed (np.zeros: a struct-for clear cost 10 ns per pixel)
-        n_ev = uv.shape[0]
+        n_ev = bt.shape[1]
+        nb = rot.shape[0]
+        one = ti.cast(1.0, dtype)
+        zero = ti.cast(0.0, dtype)
         if ti.static(serial):
             ti.loop_config(serialize=True)
         for it in range(parts * PART_TASK):
-            part, k0, k1 = part_slice(it, n_ev, parts)
-            for e in range(k0, k1):
-                i0, j0, fu, fv = bl.split(uv[e][0], uv[e][1])
-                la, lb = bl.wrap_cols(i0 - c0, width)  # buffer columns of map columns i0, i0 + 1 (mod w)
-                bl.scatter(votes, part * bh, bh, j0 - r0, la, lb, 1, 1, fu, fv, ti.cast(1.0, dtype), ADD)
+            part, b0, b1 = part_slice(it, nb, parts)
+            for b in range(b0, b1):
+                r = rot[b]
+                c = b * batch_size
+                end = ti.min(c + batch_size, n_ev)
+                while c < end:
+                    m = ti.min(CHUNK, end - c)
+                    # per event (vectorized: stores to local arrays only): the buffer rows and columns of its four
+                    # corners, clamped into the buffer, and their weights, 0 for a corner outside it
+                    ra = ti.Vector([0] * CHUNK, dt=ti.i32)
+                    rb = ti.Vector([0] * CHUNK, dt=ti.i32)
+                    ca = ti.Vector([0] * CHUNK, dt=ti.i32)
+                    cb = ti.Vector([0] * CHUNK, dt=ti.i32)
+                    w00 = ti.Vector([0.0] * CHUNK, dt=dtype)
+                    w01 = ti.Vector([0.0] * CHUNK, dt=dtype)
+                    w10 = ti.Vector([0.0] * CHUNK, dt=dtype)
+                    w11 = ti.Vector([0.0] * CHUNK, dt=dtype)
+                    for i in range(m):
+                        pu, pv = pf.project(r @ bearing(bt, c + i), width, height, su, sv)
+                        ia, ib, ja, oka, okb, okr, oks, fu, fv = buffer_corner(pu, pv, c0, r0, width, bw, bh)
+                        ra[i] = part * bh + ti.select(okr, ja, 0)
+                        rb[i] = part * bh + ti.select(oks, ja + 1, 0)
+                        ca[i] = ti.select(oka, ia, 0)
+                        cb[i] = ti.select(okb, ib, 0)
+                        top = ti.select(okr, one - fv, zero)
+                        bottom = ti.select(oks, fv, zero)
+                        left = ti.select(oka, one - fu, zero)
+                        right = ti.select(okb, fu, zero)
+                        w00[i] = top * left
+                        w01[i] = top * right
+                        w10[i] = bottom * left
+                        w11[i] = bottom * right
+                    # plain load/add/store (``+=`` would be an atomic add in a parallel loop); a dropped corner adds 0
+                    # inside the buffer
+                    for i in range(m):
+                        votes[ra[i], ca[i]] = votes[ra[i], ca[i]] + w00[i]
+                        votes[ra[i], cb[i]] = votes[ra[i], cb[i]] + w01[i]
+                        votes[rb[i], ca[i]] = votes[rb[i], ca[i]] + w10[i]
+                        votes[rb[i], cb[i]] = votes[rb[i], cb[i]] + w11[i]
+                    c += CHUNK
         # per row: the branches outside the pixel loops (inside, with the loop over the parts, they cost ~40
         # instructions per buffer pixel, about as much as the voting per event: ~0.9 buffer pixels per event)
         if ti.static(serial):
@@ -372,7 +455,7 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
                         raw += ti.cast(acc, ti.f64)
                 if lambda0 >= 0:
                     for j in range(bw):
-                        area += ti.cast(ti.cast(1.0, dtype) - ti.exp(-buf[i, j] / lambda0), ti.f64)
+                        area += ti.cast(one - ti.exp(-buf[i, j] / lambda0), ti.f64)
                 stats[i, 0] = raw
                 stats[i, 1] = area
 
@@ -383,12 +466,10 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         alpha: dtype,
         r0: ti.i32,
         c0: ti.i32,
-        comb: ti.types.ndarray(dtype=dtype, ndim=2),
         stats: ti.types.ndarray(dtype=ti.f64, ndim=2),
         tasks: ti.i32,
     ):
-        """Per-row float64 sums of L = B(I_L), L^2 and L G over the window, and comb = L + alpha G there (the
-        gradient's image before its mean is taken out)."""
+        """Per-row float64 sums of L = B(I_L), L^2 and L G over the window (reductions only: vectorized)."""
         bh, bw = lmap.shape[0], lmap.shape[1]
         gw = gmap.shape[1]
         if ti.static(serial):
@@ -404,20 +485,15 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
                     n1 = ti.min(bw, gw - c0)
                     for seam in ti.static(range(2)):  # buffer columns [0, n1), then [n1, bw) shifted by -gw
                         for j in range(n1 * seam, n1 + (bw - n1) * seam):
-                            lv = lmap[i, j]
-                            val = ti.cast(lv, ti.f64)
+                            val = ti.cast(lmap[i, j], ti.f64)
                             s1 += val
                             s2 += val * val
-                            g = gmap[gi, c0 + j - gw * seam]
-                            s3 += val * ti.cast(g, ti.f64)
-                            comb[i, j] = lv + alpha * g
+                            s3 += val * ti.cast(gmap[gi, c0 + j - gw * seam], ti.f64)
                 else:
                     for j in range(bw):
-                        lv = lmap[i, j]
-                        val = ti.cast(lv, ti.f64)
+                        val = ti.cast(lmap[i, j], ti.f64)
                         s1 += val
                         s2 += val * val
-                        comb[i, j] = lv
                 stats[i, 0] = s1
                 stats[i, 1] = s2
                 stats[i, 2] = s3
@@ -427,36 +503,47 @@ def _iwe_kernels(dtype, degree: int, serial: bool = False):
         wmap: ti.types.ndarray(dtype=dtype, ndim=2),
         r0: ti.i32,
         c0: ti.i32,
-        basis: ti.types.ndarray(dtype=vec3, ndim=1),
-        uv: ti.types.ndarray(dtype=vec2, ndim=1),
+        rot: ti.types.ndarray(dtype=mat3, ndim=1),
+        bt: ti.types.ndarray(dtype=dtype, ndim=2),
         jac: ti.types.ndarray(dtype=mat3, ndim=2),
         batch_size: ti.i32,
         width: ti.i32,
+        height: ti.i32,
         su: dtype,
         sv: dtype,
         out: ti.types.ndarray(dtype=vec3, ndim=2),
         tasks: ti.i32,
     ):
         """Per batch g_b = sum_e X'_e x dC/dX'_e from W = B(L + alpha G - mu) on the window, and
-        out[b, k] = J_bk^T g_b."""
-        bh = wmap.shape[0]
-        n_ev = basis.shape[0]
+        out[b, k] = J_bk^T g_b. The events are projected again (a reduction without stores: vectorized, cheaper than
+        storing their (u, v) and basis in the vote and loading them here); W is read at clamped indices and masked,
+        so the loop has no branch."""
+        bh, bw = wmap.shape[0], wmap.shape[1]
+        n_ev = bt.shape[1]
+        zero = ti.cast(0.0, dtype)
         if ti.static(serial):
             ti.loop_config(serialize=True)
         nb = jac.shape[0]
         for it in range(tasks):
             lo, hi = even_slice(it, nb, tasks)
             for b in range(lo, hi):
+                r = rot[b]
                 g = vec3(0, 0, 0)
                 for e in range(b * batch_size, ti.min((b + 1) * batch_size, n_ev)):
-                    i0, j0, fu, fv = bl.split(uv[e][0], uv[e][1])
-                    la, lb = bl.wrap_cols(i0 - c0, width)
-                    _, gu, gv = bl.interp(bl.gather(wmap, 0, bh, j0 - r0, la, lb, 1, 1, -1), fu, fv)
-                    g += pf.cross_gradient(basis[e], gu, gv, su, sv)
+                    pu, pv, q = pf.project_basis(r @ bearing(bt, e), width, height, su, sv)
+                    ia, ib, ja, oka, okb, okr, oks, fu, fv = buffer_corner(pu, pv, c0, r0, width, bw, bh)
+                    ca = ti.select(oka, ia, 0)
+                    cb = ti.select(okb, ib, 0)
+                    ra = ti.select(okr, ja, 0)
+                    rb = ti.select(oks, ja + 1, 0)
+                    a = ti.Vector([ti.select(okr and oka, wmap[ra, ca], zero), ti.select(okr and okb, wmap[ra, cb], zero),
+                                   ti.select(oks and oka, wmap[rb, ca], zero), ti.select(oks and okb, wmap[rb, cb], zero)])
+                    _, gu, gv = bl.interp(a, fu, fv)
+                    g += pf.cross_gradient(q, gu, gv, su, sv)
                 for k in ti.static(range(order)):
                     out[b, k] = jac[b, k].transpose() @ g
 
-    return dict(project=k_project, local_map=k_local_map, stats=k_stats, gradient=k_gradient)
+    return dict(poses=k_poses, vote=k_vote, stats=k_stats, gradient=k_gradient)
 
 
 @functools.cache
@@ -704,12 +791,19 @@ class PanoIWE:
         self.dtype = np.dtype(dtype)
         self.degree, self.width, self.height = int(degree), int(width), int(height)
         self.batch_size = int(batch_size)
-        self.bearings = np.ascontiguousarray(bearings, dtype=self.dtype).reshape(-1, 3)
+        # one row per coordinate (3, n): the kernels' per-event loops load 8 consecutive events at once
+        rows = np.asarray(bearings).reshape(-1, 3)
+        if work is None:
+            self.bearings_t = np.ascontiguousarray(rows.T, dtype=self.dtype)
+        else:  # (a stride's transposed copy in memory already faulted in)
+            self.bearings_t = work.take("bearings_t", (3, len(rows)), self.dtype)
+            np.copyto(self.bearings_t, rows.T, casting="same_kind")
+        n = self.bearings_t.shape[1]
         self.batch_s = np.ascontiguousarray(batch_s, dtype=np.int32).reshape(-1)
         self.batch_u = np.ascontiguousarray(batch_u, dtype=self.dtype).reshape(-1)
         nb = len(self.batch_s)
-        if nb * self.batch_size < len(self.bearings) or (nb - 1) * self.batch_size >= max(len(self.bearings), 1):
-            raise ValueError(f"{nb} batches of {batch_size} do not match {len(self.bearings)} events")
+        if nb * self.batch_size < n or (nb - 1) * self.batch_size >= max(n, 1):
+            raise ValueError(f"{nb} batches of {batch_size} do not match {n} events")
         self.sigma = float(sigma)
         self.taps = gaussian_taps(self.sigma)
         self.radius = (len(self.taps) - 1) // 2
@@ -730,15 +824,18 @@ class PanoIWE:
             self.alpha, self.g_sum, self.g_sq = 0.0, 0.0, 0.0
             self.gmap = np.zeros((1, 1), dtype=self.dtype)
         self._k = _iwe_kernels(_ti_dtype(self.dtype), self.degree, num_threads() == 1)
-        n, order = len(self.bearings), self.degree + 1
+        order = self.degree + 1
         # written whole by the kernels before they are read (np.zeros of arrays this size is a memset per window,
         # ~2 ms for a million events: the allocator reuses freed blocks rather than fresh zero pages); from ``work``
         # when given (VoteWork: kept between instances)
         self._work = work
         take = work.take if work is not None else (lambda name, shape, dtype: np.empty(shape, dtype))
         self._jac = take("jac", (nb, order, 3, 3), self.dtype)
-        self._basis = take("basis", (n, 3), self.dtype)  # (s, c, t) per event: project_basis
-        self._uv = take("uv", (n, 2), self.dtype)
+        self._rot = take("rot", (nb, 3, 3), self.dtype)  # the batches' poses
+        # the knot intervals the batches reach, [lo, hi), and their spline segments (Omega_k, N_k) by control pose
+        hi = int(self.batch_s.max()) + self.degree + 1 if nb else 1
+        self._segments = (int(self.batch_s.min()) + 1 if nb else 1, hi, take("segment_log", (hi, 3), self.dtype),
+                          take("segment_jr", (hi, 3, 3), self.dtype))
         self._bbox = take("bbox", (nb, 4), np.int32)
         self._gb = take("gb", (nb, order, 3), self.dtype)
         self.last_window = None  # (r0, c0, bh, bw, wrap) of the last evaluation, for inspection
@@ -785,12 +882,13 @@ class PanoIWE:
         ctrl = np.ascontiguousarray(control_R, dtype=self.dtype).reshape(-1, 3, 3)
         if len(self.batch_s) and self.batch_s.max() + self.degree >= len(ctrl):
             raise ValueError("batch supports reach beyond the control poses passed")
-        if len(self.bearings) == 0:
+        if self.bearings_t.shape[1] == 0:
             self.last_window = None
             return ctrl, None, None, None
         k = self._k
-        k["project"](ctrl, self.batch_s, self.batch_u, self.bearings, self.batch_size, self.width, self.height,
-                     self.su, self.sv, self._jac, self._basis, self._uv, self._bbox, self.parts * PART_TASK, with_grad)
+        k["poses"](ctrl, self.batch_s, self.batch_u, self.bearings_t, self.batch_size, self.width, self.height,
+                   self.su, self.sv, *self._segments, self._rot, self._jac, self._bbox, self.parts * PART_TASK,
+                   int(with_grad))
         win = self._window()
         self.last_window = win
         if win is None:
@@ -803,7 +901,8 @@ class PanoIWE:
             votes = self._work.take("votes", (self.parts * bh, bw), self.dtype, zero=True)
             lmap = votes if self.parts == 1 else self._work.take("lmap", (bh, bw), self.dtype)
         stats = np.empty((bh, 3))
-        k["local_map"](self._uv, c0, r0, self.width, lambda0, votes, lmap, stats)
+        k["vote"](self._rot, self.bearings_t, self.batch_size, self.width, self.height, self.su, self.sv, c0, r0,
+                  lambda0, votes, lmap, stats)
         return ctrl, win, lmap, stats
 
     def votes(self, control_R):
@@ -829,14 +928,28 @@ class PanoIWE:
             self.alpha = float(raw / area / rho_g) if area > 0 else 0.0
             self._density_ref = None
         separable_blur(lmap, self.taps, wrap_cols=bool(wrap), out=lmap)
-        comb = np.empty_like(lmap)  # L + alpha G, for the gradient
-        self._k["stats"](lmap, self.gmap, self.alpha, r0, c0, comb, stats, self.parts * PART_TASK)
+        self._k["stats"](lmap, self.gmap, self.alpha, r0, c0, stats, self.parts * PART_TASK)
         s_l, s_ll, s_lg = stats.sum(axis=0)
         mu = (s_l + self.alpha * self.g_sum) / self.n_px
         # sum over all px of (L + aG - mu)^2 = sum (aG - mu)^2 + sum_buf (L^2 + 2 L (aG - mu))
         base = self.alpha**2 * self.g_sq - 2 * self.alpha * mu * self.g_sum + self.n_px * mu * mu
         var = (base + s_ll + 2 * self.alpha * s_lg - 2 * mu * s_l) / self.n_px
-        return ctrl, (r0, c0, bh, bw, wrap), (lmap, comb, mu), float(var)
+        return ctrl, (r0, c0, bh, bw, wrap), (lmap, mu), float(var)
+
+    def _centred(self, lmap: np.ndarray, mu: float, r0: int, c0: int) -> np.ndarray:
+        """L + alpha G - mu on the window (a new array; vectorized numpy passes over the buffer)."""
+        out = np.empty_like(lmap)
+        if self.alpha != 0:
+            bh, bw = lmap.shape
+            n1 = min(bw, self.gmap.shape[1] - c0)  # buffer columns before the seam, then from map column 0
+            rows = self.gmap[r0:r0 + bh]
+            np.multiply(rows[:, c0:c0 + n1], self.dtype.type(self.alpha), out=out[:, :n1])
+            np.multiply(rows[:, :bw - n1], self.dtype.type(self.alpha), out=out[:, n1:])
+            out += lmap
+        else:
+            out[...] = lmap
+        out -= self.dtype.type(mu)
+        return out
 
     def _constant_var(self):
         """Variance without local votes (no events, or none in the map)."""
@@ -857,11 +970,10 @@ class PanoIWE:
         if win is None:
             return var, grad
         r0, c0, bh, bw, wrap = win
-        _, comb, mu = maps
-        comb -= self.dtype.type(mu)
-        wmap = separable_blur(comb, self.taps, wrap_cols=bool(wrap), out=comb)  # W = B(L + alpha G - mu)
-        self._k["gradient"](wmap, r0, c0, self._basis, self._uv, self._jac, self.batch_size, self.width, self.su,
-                            self.sv, self._gb, self.parts * PART_TASK)
+        wmap = self._centred(*maps, r0, c0)
+        wmap = separable_blur(wmap, self.taps, wrap_cols=bool(wrap), out=wmap)  # W = B(L + alpha G - mu)
+        self._k["gradient"](wmap, r0, c0, self._rot, self.bearings_t, self._jac, self.batch_size, self.width,
+                            self.height, self.su, self.sv, self._gb, self.parts * PART_TASK)
         # out[b, k] adds to control pose batch_s[b] + k: one bincount over (pose, axis) bins
         order = self.degree + 1
         if self._grad_bins is None or self._grad_bins[0] != len(ctrl):

@@ -6,8 +6,9 @@ R(t) <- exp(sum_j J_j delta_{s+j}) R(t), with J_s = I - M_1, J_{s+j} = M_j - M_{
 M_j = B~_j P_{j-1} Jl(B~_j Omega_{s+j}) Jr^-1(Omega_{s+j}) R_{s+j}^T  (O(degree), Sommer et al. CVPR 2020).
 The numpy class is the test oracle of these funcs.
 
-``spline_funcs(dtype, degree)`` returns ``pose(ctrl, s, u)`` and ``pose_jacobians(ctrl, s, u, jac_out, row) -> R``
-(J_0..J_n written to ``jac_out[row, :]``)
+``spline_funcs(dtype, degree)`` returns ``segment(ctrl, k) -> (Omega_k, N_k)`` (what every time
+on a knot interval shares), and ``pose_from_segments(ctrl, om, s, u)`` and ``pose_jacobians(ctrl, om, nm, s, u,
+jac_out, row) -> R`` (J_0..J_n written to ``jac_out[row, :]``) that read the intervals' segments from arrays,
 where ``ctrl`` is an ndarray of 3x3 matrices and (s, u) come from ``SO3Spline.support`` (computed in float64 on
 the host, so no float32 timestamps ever enter a kernel).
 """
@@ -52,51 +53,66 @@ def spline_funcs(dtype, degree: int) -> SimpleNamespace:
         return b
 
     @ti.func
-    def pose(ctrl: ti.template(), s, u):
-        b = basis(u)
-        r = ctrl[s]
-        for j in ti.static(range(1, n + 1)):
-            om = g.log(ctrl[s + j - 1].transpose() @ ctrl[s + j])
-            r = r @ g.exp(b[j] * om)
-        return r
+    def segment(ctrl: ti.template(), k):
+        """(Omega_k, N_k) of the knot interval from control pose k - 1 to k: Omega_k = log(R_{k-1}^T R_k) and
+        N_k = Jr^-1(Omega_k) R_k^T, what every pose and Jacobian on that interval shares (computed once per interval
+        rather than once per time: the log and Jr^-1 cost most of a pose's transcendental calls)."""
+        r = ctrl[k]
+        om = g.log(ctrl[k - 1].transpose() @ r)
+        return om, g.jr_inv(om) @ r.transpose()
 
     @ti.func
-    def pose_jacobians(ctrl: ti.template(), s, u, jac_out: ti.template(), row):
-        """R(s, u); writes J_0..J_n into jac_out[row, 0..n]. M_j = B~_j P_{j-1} Jl(B~_j Omega) Jr^-1(Omega) R^T, P_j =
-        P_{j-1} exp(B~_j Omega), Omega = log(R_{s+j-1}^T R_{s+j}), J_{j-1} = M_{j-1} - M_j (M_0 = I), J_n = M_n.
-        A loop, not an unrolled sequence: Taichi transforms the body once (a cubic kernel's start-up 0.7 -> 0.3 s)."""
+    def pose_jacobians(ctrl: ti.template(), om: ti.template(), nm: ti.template(), s, u, jac_out: ti.template(), row):
+        """R(s, u) from the control poses and their intervals' ``segment`` (om[k], nm[k] for k = s + 1..s + n); writes
+        J_0..J_n into jac_out[row, 0..n]. M_j = B~_j P_{j-1} Jl(B~_j Omega) Jr^-1(Omega) R^T, P_j = P_{j-1}
+        exp(B~_j Omega), J_{j-1} = M_{j-1} - M_j (M_0 = I), J_n = M_n. A loop, not an unrolled sequence: Taichi
+        transforms the body once (a cubic kernel's start-up 0.7 -> 0.3 s)."""
         b = basis(u)
         p = ctrl[s]
         m_prev = ti.Matrix.identity(dtype, 3)
         for j in range(1, n + 1):
-            r_next = ctrl[s + j]
-            om = g.log(ctrl[s + j - 1].transpose() @ r_next)
-            a_j, jl_j = g.exp_jl(b[j] * om)
-            m = b[j] * (p @ jl_j @ g.jr_inv(om) @ r_next.transpose())
+            a_j, jl_j = g.exp_jl(b[j] * om[s + j])
+            m = b[j] * (p @ jl_j @ nm[s + j])
             jac_out[row, j - 1] = m_prev - m
             p = p @ a_j
             m_prev = m
         jac_out[row, n] = m_prev
         return p
 
-    return SimpleNamespace(basis=basis, pose=pose, pose_jacobians=pose_jacobians)
+    @ti.func
+    def pose_from_segments(ctrl: ti.template(), om: ti.template(), s, u):
+        """R(s, u) from the control poses and their intervals' Omega_k (``segment``); a loop, as in
+        ``pose_jacobians``."""
+        b = basis(u)
+        r = ctrl[s]
+        for j in range(1, n + 1):
+            r = r @ g.exp(b[j] * om[s + j])
+        return r
+
+    return SimpleNamespace(basis=basis, segment=segment, pose_jacobians=pose_jacobians,
+                           pose_from_segments=pose_from_segments)
 
 
 @functools.cache
 def _eval_kernel(dtype, degree: int):
     f = spline_funcs(dtype, degree)
     mat3 = ti.types.matrix(3, 3, dtype)
+    vec3 = ti.types.vector(3, dtype)
 
     @ti.kernel
     def k(
         ctrl: ti.types.ndarray(dtype=mat3, ndim=1),
         s: ti.types.ndarray(dtype=ti.i32, ndim=1),
         u: ti.types.ndarray(dtype=dtype, ndim=1),
+        om: ti.types.ndarray(dtype=vec3, ndim=1),
+        nm: ti.types.ndarray(dtype=mat3, ndim=1),
         out_r: ti.types.ndarray(dtype=mat3, ndim=1),
         out_j: ti.types.ndarray(dtype=mat3, ndim=2),
     ):
+        for i in range(1, ctrl.shape[0]):
+            om[i], nm[i] = f.segment(ctrl, i)
         for i in range(s.shape[0]):
-            out_r[i] = f.pose_jacobians(ctrl, s[i], u[i], out_j, i)
+            out_r[i] = f.pose_jacobians(ctrl, om, nm, s[i], u[i], out_j, i)
 
     return k
 
@@ -111,5 +127,6 @@ def spline_pose_jacobians(degree: int, control_R: np.ndarray, s: np.ndarray, u: 
     out_r = np.zeros((len(s), 3, 3), dtype=dtype)
     out_j = np.zeros((len(s), degree + 1, 3, 3), dtype=dtype)
     if len(s):
-        _eval_kernel(_dtype_of(dtype), degree)(ctrl, s, u, out_r, out_j)
+        _eval_kernel(_dtype_of(dtype), degree)(ctrl, s, u, np.zeros((len(ctrl), 3), dtype),
+                                               np.zeros((len(ctrl), 3, 3), dtype), out_r, out_j)
     return out_r, out_j

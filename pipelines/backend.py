@@ -19,6 +19,7 @@ For every window [T, T + backend_time_window_size] (T advancing by backend_slidi
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from collections import deque
@@ -424,6 +425,29 @@ class WindowUpdate:
     shape: tuple  # (degree, t0, dt) of the spline
 
 
+# a BFGS cold start on a window of at least COARSE_MIN_EVENTS events climbs first on every COARSE-th of them
+# (SlidingWindowBackend._maximise)
+COARSE, COARSE_MIN_EVENTS = 4, 100_000
+
+
+class _Relative:
+    """An objective x -> (cost, gradient) divided by var0, its cost at the initialisation (x = 0): the first call's
+    when that is at x = 0, else ``initial()``'s, unless ``start`` gave it first."""
+
+    def __init__(self, fun, initial):
+        self.fun, self.initial = fun, initial
+        self.var0 = self.scale = None
+
+    def start(self, var0: float) -> None:
+        self.var0, self.scale = var0, (1.0 / var0 if var0 > 0 else 1.0)
+
+    def __call__(self, x: np.ndarray):
+        var, g = self.fun(x)
+        if self.scale is None:
+            self.start(var if not np.any(x) else self.initial())
+        return var * self.scale, g * self.scale
+
+
 class SlidingWindowBackend:
     """Online sliding-window BA over a spline trajectory and a panoramic map (see module docstring)."""
 
@@ -774,11 +798,13 @@ class SlidingWindowBackend:
         (policy.false_maximum), or one beyond the check's bound (policy.departs) unless a local refit confirms it or
         replaces it (``_recheck``)."""
         cfg, spline = self.cfg, self.spline
-        ev_t, ev_b = policy.even_sample(ev_t, ev_b, cfg.backend_max_window_events if budget.ba_cap is None
-                                        else budget.ba_cap)
-        report.events_used = len(ev_t)
+        sample = policy.even_sample_index(len(ev_t), cfg.backend_max_window_events if budget.ba_cap is None
+                                          else budget.ba_cap)
+        if sample is not None:  # the sampled bearings (take: several times faster than ev_b[idx] on (n, 3) rows);
+            ev_b = np.take(ev_b, sample, axis=0)  # of the times only the batches' first and last are read
+        report.events_used = len(ev_b)
         first_free = policy.first_free_pose(spline.knot_times(), t0, moving_from, cfg)
-        s, u = spline.support(batch_mid_times(ev_t, cfg.event_batch_size))
+        s, u = spline.support(batch_mid_times(ev_t, cfg.event_batch_size, index=sample))
         # alpha from the event densities of the initial local map and the global map (Eq. 16-17): PanoIWE takes
         # rho(I_L) from its first evaluation, the optimiser's start at the initialization
         rho_g = self.map.density
@@ -790,9 +816,21 @@ class SlidingWindowBackend:
         n_free = len(base) - first_free
         if n_free <= 0:
             return
-        step, perturbed = perturbation_objective(problem.cost_and_grad, base, first_free,
-                                                 policy.gauge_free(t0, self.t_start, first_free))
-        result, var0, scale = self._maximise(problem, perturbed, base, first_free, n_free, budget)
+        gauge_free = policy.gauge_free(t0, self.t_start, first_free)
+        step, perturbed = perturbation_objective(problem.cost_and_grad, base, first_free, gauge_free)
+
+        def coarse(alpha: float):  # the same objective over every COARSE-th event (a cold start's first climb)
+            rows = np.arange(0, len(ev_b), COARSE)
+            s_k, u_k = spline.support(batch_mid_times(ev_t, cfg.event_batch_size,
+                                                      index=rows if sample is None else sample[rows]))
+            # I_L holds 1/COARSE of the votes: alpha / COARSE keeps the balance of I_L and I_G (Eq. 18)
+            few = PanoIWE(ev_b[rows], s_k, u_k, cfg.spline_degree, *self.map.ba_size, sigma=cfg.backend_blur_sigma,
+                          alpha=alpha / COARSE, batch_size=cfg.event_batch_size, global_blurred=self.map.blurred,
+                          global_sums=(self.map.g_sum, self.map.g_sq))
+            return perturbation_objective(few.cost_and_grad, base, first_free, gauge_free)[1]
+
+        result, var0, scale = self._maximise(problem, perturbed, base, first_free, n_free, budget,
+                                             coarse=coarse if len(ev_b) >= COARSE_MIN_EVENTS else None)
         report.alpha = problem.alpha  # set by the first evaluation
         # the correction: how far the optimum moves the trajectory where the window's events are (not how far it
         # moves control poses, which the events may barely reach)
@@ -823,7 +861,7 @@ class SlidingWindowBackend:
         report.variance_before, report.variance_after = var0, result.fun / scale
         report.optimized, report.iterations = True, result.iterations
         report.cut_short = result.message == "time budget reached"
-        self.events_optimized += len(ev_t)
+        self.events_optimized += report.events_used
         self._anchor_at(self._anchor[0])
 
     def _recheck(self, result, before, after, trajectory_at, refit, report: WindowReport):
@@ -853,35 +891,41 @@ class SlidingWindowBackend:
         return local, evaluations
 
     def _maximise(self, problem, perturbed, base, first_free: int, n_free: int, budget: WindowBudget,
-                  step_bound: float | None = None):
+                  step_bound: float | None = None, coarse: Callable | None = None):
         """Run the configured optimiser (BFGS warm-started from the last window's inverse Hessian, or Fletcher-Reeves
-        CG) on the relative variance: the cost divided by var0, its value at the initialization (the first
-        evaluation, x = 0), so the tolerances are scale-free. ``step_bound`` (a refit): start afresh, without the
-        carried inverse Hessian, with steps of at most this length (rad; CG: its first step), so that the optimiser
-        climbs to the maximum nearest to the initialisation. Returns (result, var0, 1 / var0)."""
+        CG) on the relative variance: the cost divided by var0, its value at the initialization (x = 0), so the
+        tolerances are scale-free. ``step_bound`` (a refit): start afresh, without the carried inverse Hessian, with
+        steps of at most this length (rad; CG: its first step), so that the optimiser climbs to the maximum nearest
+        to the initialisation. ``coarse(alpha)``: the objective over a subsample (``_refine``); a BFGS cold start
+        (no inverse Hessian to carry: the first window, or after a rejected one) climbs on it first, then continues
+        on all events from its optimum with the inverse Hessian it learnt, so the ~3 x (free poses) updates a cold
+        start needs cost a fraction of an evaluation each. Returns (result, var0, 1 / var0); the result's
+        evaluations include the coarse ones."""
         cfg = self.cfg
-        var0 = scale = None
-
-        def objective(x: np.ndarray):
-            nonlocal var0, scale
-            var, g = perturbed(x)
-            if scale is None:
-                var0 = var if not np.any(x) else problem.cost(base)
-                scale = 1.0 / var0 if var0 > 0 else 1.0
-            return var * scale, g * scale
-
+        objective = _Relative(perturbed, lambda: problem.cost(base))
         deadline = None if budget.ba_budget is None else time.monotonic() + budget.ba_budget
         init_step, max_step = self._init_step(), cfg.backend_bfgs_max_step
         if step_bound is not None:
             init_step, max_step = step_bound, min(step_bound, max_step)
         if cfg.backend_optimizer == "bfgs":
             warm = self._carried_inv_hessian(first_free, n_free) if step_bound is None else None
-            result, h = bfgs(
-                objective, np.zeros(3 * n_free), maximize=True, inv_hessian=warm,
-                init_step=init_step, max_iter=cfg.backend_cg_max_iters, grad_tol=cfg.backend_cg_grad_tol,
-                rel_cost_tol=cfg.backend_cg_rel_cost_tol, max_step=max_step,
-                max_line_evals=cfg.backend_cg_max_line_evals, deadline=deadline,
-                last_step_unevaluated=cfg.backend_bfgs_last_step_unevaluated)
+            x0, climbed = np.zeros(3 * n_free), None
+
+            def run(fun, x, inv_hessian):
+                return bfgs(fun, x, maximize=True, inv_hessian=inv_hessian, init_step=init_step,
+                            max_iter=cfg.backend_cg_max_iters, grad_tol=cfg.backend_cg_grad_tol,
+                            rel_cost_tol=cfg.backend_cg_rel_cost_tol, max_step=max_step,
+                            max_line_evals=cfg.backend_cg_max_line_evals, deadline=deadline,
+                            last_step_unevaluated=cfg.backend_bfgs_last_step_unevaluated)
+
+            if warm is None and step_bound is None and coarse is not None:
+                objective.start(problem.cost(base))  # the initialisation's variance (and alpha: the first evaluation)
+                climbed, warm = run(_Relative(coarse(problem.alpha), None), x0, None)
+                x0 = climbed.x
+            result, h = run(objective, x0, warm)
+            if climbed is not None:
+                result = dataclasses.replace(result, iterations=result.iterations + climbed.iterations,
+                                             evaluations=result.evaluations + climbed.evaluations)
             self._inv_hessian = None if h is None else (first_free, h)
         else:
             result = fletcher_reeves(
@@ -890,7 +934,7 @@ class SlidingWindowBackend:
                 grad_tol=cfg.backend_cg_grad_tol, rel_cost_tol=cfg.backend_cg_rel_cost_tol,
                 max_line_evals=cfg.backend_cg_max_line_evals, step_guess=cfg.backend_cg_step_guess,
             )
-        return result, var0, scale
+        return result, objective.var0, objective.scale
 
     def _carried_inv_hessian(self, first_free: int, n_free: int) -> np.ndarray | None:
         """The last window's BFGS inverse Hessian re-indexed to this window's free control poses: the poses both

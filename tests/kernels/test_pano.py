@@ -177,6 +177,18 @@ def test_gradient_matches_central_differences(ti_runtime, degree):
     np.testing.assert_allclose(grad, numeric, atol=1e-5 * np.abs(grad).max())
 
 
+def test_batch_mid_times_of_a_sample_read_only_its_rows():
+    """batch_mid_times(t, bs, index) = batch_mid_times(t[index], bs): the mid-times of a sample's batches without
+    gathering the sample's times (the back-end's even sample of a window)."""
+    from ti_cmax.kernels import pano
+
+    t = np.sort(np.random.default_rng(3).uniform(0, 1, 1234))
+    index = ((np.arange(517) + 0.5) * (1234 / 517)).astype(np.int64)
+    np.testing.assert_array_equal(pano.batch_mid_times(t, 100, index), pano.batch_mid_times(t[index], 100))
+    assert pano.batch_mid_times(t, 100)[-1] == 0.5 * (t[1200] + t[-1])  # the last batch partial
+    assert len(pano.batch_mid_times(t, 100, index[:0])) == 0
+
+
 def test_no_events_gives_constant_variance(ti_runtime):
     from ti_cmax.kernels import pano
 

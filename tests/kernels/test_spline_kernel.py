@@ -84,22 +84,27 @@ def test_spline_funcs_match_numpy(ti_runtime, degree, dtype, tol):
 
 @pytest.mark.parametrize("degree", [1, 3])
 def test_pose_func_matches_numpy(ti_runtime, degree):
+    """pose_from_segments (the pose alone, from the knot intervals' segments) against SO3Spline.evaluate."""
     from ti_cmax.kernels.runtime import ti
     from ti_cmax.kernels.spline import spline_funcs
 
     f = spline_funcs(ti.f64, degree)
     mat3 = ti.types.matrix(3, 3, ti.f64)
+    vec3 = ti.types.vector(3, ti.f64)
 
     @ti.kernel
     def k(ctrl: ti.types.ndarray(dtype=mat3, ndim=1), s: ti.types.ndarray(dtype=ti.i32, ndim=1),
-          u: ti.types.ndarray(dtype=ti.f64, ndim=1), out: ti.types.ndarray(dtype=mat3, ndim=1)):
+          u: ti.types.ndarray(dtype=ti.f64, ndim=1), om: ti.types.ndarray(dtype=vec3, ndim=1),
+          out: ti.types.ndarray(dtype=mat3, ndim=1)):
+        for i in range(1, ctrl.shape[0]):
+            om[i], _ = f.segment(ctrl, i)
         for i in range(s.shape[0]):
-            out[i] = f.pose(ctrl, s[i], u[i])
+            out[i] = f.pose_from_segments(ctrl, om, s[i], u[i])
 
     rng = np.random.default_rng(7)
     spline = SO3Spline(degree, 0.0, 0.05, Rotation.from_rotvec(np.cumsum(rng.normal(size=(6, 3)), 0)).as_matrix())
     times = rng.uniform(*spline.valid_time_range(), 20)
     s, u = spline.support(times)
     out = np.zeros((len(times), 3, 3))
-    k(spline.control_R, s.astype(np.int32), u, out)
+    k(spline.control_R, s.astype(np.int32), u, np.zeros((spline.num_control, 3)), out)
     np.testing.assert_allclose(out, spline.evaluate(times), atol=1e-12)
