@@ -15,13 +15,16 @@ it stands for), in batches (one rotation each) of as many sampled events as arri
 map pixel (:func:`batch_size`: an evaluation costs about one spline evaluation per batch), a map of at most 2048
 columns (a coarser level of larger panoramas), ``iterations`` L-BFGS iterations with every increment bounded by
 ``max_step`` (a pose that events barely constrain cannot run off).
+
+:func:`refine_start` then registers the start of the trajectory against the map of the later stored events: the
+first windows, few events against a young map, set the frame every later pose follows.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ti_cmax import so3
-from ti_cmax.kernels.pano import PanoIWE, batch_mid_times
+from ti_cmax.kernels.pano import PanoIWE, batch_mid_times, vote_map
 
 MAX_COLUMNS = 2048  # map columns of the joint refinement's IWE (larger panoramas: a coarser level)
 BATCH_PX = 0.5  # map pixels the camera moves at most within a batch of sampled events (at its fastest rotation)
@@ -146,6 +149,98 @@ def refine_jointly(spline, chunks, first: int, last: int, backend_cfg, width: in
         info["gain"] = float(-res.fun)
     info["max_change_deg"] = float(np.degrees(np.linalg.norm(x, axis=1).max()))
     return x, info
+
+
+def refine_start(spline, chunks, min_events: float, spacing: float, span: float, backend_cfg, width: int,
+                 height: int, *, max_events: int, iterations: int, max_step: float, slice_point=lambda: None):
+    """Left increments y (j + 1, 3) of the control poses 0..j that shape the trajectory's start, maximizing
+    Var(B(I_start) + B(I_rest)) with the later poses fixed: the stored events those poses move (I_start) registered
+    against the map of an even sample of the others (I_rest, at most ``max_events``, voted once at their poses and
+    weighted for the events they stand for); and a summary.
+
+    A camera that starts slowly gives the first windows few events while their map is young, so their poses are set
+    by little data against little map, and every later pose inherits their error through the map: aligned at the
+    start, the whole trajectory carries it as a constant rotation. Against the map the later visits built, the start
+    joins the rest. The increments are interpolated linearly between nodes every ``spacing`` seconds from the time
+    t_n the stored strides reach ``min_events`` events (the events of a window the back-end deems enough), zero from
+    t_n + ``span`` on; the poses before t_n move with the first node, as one block: their few events (a still start
+    gives sensor noise alone) would turn each of them at random. The later poses hold the world frame."""
+    from scipy.optimize import minimize
+
+    slice_point()
+    info = {"events": 0, "poses": 0, "evaluations": 0, "gain": 1.0, "max_change_deg": 0.0}
+    if not chunks or span <= 0:
+        return np.zeros((0, 3)), info
+    start, end = spline.valid_time_range()
+    stands_for = np.cumsum([len(c[0]) * c[2] for c in chunks])
+    k = min(int(np.searchsorted(stands_for, min_events)), len(chunks) - 1)
+    c_t, c_n = chunks[k][0], stands_for[k] - (stands_for[k - 1] if k else 0.0)
+    need = min_events - (stands_for[k - 1] if k else 0.0)  # events still needed within stride k
+    t_n = float(c_t[min(int(need / c_n * len(c_t)), len(c_t) - 1)]) if len(c_t) and c_n > 0 else chunks[k][3]
+    nodes = t_n + spacing * np.arange(max(int(round(span / spacing)), 1) + 1)
+    knots = spline.knot_times()
+    j = min(int(np.searchsorted(knots, nodes[-1], side="left")) - 1, spline.num_control - 1)
+    if j < 0 or nodes[-1] > end:
+        return np.zeros((0, 3)), info
+    interp = np.zeros((j + 1, len(nodes) - 1))  # poses 0..j x free nodes (the last node is zero)
+    m = np.clip(np.searchsorted(nodes, knots[:j + 1], side="right") - 1, 0, len(nodes) - 2)
+    w = np.clip((knots[:j + 1] - nodes[m]) / spacing, 0.0, 1.0)
+    interp[np.arange(j + 1), m] = 1 - w
+    inner = m + 1 < len(nodes) - 1
+    interp[np.flatnonzero(inner), m[inner] + 1] = w[inner]
+    # the strides that may hold events whose pose depends on a free control pose (the later ones only feed the map)
+    n_loc = int(np.searchsorted([c[3] for c in chunks], knots[j] + (spline.degree + 1) * spline.dt, side="right"))
+    t = np.concatenate([c[0] for c in chunks[:n_loc]])
+    b = np.concatenate([c[1] for c in chunks[:n_loc]])
+    wt = np.concatenate([np.full(len(c[0]), c[2]) for c in chunks[:n_loc]])
+    local = (t >= start) & (t <= end)
+    local[local] = spline.support(t[local])[0] <= j
+    t_loc, b_loc = t[local], b[local]
+    if len(t_loc) == 0:
+        return np.zeros((j + 1, 3)), info
+    rest = [(c[0][c[0] > t_loc[-1]], c[1][c[0] > t_loc[-1]], c[2]) for c in chunks[:n_loc]] + chunks[n_loc:]
+    t_map, b_map, frac = sample_chunks([c for c in rest if len(c[0]) and c[0][0] <= end], max_events)
+    ok = (t_map >= start) & (t_map <= end)
+    t_map, b_map = t_map[ok], b_map[ok]
+    info.update(events=int(len(t_loc)), map_events=int(len(t_map)), poses=int(j + 1), t_n=t_n - start)
+    if len(t_map) == 0:
+        return np.zeros((j + 1, 3)), info
+    f = map_level(width, height)
+    cols, rows = width // f, height // f
+    slice_point()
+    # the map of the rest: its sampled events at their fixed poses, each vote standing for 1 / frac events
+    map_batch = batch_size(spline, j, spline.num_control - 1, t_map, cols, backend_cfg.event_batch_size * frac)
+    rest_raw = vote_map(b_map, spline.evaluate(np.clip(batch_mid_times(t_map, map_batch), start, end)), cols, rows,
+                        batch_size=map_batch)
+    rest_raw /= np.float32(frac)
+    slice_point()
+    loc_frac = len(t_loc) / float(wt[local].sum())  # the stored fraction of the events they stand for
+    batch = batch_size(spline, 0, j, t_loc, cols, backend_cfg.event_batch_size * loc_frac)
+    s, u = spline.support(np.clip(batch_mid_times(t_loc, batch), start, end))
+    problem = PanoIWE(b_loc, s, u, spline.degree, cols, rows, sigma=backend_cfg.backend_blur_sigma,
+                      global_map=rest_raw, alpha=1.0, batch_size=batch)
+    base = spline.control_R.copy()
+    scale = []
+
+    def objective(z):
+        slice_point()
+        y = interp @ z.reshape(-1, 3)
+        ctrl = base.copy()
+        ctrl[:j + 1] = so3.exp(y) @ base[:j + 1]
+        var, grad = problem.cost_and_grad(ctrl)
+        if not scale:
+            scale.append(1.0 / var if var > 0 else 1.0)
+        g = np.einsum("nji,nj->ni", so3.left_jacobian(y), grad[:j + 1])
+        info["evaluations"] += 1
+        return -var * scale[0], -(interp.T @ g).reshape(-1) * scale[0]
+
+    k = interp.shape[1]
+    res = minimize(objective, np.zeros(3 * k), jac=True, method="L-BFGS-B", bounds=[(-max_step, max_step)] * (3 * k),
+                   options={"maxiter": int(iterations), "maxcor": 20})
+    y = interp @ res.x.reshape(k, 3)
+    info["gain"] = float(-res.fun)
+    info["max_change_deg"] = float(np.degrees(np.linalg.norm(y, axis=1).max()))
+    return y, info
 
 
 def _interpolation(times: np.ndarray, spacing: float) -> np.ndarray | None:

@@ -43,7 +43,9 @@ through ``correct_poses`` and ``drop_map``:
    travelled, and most of the map's columns observed again since the last one) an accepted revisit is applied
    whatever its size, with a joint refinement of the poses since the old visit (``_joint_refine``,
    ``joint_refinement.refine_jointly``: a BA of all stored events) before the rebuild: the window BA's pull to the
-   map makes later visits copy the first one's errors, the joint BA averages the visits;
+   map makes later visits copy the first one's errors, the joint BA averages the visits; then the start of the
+   trajectory is registered against the map of the later events (``joint_refinement.refine_start``: the first
+   windows' error would stay in every later pose aligned at the start);
 5. real time (``slice_seconds``, set by ``ti-cmax slam --realtime``): the verification and the rebuild after it run
    (with the joint refinement) in slices (a helper thread run as a coroutine, strictly alternating with the back-end: one cost evaluation, map
    step or stored stride per slice) for at most ``slice_seconds`` before each window and in the back-end worker's
@@ -69,7 +71,7 @@ from ti_cmax.kernels.pano import (
 )
 
 from .backend import GlobalMap, WindowObserver
-from .joint_refinement import refine_jointly
+from .joint_refinement import refine_jointly, refine_start
 from .optim import bfgs
 
 _CELL = 4  # map pixels per side of an age cell
@@ -812,8 +814,9 @@ class LoopCloser(WindowObserver):
         world frame) with the stored strides, coarse: increments interpolated between nodes every 5 window lengths
         (the window BA fixes the motion within a window, the errors it leaves vary over many; every pose free
         would also fit the noise of the sampled events between the nodes), at zero mean over the nodes (only the
-        first pose holds the world frame: the refinement redistributes the errors, ``hold_mean``); returns the
-        correction in the same form (poses first..last get theirs, later ones the last one's) and fills ``info``."""
+        first pose holds the world frame: the refinement redistributes the errors, ``hold_mean``), then the start
+        (``_refine_start``, unless ``loop_joint_start_span`` is 0 or the store does not reach back to it); returns
+        the correction in the same form (poses 0..last get theirs, later ones the last one's) and fills ``info``."""
         tic, paused0 = time.perf_counter(), self._paused()
         i0, i1, spread, corr = correction
         spline = self._correct(self.backend.spline.copy(), correction)
@@ -831,10 +834,31 @@ class LoopCloser(WindowObserver):
                                     max_step=cfg.loop_max_correction, slice_point=self._slice_point, hold_mean=True)
         eye = np.broadcast_to(np.eye(3), (i0 - first, 3, 3))
         chain = np.concatenate([eye, spread, np.broadcast_to(corr, (max(last - i1, 0), 3, 3))])[:last - first + 1]
+        turns = np.concatenate([np.broadcast_to(np.eye(3), (first, 3, 3)), so3.exp(x) @ chain])  # poses 0..last
+        after = so3.exp(x[-1]) @ corr
+        if cfg.loop_joint_start_span > 0 and self.chunks and self.chunks[0][3] <= self.backend.t_start + 1e-9:
+            joint = self._correct(spline, (first, last, so3.exp(x), so3.exp(x[-1])))  # the joint refinement's poses
+            turns, after, info["start"] = self._refine_start(joint, turns, after, last)
         info.update(summary, seconds=time.perf_counter() - tic - (self._paused() - paused0))
         if self.slice_seconds is None:  # (sliced: counted with the rebuild task it runs in)
             self.profile["joint"] += info["seconds"]
-        return first, last, so3.exp(x) @ chain, so3.exp(x[-1]) @ corr
+        return 0, last, turns, after
+
+    def _refine_start(self, spline, turns, after, last: int):
+        """The joint refinement's result (left rotations ``turns`` of poses 0..last, ``after`` of the later ones,
+        turning the back-end's spline into ``spline``, which this changes) with the start of the trajectory
+        registered against the map of the later stored events (``joint_refinement.refine_start``; the later poses
+        hold the world frame); returns them and a summary. At every joint refinement: the later turns' loops and
+        refinements keep moving the rest against the start."""
+        backend, cfg = self.backend, self.cfg
+        bcfg = backend.cfg
+        y, info = refine_start(spline, list(self.chunks), bcfg.backend_min_ev_rate * bcfg.backend_time_window_size,
+                               bcfg.backend_sliding_window_stride, cfg.loop_joint_start_span, bcfg, backend.width,
+                               backend.height, max_events=cfg.loop_joint_events, iterations=cfg.loop_joint_iterations,
+                               max_step=cfg.loop_max_correction, slice_point=self._slice_point)
+        turns = turns.copy()
+        turns[:len(y)] = so3.exp(y) @ turns[:len(y)]
+        return turns, after, info
 
     def _correct(self, spline, correction):
         """Apply a loop's correction (i0, i1, spread rotations of poses i0..i1, rotation of the later poses) to a

@@ -394,6 +394,9 @@ class LoopClosureConfig(Params):
     loop_joint_events: int = param(500000, "stored events the joint refinement uses at most (an even sample)",
                                    unit="events", ge=1000)
     loop_joint_iterations: int = param(20, "L-BFGS iterations of the joint refinement", ge=1)
+    loop_joint_start_span: float = param(0.5, "with the joint refinement, the start of the trajectory (up to this "
+                                              "long after its first window's worth of events) is refined against the "
+                                              "map of the later events (0: not)", unit="s", ge=0)
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,9 @@ import pytest
 from ti_cmax import so3
 from ti_cmax.config import BackendConfig
 from ti_cmax.spline import SO3Spline
-from ti_cmax.pipelines.joint_refinement import _interpolation, batch_size, map_level, refine_jointly, sample_chunks
+from ti_cmax.pipelines.joint_refinement import (
+    _interpolation, batch_size, map_level, refine_jointly, refine_start, sample_chunks,
+)
 
 from test_loop_closure import _events, _pan, _spline
 
@@ -127,3 +129,44 @@ def test_the_setup_pauses_between_its_steps(ti_runtime, monkeypatch):
                    slice_point=lambda: steps.append("pause"))
     assert steps[:2] == ["pause", "sample"] and steps[steps.index("problem") - 1] == "pause", steps
     assert steps.index("sample") + 1 < steps.index("problem") and steps[steps.index("problem") + 1] == "pause", steps
+
+
+START_ERROR = np.radians(0.5)  # the start's error, about BUMP_AXIS: whole before 0.15 s, none from 0.45 s on
+
+
+def _started_off(t):
+    """The pan with an error of its first instants only (a first window whose young map set it off): the later
+    poses are right among themselves, so aligned at the start the whole trajectory would carry it."""
+    t = np.asarray(t, dtype=float)
+    ramp = np.clip((0.45 - t) / 0.3, 0.0, 1.0)
+    return so3.exp(np.outer(START_ERROR * ramp, BUMP_AXIS)) @ _pan(t, DURATION, TURNS)
+
+
+def test_the_start_is_registered_against_the_map_of_the_later_events(ti_runtime):
+    """The poses of the start, refined against the map the later events build, join the rest: the start's rotation
+    relative to a later pose comes close to the truth. The poses before the first window's worth of events move as
+    one block (a still start's few events would turn each of them at random)."""
+    t, b = _events(seed=6, duration=DURATION, turns=TURNS, rate=150_000)
+    spline = _spline(_started_off, duration=DURATION)
+    cfg = BackendConfig(pano_height=256)
+    rate = len(t) / DURATION
+    min_events = 0.1 * rate  # reached at about 0.1 s
+
+    def start_error(spl):  # R(t) relative to R(2 s), against the truth's, at the start (deg)
+        ts = np.array([0.1, 0.15])
+        rel = spl.evaluate(ts) @ spl.evaluate(2.0)[0].T
+        truth = _pan(ts, DURATION, TURNS) @ _pan(np.array([2.0]), DURATION, TURNS)[0].T
+        return np.degrees(so3.geodesic_angle(rel, truth))
+
+    before = start_error(spline)
+    y, info = refine_start(spline, _chunks(t, b), min_events, 0.1, 0.5, cfg, 512, 256, max_events=100_000,
+                           iterations=20, max_step=0.1)
+    refined = spline.copy()
+    refined.control_R[:len(y)] = so3.exp(y) @ refined.control_R[:len(y)]
+    after = start_error(refined)
+    assert before.min() > 0.45 and after.max() < 0.3 * before.min(), (before, after)
+    assert 0.08 < info["t_n"] < 0.12 and info["evaluations"] > 3
+    knots = spline.knot_times()
+    block = knots[:len(y)] <= info["t_n"]
+    assert block.sum() >= 3 and np.allclose(y[block], y[0], atol=1e-12)  # before t_n: one increment
+    assert np.allclose(y[knots[:len(y)] >= info["t_n"] + 0.5 - 1e-9], 0.0)  # from t_n + span on: none

@@ -636,3 +636,20 @@ def test_a_task_in_flight_waits_for_idle_time_while_the_back_end_is_behind():
     assert len(steps) == 2
     lc.before_window(0.2, 0.4, idle_only=True)
     assert len(steps) == 2
+
+
+@pytest.mark.slow
+def test_the_joint_refinement_refines_the_start(ti_runtime):
+    """With the joint refinement, the start of the trajectory is registered against the map of the later events
+    (report entry ``joint.start``; ``joint_refinement.refine_start`` is tested on its own): only the poses of the
+    start move. Off (loop_joint_start_span = 0) it does not run."""
+    (t_ev, b_ev), drifted, duration = _drifted_turns()
+    joined = _run(t_ev, b_ev, drifted, LOOP, duration=duration)
+    kept = _run(t_ev, b_ev, drifted, replace(LOOP, loop_joint_start_span=0.0), duration=duration)
+    runs = [e["joint"] for e in joined.observer.loops if e.get("joint")]
+    assert runs and all(r["start"]["evaluations"] > 3 and r["start"]["events"] > 0 for r in runs)
+    assert not any("start" in e.get("joint", {}) for e in kept.observer.loops)
+    ts = np.linspace(0.0, 1.0, 21)  # the start moved; the poses after it are those of the run without
+    moved = np.degrees(so3.geodesic_angle(joined.spline.evaluate(ts), kept.spline.evaluate(ts)))
+    t_end = runs[0]["start"]["t_n"] + LOOP.loop_joint_start_span
+    assert moved[ts < 0.1].min() > 1e-4 and moved[ts > t_end + 0.15].max() < 1e-9, moved
