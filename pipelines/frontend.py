@@ -592,11 +592,10 @@ class AngularVelocityEstimator:
                                    None if self.dither is None else self.dither.table, offset,
                                    separable=not self.camera.has_distortion)
         events = self.thin(events, packet)
-        packed = self.camera.bearings(events.x, events.y, dtype=self.ws.dtype, columns=4)
-        dts = packed[:, 3]
-        np.subtract(events.t, t_ref, out=dts, casting="unsafe")
+        packed = np.ascontiguousarray(self.camera.bearings(events.x, events.y, dtype=self.ws.dtype, columns=4).T)
+        np.subtract(events.t, t_ref, out=packed[3], casting="unsafe")
         self.ws.set_packed(packed)
-        return n, float(np.max(np.abs(dts))) if n else 0.0
+        return n, self.ws.dt_max
 
     def _objective(self, events: Events, t_ref: float, packet: bool = False):
         """Load events (thinned; ``packet``: the slicer's packet, :meth:`thinning_step`); returns (fun, s, n): fun(x)
