@@ -183,16 +183,21 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
                 m = ti.min(_BLOCK, k1 - kb)
                 us = ti.Vector([f(0.0)] * _BLOCK)
                 vs = ti.Vector([f(0.0)] * _BLOCK)
+                xs = ti.Vector([0] * _BLOCK, ti.i32)
+                ys = ti.Vector([0] * _BLOCK, ti.i32)
+                axs = ti.Vector([f(0.0)] * _BLOCK)
+                ays = ti.Vector([f(0.0)] * _BLOCK)
                 for path in ti.static(range(2)):  # 0: small angles (the series alone), 1: any angle
                     if (small != 0) == (path == 0):
                         for j in range(m):
-                            us[j], vs[j] = project(ev, kb + j, wx, wy, wz, fx, fy, cx, cy, path == 0)
+                            u, v = project(ev, kb + j, wx, wy, wz, fx, fy, cx, cy, path == 0)
+                            us[j], vs[j] = u, v
+                            xs[j], ys[j], axs[j], ays[j] = bl.split(u, v)
                 for j in range(m):
                     u = us[j]
-                    v = vs[j]
-                    uv[kb + j] = ti.Vector([u, v])
+                    uv[kb + j] = ti.Vector([u, vs[j]])
                     if u > f(-1.0):
-                        x0, y0, ax, ay = bl.split(u, v)
+                        x0, y0, ax, ay = xs[j], ys[j], axs[j], ays[j]
                         if x0 >= 0 and y0 >= 0 and x0 < w - 1 and y0 < h - 1:  # all four neighbours inside
                             r = part * h + y0
                             bx = f(1.0) - ax
@@ -252,18 +257,25 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
         for blk in range((n + _BLOCK - 1) // _BLOCK):
             kb = blk * _BLOCK
             m = ti.min(_BLOCK, n - kb)
-            ws = ti.Vector([f(0.0)] * _BLOCK)
-            gus = ti.Vector([f(0.0)] * _BLOCK)
-            gvs = ti.Vector([f(0.0)] * _BLOCK)
+            xs = ti.Vector([0] * _BLOCK, ti.i32)
+            ys = ti.Vector([0] * _BLOCK, ti.i32)
+            axs = ti.Vector([f(0.0)] * _BLOCK)
+            ays = ti.Vector([f(0.0)] * _BLOCK)
+            landed = ti.Vector([0] * _BLOCK, ti.i32)
             for j in range(m):
                 q = uv[kb + j]
-                u = q[0]
-                v = q[1]
-                if u > f(-1.0):  # landed in pass 1
-                    x0, y0, ax, ay = bl.split(u, v)
-                    hv = ti.Vector([f(0.0)] * 4)
+                landed[j] = ti.cast(q[0] > f(-1.0), ti.i32)  # landed in pass 1
+                xs[j], ys[j], axs[j], ays[j] = bl.split(ti.max(q[0], f(-1.0)), q[1])
+            h00 = ti.Vector([f(0.0)] * _BLOCK)
+            h01 = ti.Vector([f(0.0)] * _BLOCK)
+            h10 = ti.Vector([f(0.0)] * _BLOCK)
+            h11 = ti.Vector([f(0.0)] * _BLOCK)
+            for j in range(m):
+                if landed[j] != 0:
+                    x0, y0 = xs[j], ys[j]
                     if x0 >= 0 and y0 >= 0 and x0 < w - 1 and y0 < h - 1:  # all four neighbours inside
-                        hv = ti.Vector([himg[y0, x0], himg[y0, x0 + 1], himg[y0 + 1, x0], himg[y0 + 1, x0 + 1]]) - mu
+                        h00[j], h01[j] = himg[y0, x0] - mu, himg[y0, x0 + 1] - mu
+                        h10[j], h11[j] = himg[y0 + 1, x0] - mu, himg[y0 + 1, x0 + 1] - mu
                     else:
                         oka, okb = bl.col_ok(x0, w)
                         hv = bl.gather(himg, 0, h, y0, x0, x0 + 1, oka, okb, -1)
@@ -272,8 +284,13 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
                             yy = y0 + dj
                             keep = yy >= 0 and yy < h and (oka if di == 0 else okb)
                             hv[2 * dj + di] = f(keep) * (hv[2 * dj + di] - mu)
-                    # cost term sum_n w_n (H_n - mu'): sums to <I, G2 I> - mu' sum(I) = C * Np
-                    ws[j], gus[j], gvs[j] = bl.interp(hv, ax, ay)
+                        h00[j], h01[j], h10[j], h11[j] = hv[0], hv[1], hv[2], hv[3]
+            ws = ti.Vector([f(0.0)] * _BLOCK)
+            gus = ti.Vector([f(0.0)] * _BLOCK)
+            gvs = ti.Vector([f(0.0)] * _BLOCK)
+            for j in range(m):
+                # cost term sum_n w_n (H_n - mu'): sums to <I, G2 I> - mu' sum(I) = C * Np
+                ws[j], gus[j], gvs[j] = bl.interp(ti.Vector([h00[j], h01[j], h10[j], h11[j]]), axs[j], ays[j])
             gx = ti.Vector([f(0.0)] * _BLOCK)
             gy = ti.Vector([f(0.0)] * _BLOCK)
             gz = ti.Vector([f(0.0)] * _BLOCK)
