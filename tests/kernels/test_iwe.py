@@ -275,3 +275,30 @@ def test_separable_pack_is_the_per_pixel_pack(ti_runtime, dtype):
     np.testing.assert_array_equal(iwe.pack_numpy(t, x, y, table, 1, 2, n, 1.015, dxy, offset=3, dtype=dtype,
                                                  separable=True), want)
     assert span == pytest.approx(float(np.abs(want[:, 3]).max()), rel=1e-7)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("grid", [2, 16])
+def test_grid_pack_matches_numpy_twin(ti_runtime, dtype, grid):
+    """A distorted camera's bearings from a grid every ``grid`` pixels, interpolated bilinearly by kernel ``pack``:
+    its numpy twin's numbers, and between the nodes the camera's own bearings up to the interpolation error."""
+    cam = Camera(width=200, height=150, fx=180.0, fy=181.0, cx=99.2, cy=74.6, dist=(-0.1, 0.05, 0.0, 0.0, 0.0))
+    rng = np.random.default_rng(9)
+    total = 3000
+    t = np.sort(rng.uniform(2.0, 2.02, total))
+    x = rng.integers(0, cam.width, total).astype(np.uint16)
+    y = rng.integers(0, cam.height, total).astype(np.uint16)
+    x[:2], y[:2] = cam.width - 1, cam.height - 1  # the last pixel's cell: its far nodes lie past the sensor
+    cols, rows = iwe.grid_nodes(cam.width, cam.height, grid)
+    ny, nx = np.mgrid[0:rows, 0:cols] * grid
+    table = np.zeros((rows * cols, 4), dtype)
+    table[:, :3] = cam.unproject(nx.ravel(), ny.ravel())
+    n = len(range(0, total, 3))
+    ws = iwe.IWEWorkspace(cam.width, cam.height, dtype, capacity=n)
+    ws.pack(t, x, y, table, cam.width, 0, 3, n, 2.01, grid=grid)
+    want = iwe.pack_numpy(t, x, y, table, 0, 3, n, 2.01, width=cam.width, dtype=dtype, grid=grid)
+    np.testing.assert_allclose(ws.rows(), want, rtol=1e-6 if dtype == np.float32 else 1e-13, atol=1e-7)
+    exact = cam.bearings(x[::3], y[::3], np.float64)
+    err = np.abs(want[:, :2] - exact[:, :2]) * [cam.fx, cam.fy]
+    assert err.max() < (0.1 if grid == 16 else 0.01)
+    assert np.all(want[:, 2] == 1.0)

@@ -7,6 +7,7 @@ import pytest
 
 from ti_cmax import Camera, Events, FrontendConfig, so3
 from ti_cmax.events import EventBuffer
+from ti_cmax.kernels import iwe as iwe_twin
 from ti_cmax.config import replace
 from ti_cmax.pipelines.frontend import AngularVelocityEstimator, PacketSlicer, estimate_angular_velocity
 from ti_cmax.pipelines.motion import Motion
@@ -659,3 +660,26 @@ def test_packets_at_the_minimum_span_keep_one_step_of_events(ti_runtime):
     assert high.thinning_step(ev, packet=True) == 2  # 2N bounds it from below
     est.estimate(ev, 0.02)
     assert est.events_evaluated == len(est.thin(ev, packet=True))
+
+
+def test_distorted_camera_bearings_come_from_the_coarsest_grid_within_its_error(ti_runtime):
+    """A distorted camera's packets take their bearings from a grid table (bilinear between nodes every g pixels),
+    g the largest of GRID_STEPS within GRID_MAX_ERROR pixels of the per-pixel bearings; a stronger distortion needs
+    a finer grid, and an undistorted camera keeps its separable table (no grid)."""
+    from ti_cmax.pipelines import frontend as fe
+
+    mild = Camera(320, 240, 280.0, 280.0, 159.5, 119.5, dist=(-0.05, 0.01, 0.0, 0.0, 0.0))
+    strong = Camera(320, 240, 280.0, 280.0, 159.5, 119.5, dist=(-0.4, 0.2, 0.0, 0.0, 0.0))
+    g_mild, g_strong = fe.grid_step_for(mild), fe.grid_step_for(strong)
+    assert g_mild in fe.GRID_STEPS and g_strong < g_mild
+    for cam, g in ((mild, g_mild), (strong, g_strong)):
+        if not g:
+            continue
+        ys, xs = np.mgrid[0:cam.height, 0:cam.width]
+        approx = iwe_twin.grid_bearings_numpy(fe.bearing_grid(cam, g), xs.ravel(), ys.ravel(), g, cam.width,
+                                              np.float64)
+        err = np.abs(approx[:, :2] - cam.bearing_lut4[:, :2]) * [cam.fx, cam.fy]
+        assert err.max() <= fe.GRID_MAX_ERROR
+    est = AngularVelocityEstimator(mild, FrontendConfig())
+    assert est._grid == g_mild and len(est._lut) == np.prod(iwe_twin.grid_nodes(mild.width, mild.height, g_mild))
+    assert AngularVelocityEstimator(CAM, FrontendConfig())._grid == 0
