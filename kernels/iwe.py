@@ -35,7 +35,7 @@ Vectorisation: Taichi's CPU loops compile to LLVM loops that LLVM vectorises onl
 it cannot tell apart from their inputs (a store to an ndarray or a field keeps them scalar). So passes 1 and 3 run
 per block of _BLOCK events: the arithmetic (warp, projection; the gradient terms) in a loop whose results go to
 local arrays (vectorised), then the scattered reads and writes of the image in a scalar loop. Warp and vote per
-event cost 7 ns instead of 21, the gather 9 instead of 21 (HD packet of 76 000 events, 1 thread). The packet is
+event cost 7 ns instead of 21, the gather 6-8 instead of 21 (HD packet of 76 000 events, 1 thread). The packet is
 stored as rows (bx, by, bz, dt) of length N for the same reason (interleaved columns stay scalar), and a packet whose
 angles |omega| max |dt_k| are all below 0.1 rad takes the Rodrigues series alone (sin is a library call, which keeps
 a loop scalar).
