@@ -22,15 +22,23 @@ g * g (zero padding on the sensor is then exact; the outer taps below 1e-5 of th
   1. events (kernel ``vote``): warp, bilinear vote into I, sum of weights (-> mu). By default the event loops
              run on the calling thread (``IWEWorkspace`` docstring: why); with ``parts`` = P > 1 the events are
              split into P parts, each voting into its own copy of I with plain load/add/store: no float
-             atomics (compare-and-swap loops on CPU) and a deterministic sum. The projection (u, v), the
-             rotated bearing and the Rodrigues coefficients are kept per event for pass 3;
+             atomics (compare-and-swap loops on CPU) and a deterministic sum. The projection (u, v) is kept per
+             event for pass 3;
   2. pixels: H = G2 (sum_p I_p), OpenCV's separable filter with zero padding (kernels/blur.py: SIMD; Taichi's
              CPU loops are scalar, and its 13-tap horizontal pass plus a 14-row gather per event cost more:
              per evaluation 1.0-1.1 -> 0.95-1.0 ms on 240 x 180, 2.6 -> 2.2-2.6 on 640 x 480, 5.4 -> 3.5 on
              1280 x 720, 20 000 events, 1 thread);
   3. events (kernel ``gather``): H at the four neighbours, then the cost term w.H and the gradient 3-vector
-             from the stored warp, partial sums per group of 8 events (no gradient image). The cost alone
+             from the warp (computed again), partial sums per group of 8 events (no gradient image). The cost alone
              (``with_grad=False``) skips it: <I, H> - mu sum(I) is one dot product of the two images.
+Vectorisation: Taichi's CPU loops compile to LLVM loops that LLVM vectorises only when they store nothing to memory
+it cannot tell apart from their inputs (a store to an ndarray or a field keeps them scalar). So passes 1 and 3 run
+per block of _BLOCK events: the arithmetic (warp, projection; the gradient terms) in a loop whose results go to
+local arrays (vectorised), then the scattered reads and writes of the image in a scalar loop. Warp and vote per
+event cost 7 ns instead of 21, the gather 6-8 instead of 21 (HD packet of 76 000 events, 1 thread). The packet is
+stored as rows (bx, by, bz, dt) of length N for the same reason (interleaved columns stay scalar), and a packet whose
+angles |omega| max |dt_k| are all below 0.1 rad takes the Rodrigues series alone (sin is a library call, which keeps
+a loop scalar).
 Taichi 1.7.4's CPU range-for runs as tasks of >= 512 consecutive iterations, one thread each (see
 kernels/runtime.py), so a loop over the 2 parts would run on one thread: pass 1 loops over PART_TASK iterations
 per part (whole parts per task), pass 3 over event groups. Partial sums are stored per iteration and added in a
@@ -42,7 +50,7 @@ dt * Jl(phi)^T (x' x a), x' the rotated bearing and a = (dpix/dx')^T (dC/dpix).
 
 Kernels are generated per dtype (f32 for speed, f64 for finite-difference checks) and sensor
 size (compile-time constants); per-event buffers are fields allocated once per workspace, the images numpy arrays
-(for OpenCV), the packet (N, 4) an ndarray argument read in place. Kernel ``pack`` builds that packet from the
+(for OpenCV), the packet (4, N) an ndarray argument read in place. Kernel ``pack`` builds that packet from the
 events' own arrays (1 of k events, table bearings plus dither, dt) in one launch (:meth:`IWEWorkspace.pack`).
 :func:`contrast_numpy` and :func:`pack_numpy` are the float64 numpy twins (test oracles).
 """
@@ -57,7 +65,10 @@ from ti_cmax.kernels.runtime import PART_TASK, BoundLaunch, check_parts, ensure_
 
 MEASURES = {"variance": 0, "mean_square": 1}
 _DTYPES = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
-_GROUP = 8  # events per pass-3 iteration (its partial sums in f32, then f64 in order)
+_GROUP = 8  # events per partial sum of pass 3 (in f32, then f64 in order)
+_BLOCK = 64  # events per block of pass 1 and 3: a vectorised loop into local arrays, then the scalar reads/writes
+SERIES_TH2 = 0.01  # below this squared angle the Rodrigues coefficients are their series (error < 1e-16)
+SMALL_SLOT = 22  # prm slot: every angle of the packet at this omega is below sqrt(SERIES_TH2)
 
 
 GRAM_TAP_FLOOR = 1e-5  # taps of g * g below this fraction of its centre are dropped
@@ -90,22 +101,26 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
     f = ti.f32 if dtype_name == "f32" else ti.f64
     bl = bilinear_funcs(f)
     h, w = height, width
-    wp = ti.Vector.field(8, f, shape=capacity)  # pass 1 -> pass 3: u, v, x'(3), B, C, 1/z (u = -2: not in the image)
+    uv = ti.Vector.field(2, f, shape=capacity)  # pass 1 -> pass 3: u, v (u = -2: not in the image)
     out = ti.field(ti.f64, shape=8)
     psum = ti.Vector.field(2, ti.f64, shape=parts * PART_TASK)  # pass 1 partials: sum of weights, events landing
     gsum = ti.Vector.field(4, f, shape=(capacity + _GROUP - 1) // _GROUP)  # pass 3 partials per event group
 
     @ti.func
+    def series(th2):
+        """A = sin t / t, B = (1 - cos t)/t^2, C = (t - sin t)/t^3 by their 4-term series: truncation error
+        < 1e-16 for t < 0.1 (th2 < SERIES_TH2)."""
+        a = f(1.0) - th2 * f(1.0 / 6.0) * (f(1.0) - th2 * f(1.0 / 20.0) * (f(1.0) - th2 * f(1.0 / 42.0)))
+        b = f(0.5) - th2 * f(1.0 / 24.0) * (f(1.0) - th2 * f(1.0 / 30.0) * (f(1.0) - th2 * f(1.0 / 56.0)))
+        c = f(1.0 / 6.0) - th2 * f(1.0 / 120.0) * (f(1.0) - th2 * f(1.0 / 42.0) * (f(1.0) - th2 * f(1.0 / 72.0)))
+        return a, b, c
+
+    @ti.func
     def coeffs(th2):
-        """A = sin t / t, B = (1 - cos t)/t^2, C = (t - sin t)/t^3 (series for t < 0.1)."""
-        a = f(1.0)
-        b = f(0.5)
-        c = f(1.0 / 6.0)
-        if th2 < f(0.01):  # 4-term series, truncation error < 1e-16
-            a = f(1.0) - th2 / f(6.0) * (f(1.0) - th2 / f(20.0) * (f(1.0) - th2 / f(42.0)))
-            b = f(0.5) - th2 / f(24.0) * (f(1.0) - th2 / f(30.0) * (f(1.0) - th2 / f(56.0)))
-            c = f(1.0 / 6.0) - th2 / f(120.0) * (f(1.0) - th2 / f(42.0) * (f(1.0) - th2 / f(72.0)))
-        else:
+        """A, B, C at any angle: the series below t = 0.1, else from sin (a library call: a loop using it stays
+        scalar)."""
+        a, b, c = series(th2)
+        if th2 >= f(SERIES_TH2):
             th = ti.sqrt(th2)
             s = ti.sin(th)
             hs = ti.sin(f(0.5) * th)
@@ -115,15 +130,33 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
         return a, b, c
 
     @ti.func
-    def warp(ev: ti.template(), k, wx, wy, wz):
-        """Rotated bearing exp([w]x dt_k) b_k, phi = w dt_k, dt_k, B, C (ev: the packet, rows bx, by, bz, dt_k)."""
-        bk = ti.Vector([ev[k, 0], ev[k, 1], ev[k, 2]])
-        dk = ev[k, 3]
+    def warp(ev: ti.template(), k, wx, wy, wz, small: ti.template()):
+        """Rotated bearing exp([w]x dt_k) b_k, phi = w dt_k, dt_k, B, C (ev: the packet, rows bx, by, bz, dt;
+        ``small``: every |phi| of the packet is below 0.1, the series alone, a loop LLVM vectorises)."""
+        bk = ti.Vector([ev[0, k], ev[1, k], ev[2, k]])
+        dk = ev[3, k]
         phi = ti.Vector([wx * dk, wy * dk, wz * dk])
-        a, b, c = coeffs(phi.dot(phi))
+        th2 = phi.dot(phi)
+        a, b, c = f(0.0), f(0.0), f(0.0)
+        if ti.static(small):
+            a, b, c = series(th2)
+        else:
+            a, b, c = coeffs(th2)
         pb = phi.cross(bk)
         xr = bk + a * pb + b * phi.cross(pb)
         return xr, phi, dk, b, c
+
+    @ti.func
+    def project(ev: ti.template(), k, wx, wy, wz, fx, fy, cx, cy, small: ti.template()):
+        """Pixel (u, v) of event k warped at omega; u = -2 where it does not land in the image (behind the camera,
+        or all four neighbours outside): branch-free, so that a loop of it vectorises."""
+        xr, _phi, _dk, _b, _c = warp(ev, k, wx, wy, wz, small)
+        front = xr[2] > f(1e-6)
+        iz = f(1.0) / ti.select(front, xr[2], f(1.0))
+        u = fx * xr[0] * iz + cx
+        v = fy * xr[1] * iz + cy
+        inside = front and u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h))
+        return ti.select(inside, u, f(-2.0)), v
 
     @ti.kernel
     def vote(ev: ti.types.ndarray(dtype=f, ndim=2), img: ti.types.ndarray(dtype=f, ndim=2),
@@ -131,27 +164,40 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
         """Pass 1: warp and vote (in-bounds neighbours only) into the zeroed copies of I in ``img``. Part p votes
         events [p*chunk, (p+1)*chunk) into its own copy (rows [p h, (p+1) h)) with plain load/add/store (float
         atomics are compare-and-swap loops on CPU); each CPU task holds whole parts (kernels/runtime.py), so one
-        thread writes each copy, in event order (deterministic). Then mu's sums, serially in a fixed order.
-        ``prm`` = n, omega (3), fx, fy, cx, cy, measure, with_grad, then the results (see gather): an ndarray
-        argument costs ~15-20 us of Python per launch, a scalar ~3."""
+        thread writes each copy, in event order (deterministic). Per block of _BLOCK events, the warp and
+        projection run first into a local array (a loop without stores to memory, which LLVM vectorises), then
+        the votes. Then mu's sums, serially in a fixed order. ``prm`` = n, omega (3), fx, fy, cx, cy, measure,
+        with_grad, then the results (see gather), and at SMALL_SLOT whether the packet's angles are small (the
+        series alone): an ndarray argument costs ~15-20 us of Python per launch, a scalar ~3."""
         n = ti.cast(prm[0], ti.i32)
         wx, wy, wz = ti.cast(prm[1], f), ti.cast(prm[2], f), ti.cast(prm[3], f)
         fx, fy, cx, cy = ti.cast(prm[4], f), ti.cast(prm[5], f), ti.cast(prm[6], f), ti.cast(prm[7], f)
+        small = ti.cast(prm[SMALL_SLOT], ti.i32)
         ti.loop_config(serialize=serial)
         for it in range(parts * PART_TASK):
             part, k0, k1 = part_slice(it, n, parts)
             sw = f(0.0)
             cnt = 0
-            for k in range(k0, k1):
-                xr, _phi, _dk, bb, cc = warp(ev, k, wx, wy, wz)
-                wp[k][0] = f(-2.0)
-                if xr[2] > f(1e-6):
-                    iz = f(1.0) / xr[2]
-                    u = fx * xr[0] * iz + cx
-                    v = fy * xr[1] * iz + cy
-                    if u > f(-1.0) and v > f(-1.0) and u < f(float(w)) and v < f(float(h)):
-                        wp[k] = ti.Vector([u, v, xr[0], xr[1], xr[2], bb, cc, iz])
-                        x0, y0, ax, ay = bl.split(u, v)
+            kb = k0
+            while kb < k1:
+                m = ti.min(_BLOCK, k1 - kb)
+                us = ti.Vector([f(0.0)] * _BLOCK)
+                vs = ti.Vector([f(0.0)] * _BLOCK)
+                xs = ti.Vector([0] * _BLOCK, ti.i32)
+                ys = ti.Vector([0] * _BLOCK, ti.i32)
+                axs = ti.Vector([f(0.0)] * _BLOCK)
+                ays = ti.Vector([f(0.0)] * _BLOCK)
+                for path in ti.static(range(2)):  # 0: small angles (the series alone), 1: any angle
+                    if (small != 0) == (path == 0):
+                        for j in range(m):
+                            u, v = project(ev, kb + j, wx, wy, wz, fx, fy, cx, cy, path == 0)
+                            us[j], vs[j] = u, v
+                            xs[j], ys[j], axs[j], ays[j] = bl.split(u, v)
+                for j in range(m):
+                    u = us[j]
+                    uv[kb + j] = ti.Vector([u, vs[j]])
+                    if u > f(-1.0):
+                        x0, y0, ax, ay = xs[j], ys[j], axs[j], ays[j]
                         if x0 >= 0 and y0 >= 0 and x0 < w - 1 and y0 < h - 1:  # all four neighbours inside
                             r = part * h + y0
                             bx = f(1.0) - ax
@@ -164,6 +210,7 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
                             sw += bl.scatter(img, part * h, h, y0, x0, x0 + 1, x0 >= 0, x0 + 1 < w, ax, ay, f(1.0),
                                              ADD)
                         cnt += 1
+                kb += _BLOCK
             psum[it] = ti.Vector([ti.cast(sw, ti.f64), ti.cast(cnt, ti.f64)])
         ti.loop_config(serialize=True)
         for _ in range(1):
@@ -175,58 +222,89 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
             prm[10] = acc1[0]
             prm[15] = acc1[1]
 
+    @ti.func
+    def gradient_term(ev: ti.template(), k, wx, wy, wz, fx, fy, gu, gv, small: ti.template()):
+        """Event k's gradient term dt_k Jl(phi)^T (x' x a), a = (dpix/dx')^T (gu, gv): branch-free (0 where the
+        event does not land: gu = gv = 0 there, and 1/z is finite)."""
+        xr, phi, dk, b, c = warp(ev, k, wx, wy, wz, small)
+        iz = f(1.0) / ti.select(xr[2] > f(1e-6), xr[2], f(1.0))
+        av = ti.Vector([fx * gu * iz, fy * gv * iz, -(fx * gu * xr[0] + fy * gv * xr[1]) * iz * iz])
+        cc = xr.cross(av)
+        pc = phi.cross(cc)
+        return dk * (cc - b * pc + c * phi.cross(pc))
+
     @ti.kernel
     def gather(ev: ti.types.ndarray(dtype=f, ndim=2), himg: ti.types.ndarray(dtype=f, ndim=2),
                prm: ti.types.ndarray(dtype=ti.f64, ndim=1)):
-        """Pass 3: cost and gradient from H = G2 I at each event's four neighbours, _GROUP events per iteration;
-        prm[10:16] = sum of weights, cost term, gradient (3), events landing, prm[16:22] the sums of the products of
-        the groups' gradient partials (xx, xy, xz, yy, yz, zz) (a kernel's vector return costs ~70 us
-        of Python per launch)."""
+        """Pass 3: cost and gradient from H = G2 I at each event's four neighbours, per block of _BLOCK events: the
+        neighbours' values first (scalar reads), then the gradient terms (the warp again: a vectorised loop costs
+        less than storing it in pass 1 and reading it back), then the partial sums per group of _GROUP events in
+        event order. prm[10:16] = sum of weights, cost term, gradient (3), events landing, prm[16:22] the sums of
+        the products of the groups' gradient partials (xx, xy, xz, yy, yz, zz) (a kernel's vector return costs
+        ~70 us of Python per launch)."""
         n = ti.cast(prm[0], ti.i32)
         wx, wy, wz = ti.cast(prm[1], f), ti.cast(prm[2], f), ti.cast(prm[3], f)
         fx, fy = ti.cast(prm[4], f), ti.cast(prm[5], f)
         measure = ti.cast(prm[8], ti.i32)
         with_grad = ti.cast(prm[9], ti.i32)
+        small = ti.cast(prm[SMALL_SLOT], ti.i32)
         npix = f(float(h * w))
         mu = f(0.0)
         if measure == 0:
             mu = ti.cast(out[0], f) / npix
         ngroups = (n + _GROUP - 1) // _GROUP
         ti.loop_config(serialize=serial)
-        for grp in range(ngroups):
-            acc = ti.Vector([f(0.0), f(0.0), f(0.0), f(0.0)])
-            for k in range(grp * _GROUP, ti.min(n, (grp + 1) * _GROUP)):
-                q = wp[k]
-                u = q[0]
-                v = q[1]
-                if u > f(-1.0):  # stored by pass 1 (no second warp)
-                    x0, y0, ax, ay = bl.split(u, v)
-                    oka, okb = bl.col_ok(x0, w)
-                    hv = bl.gather(himg, 0, h, y0, x0, x0 + 1, oka, okb, -1)
-                    # neighbours outside the image are dropped (weight 0), the others carry H - mu'
-                    for dj, di in ti.static(ti.ndrange(2, 2)):
-                        yy = y0 + dj
-                        keep = yy >= 0 and yy < h and (oka if di == 0 else okb)
-                        hv[2 * dj + di] = f(keep) * (hv[2 * dj + di] - mu)
-                    # cost term sum_n w_n (H_n - mu'): sums to <I, G2 I> - mu' sum(I) = C * Np
-                    wsum, gu, gv = bl.interp(hv, ax, ay)
-                    acc[3] += wsum
-                    if with_grad != 0:
-                        xr = ti.Vector([q[2], q[3], q[4]])
-                        b = q[5]
-                        c = q[6]
-                        iz = q[7]
-                        dk = ev[k, 3]
-                        phi = ti.Vector([wx * dk, wy * dk, wz * dk])
-                        av = ti.Vector([fx * gu * iz, fy * gv * iz,
-                                        -(fx * gu * xr[0] + fy * gv * xr[1]) * iz * iz])
-                        cc = xr.cross(av)
-                        pc = phi.cross(cc)
-                        gk = dk * (cc - b * pc + c * phi.cross(pc))
-                        acc[0] += gk[0]
-                        acc[1] += gk[1]
-                        acc[2] += gk[2]
-            gsum[grp] = acc
+        for blk in range((n + _BLOCK - 1) // _BLOCK):
+            kb = blk * _BLOCK
+            m = ti.min(_BLOCK, n - kb)
+            xs = ti.Vector([0] * _BLOCK, ti.i32)
+            ys = ti.Vector([0] * _BLOCK, ti.i32)
+            axs = ti.Vector([f(0.0)] * _BLOCK)
+            ays = ti.Vector([f(0.0)] * _BLOCK)
+            landed = ti.Vector([0] * _BLOCK, ti.i32)
+            for j in range(m):
+                q = uv[kb + j]
+                landed[j] = ti.cast(q[0] > f(-1.0), ti.i32)  # landed in pass 1
+                xs[j], ys[j], axs[j], ays[j] = bl.split(ti.max(q[0], f(-1.0)), q[1])
+            h00 = ti.Vector([f(0.0)] * _BLOCK)
+            h01 = ti.Vector([f(0.0)] * _BLOCK)
+            h10 = ti.Vector([f(0.0)] * _BLOCK)
+            h11 = ti.Vector([f(0.0)] * _BLOCK)
+            for j in range(m):
+                if landed[j] != 0:
+                    x0, y0 = xs[j], ys[j]
+                    if x0 >= 0 and y0 >= 0 and x0 < w - 1 and y0 < h - 1:  # all four neighbours inside
+                        h00[j], h01[j] = himg[y0, x0] - mu, himg[y0, x0 + 1] - mu
+                        h10[j], h11[j] = himg[y0 + 1, x0] - mu, himg[y0 + 1, x0 + 1] - mu
+                    else:
+                        oka, okb = bl.col_ok(x0, w)
+                        hv = bl.gather(himg, 0, h, y0, x0, x0 + 1, oka, okb, -1)
+                        # neighbours outside the image are dropped (weight 0), the others carry H - mu'
+                        for dj, di in ti.static(ti.ndrange(2, 2)):
+                            yy = y0 + dj
+                            keep = yy >= 0 and yy < h and (oka if di == 0 else okb)
+                            hv[2 * dj + di] = f(keep) * (hv[2 * dj + di] - mu)
+                        h00[j], h01[j], h10[j], h11[j] = hv[0], hv[1], hv[2], hv[3]
+            ws = ti.Vector([f(0.0)] * _BLOCK)
+            gus = ti.Vector([f(0.0)] * _BLOCK)
+            gvs = ti.Vector([f(0.0)] * _BLOCK)
+            for j in range(m):
+                # cost term sum_n w_n (H_n - mu'): sums to <I, G2 I> - mu' sum(I) = C * Np
+                ws[j], gus[j], gvs[j] = bl.interp(ti.Vector([h00[j], h01[j], h10[j], h11[j]]), axs[j], ays[j])
+            gx = ti.Vector([f(0.0)] * _BLOCK)
+            gy = ti.Vector([f(0.0)] * _BLOCK)
+            gz = ti.Vector([f(0.0)] * _BLOCK)
+            if with_grad != 0:
+                for path in ti.static(range(2)):
+                    if (small != 0) == (path == 0):
+                        for j in range(m):
+                            gk = gradient_term(ev, kb + j, wx, wy, wz, fx, fy, gus[j], gvs[j], path == 0)
+                            gx[j], gy[j], gz[j] = gk[0], gk[1], gk[2]
+            for g in range((m + _GROUP - 1) // _GROUP):
+                acc = ti.Vector([f(0.0), f(0.0), f(0.0), f(0.0)])
+                for j in range(g * _GROUP, ti.min(m, (g + 1) * _GROUP)):
+                    acc += ti.Vector([gx[j], gy[j], gz[j], ws[j]])
+                gsum[blk * (_BLOCK // _GROUP) + g] = acc
         # f64 sums of the group partials, in order, and of the products of their gradient parts (the gradient's
         # noise: IWEWorkspace.gradient_covariance)
         ti.loop_config(serialize=True)
@@ -253,7 +331,7 @@ def _build(dtype_name: str, height: int, width: int, capacity: int, parts: int, 
         for i, j in ti.ndrange(h, w):
             dst[i, j] = f(0.0)
         for k in range(n):
-            xr, _phi, _dk, _b, _c = warp(ev, k, wx, wy, wz)
+            xr, _phi, _dk, _b, _c = warp(ev, k, wx, wy, wz, False)
             if xr[2] > f(1e-6):
                 u = fx * xr[0] / xr[2] + cx
                 v = fy * xr[1] / xr[2] + cy
@@ -274,10 +352,12 @@ def _pack_kernel(dtype_name: str):
              y: ti.types.ndarray(dtype=ti.u16, ndim=1), lut: ti.types.ndarray(dtype=f, ndim=2),
              dxy: ti.types.ndarray(dtype=f, ndim=2), out: ti.types.ndarray(dtype=f, ndim=2),
              prm: ti.types.ndarray(dtype=ti.f64, ndim=1)):
-        """Row j of ``out`` from event i = start + j step (j < n): lut[y_i w + x_i] (bx, by, bz) + (dx, dy) of dither
-        row offset + j (when dithered), and dt = t_i - t_ref rounded to the workspace's float; prm = start, step, n,
-        t_ref, sensor width, dithered, dither offset, then max |dt| (out), then separable: the table is
-        (lut[x_i, 0], lut[y_i, 1], lut[y_i, 2]) (an undistorted camera: see :meth:`IWEWorkspace.pack`)."""
+        """Column j of ``out`` (rows bx, by, bz, dt) from event i = start + j step (j < n): lut[y_i w + x_i] (bx, by,
+        bz) + (dx, dy) of dither row offset + j (when dithered), and dt = t_i - t_ref rounded to the workspace's
+        float; prm = start, step, n, t_ref, sensor width, dithered, dither offset, then max |dt| (out), then
+        separable: the table is (lut[x_i, 0], lut[y_i, 1], lut[y_i, 2]) (an undistorted camera: see
+        :meth:`IWEWorkspace.pack`), then grid step g (> 0, a power of 2: the table is a grid of nodes every g
+        pixels, rows of prm[10] nodes, interpolated bilinearly; see :meth:`IWEWorkspace.pack`)."""
         start = ti.cast(prm[0], ti.i64)
         step = ti.cast(prm[1], ti.i64)
         n = ti.cast(prm[2], ti.i32)
@@ -286,6 +366,12 @@ def _pack_kernel(dtype_name: str):
         dithered = ti.cast(prm[5], ti.i32)
         offset = ti.cast(prm[6], ti.i32)
         separable = ti.cast(prm[8], ti.i32)
+        g = ti.cast(prm[9], ti.i32)
+        gw = ti.cast(prm[10], ti.i32)
+        gshift = 0
+        while (1 << gshift) < g:
+            gshift += 1
+        ginv = f(1.0) / ti.cast(ti.max(g, 1), f)
         ti.loop_config(serialize=True)
         for _ in range(1):
             big = f(0.0)
@@ -301,28 +387,64 @@ def _pack_kernel(dtype_name: str):
                 bx = lut[row_x, 0]
                 by = lut[row_y, 1]
                 bz = lut[row_y, 2]
+                if g > 0:  # bilinear between the grid nodes around the pixel
+                    gx = xi >> gshift  # g = 2^gshift: a shift, not an integer division
+                    gy = yi >> gshift
+                    ax = ti.cast(xi & (g - 1), f) * ginv
+                    ay = ti.cast(yi & (g - 1), f) * ginv
+                    r = gy * gw + gx
+                    bx = (f(1.0) - ay) * ((f(1.0) - ax) * lut[r, 0] + ax * lut[r + 1, 0]) \
+                        + ay * ((f(1.0) - ax) * lut[r + gw, 0] + ax * lut[r + gw + 1, 0])
+                    by = (f(1.0) - ay) * ((f(1.0) - ax) * lut[r, 1] + ax * lut[r + 1, 1]) \
+                        + ay * ((f(1.0) - ax) * lut[r + gw, 1] + ax * lut[r + gw + 1, 1])
+                    bz = lut[r, 2]
                 if dithered != 0:
                     bx += dxy[offset + j, 0]
                     by += dxy[offset + j, 1]
                 d = ti.cast(t[i] - t_ref, f)
-                out[j, 0] = bx
-                out[j, 1] = by
-                out[j, 2] = bz
-                out[j, 3] = d
+                out[0, j] = bx
+                out[1, j] = by
+                out[2, j] = bz
+                out[3, j] = d
                 big = ti.max(big, ti.abs(d))
             prm[7] = ti.cast(big, ti.f64)
 
     return pack
 
 
+def grid_nodes(width: int, height: int, step: int) -> tuple[int, int]:
+    """(columns, rows) of the nodes of a bearing grid every ``step`` pixels over a width x height sensor: nodes at
+    0, step, 2 step, ... up to one past the last pixel's cell (:meth:`IWEWorkspace.pack`)."""
+    return (width - 1) // step + 2, (height - 1) // step + 2
+
+
+def grid_bearings_numpy(grid, x, y, step: int, width: int, dtype=np.float32) -> np.ndarray:
+    """Twin of kernel ``pack``'s grid table (test oracle): (n, 3) bearings of pixels (x, y) interpolated bilinearly
+    between the nodes of ``grid`` ((nodes, >= 3), rows of ``grid_nodes(width, ...)[0]`` nodes), in ``dtype``."""
+    g = np.asarray(grid, dtype)
+    x, y = np.asarray(x, np.int64), np.asarray(y, np.int64)
+    gw = grid_nodes(width, 1, step)[0]
+    gx, gy = x // step, y // step
+    ax = ((x - gx * step).astype(dtype) / dtype(step))[:, None]
+    ay = ((y - gy * step).astype(dtype) / dtype(step))[:, None]
+    r = gy * gw + gx
+    one = dtype(1.0)
+    out = ((one - ay) * ((one - ax) * g[r, :2] + ax * g[r + 1, :2])
+           + ay * ((one - ax) * g[r + gw, :2] + ax * g[r + gw + 1, :2]))
+    return np.concatenate([out, g[r, 2:3]], axis=1)
+
+
 def pack_numpy(t, x, y, lut, start: int, step: int, n: int, t_ref: float, dxy=None, offset: int = 0,
-               width: int | None = None, dtype=np.float32, separable: bool = False) -> np.ndarray:
+               width: int | None = None, dtype=np.float32, separable: bool = False, grid: int = 0) -> np.ndarray:
     """Twin of kernel ``pack`` (test oracle): (n, 4) rows bx + dx, by + dy, bz, dt of events start + j step."""
     idx = start + step * np.arange(n)
     xs, ys = np.asarray(x)[idx].astype(np.int64), np.asarray(y)[idx].astype(np.int64)
     lut = np.asarray(lut, dtype)
     if separable:
         out = np.stack([lut[xs, 0], lut[ys, 1], lut[ys, 2], lut[ys, 3]], axis=1)
+    elif grid:
+        out = np.zeros((n, 4), dtype)
+        out[:, :3] = grid_bearings_numpy(lut, xs, ys, grid, int(width), dtype)
     else:
         out = lut[ys * int(width) + xs].copy()
     if dxy is not None:
@@ -359,11 +481,12 @@ class IWEWorkspace:
         # copies of I voted into without atomics by one parallel part each (default None: serial, one copy)
         self.parts = int(parts) if parts else None
         self._kernels = None
-        self._prm = np.zeros(22)  # evaluate's parameters and results (kernel arguments)
+        self._prm = np.zeros(SMALL_SLOT + 1)  # evaluate's parameters and results (kernel arguments)
         self.n = 0
-        self._packed = np.zeros((1, 4), self.dtype)  # the current packet (read by the kernels in place)
-        self._own = np.zeros((1024, 4), self.dtype)  # the packet buffer ``pack`` fills (grown as needed)
-        self._pack_prm = np.zeros(9)
+        self.dt_max = 0.0  # max |dt_k| of the packet (whether its angles are small at a given omega)
+        self._packed = np.zeros((4, 1), self.dtype)  # the current packet, rows bx, by, bz, dt (read in place)
+        self._own = np.zeros((4, 1024), self.dtype)  # the packet buffer ``pack`` fills (grown as needed)
+        self._pack_prm = np.zeros(11)
         self._no_dither = np.zeros((1, 2), self.dtype)
         self._packer = None  # BoundLaunch of kernel ``pack`` (built on first use)
 
@@ -397,14 +520,19 @@ class IWEWorkspace:
     def set_packet(self, bearings: np.ndarray, dts: np.ndarray) -> None:
         """Upload one packet: bearings (N, 3) and relative times dt_k = t_k - t_ref (N,)."""
         n = len(dts)
-        packed = np.empty((max(n, 1), 4), self.dtype)
+        packed = np.empty((4, max(n, 1)), self.dtype)
         if n:
-            packed[:n, :3] = bearings
-            packed[:n, 3] = dts
+            packed[:3, :n] = np.asarray(bearings).T
+            packed[3, :n] = dts
         self.set_packed(packed, n)
 
+    def rows(self) -> np.ndarray:
+        """The current packet as (N, 4) rows bx, by, bz, dt_k (a copy)."""
+        return self._packed[:, :self.n].T.copy()
+
     def pack(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, lut: np.ndarray, width: int, start: int, step: int,
-             n: int, t_ref: float, dxy: np.ndarray | None = None, offset: int = 0, separable: bool = False) -> float:
+             n: int, t_ref: float, dxy: np.ndarray | None = None, offset: int = 0, separable: bool = False,
+             grid: int = 0) -> float:
         """Set the packet from events read in place (``t`` float64, ``x``, ``y`` uint16 pixels, C-contiguous): rows
         j < n from events start + j step (1 of step: a thinned packet without copying it first), bearing
         lut[y * width + x] ((pixels, >= 3) of this dtype) plus dither row offset + j of ``dxy`` ((rows, 2), or None),
@@ -412,15 +540,18 @@ class IWEWorkspace:
         ~30 ns per event). Returns max |dt| over the rows. ``separable``: the bearing is (lut[x, 0], lut[y, 1],
         lut[y, 2]), a table of max(width, height) rows: an undistorted camera's bearing is ((x - cx) / fx,
         (y - cy) / fy, 1), the same numbers as its per-pixel table, from a table of a few kB that stays in the L1
-        cache where the per-pixel one (5-15 MB on VGA and HD) is read at random from memory."""
+        cache where the per-pixel one (5-15 MB on VGA and HD) is read at random from memory. ``grid`` g > 0 (a
+        distorted camera): ``lut`` holds the bearings at the nodes of a grid every g pixels (``grid_nodes``), and a
+        pixel's bearing is their bilinear interpolation: a table of a few to a few hundred kB in the cache instead
+        of random reads of the per-pixel one (HD, 15 MB: 20 -> 11 ns per event in a front-end run)."""
         self._ensure()
         n = int(n)
-        if n > len(self._own):
-            self._own = np.zeros((max(n, 2 * len(self._own)), 4), self.dtype)
+        if n > self._own.shape[1]:
+            self._own = np.zeros((4, max(n, 2 * self._own.shape[1])), self.dtype)
         if n:
             dither = dxy if dxy is not None else self._no_dither
             self._pack_prm[:7] = (start, step, n, t_ref, width, dxy is not None, offset)
-            self._pack_prm[8] = bool(separable)
+            self._pack_prm[8:11] = (bool(separable), grid, grid_nodes(width, 1, grid)[0] if grid else 0)
             args = (t, x, y, lut, dither, self._own, self._pack_prm)
             if self._packer is None:
                 self._packer = BoundLaunch(_pack_kernel(_DTYPES[self.dtype]), *args)
@@ -429,21 +560,25 @@ class IWEWorkspace:
                     if a is not self._packer._args[i]:
                         self._packer.set_array(i, a)
             self._packer()
-        self.set_packed(self._own, n)
-        return float(self._pack_prm[7]) if n else 0.0
+        self.set_packed(self._own, n, float(self._pack_prm[7]) if n else 0.0)
+        return self.dt_max
 
-    def set_packed(self, packed: np.ndarray, n: int | None = None) -> None:
-        """Set the packet: a C-contiguous (>= N, 4) array of this workspace's dtype, rows bx, by, bz, dt_k. The
-        kernels read it in place (kept by reference: do not modify it while evaluating; copying it into a field
+    def set_packed(self, packed: np.ndarray, n: int | None = None, dt_max: float | None = None) -> None:
+        """Set the packet: a C-contiguous (4, >= N) array of this workspace's dtype, rows bx, by, bz, dt_k (one
+        row per quantity: the kernels' vectorised loops read them as contiguous lanes), and max |dt_k| when known.
+        The kernels read it in place (kept by reference: do not modify it while evaluating; copying it into a field
         cost 0.13-0.24 ms per packet, more than the extra ndarray argument of each evaluation)."""
-        n = len(packed) if n is None else int(n)
-        if packed.dtype != self.dtype or not packed.flags.c_contiguous or packed.ndim != 2 or packed.shape[1] != 4:
-            raise ValueError(f"packed must be a C-contiguous (N, 4) {self.dtype} array")
+        if packed.dtype != self.dtype or not packed.flags.c_contiguous or packed.ndim != 2 or packed.shape[0] != 4:
+            raise ValueError(f"packed must be a C-contiguous (4, N) {self.dtype} array")
+        n = packed.shape[1] if n is None else int(n)
+        if dt_max is None:
+            dt_max = float(np.max(np.abs(packed[3, :n]))) if n else 0.0
+        self.dt_max = dt_max
         if n > self.capacity:
             self.capacity = 1 << int(np.ceil(np.log2(n)))
             self._kernels = None
         same = packed is self._packed  # the buffer ``pack`` fills: the launches are bound to it already
-        self._packed = packed if len(packed) else np.zeros((1, 4), self.dtype)
+        self._packed = packed if packed.shape[1] else np.zeros((4, 1), self.dtype)
         self.n = n
         if self._kernels is None:
             self._ensure()  # built (or rebuilt for the capacity) at the upload, as before the first evaluation
@@ -458,6 +593,7 @@ class IWEWorkspace:
         prm = self._prm
         prm[:10] = (self.n, omega[0], omega[1], omega[2], K[0, 0], K[1, 1], K[0, 2], K[1, 2], measure_id(measure),
                     bool(with_grad))
+        prm[SMALL_SLOT] = (omega[0] ** 2 + omega[1] ** 2 + omega[2] ** 2) * self.dt_max ** 2 < SERIES_TH2
         img = self._img
         self._vote()  # vote(packed, img, prm)
         total = img if self._parts == 1 else img.reshape(self._parts, self.height, self.width).sum(axis=0)
@@ -592,5 +728,6 @@ def gradient_covariance_numpy(terms) -> np.ndarray:
 
 __all__ = [
     "MEASURES", "IWEWorkspace", "gaussian_taps", "gram_taps", "measure_id", "contrast_and_gradient",
-    "warp_numpy", "vote_numpy", "contrast_numpy", "gradient_covariance_numpy", "pack_numpy",
+    "warp_numpy", "vote_numpy", "contrast_numpy", "gradient_covariance_numpy", "pack_numpy", "grid_nodes",
+    "grid_bearings_numpy",
 ]

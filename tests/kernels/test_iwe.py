@@ -23,8 +23,11 @@ OMEGAS = [(0.0, 0.0, 0.0), (0.8, -1.5, 0.4), (10.0, -3.0, 6.0)]
 
 @pytest.mark.parametrize("measure", ["variance", "mean_square"])
 @pytest.mark.parametrize("dtype, rtol", [(np.float64, 1e-9), (np.float32, 2e-3)])
-def test_kernel_matches_numpy_twin(ti_runtime, measure, dtype, rtol):
-    b, dts = _packet(seed=1)
+@pytest.mark.parametrize("span", [0.01, 0.1])
+def test_kernel_matches_numpy_twin(ti_runtime, measure, dtype, rtol, span):
+    """Both paths of the kernels: every angle omega dt_k below 0.1 (the Rodrigues series alone, vectorised loops),
+    and larger angles (span 0.1 s at 11.9 rad/s: up to 0.6 rad)."""
+    b, dts = _packet(seed=1, span=span)
     ws = iwe.IWEWorkspace(CAM.width, CAM.height, dtype, capacity=len(dts))
     ws.set_packet(b, dts)
     for om in OMEGAS:
@@ -42,8 +45,9 @@ def test_kernel_matches_numpy_twin(ti_runtime, measure, dtype, rtol):
 
 @pytest.mark.parametrize("measure", ["variance", "mean_square"])
 @pytest.mark.parametrize("omega", OMEGAS)
-def test_gradient_matches_central_differences(ti_runtime, measure, omega):
-    b, dts = _packet(n=2000, seed=2)
+@pytest.mark.parametrize("span", [0.01, 0.1])
+def test_gradient_matches_central_differences(ti_runtime, measure, omega, span):
+    b, dts = _packet(n=2000, seed=2, span=span)
     ws = iwe.IWEWorkspace(CAM.width, CAM.height, np.float64, capacity=len(dts))
     ws.set_packet(b, dts)
     c, g, _ = ws.evaluate(omega, CAM.K, measure)
@@ -239,7 +243,7 @@ def test_pack_matches_numpy_twin(ti_runtime, dtype, start, step, dithered):
     span = ws.pack(t, x, y, lut, CAM.width, start, step, n, t_ref, dxy, offset=17)
     want = iwe.pack_numpy(t, x, y, lut, start, step, n, t_ref, dxy, offset=17, width=CAM.width, dtype=dtype)
     assert ws.n == n
-    np.testing.assert_array_equal(ws._packed[:n], want)
+    np.testing.assert_array_equal(ws.rows(), want)
     assert span == pytest.approx(float(np.abs(want[:, 3]).max()), rel=1e-7)
     # the packed rows are what the evaluation reads: the same contrast as an upload of the same rows
     ref = iwe.IWEWorkspace(CAM.width, CAM.height, dtype, capacity=n)
@@ -267,7 +271,34 @@ def test_separable_pack_is_the_per_pixel_pack(ti_runtime, dtype):
     span = ws.pack(t, x, y, table, cam.width, 1, 2, n, 1.015, dxy, offset=3, separable=True)
     want = iwe.pack_numpy(t, x, y, cam.bearing_lut4.astype(dtype), 1, 2, n, 1.015, dxy, offset=3, width=cam.width,
                           dtype=dtype)
-    np.testing.assert_array_equal(ws._packed[:n], want)
+    np.testing.assert_array_equal(ws.rows(), want)
     np.testing.assert_array_equal(iwe.pack_numpy(t, x, y, table, 1, 2, n, 1.015, dxy, offset=3, dtype=dtype,
                                                  separable=True), want)
     assert span == pytest.approx(float(np.abs(want[:, 3]).max()), rel=1e-7)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("grid", [2, 16])
+def test_grid_pack_matches_numpy_twin(ti_runtime, dtype, grid):
+    """A distorted camera's bearings from a grid every ``grid`` pixels, interpolated bilinearly by kernel ``pack``:
+    its numpy twin's numbers, and between the nodes the camera's own bearings up to the interpolation error."""
+    cam = Camera(width=200, height=150, fx=180.0, fy=181.0, cx=99.2, cy=74.6, dist=(-0.1, 0.05, 0.0, 0.0, 0.0))
+    rng = np.random.default_rng(9)
+    total = 3000
+    t = np.sort(rng.uniform(2.0, 2.02, total))
+    x = rng.integers(0, cam.width, total).astype(np.uint16)
+    y = rng.integers(0, cam.height, total).astype(np.uint16)
+    x[:2], y[:2] = cam.width - 1, cam.height - 1  # the last pixel's cell: its far nodes lie past the sensor
+    cols, rows = iwe.grid_nodes(cam.width, cam.height, grid)
+    ny, nx = np.mgrid[0:rows, 0:cols] * grid
+    table = np.zeros((rows * cols, 4), dtype)
+    table[:, :3] = cam.unproject(nx.ravel(), ny.ravel())
+    n = len(range(0, total, 3))
+    ws = iwe.IWEWorkspace(cam.width, cam.height, dtype, capacity=n)
+    ws.pack(t, x, y, table, cam.width, 0, 3, n, 2.01, grid=grid)
+    want = iwe.pack_numpy(t, x, y, table, 0, 3, n, 2.01, width=cam.width, dtype=dtype, grid=grid)
+    np.testing.assert_allclose(ws.rows(), want, rtol=1e-6 if dtype == np.float32 else 1e-13, atol=1e-7)
+    exact = cam.bearings(x[::3], y[::3], np.float64)
+    err = np.abs(want[:, :2] - exact[:, :2]) * [cam.fx, cam.fy]
+    assert err.max() < (0.1 if grid == 16 else 0.01)
+    assert np.all(want[:, 2] == 1.0)

@@ -7,6 +7,7 @@ import pytest
 
 from ti_cmax import Camera, Events, FrontendConfig, so3
 from ti_cmax.events import EventBuffer
+from ti_cmax.kernels import iwe as iwe_twin
 from ti_cmax.config import replace
 from ti_cmax.pipelines.frontend import AngularVelocityEstimator, PacketSlicer, estimate_angular_velocity
 from ti_cmax.pipelines.motion import Motion
@@ -241,7 +242,7 @@ def test_packed_packet_is_the_thinned_dithered_bearings(ti_runtime):
     want[:, :2] += est.dither.rows(len(thin), t_ref)
     want[:, 3] = thin.t - t_ref
     assert n == len(thin) == est.ws.n
-    np.testing.assert_array_equal(est.ws._packed[:n], want)
+    np.testing.assert_array_equal(est.ws.rows(), want)
     assert span == float(np.abs(want[:, 3]).max())
 
 
@@ -601,9 +602,10 @@ def test_a_fast_pan_is_not_declared_flat(ti_runtime, monkeypatch):
 
 @pytest.mark.slow
 def test_a_stream_that_starts_at_full_speed_is_not_declared_flat(ti_runtime, monkeypatch):
-    """A stream starting in a pan that reaches 40 rad/s within 60 ms: no warm start, so every packet's optimum is far
-    from it and score-tested at omega = 0, where a 40 ms packet's IWE is blurred flat; the test is repeated over the
-    sub-span in which the optimum moves events by SUB_PX (without it: 11 of 12 packets flat, omega 0)."""
+    """A stream starting in a pan that reaches 40 rad/s within 60 ms: no warm start, so the first packet's optimum is
+    far from it and score-tested at omega = 0, where a 40 ms packet's IWE is blurred flat; the test is repeated over
+    the sub-span in which the optimum moves events by SUB_PX. With every packet's optimum tested (as after a jump),
+    the sub-span keeps them all; without it most packets are flat (omega 0)."""
     from ti_cmax.pipelines import frontend_policies
     from ti_cmax.simulate import SimulatorConfig, simulate_sequence
 
@@ -614,6 +616,8 @@ def test_a_stream_that_starts_at_full_speed_is_not_declared_flat(ti_runtime, mon
     assert not np.any(res.flat) and np.count_nonzero(fast) >= 3
     # (40 ms packets average omega over a 700 rad/s^2 ramp: within 15 % at the peak)
     assert np.all(np.linalg.norm(res.omega - truth, axis=1)[fast] < 0.15 * np.linalg.norm(truth, axis=1)[fast])
+    monkeypatch.setattr(frontend_policies, "JUMP_FRACTION", 0.0)
+    assert not np.any(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat)
     monkeypatch.setattr(frontend_policies, "FAST_PX", np.inf)
     assert np.count_nonzero(estimate_angular_velocity(seq.events, seq.camera, FrontendConfig()).flat) > 5
 
@@ -656,3 +660,26 @@ def test_packets_at_the_minimum_span_keep_one_step_of_events(ti_runtime):
     assert high.thinning_step(ev, packet=True) == 2  # 2N bounds it from below
     est.estimate(ev, 0.02)
     assert est.events_evaluated == len(est.thin(ev, packet=True))
+
+
+def test_distorted_camera_bearings_come_from_the_coarsest_grid_within_its_error(ti_runtime):
+    """A distorted camera's packets take their bearings from a grid table (bilinear between nodes every g pixels),
+    g the largest of GRID_STEPS within GRID_MAX_ERROR pixels of the per-pixel bearings; a stronger distortion needs
+    a finer grid, and an undistorted camera keeps its separable table (no grid)."""
+    from ti_cmax.pipelines import frontend as fe
+
+    mild = Camera(320, 240, 280.0, 280.0, 159.5, 119.5, dist=(-0.05, 0.01, 0.0, 0.0, 0.0))
+    strong = Camera(320, 240, 280.0, 280.0, 159.5, 119.5, dist=(-0.4, 0.2, 0.0, 0.0, 0.0))
+    g_mild, g_strong = fe.grid_step_for(mild), fe.grid_step_for(strong)
+    assert g_mild in fe.GRID_STEPS and g_strong < g_mild
+    for cam, g in ((mild, g_mild), (strong, g_strong)):
+        if not g:
+            continue
+        ys, xs = np.mgrid[0:cam.height, 0:cam.width]
+        approx = iwe_twin.grid_bearings_numpy(fe.bearing_grid(cam, g), xs.ravel(), ys.ravel(), g, cam.width,
+                                              np.float64)
+        err = np.abs(approx[:, :2] - cam.bearing_lut4[:, :2]) * [cam.fx, cam.fy]
+        assert err.max() <= fe.GRID_MAX_ERROR
+    est = AngularVelocityEstimator(mild, FrontendConfig())
+    assert est._grid == g_mild and len(est._lut) == np.prod(iwe_twin.grid_nodes(mild.width, mild.height, g_mild))
+    assert AngularVelocityEstimator(CAM, FrontendConfig())._grid == 0
