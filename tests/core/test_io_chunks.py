@@ -4,8 +4,11 @@ at every border would add a copy per event to reading, a real-time cost at VGA r
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from ti_cmax.events import Events
+from ti_cmax.errors import InputError
+from ti_cmax.events import EventBuffer, Events
+from ti_cmax.io import open_dataset, write_events_h5
 from ti_cmax.io._common import Block, validated_chunks
 
 
@@ -25,3 +28,38 @@ def test_chunks_are_exact_ordered_and_views_inside_a_block():
     assert np.shares_memory(chunks[1].t, blocks[1].events.t)
     assert not np.shares_memory(chunks[0].t, blocks[0].events.t)
     assert np.shares_memory(chunks[4].t, blocks[3].events.t)  # events 40..49 of the block 35..74
+
+
+@pytest.mark.parametrize("bad, message", [
+    (lambda t, x: t.__setitem__(20, np.nan), "event 20: timestamp is not a finite number"),
+    (lambda t, x: t.__setitem__(39, np.inf), "event 39: timestamp is not a finite number"),
+    (lambda t, x: t.__setitem__(17, t[16] - 1e-6), "event 17: timestamps are not sorted"),
+    (lambda t, x: x.__setitem__(33, 4), "event 33: x=4 is outside the sensor"),
+])
+def test_one_bad_event_inside_a_block_is_named(bad, message):
+    """Good blocks pass with one comparison per column (finite ends and non-decreasing steps: every time is finite);
+    a NaN or an infinity inside, a step back or a pixel off the sensor is still found and named."""
+    n = 40
+    t, x = np.arange(n, dtype=float) * 1e-6, np.full(n, 1, np.uint16)
+    bad(t, x)
+    block = Block(Events(t, x, np.full(n, 2, np.uint16), np.ones(n, np.int8)), None, 0)
+    with pytest.raises(InputError, match=message):
+        list(validated_chunks(iter([block]), "test", 4, 4, chunk_size=10))
+
+
+def test_hdf5_chunks_are_read_only_views_that_a_buffer_borrows(tmp_path):
+    """The HDF5 reader's chunks are read-only views of its blocks (nothing else holds them): an ``EventBuffer`` fed
+    with them in order is a range of the block, not a copy."""
+    n = 5000
+    t = np.arange(n, dtype=float) * 1e-5
+    write_events_h5(tmp_path / "ev.h5", Events(t, np.arange(n) % 8, np.arange(n) % 6, np.ones(n, np.int8)),
+                    width=8, height=6)
+    chunks = list(open_dataset(tmp_path / "ev.h5", allow_default_calibration=True).iter_events(1000))
+    assert all(not getattr(c, f).flags.writeable for c in chunks for f in "txyp")
+    buf = EventBuffer()
+    for c in chunks:
+        buf.push(c)
+        buf.drop(300)
+    view = buf.view()
+    np.testing.assert_array_equal(view.t, t[5 * 300:])
+    assert all(getattr(view, f).base is getattr(chunks[0], f).base is not None for f in "txyp")  # one block

@@ -34,12 +34,12 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
-from ..events import Events, polarity_signs
+from ..events import Events, polarity_signs, read_only_columns
 from ._common import Block, check_time_span
 
 import h5py
 
-BLOCK_EVENTS = 1 << 20  # events per slice read
+BLOCK_EVENTS = 2_000_000  # events per slice read (a multiple of the usual chunk sizes: no chunk straddles two)
 _UNITS = {"s": 1.0, "sec": 1.0, "second": 1.0, "seconds": 1.0, "ms": 1e-3, "msec": 1e-3, "millisecond": 1e-3,
           "milliseconds": 1e-3, "us": 1e-6, "usec": 1e-6, "\u00b5s": 1e-6, "\u03bcs": 1e-6, "microsecond": 1e-6,
           "microseconds": 1e-6, "ns": 1e-9, "nsec": 1e-9, "nanosecond": 1e-9, "nanoseconds": 1e-9}
@@ -326,7 +326,7 @@ class H5Events:
                     p = polarity_signs(dp[i:j], f"{self._names[3]} (events {i}..{j - 1})")
                 except InputError as exc:
                     raise InputError(str(exc), source=self.source) from None
-                yield Block(Events(t, x, y, p), None, i)
+                yield Block(read_only_columns(Events(t, x, y, p)), None, i)  # fresh arrays: buffers may borrow them
                 i = j
 
 
