@@ -20,10 +20,12 @@ def _as(a, dtype) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=dtype)
 
 
-def signed_polarity(p: np.ndarray) -> np.ndarray:
+def signed_polarity(p: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Polarities (0/1, -1/+1 or bool) as int8 {-1, +1}: p > 0 -> +1, else -1 (in int8 throughout: 1 ns per
-    event instead of 8.5 for np.where's int64 temporary; reading is a real-time cost at 12 M ev/s)."""
-    out = np.empty(np.shape(p), np.int8)  # an array of its own (not a view of a bool one): buffers may borrow it
+    event instead of 8.5 for np.where's int64 temporary; reading is a real-time cost at 12 M ev/s). ``out``: the
+    int8 array to write (it may be ``p``'s own memory: a reader's buffer), else a new one."""
+    if out is None:
+        out = np.empty(np.shape(p), np.int8)  # an array of its own (not a view of a bool one): buffers may borrow it
     np.greater(p, 0, out=out.view(bool))  # 0/1 bytes
     out += out  # in place: no temporaries
     out -= np.int8(1)
@@ -48,15 +50,15 @@ def polarity_word(text: str) -> int | None:
     return 1 if value == 1 else -1 if value in (0, -1) else None
 
 
-def polarity_signs(p, what: str = "polarity") -> np.ndarray:
+def polarity_signs(p, what: str = "polarity", out: np.ndarray | None = None) -> np.ndarray:
     """Polarities of any common dtype as int8 {-1, +1}, checked: bool; integers or floats in {-1, 0, 1} (0 and -1
     are negative); bytes or strings such as 1/0, +1/-1, +/-, on/off, true/false. Anything else (a 7, NaN, 'x', a
     compound) raises InputError naming ``what`` (the field and where) and the first offending value: p > 0 would
-    have turned it into +1 without a word."""
+    have turned it into +1 without a word. ``out``: as for ``signed_polarity`` (numbers and bool)."""
     p = np.asarray(p)
     kind = p.dtype.kind
     if kind == "b":
-        return signed_polarity(p)
+        return signed_polarity(p, out)
     if kind in "iuf":
         if p.size and (kind == "f" or not ((kind == "u" or int(p.min()) >= -1) and int(p.max()) <= 1)):
             ok = (p == 0) | (p == 1) | (p == -1)
@@ -64,7 +66,7 @@ def polarity_signs(p, what: str = "polarity") -> np.ndarray:
                 i = int(np.argmin(ok))
                 raise InputError(f"{what}: value {p[i].item()!r} at position {i} is not a polarity "
                                  "(expected 0/1, -1/+1 or true/false)")
-        return signed_polarity(p)
+        return signed_polarity(p, out)
     if kind in "SUO":
         try:
             values, inverse = np.unique(p, return_inverse=True)
@@ -282,7 +284,7 @@ class EventBuffer:
             target = None
             for candidate in (own, self._spare) if same else ():
                 if candidate is not None and candidate[1].dtype == cols[1].dtype \
-                        and 2 * (live + n) <= len(candidate[0]) and not self._viewed(candidate):
+                        and 2 * (live + n) <= len(candidate[0]) and not viewed(candidate):
                     target = candidate
                     break
             if target is None:
@@ -304,11 +306,6 @@ class EventBuffer:
             dst[self._end:self._end + n] = src
         self._end += n
 
-    @staticmethod
-    def _viewed(cols: tuple) -> bool:
-        """Whether a view of ``cols`` is alive (one more reference than the buffer's own and this call's)."""
-        return any(sys.getrefcount(c) > 3 for c in cols)
-
     def drop(self, k: int) -> None:
         """Forget the first ``k`` events (at most all of them)."""
         self._start = min(self._end, self._start + max(0, int(k)))
@@ -317,6 +314,38 @@ class EventBuffer:
         if self._cols is None or not len(self):
             return Events.empty()
         return Events(*(c[self._start:self._end] for c in self._cols))
+
+
+def viewed(cols: tuple) -> bool:
+    """Whether anything but the tuple ``cols`` (and this call) holds one of its arrays: a view, or a caller."""
+    return any(sys.getrefcount(c) > 3 for c in cols)
+
+
+class ArrayPool:
+    """Sets of columns (one array per dtype of ``dtypes``, ``size`` rows each) that a reader fills block after block:
+    ``take`` returns a set nothing else holds any more (made writeable again), else a new one, and keeps the last
+    ``keep`` sets for reuse. Fresh arrays cost a page fault per 4 kB when written (a few us each in a virtual machine:
+    more than the read itself at 12 M events/s); ``seal`` makes a filled set read-only, so buffers may borrow it
+    (``EventBuffer``) and nothing writes it while it is looked at."""
+
+    def __init__(self, dtypes, size: int, keep: int = 2):
+        self.dtypes, self.size, self.keep = [np.dtype(d) for d in dtypes], int(size), int(keep)
+        self._sets: list[tuple] = []
+
+    def take(self) -> tuple:
+        for cols in self._sets:
+            if not viewed(cols):
+                for c in cols:
+                    c.flags.writeable = True
+                return cols
+        cols = tuple(np.empty(self.size, d) for d in self.dtypes)
+        self._sets = [*self._sets[-(self.keep - 1):], cols] if self.keep > 1 else [cols]
+        return cols
+
+    @staticmethod
+    def seal(cols: tuple) -> None:
+        for c in cols:
+            c.flags.writeable = False
 
 
 def _same(a: tuple, b) -> bool:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ti_cmax.events import EventBuffer, Events, read_only_columns
+from ti_cmax.events import ArrayPool, EventBuffer, Events, read_only_columns
 
 
 def _events(t0: int, n: int, subpixel: bool = False) -> Events:
@@ -108,3 +108,23 @@ def test_writeable_columns_are_copied():
     owner.t[:] = -1.0
     np.testing.assert_array_equal(buf.view().t, np.r_[0:50, 100:200])
     assert not buf._borrowed
+
+
+def test_array_pool_reuses_a_set_once_nothing_looks_at_it():
+    """A set still looked at (a view, a caller's reference) is not handed out again: a new set is made, and the pool
+    keeps the last ``keep`` sets; a set nothing holds comes back writeable. Sealed sets are read-only."""
+    pool = ArrayPool((np.float64, np.int8), 100, keep=2)
+    a = pool.take()
+    ArrayPool.seal(a)
+    assert not a[0].flags.writeable and not a[1].flags.writeable
+    view = a[0][10:20]
+    del a
+    b = pool.take()  # the first set is looked at through ``view``
+    assert not np.shares_memory(b[0], view)
+    ids = {id(c) for c in b}
+    del b
+    c = pool.take()  # the second set: nothing holds it
+    assert {id(x) for x in c} == ids and c[0].flags.writeable
+    del view
+    d = pool.take()  # c is held by the caller; the first set is free again
+    assert not any(np.shares_memory(x, y) for x, y in zip(c, d))

@@ -3,6 +3,8 @@ order, and only the chunks that straddle two blocks are copies (a reader's block
 at every border would add a copy per event to reading, a real-time cost at VGA rates)."""
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from ti_cmax.errors import InputError
 from ti_cmax.events import EventBuffer, Events
 from ti_cmax.io import open_dataset, write_events_h5
 from ti_cmax.io._common import Block, validated_chunks
+from ti_cmax.io.h5 import H5Events
 
 
 def test_chunks_are_exact_ordered_and_views_inside_a_block():
@@ -63,3 +66,27 @@ def test_hdf5_chunks_are_read_only_views_that_a_buffer_borrows(tmp_path):
     view = buf.view()
     np.testing.assert_array_equal(view.t, t[5 * 300:])
     assert all(getattr(view, f).base is getattr(chunks[0], f).base is not None for f in "txyp")  # one block
+
+
+def test_hdf5_blocks_reuse_their_arrays_once_nothing_looks_at_them(tmp_path):
+    """Block after block the HDF5 reader fills the same arrays again (no fresh memory per block) when the previous
+    blocks' events are no longer looked at; a block still looked at keeps its events."""
+    n = 5000
+    t = np.arange(n, dtype=float) * 1e-5
+    p = np.where(np.arange(n) % 3 == 0, 1, -1).astype(np.int8)
+    write_events_h5(tmp_path / "ev.h5", Events(t, np.arange(n) % 8, np.arange(n) % 6, p), width=8, height=6)
+    reader = H5Events(tmp_path / "ev.h5")
+    arrays, kept, k = [], None, -1
+    for block in reader.iter_blocks(block=1000):  # (enumerate would hold the last block while reading the next)
+        k += 1
+        ev = block.events
+        np.testing.assert_array_equal(ev.t, t[1000 * k:1000 * (k + 1)])
+        np.testing.assert_array_equal(ev.p, p[1000 * k:1000 * (k + 1)])
+        arrays.append(weakref.ref(ev.t if ev.t.base is None else ev.t.base))
+        if k == 1:
+            kept = ev  # looked at until the end
+        del block, ev
+        if k == 4:  # the reader still runs
+            alive = [a for a in (ref() for ref in arrays) if a is not None]
+            assert len({id(a) for a in alive}) < len(alive)  # one set of arrays held several blocks
+    np.testing.assert_array_equal(kept.t, t[1000:2000])

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
-from ..events import Events, polarity_signs, read_only_columns
+from ..events import ArrayPool, Events, polarity_signs, read_only_columns
 from ._common import Block, check_time_span
 
 import h5py
@@ -308,26 +308,49 @@ class H5Events:
             i = self._index_of_time(f, t_start) if t_start is not None else 0
             # start at a small margin before the cut so order across the border is still checked
             i = max(0, i - 1)
+            # columns stored as they are used (float64 times, uint16 pixels, one-byte polarities) are read into
+            # arrays reused from block to block (ArrayPool); the others into fresh ones, then converted
+            pool = None if self.compound else ArrayPool((np.float64, np.uint16, np.uint16, np.int8), min(block, self.n))
             while i < self.n:
                 j = min(i + block, self.n)
-                t = self._times(dt[i:j], i)
-                x, y = dx[i:j], dy[i:j]
-                if self.integer_xy:
-                    for name, v in zip(self._names[1:3], (x, y)):
-                        wide = v.dtype.itemsize > 2 or v.dtype.kind == "i"
-                        if wide and v.size and (v.min() < 0 or v.max() > 65535):  # uint16 would wrap it
-                            k = int(np.argmax((v < 0) | (v > 65535)))
-                            raise InputError(f"{name}: event {i + k} has {name.rsplit('/', 1)[-1]}={int(v[k])}, "
-                                             "outside the pixel range 0..65535", source=self.source)
-                    x, y = x.astype(np.uint16, copy=False), y.astype(np.uint16, copy=False)
-                else:
-                    x, y = x.astype(np.float32, copy=False), y.astype(np.float32, copy=False)
+                cols = pool.take() if pool is not None else (None,) * 4
+                t = self._times(_read(dt, i, j, cols[0]), i)
+                x, y = (self._pixels(name, _read(ds, i, j, out), i)
+                        for name, ds, out in zip(self._names[1:3], (dx, dy), cols[1:3]))
+                p = cols[3]
+                raw = _read(dp, i, j, None if p is None or dp.dtype.itemsize != 1 else p.view(dp.dtype))
                 try:
-                    p = polarity_signs(dp[i:j], f"{self._names[3]} (events {i}..{j - 1})")
+                    p = polarity_signs(raw, f"{self._names[3]} (events {i}..{j - 1})",
+                                       out=p[:j - i] if p is not None and np.shares_memory(raw, p) else None)
                 except InputError as exc:
                     raise InputError(str(exc), source=self.source) from None
-                yield Block(read_only_columns(Events(t, x, y, p)), None, i)  # fresh arrays: buffers may borrow them
+                if pool is not None:
+                    pool.seal(cols)
+                yield Block(read_only_columns(Events(t, x, y, p)), None, i)  # buffers may borrow them
+                del t, x, y, p, raw, cols  # the next take() finds this set free once its views are gone
                 i = j
+
+
+    def _pixels(self, name: str, v: np.ndarray, first: int) -> np.ndarray:
+        """Pixel coordinates read from ``name`` (events from index ``first``) as uint16, or float32 for sub-pixel
+        ones; integers outside 0..65535 are refused (uint16 would wrap them)."""
+        if not self.integer_xy:
+            return v.astype(np.float32, copy=False)
+        wide = v.dtype.itemsize > 2 or v.dtype.kind == "i"
+        if wide and v.size and (v.min() < 0 or v.max() > 65535):
+            k = int(np.argmax((v < 0) | (v > 65535)))
+            raise InputError(f"{name}: event {first + k} has {name.rsplit('/', 1)[-1]}={int(v[k])}, outside the pixel "
+                             "range 0..65535", source=self.source)
+        return v.astype(np.uint16, copy=False)
+
+
+def _read(ds, i: int, j: int, out: np.ndarray | None) -> np.ndarray:
+    """Events i..j of the dataset ``ds``: into the first j - i rows of ``out`` when it has the dataset's dtype (no
+    conversion), else a fresh array."""
+    if out is None or out.dtype != ds.dtype:
+        return ds[i:j]
+    ds.read_direct(out, np.s_[i:j], np.s_[0:j - i])
+    return out[:j - i]
 
 
 # ------------------------------------------------------------------------------------------------
