@@ -506,3 +506,14 @@ def test_the_worker_ends_when_its_parent_died(monkeypatch):
     monkeypatch.setattr(worker_module.os, "_exit", exit_)
     with pytest.raises(SystemExit):
         worker_module._next_message(Silent(), poll=0.01)
+
+
+def test_a_hand_over_holds_at_most_hand_over_events():
+    """Behind schedule a large read chunk (a fifth of a reader's block) goes in hand-overs of at most
+    HAND_OVER_EVENTS events, the time handed over being the last one's."""
+    n = R.HAND_OVER_EVENTS + 123
+    chunk = Events(np.arange(n) * 1e-7, np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.ones(n, np.int8))
+    batch, rest, handed = R._take_due(chunk, 1.0)
+    assert len(batch) == R.HAND_OVER_EVENTS and len(rest) == 123 and handed == batch.t[-1]
+    batch, rest, handed = R._take_due(rest, 1.0)
+    assert len(batch) == 123 and len(rest) == 0
