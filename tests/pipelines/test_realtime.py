@@ -509,7 +509,7 @@ def test_the_worker_ends_when_its_parent_died(monkeypatch):
 
 
 def test_a_hand_over_holds_at_most_hand_over_events():
-    """Behind schedule a large read chunk (a fifth of a reader's block) goes in hand-overs of at most
+    """Behind schedule a large read chunk (a reader's block) goes in hand-overs of at most
     HAND_OVER_EVENTS events, the time handed over being the last one's."""
     n = R.HAND_OVER_EVENTS + 123
     chunk = Events(np.arange(n) * 1e-7, np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.ones(n, np.int8))
