@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import weakref
 
+import h5py
 import numpy as np
 import pytest
 
@@ -12,7 +13,7 @@ from ti_cmax.errors import InputError
 from ti_cmax.events import EventBuffer, Events
 from ti_cmax.io import open_dataset, write_events_h5
 from ti_cmax.io._common import Block, validated_chunks
-from ti_cmax.io.h5 import H5Events
+from ti_cmax.io.h5 import EventsH5Writer, H5Events
 
 
 def test_chunks_are_exact_ordered_and_views_inside_a_block():
@@ -90,3 +91,24 @@ def test_hdf5_blocks_reuse_their_arrays_once_nothing_looks_at_them(tmp_path):
             alive = [a for a in (ref() for ref in arrays) if a is not None]
             assert len({id(a) for a in alive}) < len(alive)  # one set of arrays held several blocks
     np.testing.assert_array_equal(kept.t, t[1000:2000])
+
+
+@pytest.mark.parametrize("compression", [None, "gzip"])
+def test_hdf5_blocks_read_chunk_by_chunk_equal_the_stored_events(tmp_path, monkeypatch, compression):
+    """Unfiltered chunks are read as stored (whole chunks straight into the block, those cut by a block's border
+    through a staging array), not through HDF5's selections; compressed ones through HDF5's filters: the same
+    events either way."""
+    n = 5000
+    rng = np.random.default_rng(3)
+    t = np.sort(rng.uniform(0, 1, n))
+    ev = Events(t, rng.integers(0, 8, n), rng.integers(0, 6, n), rng.choice([-1, 1], n).astype(np.int8))
+    with EventsH5Writer(tmp_path / "ev.h5", width=8, height=6, chunk_events=64, compression=compression) as w:
+        w.append(ev)
+    selections = []
+    read_direct = h5py.Dataset.read_direct
+    monkeypatch.setattr(h5py.Dataset, "read_direct", lambda *a, **k: selections.append(a[2]) or read_direct(*a, **k))
+    blocks = list(H5Events(tmp_path / "ev.h5").iter_blocks(block=1000))
+    assert (len(selections) > 0) == (compression is not None)
+    got = Events.concatenate([Events(*(getattr(b.events, f).copy() for f in "txyp")) for b in blocks])
+    for f in "txyp":
+        np.testing.assert_array_equal(getattr(got, f), getattr(ev, f))

@@ -346,11 +346,41 @@ class H5Events:
 
 def _read(ds, i: int, j: int, out: np.ndarray | None) -> np.ndarray:
     """Events i..j of the dataset ``ds``: into the first j - i rows of ``out`` when it has the dataset's dtype (no
-    conversion), else a fresh array."""
+    conversion), else a fresh array. A dataset stored in unfiltered chunks of native byte order is read chunk by chunk
+    as stored (``read_direct_chunk``: none of HDF5's selection and conversion machinery, ~1.5 ns per event less)."""
     if out is None or out.dtype != ds.dtype:
         return ds[i:j]
+    length = _raw_chunk_length(ds)
+    if length:
+        try:
+            _read_chunks(ds, i, j, out, length)
+            return out[:j - i]
+        except (OSError, ValueError, KeyError):  # a chunk never written (fill value): HDF5 reads it
+            pass
     ds.read_direct(out, np.s_[i:j], np.s_[0:j - i])
     return out[:j - i]
+
+
+def _raw_chunk_length(ds) -> int:
+    """Events per chunk of a 1-D dataset whose chunks hold the values as they are in memory (no filter, native byte
+    order), else 0."""
+    if ds.chunks is None or len(ds.chunks) != 1 or not ds.dtype.isnative or ds.dtype.kind not in "biuf" \
+            or ds.id.get_create_plist().get_nfilters():
+        return 0
+    return int(ds.chunks[0])
+
+
+def _read_chunks(ds, i: int, j: int, out: np.ndarray, length: int) -> None:
+    """Events i..j of ``ds`` into ``out`` chunk by chunk; a chunk cut by i or j goes through a staging array."""
+    staging = None
+    for c in range(i - i % length, j, length):
+        a, b = max(c, i), min(c + length, j)
+        if a == c and b == c + length:
+            ds.id.read_direct_chunk((c,), out=out[a - i:b - i].view(np.uint8))
+        else:
+            staging = np.empty(length, ds.dtype) if staging is None else staging
+            ds.id.read_direct_chunk((c,), out=staging.view(np.uint8))
+            out[a - i:b - i] = staging[a - c:b - c]
 
 
 # ------------------------------------------------------------------------------------------------
