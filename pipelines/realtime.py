@@ -541,7 +541,9 @@ def _realtime_block(online, ctl: RealtimeController, result, config: SlamConfig,
     fe_cpu, be_cpu = online.runner.cpu_seconds, online.backend_cpu_seconds
     packets = max(online.packets_seen, 1)
     fe_fraction = 1.0 - online.packets_skipped / packets
-    input_fraction = handed / read if read else 1.0
+    # of the events that passed the hot-pixel filter (screened as read: its drops are no degradation), those not
+    # thinned out
+    input_fraction = handed / (handed + dropped) if handed + dropped else 1.0
     worker = result.report.get("backend_process")
     other = max(0.0, cpu_total - fe_cpu - (be_cpu if worker is None else 0.0) - cpu_io)
     handover = online.cpu_seconds["handover"]
