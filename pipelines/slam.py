@@ -137,20 +137,44 @@ class OnlineSlam:
     # ---- input ---------------------------------------------------------------------------------------------------
     def push(self, events: Events) -> None:
         """Process a time-ordered chunk (continuing the previous ones): every packet and window it completes."""
+        kept = self.screen(events)
+        if len(events):
+            self._take(kept)
+
+    def screen(self, events: Events) -> list[Events]:
+        """The first half of ``push``: check a time-ordered chunk (one clear InputError) and pass it through the
+        hot-pixel filter; returns what ``push_screened`` takes next (nothing while the start is held back). A replay
+        screens each chunk it reads at once and hands the screened events over when they are due
+        (pipelines/realtime.py): the filter then counts whole read chunks, while its per-pixel counts are in the
+        cache, instead of every hand-over's few events after the front-end's work has evicted them."""
         if self._result is not None:
             raise RuntimeError("push() after close()")
         if not isinstance(events, Events):
             raise InputError(f"expected Events chunks, got {type(events).__name__}")
         if len(events) == 0:
-            return
-        cpu = self.cpu_seconds
-        cpu0, fe0 = time.process_time(), self.runner.cpu_seconds + self._window_cpu()
-        other0 = cpu["handover"] + cpu["callbacks"]
+            return []
+        cpu0 = time.process_time()
         self.runner.check(events)  # times, pixels and pauses (one clear InputError)
         self.events_read += len(events)
         self.t_last = float(events.t[-1])
-        for kept in self.hot_pixels.push(events):
-            self._use(kept)
+        kept = self.hot_pixels.push(events)
+        self.cpu_seconds["ingest"] += time.process_time() - cpu0
+        return kept
+
+    def push_screened(self, events: Events) -> None:
+        """The second half of ``push``: screened events (``screen``, in stream order) to the back-end's window buffer
+        and the front-end's slicer; every packet and window they complete."""
+        if self._result is not None:
+            raise RuntimeError("push() after close()")
+        if len(events):
+            self._take([events])
+
+    def _take(self, parts: list[Events]) -> None:
+        cpu = self.cpu_seconds
+        cpu0, fe0 = time.process_time(), self.runner.cpu_seconds + self._window_cpu()
+        other0 = cpu["handover"] + cpu["callbacks"]
+        for part in parts:
+            self._use(part)
         self._notify(self._backend_call(lambda: self.backend.poll(self._t_used)))
         cpu["ingest"] += time.process_time() - cpu0 - (self.runner.cpu_seconds + self._window_cpu() - fe0) \
             - (cpu["handover"] + cpu["callbacks"] - other0)

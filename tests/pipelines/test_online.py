@@ -260,3 +260,26 @@ def test_a_sliced_loop_closers_optimizer_is_imported_before_the_clock_starts(sli
             "print('scipy.optimize' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out[-1] == str(slice_seconds is not None)
+
+
+def test_screened_chunks_handed_over_in_pieces_equal_push(half_second):
+    """``screen`` (checks and the hot-pixel filter) on large read chunks, then ``push_screened`` of the screened
+    events in small pieces (the real-time replay) is ``push`` of the stream: the same windows, trajectory and map."""
+    seq, ev = half_second
+    pushed = OnlineSlam(seq.camera, SlamConfig())
+    for chunk in _random_chunks(ev, np.random.default_rng(2), 40_000):
+        pushed.push(chunk)
+    pushed = pushed.close()
+    online = OnlineSlam(seq.camera, SlamConfig())
+    for i in range(0, len(ev), 120_000):
+        for part in online.screen(ev[i:i + 120_000]):
+            for piece in _random_chunks(part, np.random.default_rng(i), 9_000):
+                online.push_screened(piece)
+    result = online.close()
+    assert [w.t_start for w in result.windows] == [w.t_start for w in pushed.windows] and len(result.windows) >= 3
+    np.testing.assert_allclose(result.frontend.omega, pushed.frontend.omega, atol=1e-6)
+    assert np.max(so3.geodesic_angle(result.trajectory.R, pushed.trajectory.R)) < 1e-5
+    np.testing.assert_allclose(result.map, pushed.map, rtol=1e-4, atol=1e-4)
+    assert result.report["events_processed"] == pushed.report["events_processed"] == len(ev)
+    with pytest.raises(RuntimeError):
+        online.push_screened(ev[:10])

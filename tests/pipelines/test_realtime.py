@@ -513,3 +513,33 @@ def test_the_worker_ends_when_its_parent_died(monkeypatch):
     monkeypatch.setattr(worker_module.os, "_exit", exit_)
     with pytest.raises(SystemExit):
         worker_module._next_message(Silent(), poll=0.01)
+
+
+def test_a_hand_over_holds_at_most_hand_over_events():
+    """Behind schedule a large read chunk (a reader's block) goes in hand-overs of at most
+    HAND_OVER_EVENTS events, the time handed over being the last one's."""
+    n = R.HAND_OVER_EVENTS + 123
+    chunk = Events(np.arange(n) * 1e-7, np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.ones(n, np.int8))
+    batch, rest, handed = R._take_due(chunk, 1.0)
+    assert len(batch) == R.HAND_OVER_EVENTS and len(rest) == 123 and handed == batch.t[-1]
+    batch, rest, handed = R._take_due(rest, 1.0)
+    assert len(batch) == 123 and len(rest) == 0
+
+
+def test_hot_pixel_events_screened_as_read_are_no_lost_input(short_sequence):
+    """The replay screens each chunk as it reads it: the events of a hot pixel are dropped before the hand-over, and
+    that is no degradation (every event that passed the filter was handed over and used)."""
+    seq = short_sequence
+    ev = seq.events.slice_time(seq.events.t[0], seq.events.t[0] + 0.3)
+    hot = np.arange(float(ev.t[0]), float(ev.t[-1]), 1 / 3000.0)  # a pixel firing at 3 kHz
+    t = np.concatenate([ev.t, hot])
+    order = np.argsort(t, kind="stable")
+    with_hot = Events(t[order], np.concatenate([ev.x, np.full(len(hot), 7, ev.x.dtype)])[order],
+                      np.concatenate([ev.y, np.full(len(hot), 9, ev.y.dtype)])[order],
+                      np.concatenate([ev.p, np.ones(len(hot), np.int8)])[order])
+    cfg = load_config(SlamConfig, None, ["realtime_target_lag=1000", "realtime_max_lag=1000", "pano_height=256"])
+    chunks = [with_hot[i:i + 40_000] for i in range(0, len(with_hot), 40_000)]
+    rt = R.run_realtime(chunks, seq.camera, cfg).report["realtime"]
+    assert rt["events_read"] == len(with_hot)
+    assert rt["events_handed_over"] < len(with_hot) - 0.9 * len(hot)  # the hot pixel's events: dropped as read
+    assert rt["events_used_fraction"] == 1.0 and not rt["degradation_applied"]
