@@ -244,11 +244,12 @@ class OutputDir:
                 shutil.rmtree(stale, ignore_errors=True)
             self._tmp = Path(tempfile.mkdtemp(prefix=PARTIAL_PREFIX, dir=self.path))
             os.chmod(self._tmp, 0o777 & ~current_umask())
-        except OSError as exc:
+        except BaseException as exc:  # (a Ctrl-C right after mkdtemp too: its folder must not stay behind)
+            if self._tmp is not None:
+                shutil.rmtree(self._tmp, ignore_errors=True)
             self._lock.release()
-            raise output_error(exc, self.path) from None
-        except BaseException:
-            self._lock.release()
+            if isinstance(exc, OSError):
+                raise output_error(exc, self.path) from None
             raise
         return self._tmp
 

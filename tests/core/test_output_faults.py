@@ -58,6 +58,23 @@ def test_a_failed_first_run_leaves_no_folder(tmp_path):
     assert os.listdir(tmp_path) == []
 
 
+def test_a_ctrl_c_while_the_partial_folder_is_made_leaves_nothing(tmp_path, monkeypatch):
+    """A Ctrl-C landing right after the hidden folder was created (before the command writes) left that folder in
+    the output folder."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "kept.txt").write_text("previous")
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "chmod", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        with OutputDir(out):
+            pass
+    assert os.listdir(out) == ["kept.txt"]
+
+
 def test_a_second_run_into_the_same_folder_refuses(tmp_path):
     out = tmp_path / "out"
     with OutputDir(out) as d:
