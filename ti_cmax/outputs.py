@@ -242,7 +242,8 @@ class OutputDir:
         try:
             for stale in self.path.glob(PARTIAL_PREFIX + "*"):  # of a killed run: the lock says it is over
                 shutil.rmtree(stale, ignore_errors=True)
-            self._tmp = Path(tempfile.mkdtemp(prefix=PARTIAL_PREFIX, dir=self.path))
+            with _signals_held():  # a Ctrl-C comes once the folder is known (and removed below), not inside mkdtemp
+                self._tmp = Path(tempfile.mkdtemp(prefix=PARTIAL_PREFIX, dir=self.path))
             os.chmod(self._tmp, 0o777 & ~current_umask())
         except BaseException as exc:  # (a Ctrl-C right after mkdtemp too: its folder must not stay behind)
             if self._tmp is not None:
