@@ -151,6 +151,29 @@ def refine_jointly(spline, chunks, first: int, last: int, backend_cfg, width: in
     return x, info
 
 
+def _start_layout(spline, chunks, min_events: float, spacing: float, span: float):
+    """refine_start's nodes: (t_n, j, interp) with t_n the time the stored strides reach ``min_events`` events, j the
+    last control pose the start moves and interp the (j + 1, free nodes) linear interpolation of the nodes'
+    increments (the last node is zero); None when the span runs past the spline."""
+    stands_for = np.cumsum([len(c[0]) * c[2] for c in chunks])
+    k = min(int(np.searchsorted(stands_for, min_events)), len(chunks) - 1)
+    c_t, c_n = chunks[k][0], stands_for[k] - (stands_for[k - 1] if k else 0.0)
+    need = min_events - (stands_for[k - 1] if k else 0.0)  # events still needed within stride k
+    t_n = float(c_t[min(int(need / c_n * len(c_t)), len(c_t) - 1)]) if len(c_t) and c_n > 0 else chunks[k][3]
+    nodes = t_n + spacing * np.arange(max(int(round(span / spacing)), 1) + 1)
+    knots = spline.knot_times()
+    j = min(int(np.searchsorted(knots, nodes[-1], side="left")) - 1, spline.num_control - 1)
+    if j < 0 or nodes[-1] > spline.valid_time_range()[1]:
+        return None
+    interp = np.zeros((j + 1, len(nodes) - 1))  # poses 0..j x free nodes (the last node is zero)
+    m = np.clip(np.searchsorted(nodes, knots[:j + 1], side="right") - 1, 0, len(nodes) - 2)
+    w = np.clip((knots[:j + 1] - nodes[m]) / spacing, 0.0, 1.0)
+    interp[np.arange(j + 1), m] = 1 - w
+    inner = m + 1 < len(nodes) - 1
+    interp[np.flatnonzero(inner), m[inner] + 1] = w[inner]
+    return t_n, j, interp
+
+
 def refine_start(spline, chunks, min_events: float, spacing: float, span: float, backend_cfg, width: int,
                  height: int, *, max_events: int, iterations: int, max_step: float, slice_point=lambda: None):
     """Left increments y (j + 1, 3) of the control poses 0..j that shape the trajectory's start, maximizing
@@ -169,25 +192,12 @@ def refine_start(spline, chunks, min_events: float, spacing: float, span: float,
 
     slice_point()
     info = {"events": 0, "poses": 0, "evaluations": 0, "gain": 1.0, "max_change_deg": 0.0}
-    if not chunks or span <= 0:
+    layout = _start_layout(spline, chunks, min_events, spacing, span) if chunks and span > 0 else None
+    if layout is None:
         return np.zeros((0, 3)), info
+    t_n, j, interp = layout
     start, end = spline.valid_time_range()
-    stands_for = np.cumsum([len(c[0]) * c[2] for c in chunks])
-    k = min(int(np.searchsorted(stands_for, min_events)), len(chunks) - 1)
-    c_t, c_n = chunks[k][0], stands_for[k] - (stands_for[k - 1] if k else 0.0)
-    need = min_events - (stands_for[k - 1] if k else 0.0)  # events still needed within stride k
-    t_n = float(c_t[min(int(need / c_n * len(c_t)), len(c_t) - 1)]) if len(c_t) and c_n > 0 else chunks[k][3]
-    nodes = t_n + spacing * np.arange(max(int(round(span / spacing)), 1) + 1)
     knots = spline.knot_times()
-    j = min(int(np.searchsorted(knots, nodes[-1], side="left")) - 1, spline.num_control - 1)
-    if j < 0 or nodes[-1] > end:
-        return np.zeros((0, 3)), info
-    interp = np.zeros((j + 1, len(nodes) - 1))  # poses 0..j x free nodes (the last node is zero)
-    m = np.clip(np.searchsorted(nodes, knots[:j + 1], side="right") - 1, 0, len(nodes) - 2)
-    w = np.clip((knots[:j + 1] - nodes[m]) / spacing, 0.0, 1.0)
-    interp[np.arange(j + 1), m] = 1 - w
-    inner = m + 1 < len(nodes) - 1
-    interp[np.flatnonzero(inner), m[inner] + 1] = w[inner]
     # the strides that may hold events whose pose depends on a free control pose (the later ones only feed the map)
     n_loc = int(np.searchsorted([c[3] for c in chunks], knots[j] + (spline.degree + 1) * spline.dt, side="right"))
     t = np.concatenate([c[0] for c in chunks[:n_loc]])
