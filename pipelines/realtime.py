@@ -46,7 +46,10 @@ BA windows (the BA's cost is mostly per evaluation over the window's map region,
 BA (level 3: every other one) settles its stride with the poses the previous window refined (that stride was the
 second half of the previous window), so each stride is still refined once.
 
-- L > T and L would not be back under T within ``DRAIN_WINDOWS`` windows at its current rate of change: l += 1; at
+- L > T and L would not be back under T within ``DRAIN_WINDOWS`` windows at its current rate of change: l += 1 (but
+  within ``DRAIN_WINDOWS`` windows of a rise only while L is above the lag at that rise: the windows already queued in
+  the worker were sent with the old budget, so a lower level shows only windows later, and a lag that stopped
+  rising is its effect; escalating again meanwhile cut events a burst did not need cut); at
   l = 4, the same condition hands over only 1 of q events (q doubles, at most ``MAX_INPUT_THINNING``) and the
   front-end's packets take N / q events (their span kept). A falling lag is given time to drain: a backlog takes
   windows to clear even once the system is faster than the sensor.
@@ -134,6 +137,7 @@ class RealtimeController:
         self.online = None
         self.level, self.thinning = 0, 1
         self._since_change = 0
+        self._lag_at_change = -math.inf  # the windows' lag when the level last rose (a newer level is given time)
         self.wall0 = self.t0 = None
         self.lags: list[float] = []
         self.latency_mean: list[float] = []
@@ -343,7 +347,8 @@ class RealtimeController:
             pass  # the windows wait for a front-end that is behind: a cheaper BA would not bring them sooner
         elif lag > self.bound and self.level < MAX_LEVEL:
             self.level = MAX_LEVEL  # beyond the hard bound: the last level at once
-        elif lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL:
+        elif lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL \
+                and (source == "frontend" or self._since_change >= DRAIN_WINDOWS or lag > self._lag_at_change):
             self.level += 1
             # heard from the front-end's lag: on to the next level that changes the front-end's work (a level that
             # only degrades the BA cannot help a front-end that is behind)
@@ -366,6 +371,8 @@ class RealtimeController:
                     self.predicted.append(cost)
                     self.level -= 1
         self.max_thinning = max(self.max_thinning, self.thinning)
+        if self.level != old[0]:  # a rise is given time (below); after a fall the next rise is judged afresh
+            self._lag_at_change = lag if self.level > old[0] else -math.inf
         if (self.level, self.thinning, self.fe_level) != old:
             self._since_change = 0
             self._costs = []  # costs are measured afresh at the new level

@@ -543,3 +543,22 @@ def test_hot_pixel_events_screened_as_read_are_no_lost_input(short_sequence):
     assert rt["events_read"] == len(with_hot)
     assert rt["events_handed_over"] < len(with_hot) - 0.9 * len(hot)  # the hot pixel's events: dropped as read
     assert rt["events_used_fraction"] == 1.0 and not rt["degradation_applied"]
+
+
+def test_a_new_level_is_given_time_while_the_lag_stops_rising():
+    """The windows queued in the worker were sent with the old budget: after a rise the level is raised again within
+    DRAIN_WINDOWS windows only while the lag is above where it stood at the rise (a burst being absorbed at level 1
+    went on to halve the BA's events one window later); past them the usual rule applies again."""
+    cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
+    ctl = R.RealtimeController(cfg, 1.0)
+    ctl.online = SimpleNamespace(degrade=lambda *a, **k: None, frontend_until=0.1, runner=SimpleNamespace(seconds=0.0))
+    ctl.wall0, ctl.t0 = 100.0, 0.0
+    t = 0.2
+    levels = []
+    for lag in (0.3, 0.5, 0.49, 0.48, 0.47, 0.55, 0.54, 0.53, 0.52, 0.51, 0.50, 0.49):
+        ctl.on_window(_report(t, lag, ctl, busy=0.08, ba=0.05))
+        levels.append(ctl.level)
+        t += 0.1
+    # rise at 0.5; held while under 0.5; 0.55 rises again; held under 0.55 for 5 windows, then (still not draining
+    # within 5 windows) the next rise
+    assert levels == [0, 1, 1, 1, 1, 2, 2, 2, 2, 2, 3, 3], levels
