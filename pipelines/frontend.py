@@ -814,16 +814,20 @@ class FrontendRunner:
         if len(chunk) == 0:
             return
         t = chunk.t
-        gaps = np.diff(t)
         # one pass per array on good input (a non-decreasing run between finite ends is finite, and a NaN fails the
-        # min); anything else goes through Events.validate, which names the first bad event
+        # comparison); anything else goes through Events.validate, which names the first bad event
         if chunk.has_subpixel_coordinates:  # undistorted coordinates (star tracking) may fall off the sensor
             chunk.validate(source="events")
-        elif not (np.isfinite(t[0]) and np.isfinite(t[-1]) and (not len(gaps) or gaps.min() >= 0)
+        elif not (np.isfinite(t[0]) and np.isfinite(t[-1]) and bool(np.all(t[1:] >= t[:-1]))
                   and int(chunk.x.max()) < self.width and int(chunk.y.max()) < self.height):
             chunk.validate(self.width, self.height, source="events")
         if self._t_checked is not None and t[0] < self._t_checked:
             raise InputError(f"event chunks are not in time order (t={float(t[0])!r} after {self._t_checked!r})")
+        first = self._t_checked if self._t_checked is not None else float(t[0])
+        if float(t[-1]) - first <= self.config.max_event_gap:  # no pause within can be longer: nothing to search
+            self._t_checked = float(t[-1])
+            return
+        gaps = np.diff(t)
         k = int(np.argmax(gaps)) if len(gaps) else -1
         gap, at = (float(gaps[k]), float(t[k])) if k >= 0 else (0.0, 0.0)
         if self._t_checked is not None and t[0] - self._t_checked > gap:

@@ -285,3 +285,24 @@ def test_screened_chunks_handed_over_in_pieces_equal_push(half_second):
     assert result.report["events_processed"] == pushed.report["events_processed"] == len(ev)
     with pytest.raises(RuntimeError):
         online.push_screened(ev[:10])
+
+
+def test_a_chunk_longer_than_the_pause_bound_is_searched_for_its_pauses():
+    """The check skips the search for a pause when a chunk (with the previous one's end) spans no more than
+    max_event_gap; a longer chunk is searched: dense events pass, one pause beyond the bound is named."""
+    from ti_cmax import Events
+    from ti_cmax.config import FrontendConfig, load_config
+    from ti_cmax.camera import Camera
+    from ti_cmax.pipelines.frontend import FrontendRunner
+
+    cfg = load_config(FrontendConfig, None, ["max_event_gap=0.01"])
+    t = np.arange(20_000) * 1e-5  # 0.2 s, gaps of 10 us
+    xy = np.zeros(len(t), np.uint16)
+    dense = Events(t, xy, xy, np.ones(len(t), np.int8))
+    runner = FrontendRunner(Camera.ideal(64, 48), cfg)
+    runner.check(dense)
+    runner.check(Events(t + 0.2 + 1e-5, xy, xy, dense.p))  # and on, across chunks
+    t_pause = t.copy()
+    t_pause[10_000:] += 0.02
+    with pytest.raises(InputError, match="no events for 0.02001 s after t=0.0999"):
+        FrontendRunner(Camera.ideal(64, 48), cfg).check(Events(t_pause, xy, xy, dense.p))
