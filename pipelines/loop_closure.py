@@ -233,10 +233,7 @@ class LoopCloser(WindowObserver):
         # applied before the window after it ended
         self.slice_seconds = slice_seconds
         self._idle_only = False  # the current window's budget says the back-end is behind (before_window)
-        if slice_seconds is not None and config.loop_joint_refinement:
-            # the joint refinement's optimizer, imported now: its import (~0.3 s) would hold the back-end in
-            # one piece at the first refinement
-            import scipy.optimize  # noqa: F401
+        self.prepare(config, slice_seconds)
         self._task: _Slices | None = None  # the verification or map rebuild in flight
         self._pending: dict | None = None  # what its conclusion needs (_conclude_task)
         self._task_spline = None  # a sliced rebuild's corrected copy of the spline (the back-end's gets it at the end)
@@ -249,6 +246,14 @@ class LoopCloser(WindowObserver):
         self.longest_call = (0.0, 0.0)  # (wall, CPU) seconds of the longest hook call (_spent)
         self._drained = False  # a sliced run's stream has ended (drain)
         self.profile = {"store": 0.0, "age": 0.0, "verify": 0.0, "register": 0.0, "joint": 0.0, "rebuild": 0.0}  # parts of seconds
+
+    @staticmethod
+    def prepare(config: LoopClosureConfig, slice_seconds: float | None) -> None:
+        """What a sliced loop closer needs before its first slice: the joint refinement's optimizer, imported now
+        (its import, ~0.3 s, would hold the back-end in one piece at the first refinement). A real-time back-end calls
+        this at its start-up, before the sensor clock starts; the loop closer again when made (then a no-op)."""
+        if slice_seconds is not None and config.loop_joint_refinement:
+            import scipy.optimize  # noqa: F401
 
     # ---- notifications (from the back-end) ------------------------------------------------------------------------
     def settled(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:

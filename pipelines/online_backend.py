@@ -154,11 +154,8 @@ class BackendRunner:
         # bound once here (a first call binds the kernel to its arrays: ~10 ms)
         self._bearing_gather()(np.zeros(1), np.zeros(1, np.uint16), np.zeros(1, np.uint16), 0, 1, 1, np.zeros(1),
                                np.zeros((1, 3), np.float32), 0)
-        loop = self.config.loop
-        if loop.loop_closure and self.loop_slice_seconds is not None and loop.loop_joint_refinement:
-            # the sliced loop closer's optimizer (LoopCloser imports it when the back-end starts, at the first events:
-            # ~0.3 CPU s there, here before them)
-            import scipy.optimize  # noqa: F401
+        if self.config.loop.loop_closure:
+            LoopCloser.prepare(self.config.loop, self.loop_slice_seconds)  # before the events, not at the first ones
         return seconds + time.perf_counter() - tic
 
     def push_events(self, chunk: Events) -> None:
