@@ -120,8 +120,10 @@ def test_slam_worker_and_resource_tracker_die_with_a_killed_slam(tmp_path):
     seq = tmp_path / "seq"
     simulate_to_folder(SimulatorConfig(scene="city", duration=1.0, seed=3), seq, show_progress=False,
                        events_format="h5")
+    # replayed at a quarter of real time: the run lasts at least 4 s however fast the machine processes it
     slam = subprocess.Popen([sys.executable, "-m", "ti_cmax.cli", "slam", str(seq), "--out", str(tmp_path / "out"),
-                             "--parallel", "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                             "--parallel", "--realtime", "--set", "realtime_speed=0.25", "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             env={**os.environ, "TI_CMAX_NO_PROGRESS": "1"})
 
     def worker_started():  # forked (the command line of slam) or spawned (multiprocessing's spawn_main)
