@@ -749,10 +749,10 @@ def render_map(bearings, times, pose_fn, width: int, height: int, batch_size: in
 
 
 class VoteWork:
-    """Work arrays kept from one ``PanoIWE`` to the next (the back-end's settled strides): a new array of a stride's
-    size costs a page fault per 4 kB written (about as much as the vote itself), a reused one none. Each name holds
-    one flat array that only grows; ``take`` gives a C-contiguous view of its first rows, valid until the next
-    ``take`` of that name (the caller is done with a stride's votes before the next stride)."""
+    """Work arrays kept from one ``PanoIWE`` to the next (the back-end's settled strides, its BA windows): a new array
+    of a stride's size costs a page fault per 4 kB written (about as much as the vote itself), a reused one none.
+    Each name holds one flat array that only grows; ``take`` gives a C-contiguous view of its first rows, valid until
+    the next ``take`` of that name (the caller is done with a stride's votes, a window's BA, before the next)."""
 
     def __init__(self):
         self._arrays: dict[str, np.ndarray] = {}
@@ -938,7 +938,7 @@ class PanoIWE:
 
     def _centred(self, lmap: np.ndarray, mu: float, r0: int, c0: int) -> np.ndarray:
         """L + alpha G - mu on the window (a new array; vectorized numpy passes over the buffer)."""
-        out = np.empty_like(lmap)
+        out = np.empty_like(lmap) if self._work is None else self._work.take("centred", lmap.shape, lmap.dtype)
         if self.alpha != 0:
             bh, bw = lmap.shape
             n1 = min(bw, self.gmap.shape[1] - c0)  # buffer columns before the seam, then from map column 0

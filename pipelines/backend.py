@@ -466,6 +466,7 @@ class SlidingWindowBackend:
         self.window_start = self.t_start
         self.events = _Buffer(config.backend_time_window_size + config.backend_sliding_window_stride)
         self._settle_work = VoteWork()  # the settle's projection and vote arrays, kept between strides
+        self._ba_work, self._coarse_work = VoteWork(), VoteWork()  # the BA's (and its coarse start's), between windows
         self.events_until = -np.inf  # all events with t < events_until have been pushed
         self._src_t = np.zeros(0)
         self._src_R = np.zeros((0, 3, 3))
@@ -811,7 +812,7 @@ class SlidingWindowBackend:
         problem = PanoIWE(ev_b, s, u, cfg.spline_degree, *self.map.ba_size, sigma=cfg.backend_blur_sigma,
                           alpha=0.0, batch_size=cfg.event_batch_size,
                           global_blurred=self.map.blurred, global_sums=(self.map.g_sum, self.map.g_sq),
-                          alpha_from_density=(rho_g, self.map.lambda0) if rho_g > 0 else None)
+                          alpha_from_density=(rho_g, self.map.lambda0) if rho_g > 0 else None, work=self._ba_work)
         base = spline.control_R.copy()
         n_free = len(base) - first_free
         if n_free <= 0:
@@ -826,7 +827,7 @@ class SlidingWindowBackend:
             # I_L holds 1/COARSE of the votes: alpha / COARSE keeps the balance of I_L and I_G (Eq. 18)
             few = PanoIWE(ev_b[rows], s_k, u_k, cfg.spline_degree, *self.map.ba_size, sigma=cfg.backend_blur_sigma,
                           alpha=alpha / COARSE, batch_size=cfg.event_batch_size, global_blurred=self.map.blurred,
-                          global_sums=(self.map.g_sum, self.map.g_sq))
+                          global_sums=(self.map.g_sum, self.map.g_sq), work=self._coarse_work)
             return perturbation_objective(few.cost_and_grad, base, first_free, gauge_free)[1]
 
         result, var0, scale = self._maximise(problem, perturbed, base, first_free, n_free, budget,
