@@ -49,7 +49,10 @@ second half of the previous window), so each stride is still refined once.
 - L > T and L would not be back under T within ``DRAIN_WINDOWS`` windows at its current rate of change: l += 1 (but
   within ``DRAIN_WINDOWS`` windows of a rise only while L is above the lag at that rise: the windows already queued in
   the worker were sent with the old budget, so a lower level shows only windows later, and a lag that stopped
-  rising is its effect; escalating again meanwhile cut events a burst did not need cut); at
+  rising is its effect; escalating again meanwhile cut events a burst did not need cut), and never on a window
+  that ended before the front-end's progress at the last rise while L < (T + M) / 2 (it was sent to the worker
+  under the old budget; with a lag L some L / stride windows are in flight: escalating on them would reach the last
+  level before the first rise could show); at
   l = 4, the same condition hands over only 1 of q events (q doubles, at most ``MAX_INPUT_THINNING``) and the
   front-end's packets take N / q events (their span kept). A falling lag is given time to drain: a backlog takes
   windows to clear even once the system is faster than the sensor.
@@ -60,9 +63,11 @@ second half of the previous window), so each stride is still refined once.
   alone. Of the cost, the parts the next lower level changes are measured too: the BA's wall time (scaled by the
   ratio of BA windows and the square root of the ratio of BA events, an overestimate; from level 4 the median of the
   last ``RELAX_WINDOWS`` BAs) and the front-end's (scaled by the ratio of packets). When L < T, L would stay under T
-  within ``DRAIN_WINDOWS`` windows, and the predicted cost of l - 1 is below ``RELAX_HEADROOM`` in every process
-  (the rest is left for event-rate bursts and other load): first q halves (while q > 1 only when L < T / 2), then
-  l -= 1 (at least ``RELAX_WINDOWS`` windows after the last change).
+  within ``DRAIN_WINDOWS`` windows, and the predicted cost of l - 1 is below ``RELAX_HEADROOM`` (the rest is left
+  for event-rate bursts and other load; ``RELAX_HEADROOM_LOW_LAG`` while L < T / 2, whose slack absorbs bursts for
+  several windows) in every process whose work the level changes (with a worker: the worker alone, as the levels
+  degrade only the BA there): first q halves (while q > 1 only when L < T / 2), then l -= 1 (at least
+  ``RELAX_WINDOWS`` windows after the last change).
 
 The front-end's lag (now - due(t) - dead(t), t the time of its last packet), taken once per stride of its progress,
 is a second input to the escalating rules: when the front-end is the bottleneck, windows complete too rarely to react
@@ -106,6 +111,7 @@ MAX_LEVEL = 4
 MAX_INPUT_THINNING = 16  # deeper thinning leaves front-end packets too sparse (their cost is per packet anyway)
 RELAX_WINDOWS = 3  # windows at a level before it may be lowered (and over which its costs are averaged)
 RELAX_HEADROOM = 0.8  # a level is relaxed only when the lower one is predicted to cost below this (per process)
+RELAX_HEADROOM_LOW_LAG = 0.95  # ... or below this while the lag is under half the target
 # a loop verification (loop closure) runs in slices: at most this share of a stride's wall time before each window
 # (what RELAX_HEADROOM leaves), plus the back-end worker's idle time; at once it would stall the back-end for seconds
 # and break the lag bound
@@ -138,6 +144,9 @@ class RealtimeController:
         self.level, self.thinning = 0, 1
         self._since_change = 0
         self._lag_at_change = -math.inf  # the windows' lag when the level last rose (a newer level is given time)
+        # the front-end's progress when the level or the thinning last rose: windows ending by then were sent to the
+        # worker under the old budget, so they cannot show the new one's effect
+        self._rise_sent: float | None = None
         self.wall0 = self.t0 = None
         self.lags: list[float] = []
         self.latency_mean: list[float] = []
@@ -239,7 +248,7 @@ class RealtimeController:
         self._window_events = report.num_events
         self._measure(report)
         level, thinning = self.level, self.thinning  # in force while this window ran
-        self._control(lag)
+        self._control(lag, t_end=end)
         self.trace.append((report.t_start, end, lag, level, thinning, report.num_events, report.events_used,
                            report.ba_seconds, report.evaluations, int(report.cut_short), int(report.skipped),
                            report.busy_seconds, self._fe_lag, self.level))
@@ -306,7 +315,9 @@ class RealtimeController:
         main = mean["main"] + (fe_lower - mean["fe"])
         if mean["worker"] is None:  # one process does both
             return main + (ba_lower - mean["ba"])
-        return max(main, mean["worker"] + (ba_lower - mean["ba"]))
+        # with a worker the levels change the BA alone (the front-end's skipping has its own rule): the main
+        # process's cost stays what it is, however busy a high event rate keeps it
+        return mean["worker"] + (ba_lower - mean["ba"])
 
     def on_frontend(self, now: float, t: float | None) -> None:
         """After every push: the front-end's lag (now - due(its last packet's time)), once per stride of its progress
@@ -322,8 +333,19 @@ class RealtimeController:
         self._fe_lag = now - self.due(t) - self.dead(t)
         self._control(self._fe_lag, "frontend")
 
-    def _control(self, lag: float, source: str = "window") -> None:
+    def relax_headroom(self, lag: float) -> float:
+        """The predicted cost under which a level may be relaxed: RELAX_HEADROOM, or RELAX_HEADROOM_LOW_LAG while the
+        lag is under half the target (that slack absorbs the lower level's bursts for several windows; a lower level
+        that does not fit shows as a rising lag and is escalated again)."""
+        return RELAX_HEADROOM_LOW_LAG if lag < 0.5 * self.target else RELAX_HEADROOM
+
+    def _control(self, lag: float, source: str = "window", t_end: float | None = None) -> None:
         old = (self.level, self.thinning, self.fe_level)
+        # a window sent to the worker before the last rise ran under the old budget: it shows nothing of the new one
+        # (with a lag of L, some L / stride windows are in flight), so it escalates no further while the lag stays
+        # within halfway from the target to the bound (beyond, an overload the rise cannot absorb in time)
+        judged = source != "window" or t_end is None or self._rise_sent is None or t_end > self._rise_sent \
+            or lag > 0.5 * (self.target + self.bound)
         self._since_change += source == "window"
         prev = self._prev_lag.get(source)
         change = lag - prev if prev is not None else 0.0  # per stride of sensor time (ticks come once per stride)
@@ -347,14 +369,14 @@ class RealtimeController:
             pass  # the windows wait for a front-end that is behind: a cheaper BA would not bring them sooner
         elif lag > self.bound and self.level < MAX_LEVEL:
             self.level = MAX_LEVEL  # beyond the hard bound: the last level at once
-        elif lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL \
+        elif lag > self.target and lag + DRAIN_WINDOWS * change > self.target and self.level < MAX_LEVEL and judged \
                 and (source == "frontend" or self._since_change >= DRAIN_WINDOWS or lag > self._lag_at_change):
             self.level += 1
             # heard from the front-end's lag: on to the next level that changes the front-end's work (a level that
             # only degrades the BA cannot help a front-end that is behind)
             while source == "frontend" and self.level < MAX_LEVEL and LEVELS[self.level][0] == LEVELS[old[0]][0]:
                 self.level += 1
-        elif self.level == MAX_LEVEL and lag > self.target and prev is not None \
+        elif self.level == MAX_LEVEL and lag > self.target and prev is not None and judged \
                 and lag + DRAIN_WINDOWS * change > self.target:
             self.thinning = min(MAX_INPUT_THINNING, 2 * self.thinning)
         elif source == "window" and lag < self.target and lag + DRAIN_WINDOWS * change < self.target \
@@ -367,12 +389,14 @@ class RealtimeController:
                     self.fe_level -= 1
             elif self.level > 0 and self._since_change >= RELAX_WINDOWS:
                 cost = self.predicted_cost()
-                if cost is not None and cost < RELAX_HEADROOM:
+                if cost is not None and cost < self.relax_headroom(lag):
                     self.predicted.append(cost)
                     self.level -= 1
         self.max_thinning = max(self.max_thinning, self.thinning)
         if self.level != old[0]:  # a rise is given time (below); after a fall the next rise is judged afresh
             self._lag_at_change = lag if self.level > old[0] else -math.inf
+        if (self.level > old[0] or self.thinning > old[1]) and self.online is not None:
+            self._rise_sent = self.online.frontend_until
         if (self.level, self.thinning, self.fe_level) != old:
             self._since_change = 0
             self._costs = []  # costs are measured afresh at the new level

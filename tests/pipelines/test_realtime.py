@@ -562,3 +562,74 @@ def test_a_new_level_is_given_time_while_the_lag_stops_rising():
     # rise at 0.5; held while under 0.5; 0.55 rises again; held under 0.55 for 5 windows, then (still not draining
     # within 5 windows) the next rise
     assert levels == [0, 1, 1, 1, 1, 2, 2, 2, 2, 2, 3, 3], levels
+
+
+def _worker_controller(monkeypatch, clock):
+    """A controller with a back-end worker, its wall clock ``clock[0]`` (advanced by the caller)."""
+    monkeypatch.setattr(R, "time", SimpleNamespace(monotonic=lambda: clock[0]))
+    cfg = load_config(SlamConfig, None, ["realtime_min_window_events=10000", "backend_max_window_events=200000"])
+    ctl = R.RealtimeController(cfg, 1.0, worker=True)
+    ctl.online = SimpleNamespace(degrade=lambda *a, **k: None, frontend_until=0.1, runner=SimpleNamespace(seconds=0.0))
+    ctl.wall0, ctl.t0 = 100.0, 0.0
+    return ctl
+
+
+def test_windows_sent_before_a_rise_do_not_escalate_again(monkeypatch):
+    """With a lag of 0.3 s the front-end is 0.3 s ahead of the windows completing: the three windows after a rise
+    were sent to the worker under the old budget, so a lag still rising through them escalates no further; the
+    first window sent after the rise does, and a lag beyond the hard bound does at once."""
+    clock = [100.0]
+    ctl = _worker_controller(monkeypatch, clock)
+    t, levels = 0.2, []
+    for lag in (0.31, 0.33, 0.35, 0.37, 0.39, 0.41, 0.43):
+        report = _report(t, lag, ctl, busy=0.12, ba=0.05)
+        ctl.online.frontend_until = t + 0.3  # the front-end's progress when this window completes
+        clock[0] += 0.1
+        ctl.on_window(report)
+        levels.append(ctl.level)
+        t += 0.1
+    # risen after the window ending at 0.2 (front-end at 0.5): windows ending at 0.3, 0.4, 0.5 hold; 0.6 escalates
+    assert levels == [1, 1, 1, 1, 2, 2, 2], levels
+    report = _report(t, 1.2, ctl, busy=0.12, ba=0.05)
+    ctl.online.frontend_until = t + 0.3
+    ctl.on_window(report)
+    assert ctl.level == R.MAX_LEVEL  # beyond the hard bound: whatever was in flight
+
+
+def test_with_a_worker_a_busy_main_process_does_not_hold_the_ba_level(monkeypatch):
+    """With a worker the levels change the BA alone: a main process kept busy by a high event rate (here all of its
+    wall time) does not keep the BA at a level the worker has room below."""
+    clock = [100.0]
+    ctl = _worker_controller(monkeypatch, clock)
+    t = 0.2
+    ctl.on_window(_report(t, 1.1, ctl, busy=0.2, ba=0.05))  # beyond the hard bound: level 4 (the BA skipped)
+    assert ctl.level == R.MAX_LEVEL
+    measured, levels = [], []
+    mean_costs = ctl.mean_costs
+    ctl.mean_costs = lambda: measured.append(mean_costs()) or measured[-1]  # what the relax rule read
+    for _ in range(5):  # the worker busy half the time, the main process all of it, the lag under target
+        t += 0.1
+        clock[0] += 0.1
+        ctl.on_window(_report(t, 0.2, ctl, busy=0.05))
+        levels.append(ctl.level)
+    assert [m["main"] for m in measured if m] == [pytest.approx(1.0)], measured
+    # level 3 (a BA of 100 000 events on 1 of 2 windows: 0.05 / 2 per 0.1 s stride) predicted at 0.5 + 0.25
+    assert R.MAX_LEVEL - 1 in levels and ctl.predicted[-1] == pytest.approx(0.75, rel=0.02), (levels, ctl.predicted)
+
+
+def test_a_lag_under_half_the_target_relaxes_with_less_headroom(monkeypatch):
+    """The level below predicted at 0.9 of the worker's time: not taken while the lag is at two thirds of the target
+    (RELAX_HEADROOM 0.8), taken once it is under half the target (RELAX_HEADROOM_LOW_LAG)."""
+    clock = [100.0]
+    ctl = _worker_controller(monkeypatch, clock)
+    t = 0.2
+    ctl.on_window(_report(t, 1.1, ctl, busy=0.2, ba=0.05))
+    for lag in (0.2, 0.2, 0.2, 0.2, 0.2):
+        t += 0.1
+        clock[0] += 0.1
+        ctl.on_window(_report(t, lag, ctl, busy=0.065))
+    assert ctl.level == R.MAX_LEVEL and ctl.relax_headroom(0.2) == R.RELAX_HEADROOM
+    t += 0.1
+    clock[0] += 0.1
+    ctl.on_window(_report(t, 0.1, ctl, busy=0.065))
+    assert ctl.level == R.MAX_LEVEL - 1 and ctl.predicted[-1] == pytest.approx(0.9, rel=0.02)
