@@ -1,7 +1,9 @@
 """Event times and pixel bearings gathered into a buffer in one pass, Taichi + numpy twin.
 
 The back-end keeps every ``step``-th event as (t, bearing): the bearing is row y * width + x of the camera's
-per-pixel table (float32 (h w, 3), as ``Camera.bearings`` looks it up), copied as is; for an undistorted camera the
+per-pixel table (float32 (h w, 3), as ``Camera.bearings`` looks it up), copied as is into column j of a (3, m) array
+(one row per coordinate: the layout the back-end's kernels read, kernels/pano.py, so that a window's events reach
+them by a row-wise copy, not a transposition); for an undistorted camera the
 table's separable form (max(w, h), 3) serves: (lut[x, 0], lut[y, 1], lut[y, 2]), a few KB that stay in the
 cache where the per-pixel table (3.7 MB on VGA, 11 MB on HD) misses it for most events. One kernel reads the events
 where they are (a ring of capacity ``len(t)``: indices wrap) and writes straight into the caller's arrays, in place
@@ -22,8 +24,8 @@ _I64_1 = ti.types.ndarray(dtype=ti.i64, ndim=1)
 
 @ti.kernel
 def _gather_kernel(t: _F64_1, x: _U16_1, y: _U16_1, lut: _F32_2, prm: _I64_1, out_t: _F64_1, out_b: _F32_2):
-    """Row offset + j of out_t / out_b from event i = start + j step, less len(t) past the end (start < len(t),
-    (count - 1) step < len(t)), j < count."""
+    """Row offset + j of out_t, column offset + j of out_b (3, m), from event i = start + j step, less len(t) past the
+    end (start < len(t), (count - 1) step < len(t)), j < count."""
     start, step, count = ti.cast(prm[0], ti.i32), ti.cast(prm[1], ti.i32), ti.cast(prm[2], ti.i32)
     width, offset, separable = ti.cast(prm[3], ti.i32), ti.cast(prm[4], ti.i32), ti.cast(prm[5], ti.i32)
     capacity = t.shape[0]
@@ -41,17 +43,18 @@ def _gather_kernel(t: _F64_1, x: _U16_1, y: _U16_1, lut: _F32_2, prm: _I64_1, ou
             row_x = row_y
         k = offset + j
         out_t[k] = t[i]
-        out_b[k, 0] = lut[row_x, 0]
-        out_b[k, 1] = lut[row_y, 1]
-        out_b[k, 2] = lut[row_y, 2]
+        out_b[0, k] = lut[row_x, 0]
+        out_b[1, k] = lut[row_y, 1]
+        out_b[2, k] = lut[row_y, 2]
 
 def gather_numpy(t, x, y, lut, width: int, start: int, step: int, count: int, separable: bool = False) -> tuple:
-    """Twin of the kernel (test oracle): the times and bearings of events (start + j step) mod len(t), j < count."""
+    """Twin of the kernel (test oracle): the times and bearings (3, count) of events (start + j step) mod len(t),
+    j < count."""
     i = (start + step * np.arange(count, dtype=np.int64)) % len(t)
     xi, yi = x[i].astype(np.int64), y[i].astype(np.int64)
     if separable:
-        return t[i].copy(), np.stack([lut[xi, 0], lut[yi, 1], lut[yi, 2]], axis=1)
-    return t[i].copy(), lut[yi * width + xi]
+        return t[i].copy(), np.stack([lut[xi, 0], lut[yi, 1], lut[yi, 2]])
+    return t[i].copy(), np.ascontiguousarray(lut[yi * width + xi].T)
 
 
 class BearingGather:
@@ -65,7 +68,7 @@ class BearingGather:
         self._prm[3], self._prm[5] = width, bool(separable)
         self.lut = lut
         self._launch = None  # BoundLaunch, at the first call
-        self._no_t, self._no_b = np.zeros(1), np.zeros((1, 3), np.float32)  # bound between calls
+        self._no_t, self._no_b = np.zeros(1), np.zeros((3, 1), np.float32)  # bound between calls
         self._keys: list = []
 
     @staticmethod
@@ -74,11 +77,14 @@ class BearingGather:
 
     def __call__(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, start: int, step: int, count: int,
                  out_t: np.ndarray, out_b: np.ndarray, offset: int) -> None:
-        """Write events (start + j step) mod len(t), j < count, to rows offset + j of ``out_t`` and ``out_b``
-        (t float64, x and y uint16 of the same length; out_t float64, out_b (m, 3) float32 with room)."""
+        """Write events (start + j step) mod len(t), j < count, to row offset + j of ``out_t`` and column offset + j of
+        ``out_b`` (t float64, x and y uint16 of the same length; out_t float64 (m,), out_b float32 (3, m), with
+        room)."""
         if count <= 0:
             return
-        if offset + count > len(out_t) or out_b.shape[0] < len(out_t):
+        if out_b.ndim != 2 or out_b.shape[0] != 3:
+            raise ValueError(f"bearings go to a (3, m) array, not {out_b.shape}")
+        if offset + count > len(out_t) or out_b.shape[1] < len(out_t):
             raise ValueError(f"{count} events at row {offset} do not fit {len(out_t)} rows")
         if (count - 1) * step >= len(t) or max(len(t), len(out_t), len(self.lut)) >= 2 ** 31:
             raise ValueError(f"{count} events of step {step} pass {len(t)} rows")

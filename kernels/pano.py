@@ -781,23 +781,27 @@ class PanoIWE:
     per-window work over the whole map then (large maps). ``alpha`` may be changed after construction.
     ``alpha_from_density=(rho_g, lambda0)``: alpha = rho(I_L) / rho_g (Eq. 16-17) with I_L the local map of the
     FIRST evaluation (the optimiser's start, the initialization): no separate projection of the events for it.
+    ``bearings`` are (n, 3), or (3, n) with ``coordinate_rows`` (one row per coordinate, as the kernels read them and
+    the back-end's buffer keeps them: copied row by row instead of transposed).
     """
 
     def __init__(self, bearings, batch_s, batch_u, degree: int, width: int, height: int, sigma: float = 1.0,
                  global_map=None, alpha: float = 1.0, batch_size: int = 100, dtype=np.float32,
                  global_blurred=None, global_sums: tuple[float, float] | None = None, parts: int | None = None,
-                 alpha_from_density: tuple[float, float] | None = None, work: VoteWork | None = None):
+                 alpha_from_density: tuple[float, float] | None = None, work: VoteWork | None = None,
+                 coordinate_rows: bool = False):
         ensure_init()
         self.dtype = np.dtype(dtype)
         self.degree, self.width, self.height = int(degree), int(width), int(height)
         self.batch_size = int(batch_size)
         # one row per coordinate (3, n): the kernels' per-event loops load 8 consecutive events at once
-        rows = np.asarray(bearings).reshape(-1, 3)
+        src = np.asarray(bearings)
+        src = src.reshape(3, -1) if coordinate_rows else src.reshape(-1, 3).T
         if work is None:
-            self.bearings_t = np.ascontiguousarray(rows.T, dtype=self.dtype)
-        else:  # (a stride's transposed copy in memory already faulted in)
-            self.bearings_t = work.take("bearings_t", (3, len(rows)), self.dtype)
-            np.copyto(self.bearings_t, rows.T, casting="same_kind")
+            self.bearings_t = np.ascontiguousarray(src, dtype=self.dtype)
+        else:  # (a stride's copy in memory already faulted in)
+            self.bearings_t = work.take("bearings_t", src.shape, self.dtype)
+            np.copyto(self.bearings_t, src, casting="same_kind")
         n = self.bearings_t.shape[1]
         self.batch_s = np.ascontiguousarray(batch_s, dtype=np.int32).reshape(-1)
         self.batch_u = np.ascontiguousarray(batch_u, dtype=self.dtype).reshape(-1)

@@ -109,7 +109,9 @@ class StageClock:
 
 
 class _Buffer:
-    """Growing column buffer (times + bearings) that drops its settled head cheaply: the columns live in arrays with
+    """Growing column buffer (times + bearings) that drops its settled head cheaply: the bearings are kept one row per
+    coordinate, (3, capacity) float32, the layout the BA's and the settle's kernels read (kernels/pano.py): a window's
+    events reach them by a row-wise copy (or a take of a sample), not a transposition. The columns live in arrays with
     room past the end, a push writes only its own events in, and dropping the head moves a start index. Once the
     settled head is as large as the live part, the live part moves to the front (in place when no view of the arrays
     is held, else into new ones): at most one copy per event pushed, and the rows ever written stay within two live
@@ -123,7 +125,7 @@ class _Buffer:
 
     def __init__(self, horizon: float = 0.0):
         self.horizon = float(horizon)
-        self._tt, self._bb = np.zeros(0), np.zeros((0, 3), np.float32)
+        self._tt, self._bb = np.zeros(0), np.zeros((3, 0), np.float32)
         self._start = self._end = 0
 
     @property
@@ -132,27 +134,30 @@ class _Buffer:
 
     @property
     def b(self) -> np.ndarray:
-        return self._bb[self._start:self._end]
+        """The live bearings, (3, n): a view (rows ``capacity`` apart)."""
+        return self._bb[:, self._start:self._end]
 
     def push(self, t: np.ndarray, b: np.ndarray) -> None:
-        """Append copies (a live source may refill its arrays after the call)."""
+        """Append copies of times ``t`` and bearings ``b`` (n, 3) (a live source may refill its arrays after the
+        call)."""
         n = len(t)
         if not n:
             return
         tt, bb, row = self.reserve(n)
-        tt[row:row + n], bb[row:row + n] = t, b
+        tt[row:row + n], bb[:, row:row + n] = t, np.asarray(b).T
         self.commit(n)
 
     def reserve(self, n: int) -> tuple[np.ndarray, np.ndarray, int]:
-        """Room for ``n`` events past the end: (the whole time and bearing arrays, the row where they go), for a
-        writer that fills them in place; ``commit`` then counts them in."""
+        """Room for ``n`` events past the end: (the whole time (capacity,) and bearing (3, capacity) arrays, the row
+        (column of the bearings) where they go), for a writer that fills them in place; ``commit`` then counts them
+        in."""
         live = self._end - self._start
         if self._start >= live and self._start and live + n <= len(self._tt) \
                 and sys.getrefcount(self._tt) == sys.getrefcount(self._bb) == 2:
             # no view of the arrays outside (only this attribute and the call's argument refer to them, as
             # ndarray.resize checks): the live part moves to the front in place (no overlap), into rows already
             # faulted in
-            self._tt[:live], self._bb[:live] = self.t, self.b
+            self._tt[:live], self._bb[:, :live] = self.t, self.b
             self._start, self._end = 0, live
         if self._end + n > len(self._tt):
             cap = max(2 * (live + n), 1024)
@@ -161,11 +166,11 @@ class _Buffer:
                 cap = max(cap, int(self.GROWTH_SPANS * self.horizon * live / span))
             cap = max(min(cap, 2 ** 31 - 1), live + n)  # (the gather kernel's rows are 32-bit)
             try:
-                tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
+                tt, bb = np.empty(cap), np.empty((3, cap), np.float32)
             except MemoryError:  # a rate estimate beyond what the system maps: room for twice what is needed
                 cap = 2 * (live + n)
-                tt, bb = np.empty(cap), np.empty((cap, 3), np.float32)
-            tt[:live], bb[:live] = self.t, self.b
+                tt, bb = np.empty(cap), np.empty((3, cap), np.float32)
+            tt[:live], bb[:, :live] = self.t, self.b
             self._tt, self._bb, self._start, self._end = tt, bb, 0, live
         return self._tt, self._bb, self._end
 
@@ -179,12 +184,12 @@ class _Buffer:
         self._start += int(np.searchsorted(self.t, t, side="left"))
 
     def range(self, t0: float, t1: float, include_end: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Views of the events in [t0, t1) (or [t0, t1]). They stay valid: the buffer never writes where a view
-        can look (pushes go past the end; a full buffer moves to new arrays)."""
+        """Views of the events in [t0, t1) (or [t0, t1]): times (m,) and bearings (3, m). They stay valid: the
+        buffer never writes where a view can look (pushes go past the end; a full buffer moves to new arrays)."""
         times = self.t
         i0 = int(np.searchsorted(times, t0, side="left"))
         i1 = int(np.searchsorted(times, t1, side="right" if include_end else "left"))
-        return times[i0:i1], self.b[i0:i1]
+        return times[i0:i1], self.b[:, i0:i1]
 
 
 def _largest_angle(r_a: np.ndarray, r_b: np.ndarray) -> float:
@@ -388,7 +393,8 @@ class WindowObserver:
         behind its input (the real-time budget): work that can wait waits for idle time."""
 
     def settled(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
-        """The events of the stride starting at t0 went into the global map."""
+        """The events of the stride starting at t0 went into the global map: times (m,), bearings (3, m) (views of
+        the back-end's buffer: copy what is kept)."""
 
     def after_window(self, t_now: float) -> None:
         """The window slid: the events before t_now are settled."""
@@ -533,7 +539,8 @@ class SlidingWindowBackend:
     def push_written(self, n: int, write: Callable[[np.ndarray, np.ndarray, int], None],
                      complete_until: float) -> None:
         """Append ``n`` events (as ``push_events``) that ``write(times, bearings, row)`` puts in place: rows
-        row..row + n - 1 of the buffer's float64 time and (m, 3) float32 bearing arrays (no intermediate copy)."""
+        row..row + n - 1 of the buffer's float64 time array and columns row..row + n - 1 of its (3, m) float32 bearing
+        array (no intermediate copy)."""
         if n:
             times, bearings, row = self.events.reserve(n)
             write(times, bearings, row)
@@ -801,16 +808,19 @@ class SlidingWindowBackend:
         cfg, spline = self.cfg, self.spline
         sample = policy.even_sample_index(len(ev_t), cfg.backend_max_window_events if budget.ba_cap is None
                                           else budget.ba_cap)
-        if sample is not None:  # the sampled bearings (take: several times faster than ev_b[idx] on (n, 3) rows);
-            ev_b = np.take(ev_b, sample, axis=0)  # of the times only the batches' first and last are read
-        report.events_used = len(ev_b)
+        if sample is not None:  # the sampled bearings (3, k); of the times only the batches' first and last are read
+            taken = self._ba_work.take("sample", (3, len(sample)), np.float32)
+            for row, out in zip(ev_b, taken):  # row by row: a take along axis 1 of the buffer's view is ~5x slower
+                np.take(row, sample, out=out, mode="clip")  # (valid indices: "clip" writes out unbuffered)
+            ev_b = taken
+        report.events_used = ev_b.shape[1]
         first_free = policy.first_free_pose(spline.knot_times(), t0, moving_from, cfg)
         s, u = spline.support(batch_mid_times(ev_t, cfg.event_batch_size, index=sample))
         # alpha from the event densities of the initial local map and the global map (Eq. 16-17): PanoIWE takes
         # rho(I_L) from its first evaluation, the optimiser's start at the initialization
         rho_g = self.map.density
         problem = PanoIWE(ev_b, s, u, cfg.spline_degree, *self.map.ba_size, sigma=cfg.backend_blur_sigma,
-                          alpha=0.0, batch_size=cfg.event_batch_size,
+                          alpha=0.0, batch_size=cfg.event_batch_size, coordinate_rows=True,
                           global_blurred=self.map.blurred, global_sums=(self.map.g_sum, self.map.g_sq),
                           alpha_from_density=(rho_g, self.map.lambda0) if rho_g > 0 else None, work=self._ba_work)
         base = spline.control_R.copy()
@@ -821,17 +831,18 @@ class SlidingWindowBackend:
         step, perturbed = perturbation_objective(problem.cost_and_grad, base, first_free, gauge_free)
 
         def coarse(alpha: float):  # the same objective over every COARSE-th event (a cold start's first climb)
-            rows = np.arange(0, len(ev_b), COARSE)
+            rows = np.arange(0, ev_b.shape[1], COARSE)
             s_k, u_k = spline.support(batch_mid_times(ev_t, cfg.event_batch_size,
                                                       index=rows if sample is None else sample[rows]))
             # I_L holds 1/COARSE of the votes: alpha / COARSE keeps the balance of I_L and I_G (Eq. 18)
-            few = PanoIWE(ev_b[rows], s_k, u_k, cfg.spline_degree, *self.map.ba_size, sigma=cfg.backend_blur_sigma,
+            few = PanoIWE(ev_b[:, rows], s_k, u_k, cfg.spline_degree, *self.map.ba_size, sigma=cfg.backend_blur_sigma,
                           alpha=alpha / COARSE, batch_size=cfg.event_batch_size, global_blurred=self.map.blurred,
+                          coordinate_rows=True,
                           global_sums=(self.map.g_sum, self.map.g_sq), work=self._coarse_work)
             return perturbation_objective(few.cost_and_grad, base, first_free, gauge_free)[1]
 
         result, var0, scale = self._maximise(problem, perturbed, base, first_free, n_free, budget,
-                                             coarse=coarse if len(ev_b) >= COARSE_MIN_EVENTS else None)
+                                             coarse=coarse if ev_b.shape[1] >= COARSE_MIN_EVENTS else None)
         report.alpha = problem.alpha  # set by the first evaluation
         # the correction: how far the optimum moves the trajectory where the window's events are (not how far it
         # moves control poses, which the events may barely reach)
@@ -983,7 +994,7 @@ class SlidingWindowBackend:
                 # window per part
                 s, u = self.spline.support(mids)
                 local = PanoIWE(ev_b, s, u, cfg.spline_degree, self.width, self.height, sigma=self.map.sigma,
-                                alpha=0.0, batch_size=cfg.event_batch_size, parts=1,
+                                alpha=0.0, batch_size=cfg.event_batch_size, parts=1, coordinate_rows=True,
                                 work=self._settle_work).votes(self.spline.control_R)
                 if local is not None:
                     self.map.add_votes(*local, t0, moving=moving)

@@ -257,14 +257,14 @@ class LoopCloser(WindowObserver):
 
     # ---- notifications (from the back-end) ------------------------------------------------------------------------
     def settled(self, ev_t: np.ndarray, ev_b: np.ndarray, t0: float, moving: bool) -> None:
-        """Keep a subsample of one settled stride (1 of k, weight k)."""
+        """Keep a subsample of one settled stride (1 of k, weight k), its bearings as (k, 3) rows."""
         tic, cpu = time.perf_counter(), time.process_time()
         n = len(ev_t)
         stride = self.backend.cfg.backend_sliding_window_stride
         self._record_travel(float(t0), float(t0) + stride)
         cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * stride)), 1)
         k = max(int(math.ceil(n / cap)), 1)
-        t, b = ev_t[::k].copy(), ev_b[::k].copy()
+        t, b = ev_t[::k].copy(), np.ascontiguousarray(ev_b[:, ::k].T)
         self.chunks.append((t, b, n / len(t), float(t0), bool(moving)))
         self._stored += len(t)
         if self._stored > self.cfg.loop_max_stored_events:
@@ -341,7 +341,7 @@ class LoopCloser(WindowObserver):
         ev_t, ev_b = self.backend.events.range(t0, t1, include_end=True)
         cap = max(int(math.ceil(self.cfg.loop_stored_event_rate * (t1 - t0))), 1)  # as stored (settled())
         k = max(int(math.ceil(len(ev_t) / cap)), 1)
-        self._check(t1, ev_t[::k], ev_b[::k])
+        self._check(t1, ev_t[::k], ev_b[:, ::k].T)
         self._spent(tic, cpu)
 
     def after_window(self, t_now: float) -> None:

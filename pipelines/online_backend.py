@@ -120,7 +120,7 @@ def compile_backend(config: SlamConfig) -> float:
     problem.cost_and_grad(ctrl)
     problem.votes(ctrl)  # the settle's projection (votes only)
     BearingGather(b, 1)(np.zeros(1), np.zeros(1, np.uint16), np.zeros(1, np.uint16), 0, 1, 1, np.zeros(1),
-                        np.zeros((1, 3), np.float32), 0)  # the events' way into the window buffer
+                        np.zeros((3, 1), np.float32), 0)  # the events' way into the window buffer
     vote_map(b, np.eye(3)[None], w, h, batch_size=4, occupancy=(np.zeros(w, np.int32), np.zeros(h, np.int32)))
     return time.perf_counter() - tic
 
@@ -153,7 +153,7 @@ class BackendRunner:
         tic = time.perf_counter()
         # bound once here (a first call binds the kernel to its arrays: ~10 ms)
         self._bearing_gather()(np.zeros(1), np.zeros(1, np.uint16), np.zeros(1, np.uint16), 0, 1, 1, np.zeros(1),
-                               np.zeros((1, 3), np.float32), 0)
+                               np.zeros((3, 1), np.float32), 0)
         if self.config.loop.loop_closure:
             LoopCloser.prepare(self.config.loop, self.loop_slice_seconds)  # before the events, not at the first ones
         return seconds + time.perf_counter() - tic

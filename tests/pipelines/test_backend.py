@@ -227,10 +227,10 @@ def test_event_buffer_ranges_drops_and_views_stay_valid():
         if i0 % 2800 == 2100:
             start = int(np.searchsorted(t_all[:end], t_all[i0] - 0.02, side="left"))
             buf.drop_before(t_all[i0] - 0.02)
-        assert np.array_equal(buf.t, t_all[start:end]) and np.array_equal(buf.b, b_all[start:end])
+        assert np.array_equal(buf.t, t_all[start:end]) and np.array_equal(buf.b, b_all[start:end].T)
         t0, t1 = t_all[(start + end) // 2], t_all[end - 1]
         rt, rb = buf.range(t0, t1, include_end=True)
-        assert np.array_equal(rt, t_all[(start + end) // 2:end]) and np.array_equal(rb, b_all[(start + end) // 2:end])
+        assert np.array_equal(rt, t_all[(start + end) // 2:end]) and np.array_equal(rb, b_all[(start + end) // 2:end].T)
         most = max(most, end - start)
         assert len(buf._tt) <= 2 * (most + 700) + 1024  # bounded by the live events, not the 20 000 pushed
     (vt, _), expected = view
@@ -300,12 +300,12 @@ def test_event_buffer_moves_its_live_part_in_place_when_no_view_is_held(hold_vie
     buf.drop_before(t_all[1900])
     view = buf.range(t_all[1900], t_all[2000]) if hold_view else None
     tt, bb, row = buf.reserve(100)
-    tt[row:row + 100], bb[row:row + 100] = t_all[2024:2124], b_all[2024:2124]
+    tt[row:row + 100], bb[:, row:row + 100] = t_all[2024:2124], b_all[2024:2124].T
     buf.commit(100)
     assert (buf._tt.ctypes.data == address and len(buf._tt) == 2048) == (not hold_view)
-    assert np.array_equal(buf.t, t_all[1900:2124]) and np.array_equal(buf.b, b_all[1900:2124])
+    assert np.array_equal(buf.t, t_all[1900:2124]) and np.array_equal(buf.b, b_all[1900:2124].T)
     if hold_view:
-        assert np.array_equal(view[0], t_all[1900:2000]) and np.array_equal(view[1], b_all[1900:2000])
+        assert np.array_equal(view[0], t_all[1900:2000]) and np.array_equal(view[1], b_all[1900:2000].T)
     with pytest.raises(ValueError):
         buf.commit(len(buf._tt))
 
