@@ -167,5 +167,5 @@ def test_the_backend_reads_the_ring_in_place_as_it_would_read_copies(ti_runtime,
     every = Events.concatenate(stream)[::q]
     buffer = runner.backend.events
     assert np.array_equal(buffer.t, every.t)
-    assert buffer.b.dtype == np.float32 and np.array_equal(buffer.b, cam.bearings(every.x, every.y))
+    assert buffer.b.dtype == np.float32 and np.array_equal(buffer.b, cam.bearings(every.x, every.y).T)
     assert runner.backend.events_until == stream[-1].t[-1] and runner.events_read == sum(len(e) for e in stream)
