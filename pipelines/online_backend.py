@@ -19,7 +19,7 @@ from ti_cmax.events import Events
 from ti_cmax.spline import SO3Spline
 from ti_cmax.trajectory import Trajectory
 
-from .backend import SlidingWindowBackend, WindowReport
+from .backend import SlidingWindowBackend, WindowReport, event_buffer
 from .backend_policies import KEPT_INITIALISATION, REFITTED, WindowBudget
 from .frontend import every_qth
 from .loop_closure import LoopCloser
@@ -65,6 +65,8 @@ class OnlineBackend(Protocol):
     def finish(self, budget: WindowBudget) -> tuple[list[WindowReport], BackendOutcome]: ...
 
     def wait_ready(self) -> None: ...
+
+    def prepare(self, rate: float) -> None: ...
 
     def abort(self) -> None: ...
 
@@ -140,6 +142,7 @@ class BackendRunner:
         self.backend: SlidingWindowBackend | None = None
         self.events_read = 0
         self._gather = None  # BearingGather, bound at the first events
+        self._prepared = None  # the back-end's event buffer, when prepared for the stream's rate
         self.seconds = self.cpu_seconds = 0.0
 
     @property
@@ -183,7 +186,8 @@ class BackendRunner:
     def _start(self, t0: float) -> None:
         """Create the back-end at the first event (time ``t0``)."""
         if self.backend is None:
-            self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0))
+            self.backend = SlidingWindowBackend(self.config.backend, t0, self.r_start_of(t0), events=self._prepared)
+            self._prepared = None
             if self.config.loop.loop_closure:  # loop closure on revisits (pipelines/loop_closure.py)
                 self.backend.attach(LoopCloser(self.config.loop, self.backend, self.loop_slice_seconds))
 
@@ -265,6 +269,12 @@ class BackendRunner:
 
     def wait_ready(self) -> None:
         """Nothing to wait for: the kernels were compiled by ``compile``."""
+
+    def prepare(self, rate: float) -> None:
+        """Before the first events: the back-end's event buffer prepared for ``rate`` events/s (its memory written
+        once now, ``_Buffer.prepare``). A real-time replay calls it before its clock starts."""
+        if self.backend is None:
+            self._prepared = event_buffer(self.config.backend, rate)
 
     def abort(self) -> None:
         """Nothing runs beside the caller."""

@@ -5,7 +5,9 @@ checked and hot-pixel filtered as it is read (``OnlineSlam.screen``) and each ev
 :class:`~ti_cmax.pipelines.slam.OnlineSlam` (``push_screened``) once the wall clock reaches its timestamp
 (``realtime_speed`` sensor seconds per wall second). While the system keeps up, the replay sleeps until the next
 ``realtime_chunk`` of sensor time is due and pushes it; when it is behind, it pushes the due events without waiting
-(``HAND_OVER_EVENTS`` per push). No busy waiting.
+(``HAND_OVER_EVENTS`` per push). No busy waiting. The first chunk is read before the clock starts: its event rate
+prepares the back-end's event memory (``OnlineSlam.prepare``), whose first writes would otherwise be page faults in
+the first seconds of the replay.
 
 Lag: how far the processing is behind its input. When a window completes (wall time ``done``), lag = done -
 due(window end) - dead(window end), where due(t) is the wall time at which sensor time t was handed over in an ideal
@@ -86,6 +88,7 @@ report.json's "realtime" block says how long each level was in force (in sensor 
 """
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from typing import Iterable
@@ -485,6 +488,10 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     pending, eof = Events.empty(), False
     counts = {"read": 0, "handed": 0, "dropped": 0}
     cpu_io = sleep_s = 0.0
+    first = next(reader, None)  # read before the clock: its event rate sizes the back-end's memory
+    if first is not None and len(first) > 1:
+        online.prepare(len(first) / max(float(first.t[-1] - first.t[0]), 1e-6))
+    reader = itertools.chain([first] if first is not None else [], reader)
     handed_until = -math.inf  # sensor time up to which events were handed over
     cpu0 = time.process_time()
     bar, shown = progress(total=progress_total, desc="slam (real time)", unit="s"), None

@@ -257,6 +257,11 @@ class OnlineSlam:
         """With a worker process: wait until it has prepared its kernels (a live source starts after this)."""
         self.backend.wait_ready()
 
+    def prepare(self, rate: float) -> None:
+        """Before the first events: the back-end's memory for a stream of ``rate`` events/s, written once now
+        (``BackendRunner.prepare``; a real-time replay calls it before its clock starts)."""
+        self.backend.prepare(rate)
+
     def abort(self) -> None:
         """Stop at once (Ctrl-C): end the back-end worker process, if any, without waiting for its results."""
         self.backend.abort()

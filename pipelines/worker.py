@@ -295,6 +295,11 @@ class WorkerBackend:
         if not self._process.ready:
             self._receive(until="ready")
 
+    def prepare(self, rate: float) -> None:
+        """The worker's ``BackendRunner.prepare`` for ``rate`` events/s, waited for (before a replay's clock)."""
+        self._process.send(("prepare", float(rate)))
+        self._receive(until="prepared")
+
     def abort(self) -> None:
         """Stop the worker at once, without its results (Ctrl-C, or a stream without anything to refine)."""
         self._process.cancel()
@@ -542,6 +547,10 @@ def _serve(runner: BackendRunner, inbox, outbox, start: dict, ring: EventRing,
             continue
         if kind == "map":  # OnlineSlam.map(): a copy of the map of the events settled so far
             outbox.put(("map", runner.map()))
+            continue
+        if kind == "prepare":  # OnlineSlam.prepare(rate), before the first events
+            runner.prepare(*args)
+            outbox.put(("prepared", None))
             continue
         new = len(runner.backend.windows)
         if kind == "pose":

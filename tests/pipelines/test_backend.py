@@ -575,3 +575,46 @@ def test_a_cold_start_climbs_on_a_subsample_first(ti_runtime):
     pixel = 2 * np.pi / width
     assert np.abs(climbed - plain).max() < 0.1 * pixel
     assert np.abs(plain).max() > 0.3 * pixel  # a correction well beyond that agreement
+
+
+def test_a_prepared_event_buffer_takes_a_stream_at_its_rate_in_its_own_memory():
+    """Prepared for a rate, the buffer holds arrays sized as its first growth would size them, with the rows a steady
+    stream writes (two horizons) written once already: a stream at that rate, settled as the back-end settles it,
+    stays in those arrays and in those rows. Once events are held, ``prepare`` changes nothing."""
+    from ti_cmax.pipelines.backend import _Buffer
+
+    rate, horizon, chunk = 1e6, 0.03, 2000
+    buf = _Buffer(horizon)
+    buf.prepare(rate)
+    address, capacity = buf._tt.ctypes.data, len(buf._tt)
+    assert capacity == int(_Buffer.GROWTH_SPANS * horizon * rate) and buf._bb.shape == (3, capacity)
+    assert not buf._tt[:int(2 * horizon * rate)].any() and len(buf.t) == 0
+    t_all = np.arange(300_000) / rate
+    b_all = np.ones((len(t_all), 3), np.float32)
+    highest = 0
+    for i0 in range(0, len(t_all), chunk):
+        buf.push(t_all[i0:i0 + chunk], b_all[i0:i0 + chunk])
+        highest = max(highest, buf._end)
+        buf.drop_before(t_all[i0 + chunk - 1] - horizon)  # the live part: a horizon of events
+    assert buf._tt.ctypes.data == address and highest <= 2 * (horizon * rate + chunk)
+    buf.prepare(10 * rate)
+    assert buf._tt.ctypes.data == address
+
+
+def test_a_runner_prepared_for_a_rate_gives_its_back_end_that_buffer(ti_runtime):
+    """``BackendRunner.prepare`` before the first events: the back-end created at them takes the prepared buffer."""
+    from ti_cmax import Camera
+    from ti_cmax.config import SlamConfig
+    from ti_cmax.events import Events
+    from ti_cmax.pipelines.online_backend import BackendRunner
+    from ti_cmax.pipelines.sensor_defaults import resolve_config
+
+    cam = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    runner = BackendRunner(cam, resolve_config(SlamConfig(), cam))
+    runner.prepare(2e5)
+    prepared = runner._prepared._tt.ctypes.data
+    rng = np.random.default_rng(0)
+    n = 1000
+    runner.push_events(Events(np.sort(rng.uniform(0, 0.005, n)), rng.integers(0, 64, n).astype(np.uint16),
+                              rng.integers(0, 48, n).astype(np.uint16), np.ones(n, np.int8)))
+    assert runner.backend.events._tt.ctypes.data == prepared and len(runner.backend.events.t) == n

@@ -633,3 +633,24 @@ def test_a_lag_under_half_the_target_relaxes_with_less_headroom(monkeypatch):
     clock[0] += 0.1
     ctl.on_window(_report(t, 0.1, ctl, busy=0.065))
     assert ctl.level == R.MAX_LEVEL - 1 and ctl.predicted[-1] == pytest.approx(0.9, rel=0.02)
+
+
+def test_the_replay_prepares_the_back_end_for_the_rate_of_its_first_chunk_before_its_clock(short_sequence,
+                                                                                             monkeypatch):
+    """The first chunk is read before the clock starts; its event rate prepares the back-end's memory
+    (``OnlineSlam.prepare``) before any event is handed over."""
+    from ti_cmax.pipelines import slam
+
+    calls = []
+    prepare, push = slam.OnlineSlam.prepare, slam.OnlineSlam.push_screened
+    monkeypatch.setattr(slam.OnlineSlam, "prepare", lambda self, rate: calls.append(("prepare", rate))
+                        or prepare(self, rate))
+    monkeypatch.setattr(slam.OnlineSlam, "push_screened", lambda self, *a, **k: calls.append(("push", None))
+                        or push(self, *a, **k))
+    ev = short_sequence.events
+    chunks = [ev[i:i + 100_000] for i in range(0, len(ev), 100_000)]
+    cfg = load_config(SlamConfig, None, ["pano_height=256", "realtime_speed=4"])
+    R.run_realtime(iter(chunks), short_sequence.camera, cfg)
+    first = chunks[0]
+    assert calls[0] == ("prepare", pytest.approx(len(first) / (first.t[-1] - first.t[0])))
+    assert [c[0] for c in calls].count("prepare") == 1 and calls[1][0] == "push"
