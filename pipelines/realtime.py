@@ -91,7 +91,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from typing import Iterable
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -484,14 +484,10 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     ctl.idle_seconds = lambda: idle["sleep"] + online.backend.blocked_seconds
     ctl.blocked_seconds = lambda: online.backend.blocked_seconds
     online.wait_ready()  # the sensor clock starts once both processes can work
-    reader = iter(chunks)
+    reader = _prepared_reader(online, chunks)
     pending, eof = Events.empty(), False
     counts = {"read": 0, "handed": 0, "dropped": 0}
     cpu_io = sleep_s = 0.0
-    first = next(reader, None)  # read before the clock: its event rate sizes the back-end's memory
-    if first is not None and len(first) > 1:
-        online.prepare(len(first) / max(float(first.t[-1] - first.t[0]), 1e-6))
-    reader = itertools.chain([first] if first is not None else [], reader)
     handed_until = -math.inf  # sensor time up to which events were handed over
     cpu0 = time.process_time()
     bar, shown = progress(total=progress_total, desc="slam (real time)", unit="s"), None
@@ -542,6 +538,18 @@ def run_realtime(chunks: Iterable[Events], camera: Camera, config: SlamConfig = 
     result.report["realtime"] = _realtime_block(online, ctl, result, config, counts, backend_process, worker_threads)
     result.realtime_trace = ctl.trace
     return result
+
+
+def _prepared_reader(online, chunks: Iterable[Events]) -> Iterator[Events]:
+    """The chunks, the first read now (before the replay's clock starts): its event rate prepares the back-end's
+    event memory (``OnlineSlam.prepare``)."""
+    reader = iter(chunks)
+    first = next(reader, None)
+    if first is None:
+        return reader
+    if len(first) > 1:
+        online.prepare(len(first) / max(float(first.t[-1] - first.t[0]), 1e-6))
+    return itertools.chain([first], reader)
 
 
 def _hand_over(online, ctl: RealtimeController, batch: Events, last: float, min_pause: float, counts: dict):
