@@ -155,16 +155,26 @@ class _Buffer:
         done once events are held, without a horizon or a rate, or when the system cannot map the arrays."""
         if self._end > 0 or self.horizon <= 0 or not rate > 0:
             return
-        cap = min(int(self.GROWTH_SPANS * self.horizon * rate), 2 ** 31 - 1)
+        cap = self._rate_capacity(rate)
         if cap <= len(self._tt):
             return
         try:
-            tt, bb = np.empty(cap), np.empty((3, cap), np.float32)
+            tt, bb = self._new_arrays(cap)
         except MemoryError:
             return
         touched = min(cap, int(2 * self.horizon * rate))
         tt[:touched], bb[:, :touched] = 0.0, 0.0
         self._tt, self._bb, self._start, self._end = tt, bb, 0, 0
+
+    def _rate_capacity(self, rate: float) -> int:
+        """Rows for ``GROWTH_SPANS`` horizons of a stream of ``rate`` events/s (at most 2^31 - 1: the gather kernel's
+        rows are 32-bit)."""
+        return min(int(self.GROWTH_SPANS * self.horizon * rate), 2 ** 31 - 1)
+
+    @staticmethod
+    def _new_arrays(cap: int) -> tuple[np.ndarray, np.ndarray]:
+        """Unwritten time (cap,) and bearing (3, cap) arrays (MemoryError when the system cannot map them)."""
+        return np.empty(cap), np.empty((3, cap), np.float32)
 
     def reserve(self, n: int) -> tuple[np.ndarray, np.ndarray, int]:
         """Room for ``n`` events past the end: (the whole time (capacity,) and bearing (3, capacity) arrays, the row
@@ -182,13 +192,12 @@ class _Buffer:
             cap = max(2 * (live + n), 1024)
             span = float(self._tt[self._end - 1] - self._tt[self._start]) if live > 1 else 0.0
             if self.horizon > 0 and span >= self.MIN_RATE_SPAN:
-                cap = max(cap, int(self.GROWTH_SPANS * self.horizon * live / span))
+                cap = max(cap, self._rate_capacity(live / span))
             cap = max(min(cap, 2 ** 31 - 1), live + n)  # (the gather kernel's rows are 32-bit)
             try:
-                tt, bb = np.empty(cap), np.empty((3, cap), np.float32)
+                tt, bb = self._new_arrays(cap)
             except MemoryError:  # a rate estimate beyond what the system maps: room for twice what is needed
-                cap = 2 * (live + n)
-                tt, bb = np.empty(cap), np.empty((3, cap), np.float32)
+                tt, bb = self._new_arrays(2 * (live + n))
             tt[:live], bb[:, :live] = self.t, self.b
             self._tt, self._bb, self._start, self._end = tt, bb, 0, live
         return self._tt, self._bb, self._end
